@@ -1,0 +1,265 @@
+"""Pinhole cameras: parsing, validation, conversion and candidate-pose generators.
+
+A `Camera` stores a camera-to-world matrix in the OpenGL convention used by Blender and
+nerfstudio frames (+x right, +y up, the camera looks down -z) plus pinhole intrinsics in
+pixels. Pixel (i, j) has its centre at image coordinates (i + 0.5, j + 0.5), so a
+principal point of (W / 2, H / 2) is the image centre. Renderers use the OpenCV
+world-to-camera matrix (+y down, looks down +z) from `world_to_camera()`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import torch
+
+from .errors import InputError
+
+DEFAULT_MAX_SIZE = 4096
+ORTHONORMAL_TOL = 1e-3
+# OpenGL camera axes -> OpenCV camera axes: flip y and z.
+_GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A validated pinhole camera. `c2w`: [4, 4] float64, OpenGL convention."""
+
+    c2w: torch.Tensor
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    max_size: int = field(default=DEFAULT_MAX_SIZE, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        c2w = torch.as_tensor(self.c2w, dtype=torch.float64)
+        object.__setattr__(self, "c2w", c2w)
+        validate_pose(c2w, "transform_matrix")
+        for name in ("fx", "fy"):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value <= 0:
+                raise InputError(name, f"focal length must be a positive finite number, got {value}")
+        for name in ("cx", "cy"):
+            value = getattr(self, name)
+            if not math.isfinite(value):
+                raise InputError(name, f"principal point must be finite, got {value}")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if int(value) != value or value <= 0:
+                raise InputError(name, f"image size must be a positive integer, got {value}")
+            if value > self.max_size:
+                raise InputError(name, f"image size {value} exceeds the cap of {self.max_size} pixels")
+            object.__setattr__(self, name, int(value))
+
+    @property
+    def center(self) -> torch.Tensor:
+        """Camera centre in world coordinates: [3] float64."""
+        return self.c2w[:3, 3]
+
+    def world_to_camera(self) -> torch.Tensor:
+        """OpenCV world-to-camera view matrix [4, 4] float64 (+y down, looks down +z)."""
+        c2w_cv = self.c2w @ _GL_TO_CV
+        rot, trans = c2w_cv[:3, :3], c2w_cv[:3, 3]
+        w2c = torch.eye(4, dtype=torch.float64)
+        w2c[:3, :3] = rot.T
+        w2c[:3, 3] = -rot.T @ trans
+        return w2c
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same view at 1/factor of the resolution (factor 2 halves width and height)."""
+        if not math.isfinite(factor) or factor <= 0:
+            raise InputError("downscale", f"must be a positive number, got {factor}")
+        width = max(1, round(self.width / factor))
+        height = max(1, round(self.height / factor))
+        return self.resized(width, height)
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same view rendered at width x height; intrinsics scale with the size."""
+        sx, sy = width / self.width, height / self.height
+        return Camera(self.c2w, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
+                      width, height, self.max_size)
+
+    def to_frame(self) -> dict[str, Any]:
+        """nerfstudio-style frame dict, which `camera_from_frame` reads back exactly."""
+        return {
+            "fl_x": self.fx, "fl_y": self.fy, "cx": self.cx, "cy": self.cy,
+            "w": self.width, "h": self.height,
+            "transform_matrix": self.c2w.tolist(),
+        }
+
+
+def validate_pose(c2w: torch.Tensor, name: str = "transform_matrix") -> None:
+    """Raise `InputError` unless c2w is a finite 4x4 rigid transform (rotation tol 1e-3)."""
+    if tuple(c2w.shape) not in ((4, 4), (3, 4)):
+        raise InputError(name, f"must be a 4x4 (or 3x4) matrix, got shape {list(c2w.shape)}")
+    if not torch.isfinite(c2w).all():
+        raise InputError(name, "contains NaN or infinite values")
+    rot = c2w[:3, :3]
+    err = (rot.T @ rot - torch.eye(3, dtype=rot.dtype)).abs().max().item()
+    if err > ORTHONORMAL_TOL:
+        raise InputError(name, f"rotation is not orthonormal (max |R^T R - I| = {err:.3g} > {ORTHONORMAL_TOL})")
+    if torch.det(rot).item() < 0:
+        raise InputError(name, "rotation has determinant -1 (a reflection), not a rotation")
+    if c2w.shape[0] == 4 and (c2w[3] - torch.tensor([0, 0, 0, 1.0], dtype=c2w.dtype)).abs().max() > ORTHONORMAL_TOL:
+        raise InputError(name, "last row must be [0, 0, 0, 1]")
+
+
+def _number(frame: dict, key: str) -> float:
+    value = frame[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(key, f"must be a number, got {type(value).__name__}")
+    return float(value)
+
+
+def _matrix(value: Any) -> torch.Tensor:
+    try:
+        c2w = torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InputError("transform_matrix", f"must be a 4x4 list of numbers ({exc})") from None
+    validate_pose(c2w)
+    if c2w.shape[0] == 3:
+        c2w = torch.cat([c2w, torch.tensor([[0, 0, 0, 1.0]], dtype=torch.float64)])
+    return c2w
+
+
+def camera_from_frame(frame: dict, defaults: dict | None = None, *, width: int | None = None,
+                      height: int | None = None, max_size: int = DEFAULT_MAX_SIZE) -> Camera:
+    """Build a camera from a Blender or nerfstudio frame.
+
+    Intrinsics are looked up in the frame first, then in `defaults` (the top level of a
+    transforms.json). Blender style gives `camera_angle_x` (horizontal field of view) and
+    needs the image size from `w`/`h` or the `width`/`height` arguments; nerfstudio style
+    gives `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h`.
+    """
+    if not isinstance(frame, dict):
+        raise InputError("frame", f"must be an object, got {type(frame).__name__}")
+    if "transform_matrix" not in frame:
+        raise InputError("transform_matrix", "missing from frame")
+    merged = {**(defaults or {}), **frame}
+    c2w = _matrix(merged["transform_matrix"])
+    w = _number(merged, "w") if "w" in merged else width
+    h = _number(merged, "h") if "h" in merged else height
+    if w is None or h is None:
+        raise InputError("w", "image size unknown: give w and h (or load with the images)")
+    if "fl_x" in merged:
+        fx = _number(merged, "fl_x")
+        fy = _number(merged, "fl_y") if "fl_y" in merged else fx
+    elif "camera_angle_x" in merged:
+        angle = _number(merged, "camera_angle_x")
+        if not 0 < angle < math.pi:
+            raise InputError("camera_angle_x", f"field of view must lie in (0, pi) radians, got {angle}")
+        fx = 0.5 * w / math.tan(0.5 * angle)
+        if "camera_angle_y" in merged:
+            angle_y = _number(merged, "camera_angle_y")
+            if not 0 < angle_y < math.pi:
+                raise InputError("camera_angle_y", f"field of view must lie in (0, pi) radians, got {angle_y}")
+            fy = 0.5 * h / math.tan(0.5 * angle_y)
+        else:
+            fy = fx
+    else:
+        raise InputError("fl_x", "no focal length: give fl_x (nerfstudio) or camera_angle_x (Blender)")
+    cx = _number(merged, "cx") if "cx" in merged else w / 2
+    cy = _number(merged, "cy") if "cy" in merged else h / 2
+    if w != int(w) or h != int(h):
+        raise InputError("w", f"image size must be whole pixels, got {w} x {h}")
+    return Camera(c2w, fx, fy, cx, cy, int(w), int(h), max_size)
+
+
+def cameras_from_json(source: str | Path | dict | list, *, width: int | None = None,
+                      height: int | None = None, max_size: int = DEFAULT_MAX_SIZE) -> list[Camera]:
+    """Cameras from a transforms.json path, its parsed dict, or a plain list of frames."""
+    if isinstance(source, (str, Path)):
+        try:
+            source = json.loads(Path(source).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError("cameras", f"cannot read camera JSON {source}: {exc}") from None
+    if isinstance(source, list):
+        frames, defaults = source, {}
+    elif isinstance(source, dict) and isinstance(source.get("frames"), list):
+        frames, defaults = source["frames"], {k: v for k, v in source.items() if k != "frames"}
+    else:
+        raise InputError("frames", "expected a list of frames or an object with a 'frames' list")
+    if not frames:
+        raise InputError("frames", "no frames given")
+    cameras = []
+    for i, frame in enumerate(frames):
+        try:
+            cameras.append(camera_from_frame(frame, defaults, width=width, height=height, max_size=max_size))
+        except InputError as exc:
+            raise InputError(f"frames[{i}].{exc.field}", exc.reason) from None
+    return cameras
+
+
+def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0, 0, 1), *,
+            width: int, height: int, fov_x: float) -> Camera:
+    """A camera at `eye` looking at `target` (OpenGL c2w), `fov_x` in radians."""
+    eye_t = torch.tensor(eye, dtype=torch.float64)
+    forward = torch.tensor(target, dtype=torch.float64) - eye_t
+    if forward.norm() < 1e-12:
+        raise InputError("target", "eye and target coincide")
+    forward = forward / forward.norm()
+    up_t = torch.tensor(up, dtype=torch.float64)
+    right = torch.linalg.cross(forward, up_t)
+    if right.norm() < 1e-9:  # looking straight along `up`: pick any perpendicular axis
+        right = torch.linalg.cross(forward, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    right = right / right.norm()
+    true_up = torch.linalg.cross(right, forward)
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, true_up, -forward, eye_t
+    focal = 0.5 * width / math.tan(0.5 * fov_x)
+    return Camera(c2w, focal, focal, width / 2, height / 2, width, height)
+
+
+def hemisphere_cameras(count: int, *, center: Sequence[float] = (0, 0, 0), radius: float = 4.0,
+                       min_elevation: float = 0.0, max_elevation: float = math.pi / 2,
+                       width: int = 100, height: int = 100, fov_x: float = 0.6911112070083618,
+                       up: Sequence[float] = (0, 0, 1)) -> list[Camera]:
+    """`count` look-at poses spread evenly (Fibonacci spiral) over a band of the upper
+    hemisphere around `center`: candidate poses for next-best-view ranking.
+
+    Elevations are in radians above the plane normal to `up`; the full upper hemisphere
+    is [0, pi/2]. An orbit is min_elevation == max_elevation.
+    """
+    if count < 1:
+        raise InputError("count", f"must be at least 1, got {count}")
+    if radius <= 0 or not math.isfinite(radius):
+        raise InputError("radius", f"must be a positive finite number, got {radius}")
+    if not -math.pi / 2 <= min_elevation <= max_elevation <= math.pi / 2:
+        raise InputError("elevation", "need -pi/2 <= min_elevation <= max_elevation <= pi/2")
+    up_t = torch.tensor(up, dtype=torch.float64)
+    up_t = up_t / up_t.norm()
+    # Two axes perpendicular to `up` span the horizontal plane.
+    helper = torch.tensor([1.0, 0, 0], dtype=torch.float64)
+    if abs(float(helper @ up_t)) > 0.9:
+        helper = torch.tensor([0, 1.0, 0], dtype=torch.float64)
+    ax = torch.linalg.cross(up_t, helper)
+    ax = ax / ax.norm()
+    ay = torch.linalg.cross(up_t, ax)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    sin_lo, sin_hi = math.sin(min_elevation), math.sin(max_elevation)
+    center_t = torch.tensor(center, dtype=torch.float64)
+    cameras = []
+    for i in range(count):
+        # Uniform in sin(elevation) gives uniform area density on the sphere band.
+        s = sin_lo + (sin_hi - sin_lo) * ((i + 0.5) / count)
+        elevation = math.asin(min(1.0, max(-1.0, s)))
+        azimuth = golden * i
+        direction = (math.cos(elevation) * (math.cos(azimuth) * ax + math.sin(azimuth) * ay)
+                     + math.sin(elevation) * up_t)
+        eye = center_t + radius * direction
+        cameras.append(look_at(eye.tolist(), center_t.tolist(), up_t.tolist(),
+                               width=width, height=height, fov_x=fov_x))
+    return cameras
+
+
+def held_out_indices(total: int, used: Iterable[int]) -> list[int]:
+    """Indices of a split's frames that were not used for training, in order."""
+    used_set = set(used)
+    return [i for i in range(total) if i not in used_set]

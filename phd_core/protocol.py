@@ -1,0 +1,54 @@
+"""The one interface every renderer implements, and the only one PH-Dropout sees.
+
+A renderer holds a trained model whose dropout units are numbered 0..num_units-1
+(splats for Gaussian Splatting, first-layer hidden units for NeRF). `render` takes ONE
+camera and an optional batch of keep-masks and returns one image per mask. Everything
+that does not depend on the mask (projection, culling, intersection lists and depth
+order; ray sampling and the first layer) is computed once per call and shared by all
+masks: that is where batched PH-Dropout gets its speed.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+import torch
+
+from .cameras import Camera
+
+
+@runtime_checkable
+class Renderer(Protocol):
+    """What PH-Dropout, ranking and ensemble selection need from a model."""
+
+    kind: str  # "3dgs" or "nerf"
+
+    @property
+    def num_units(self) -> int:
+        """Number of dropout units (the width of a keep-mask)."""
+        ...
+
+    def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """Render `camera` once per keep-mask.
+
+        keep: [N, num_units] bool, True = unit kept; None renders the full model (N = 1).
+        Returns [N, H, W, 3] float32 RGB in [0, 1], composited on the background.
+        Dropped units are zeroed; survivors are not rescaled (unless the renderer was
+        built with an explicit rescale option).
+        """
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-ready facts about the model (kind, units, bounds, ...)."""
+        ...
+
+
+def check_keep(keep: torch.Tensor | None, num_units: int) -> torch.Tensor | None:
+    """Validate a keep-mask batch; returns it as bool [N, num_units] (or None)."""
+    if keep is None:
+        return None
+    if keep.dim() == 1:
+        keep = keep[None]
+    if keep.dim() != 2 or keep.shape[1] != num_units:
+        raise ValueError(f"keep must have shape [N, {num_units}], got {list(keep.shape)}")
+    return keep.to(torch.bool)
