@@ -1,0 +1,325 @@
+"""The 3D Gaussian Splatting model container and the standard (Inria) 3DGS PLY format.
+
+A `GaussianModel` holds G splats in the parameterisation the reference trainer stores:
+log-scales, unnormalised wxyz quaternions, opacity logits and spherical-harmonic colour
+coefficients. The PLY file holds one float32 record per splat with the properties
+
+    x y z nx ny nz f_dc_0..2 f_rest_0..f_rest_{3(K-1)-1} opacity scale_0..2 rot_0..3
+
+where f_rest is channel-major: f_rest index = c * (K - 1) + (k - 1) for colour channel c
+and SH coefficient k >= 1. The reader looks properties up by name and skips anything else
+(normals, `filter_3D`, colours, other elements), because the trainer's forks differ in
+exactly those details. Every malformed file raises `InputError` naming the PLY field.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import InputError
+
+SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
+_REST_COUNTS = {3 * (k - 1): k for k in SH_COEFFS}  # f_rest count -> K: 0, 9, 24, 45
+
+# PLY scalar type names (and their sized aliases) -> numpy type codes, without byte order.
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+
+
+@dataclass
+class GaussianModel:
+    """G Gaussian splats as a trainer stores them (all tensors float32)."""
+
+    means: torch.Tensor           # [G, 3] centres
+    log_scales: torch.Tensor      # [G, 3] log of the std along each local axis
+    quats: torch.Tensor           # [G, 4] rotation, wxyz, not necessarily normalised
+    opacity_logits: torch.Tensor  # [G] opacity before the sigmoid
+    sh: torch.Tensor              # [G, K, 3] SH colour coefficients, sh[:, 0] is the DC term
+
+    @property
+    def num_splats(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        return math.isqrt(self.sh.shape[1]) - 1
+
+    def validate(self) -> None:
+        """Raise `InputError` naming the field unless shapes agree, K is 1, 4, 9 or 16,
+        every tensor is float32 and every value is finite."""
+        described = {"means": "[G, 3]", "log_scales": "[G, 3]", "quats": "[G, 4]",
+                     "opacity_logits": "[G]", "sh": "[G, K, 3]"}
+        for name in described:
+            value = getattr(self, name)
+            if not isinstance(value, torch.Tensor):
+                raise InputError(name, f"must be a torch.Tensor, got {type(value).__name__}")
+            if value.dtype != torch.float32:
+                raise InputError(name, f"must be float32, got {value.dtype}")
+        num = self.means.shape[0] if self.means.dim() > 0 else -1
+        k = self.sh.shape[1] if self.sh.dim() == 3 else -1
+        expected = {"means": (num, 3), "log_scales": (num, 3), "quats": (num, 4),
+                    "opacity_logits": (num,), "sh": (num, k, 3)}
+        for name, shape in expected.items():
+            if tuple(getattr(self, name).shape) != shape:
+                detail = "" if name == "means" else f" with G = {num} (the rows of means)"
+                raise InputError(name, f"must have shape {described[name]}{detail}, "
+                                       f"got {list(getattr(self, name).shape)}")
+        if k not in SH_COEFFS:
+            raise InputError("sh", f"must have K = 1, 4, 9 or 16 coefficients (SH degree 0-3), got {k}")
+        for name in expected:
+            if not torch.isfinite(getattr(self, name)).all():
+                raise InputError(name, "contains NaN or infinite values")
+
+    def subset(self, index: torch.Tensor) -> "GaussianModel":
+        """The splats selected by `index`: [M] integer indices or a [G] bool mask."""
+        return GaussianModel(self.means[index], self.log_scales[index], self.quats[index],
+                             self.opacity_logits[index], self.sh[index])
+
+    def bounds(self, quantile: float = 0.0) -> tuple[list[float], list[float]]:
+        """Per-axis (low, high) of the splat centres: the min/max for quantile 0, else the
+        `quantile` and `1 - quantile` quantiles, which ignore stray floaters.
+        An empty model has no bounds: ([], [])."""
+        if not 0.0 <= quantile < 0.5:
+            raise InputError("quantile", f"must lie in [0, 0.5), got {quantile}")
+        if self.num_splats == 0:
+            return [], []
+        means = self.means.detach().cpu().double().numpy()  # [G, 3]
+        low, high = np.quantile(means, [quantile, 1.0 - quantile], axis=0)  # [3] each
+        return low.tolist(), high.tolist()
+
+
+def is_ply(head: bytes) -> bool:
+    """True if `head` (the first bytes of a file) starts like a PLY file."""
+    return head.startswith(b"ply\n") or head.startswith(b"ply\r\n")
+
+
+def property_names(num_coeffs: int) -> list[str]:
+    """The per-splat float properties of a standard 3DGS PLY with K = num_coeffs, in order."""
+    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+            + [f"f_rest_{i}" for i in range(3 * (num_coeffs - 1))]
+            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+# ----------------------------------------------------------------------------- reading
+
+@dataclass
+class _Element:
+    """One `element` of a PLY header: its name, record count and (name, type) properties.
+    A list property has type ("list", count_type, item_type)."""
+
+    name: str
+    count: int
+    properties: list[tuple[str, str | tuple[str, str, str]]]
+
+    def fixed_dtype(self, order: str) -> np.dtype | None:
+        """The numpy record type of one binary record, or None if a list makes it variable."""
+        if any(isinstance(kind, tuple) for _, kind in self.properties):
+            return None
+        return np.dtype([(name, order + _PLY_TYPES[kind]) for name, kind in self.properties])
+
+
+def _parse_header(data: bytes) -> tuple[str, list[_Element], int]:
+    """Parse the header: returns (format, elements, offset of the first body byte)."""
+    if not is_ply(data[:5]):
+        raise InputError("ply.header", "not a PLY file: it must start with a line 'ply'")
+    fmt = None
+    elements: list[_Element] = []
+    pos, line_no = 0, 0
+    while True:
+        end = data.find(b"\n", pos)
+        if end < 0:
+            raise InputError("ply.header", "the header has no 'end_header' line")
+        line_no += 1
+        try:
+            words = data[pos:end].decode("ascii").split()
+        except UnicodeDecodeError:
+            raise InputError("ply.header", f"line {line_no} is not ASCII text; the header has "
+                                           "no 'end_header' line before binary data") from None
+        pos = end + 1
+        if line_no == 1 or not words or words[0] in ("comment", "obj_info"):
+            continue
+        keyword = words[0]
+        if keyword == "end_header":
+            break
+        if keyword == "format":
+            if len(words) != 3 or words[1] not in _FORMATS:
+                raise InputError("ply.header", f"line {line_no}: unsupported format "
+                                               f"'{' '.join(words[1:])}', expected ascii or binary")
+            fmt = words[1]
+        elif keyword == "element":
+            if len(words) != 3:
+                raise InputError("ply.header", f"line {line_no}: expected 'element <name> <count>'")
+            name, count = words[1], words[2]
+            if not (count.isascii() and count.isdigit()):
+                raise InputError(f"ply.{name}", f"element count must be a non-negative integer, got '{count}'")
+            elements.append(_Element(name, int(count), []))
+        elif keyword == "property":
+            if not elements:
+                raise InputError("ply.header", f"line {line_no}: property before any element")
+            if len(words) == 5 and words[1] == "list":
+                kind: str | tuple[str, str, str] = ("list", words[2], words[3])
+                types = words[2:4]
+            elif len(words) == 3:
+                kind = words[1]
+                types = [kind]
+            else:
+                raise InputError("ply.header", f"line {line_no}: expected 'property <type> <name>'")
+            unknown = [t for t in types if t not in _PLY_TYPES]
+            if unknown:
+                raise InputError("ply.header", f"line {line_no}: unknown property type '{unknown[0]}'")
+            name = words[-1]
+            if any(name == existing for existing, _ in elements[-1].properties):
+                raise InputError(f"ply.{name}", f"property appears twice in element '{elements[-1].name}'")
+            elements[-1].properties.append((name, kind))
+        else:
+            raise InputError("ply.header", f"line {line_no}: unknown keyword '{keyword}'")
+    if fmt is None:
+        raise InputError("ply.header", "no 'format' line")
+    return fmt, elements, pos
+
+
+def _vertex_columns(data: bytes) -> tuple[dict[str, np.ndarray], int]:
+    """Locate the vertex element and return ({property name: [G] column}, G)."""
+    fmt, elements, offset = _parse_header(data)
+    names = [e.name for e in elements]
+    if "vertex" not in names:
+        raise InputError("ply.vertex", "the file has no 'element vertex'")
+    before, vertex = elements[:names.index("vertex")], elements[names.index("vertex")]
+    lists = [name for name, kind in vertex.properties if isinstance(kind, tuple)]
+    if lists:
+        raise InputError(f"ply.{lists[0]}", "vertex list properties are not part of a 3DGS PLY")
+    count = vertex.count
+
+    if fmt == "ascii":
+        # One record per line: skip the lines of the elements before vertex.
+        lines = data[offset:].splitlines()
+        skip = sum(e.count for e in before)
+        rows = lines[skip:skip + count]
+        if len(rows) < count:
+            raise InputError("ply.vertex", f"truncated: the header declares {count} vertices, "
+                                           f"the body holds {max(0, len(lines) - skip)}")
+        width = len(vertex.properties)
+        tokens = []
+        for i, row in enumerate(rows):
+            words = row.split()
+            if len(words) != width:
+                raise InputError("ply.vertex", f"vertex {i} has {len(words)} values, the header declares {width}")
+            tokens.extend(words)
+        try:
+            values = np.array(tokens, dtype=np.float64).reshape(count, width)  # [G, P]
+        except ValueError as exc:
+            raise InputError("ply.vertex", f"the ASCII body holds a value that is not a number ({exc})") from None
+        return {name: values[:, j] for j, (name, _) in enumerate(vertex.properties)}, count
+
+    order = _FORMATS[fmt]
+    for element in before:
+        dtype = element.fixed_dtype(order)
+        if dtype is None:
+            raise InputError("ply.header", f"element '{element.name}' precedes vertex and has a list "
+                                           "property, so the vertex data cannot be located")
+        offset += element.count * dtype.itemsize
+    dtype = vertex.fixed_dtype(order)
+    available = len(data) - offset
+    if available < count * dtype.itemsize:
+        raise InputError("ply.vertex", f"truncated: the header declares {count} vertices of "
+                                       f"{dtype.itemsize} bytes ({count * dtype.itemsize} bytes), "
+                                       f"only {max(0, available)} bytes follow")
+    records = np.frombuffer(data, dtype, count=count, offset=offset)  # [G] structured
+    return {name: records[name] for name, _ in vertex.properties}, count
+
+
+def parse_ply(data: bytes, name: str = "model") -> GaussianModel:
+    """Read a 3DGS PLY held in memory (an upload); `name` only labels error messages."""
+    try:
+        return _model_from_columns(*_vertex_columns(data))
+    except InputError as exc:
+        raise InputError(exc.field, f"{exc.reason} (in {name})") from None
+
+
+def _model_from_columns(columns: dict[str, np.ndarray], count: int) -> GaussianModel:
+    """Gather the used properties by name into a float32 model, checking every value."""
+    n_rest = sum(name.startswith("f_rest_") for name in columns)
+    if n_rest not in _REST_COUNTS:
+        raise InputError("ply.f_rest", f"found {n_rest} f_rest properties; SH degree 0, 1, 2 or 3 "
+                                       "needs 0, 9, 24 or 45")
+    k = _REST_COUNTS[n_rest]
+    used = [name for name in property_names(k) if name not in ("nx", "ny", "nz")]
+    missing = [name for name in used if name not in columns]
+    if missing:
+        field = "ply.f_rest" if missing[0].startswith("f_rest_") else f"ply.{missing[0]}"
+        raise InputError(field, f"required property missing (all missing: {', '.join(missing)})")
+    packed = np.empty((count, len(used)), dtype=np.float32)  # [G, 14 + 3(K-1)]
+    for j, prop in enumerate(used):
+        packed[:, j] = columns[prop]
+    finite = np.isfinite(packed)
+    if not finite.all():
+        row, col = np.argwhere(~finite)[0]
+        raise InputError(f"ply.{used[col]}", f"vertex {row} is {packed[row, col]}; every value must be finite")
+
+    values = torch.from_numpy(packed)
+    dc = values[:, 3:6]  # [G, 3]
+    higher = values[:, 6:6 + n_rest].reshape(count, 3, k - 1).transpose(1, 2)  # [G, K-1, 3]
+    return GaussianModel(
+        means=values[:, 0:3].clone(),
+        log_scales=values[:, 7 + n_rest:10 + n_rest].clone(),
+        quats=values[:, 10 + n_rest:14 + n_rest].clone(),
+        opacity_logits=values[:, 6 + n_rest].clone(),
+        sh=torch.cat([dc[:, None, :], higher], dim=1).contiguous(),
+    )
+
+
+def read_ply(path: str | Path) -> GaussianModel:
+    """Read a standard 3DGS PLY file (binary either endianness, or ASCII)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError("ply.path", f"cannot read {path}: {exc.strerror or exc}") from None
+    return parse_ply(data, path.name)
+
+
+# ----------------------------------------------------------------------------- writing
+
+def write_ply(model: GaussianModel, path: str | Path) -> None:
+    """Write `model` as a standard binary little-endian 3DGS PLY (normals zero).
+
+    Atomic: the bytes go to a temporary file in the same directory, which replaces `path`
+    only once complete, so a failure never leaves a partial file or clobbers an old one.
+    """
+    model.validate()
+    path = Path(path)
+    count, k = model.num_splats, model.sh.shape[1]
+    sh = model.sh.detach().cpu()  # [G, K, 3]
+    rest = sh[:, 1:, :].transpose(1, 2).reshape(count, 3 * (k - 1))  # channel-major [G, 3(K-1)]
+    packed = torch.cat([
+        model.means.detach().cpu(), torch.zeros(count, 3, dtype=torch.float32), sh[:, 0, :], rest,
+        model.opacity_logits.detach().cpu()[:, None], model.log_scales.detach().cpu(),
+        model.quats.detach().cpu(),
+    ], dim=1)  # [G, 17 + 3(K-1)]
+    header = "".join(["ply\n", "format binary_little_endian 1.0\n", f"element vertex {count}\n",
+                      *(f"property float {n}\n" for n in property_names(k)), "end_header\n"])
+    body = packed.numpy().astype("<f4").tobytes()
+
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(body)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
