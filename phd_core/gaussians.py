@@ -15,8 +15,6 @@ exactly those details. Every malformed file raises `InputError` naming the PLY f
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +22,7 @@ import numpy as np
 import torch
 
 from .errors import InputError
+from .fileio import write_bytes_atomic
 
 SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
 _REST_COUNTS = {3 * (k - 1): k for k in SH_COEFFS}  # f_rest count -> K: 0, 9, 24, 45
@@ -312,14 +311,4 @@ def write_ply(model: GaussianModel, path: str | Path) -> None:
                       *(f"property float {n}\n" for n in property_names(k)), "end_header\n"])
     body = packed.numpy().astype("<f4").tobytes()
 
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(header.encode("ascii"))
-            f.write(body)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    write_bytes_atomic(path, header.encode("ascii") + body)

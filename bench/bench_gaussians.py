@@ -1,0 +1,95 @@
+"""3DGS on lego_200 at 100x100: training quality and time, render time, batched keep-masks.
+
+    python bench/bench_gaussians.py [--iterations 5000] [--skip-train]
+
+Trains with 100 and with 16 training views, scores 25 evenly spaced test views (PSNR,
+SSIM), times single renders at 100x100 and 200x200, and compares one batched render of
+N keep-masks with N separate renders (same process, same model, so the ratio is fair).
+Models go to runs/lego{100,16}/model.ply; numbers to bench/results/gaussians.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+from phd_core.data import load_blender
+from phd_core.fileio import write_json_atomic
+from phd_core.gaussian_train import train_gaussians
+from phd_core.metrics import psnr, ssim
+from phd_core.models import load_model
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "lego_200"
+
+
+def best_of(fn, repeats: int = 3) -> float:
+    """Best wall time of `repeats` calls (the least disturbed by other load)."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def evaluate(model_path: Path, test) -> dict:
+    renderer = load_model(model_path)
+    images = torch.cat([renderer.render(c) for c in test.cameras])
+    return {"psnr": round(psnr(images, test.images), 2), "ssim": round(float(ssim(images, test.images).mean()), 4),
+            "splats": renderer.num_units}
+
+
+def speed(model_path: Path, masks: int) -> dict:
+    renderer = load_model(model_path)
+    test = load_blender(DATA, "test", downscale=1, views=[0], with_images=False)
+    out = {}
+    for size in (100, 200):
+        cam = test.cameras[0].resized(size, size)
+        keep = torch.rand(masks, renderer.num_units, generator=torch.Generator().manual_seed(0)) >= 0.2
+        single = best_of(lambda: renderer.render(cam))
+        batched = best_of(lambda: renderer.render(cam, keep))
+        separate = best_of(lambda: [renderer.render(cam, keep[i:i + 1]) for i in range(masks)], repeats=1)
+        out[f"{size}x{size}"] = {"render_s": round(single, 4), f"batched_{masks}_s": round(batched, 3),
+                                 f"separate_{masks}_s": round(separate, 3),
+                                 "speedup": round(separate / batched, 2)}
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--iterations", type=int, default=None, help="training steps (default: the trainer's)")
+    parser.add_argument("--skip-train", action="store_true", help="reuse runs/lego{100,16}/model.ply")
+    parser.add_argument("--masks", type=int, default=16)
+    args = parser.parse_args()
+    test = load_blender(DATA, "test", downscale=2, views=25)
+    results = {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                           "torch": torch.__version__, "threads": torch.get_num_threads()},
+               "settings": {"downscale": 2, "test_views": 25, "masks": args.masks}, "models": {}}
+    for views in (16, 100):
+        path = ROOT / "runs" / f"lego{views}" / "model.ply"
+        entry: dict = {}
+        if not args.skip_train:
+            start = time.perf_counter()
+            train_gaussians(DATA, views=views, downscale=2, iterations=args.iterations, out=path, progress=False)
+            entry["train_s"] = round(time.perf_counter() - start, 1)
+        else:
+            entry["train_s"] = json.loads(path.with_suffix(".json").read_text())["train_seconds"]
+        entry.update(evaluate(path, test))
+        entry["speed"] = speed(path, args.masks)
+        results["models"][f"{views}_views"] = entry
+        print(views, "views:", json.dumps(entry), flush=True)
+    out = ROOT / "bench" / "results" / "gaussians.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out, results)
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()

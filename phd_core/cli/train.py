@@ -1,0 +1,49 @@
+"""`phd train`: fit a 3DGS (default) or NeRF model to a Blender-format dataset."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("train", help="train a 3DGS or NeRF model on a Blender dataset",
+                              description="Train on the train split; saves the model with its training cameras.")
+    p.add_argument("--model", choices=("3dgs", "nerf"), default="3dgs", help="model family (default 3dgs)")
+    p.add_argument("--data", required=True, type=Path, help="dataset directory (transforms_train.json)")
+    p.add_argument("--views", default="16",
+                   help="number of evenly spaced training views, or a comma-separated index list (default 16)")
+    p.add_argument("--downscale", type=float, default=2.0, help="image downscale factor (default 2)")
+    p.add_argument("--iterations", type=int, default=None, help="optimisation steps (default: the trainer's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, type=Path, help="output file (.ply for 3dgs, .nerf for nerf)")
+    p.add_argument("--encoding", choices=("pe", "spe", "hash"), default="pe", help="NeRF input encoding")
+    p.add_argument("--freenerf", action="store_true", help="NeRF: FreeNeRF frequency and occlusion regularisation")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def parse_views(text: str) -> int | list[int]:
+    from ..errors import InputError
+    try:
+        return [int(v) for v in text.split(",")] if "," in text else int(text)
+    except ValueError:
+        raise InputError("views", f"expected a count or comma-separated indices, got {text!r}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    views = parse_views(args.views)
+    started = time.perf_counter()
+    if args.model == "nerf":
+        from ..nerf_train import train_nerf
+        renderer = train_nerf(data=args.data, views=views, downscale=args.downscale, encoding=args.encoding,
+                              freenerf=args.freenerf, iterations=args.iterations, seed=args.seed, out=args.out,
+                              progress=not args.quiet)
+    else:
+        from ..gaussian_train import train_gaussians
+        renderer = train_gaussians(args.data, views=views, downscale=args.downscale, iterations=args.iterations,
+                                   seed=args.seed, out=args.out, progress=not args.quiet)
+    print(f"trained {renderer.kind} with {renderer.num_units} dropout units in "
+          f"{time.perf_counter() - started:.1f} s -> {args.out}")
+    return 0

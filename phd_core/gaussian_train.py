@@ -1,0 +1,350 @@
+"""Fit a 3D Gaussian Splatting model to a Blender-format dataset on the CPU.
+
+The recipe is the reference one (Kerbl et al. 2023) scaled to short CPU runs:
+L1 + 0.2 D-SSIM, Adam with per-parameter learning rates and an exponentially decaying
+position rate, adaptive density control (clone small / split large splats whose
+screen-space gradient is high, prune transparent ones) and an opacity reset. The
+schedule is expressed in fractions of the run, so it holds for any iteration count.
+
+What the scene needs is derived from the data, not configured:
+- bounds: from the cameras (the point their optical axes pass closest to, and the
+  extent every camera sees);
+- initial splats: carved from the training alpha masks where the data has them (a point
+  is kept when every training view that sees it sees foreground there), coloured by the
+  pixels it projects to; uniform in the bounds otherwise;
+- splat budget: a multiple of the pixels in one training view.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+from tqdm import tqdm
+
+from .cameras import Camera
+from .data import Dataset, load_blender
+from .errors import InputError
+from .fileio import write_json_atomic
+from .gaussian_render import SH_C0, GaussianRenderer, rasterize
+from .gaussians import GaussianModel, write_ply
+from .metrics import ssim
+
+SIDECAR_FORMAT = "phd-3dgs-sidecar/1"
+
+
+@dataclass
+class TrainConfig:
+    iterations: int = 2000
+    sh_degree: int = 3
+    ssim_weight: float = 0.2
+    lr_means: float = 1.6e-4          # times the scene extent, decays to 1% over the run
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 2.5e-3 / 20
+    lr_opacity: float = 0.05
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    init_points: int = 6000
+    splats_per_pixel: float = 4.0     # budget: this many splats per pixel of one view
+    densify_from: float = 0.05        # fractions of the run
+    densify_until: float = 0.6
+    densify_every: int = 100
+    grad_threshold: float = 2e-4      # mean screen-space gradient (NDC units, as the reference)
+    dense_fraction: float = 0.01      # splats larger than this times the extent are split
+    opacity_reset_every: float = 0.3  # fraction of the run; 0 disables
+    min_opacity: float = 0.005
+    sh_up_every: float = 0.1          # raise the active SH degree every this fraction of the run
+    seed: int = 0
+    tile: int = 4
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def validate(self) -> None:
+        if self.iterations < 1:
+            raise InputError("iterations", f"must be at least 1, got {self.iterations}")
+        if not 0 <= self.sh_degree <= 3:
+            raise InputError("sh_degree", f"must be 0..3, got {self.sh_degree}")
+        if self.init_points < 1:
+            raise InputError("init_points", f"must be at least 1, got {self.init_points}")
+
+
+# ----------------------------------------------------------------------------- scene
+
+def scene_bounds(cameras: Sequence[Camera]) -> tuple[torch.Tensor, float]:
+    """Centre [3] and half-extent of the region the cameras look at.
+
+    The centre is the least-squares point closest to every optical axis; the half-extent
+    is the largest radius around it that every camera sees in full.
+    """
+    eye = torch.stack([c.center for c in cameras])                      # [V, 3]
+    axis = -torch.stack([c.c2w[:3, 2] for c in cameras])                # [V, 3] viewing directions
+    proj = torch.eye(3, dtype=torch.float64) - axis[:, :, None] * axis[:, None, :]  # [V, 3, 3]
+    if len(cameras) == 1 or torch.linalg.matrix_rank(proj.sum(0)) < 3:
+        centre = eye[0] + axis[0] * 4.0
+    else:
+        centre = torch.linalg.solve(proj.sum(0), (proj @ eye[:, :, None]).sum(0)).squeeze(1)
+    dist = (eye - centre).norm(dim=-1)
+    half_fov = torch.tensor([min(math.atan(c.width / (2 * c.fx)), math.atan(c.height / (2 * c.fy)))
+                             for c in cameras], dtype=torch.float64)
+    extent = float((dist * torch.sin(half_fov)).min())
+    return centre, extent
+
+
+def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
+                 gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Initial points [P, 3] and colours [P, 3].
+
+    With alpha masks: a grid over the bounds, keeping points that every view which sees
+    them sees as foreground (alpha > 0.5): the visual hull. Colours are the mean of the
+    pixels the points project to. Without masks: uniform in the bounds, grey.
+    """
+    if data.alphas is None:
+        pts = centre + (torch.rand(count, 3, generator=gen, dtype=torch.float64) * 2 - 1) * extent
+        return pts.float(), torch.full((count, 3), 0.5)
+    res = 64
+    axis = torch.linspace(-extent, extent, res, dtype=torch.float64)
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + centre
+    inside = torch.ones(len(grid), dtype=torch.bool)
+    colour_sum = torch.zeros(len(grid), 3, dtype=torch.float64)
+    seen = torch.zeros(len(grid))
+    for cam, image, alpha in zip(data.cameras, data.images, data.alphas):
+        w2c = cam.world_to_camera()
+        p = grid @ w2c[:3, :3].T + w2c[:3, 3]
+        z = p[:, 2].clamp_min(1e-6)
+        u = (cam.fx * p[:, 0] / z + cam.cx).floor().long()
+        v = (cam.fy * p[:, 1] / z + cam.cy).floor().long()
+        in_view = (p[:, 2] > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        uu, vv = u.clamp(0, cam.width - 1), v.clamp(0, cam.height - 1)
+        foreground = alpha[vv, uu] > 0.5
+        inside &= ~in_view | foreground
+        colour_sum += torch.where(in_view[:, None], image[vv, uu].double(), 0.0)
+        seen += in_view.float()
+    hull = inside.nonzero().squeeze(1)
+    if len(hull) == 0:
+        raise InputError("data", "the training alpha masks leave no foreground: nothing to fit")
+    pick = hull[torch.randint(len(hull), (count,), generator=gen)]
+    voxel = 2 * extent / (res - 1)
+    jitter = (torch.rand(count, 3, generator=gen, dtype=torch.float64) - 0.5) * voxel
+    colours = colour_sum[pick] / seen[pick].clamp_min(1)[:, None]
+    return (grid[pick] + jitter).float(), colours.float()
+
+
+def initial_model(points: torch.Tensor, colours: torch.Tensor, sh_degree: int, extent: float,
+                  gen: torch.Generator) -> GaussianModel:
+    """Small isotropic splats at `points` with 10% opacity and DC colour from `colours`."""
+    n = len(points)
+    spacing = extent * 2 / max(1.0, n ** (1 / 3))    # mean distance between points
+    sh = torch.zeros(n, (sh_degree + 1) ** 2, 3)
+    sh[:, 0] = (colours - 0.5) / SH_C0
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1.0
+    return GaussianModel(
+        means=points.clone(),
+        log_scales=torch.full((n, 3), math.log(spacing * 0.5)),
+        quats=quats,
+        opacity_logits=torch.full((n,), math.log(0.1 / 0.9)),
+        sh=sh,
+    )
+
+
+# ----------------------------------------------------------------------------- optimiser
+
+PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
+
+
+class Splats:
+    """Trainable splat parameters with their Adam state, resized by densification."""
+
+    def __init__(self, model: GaussianModel, config: TrainConfig, extent: float):
+        tensors = {"means": model.means, "log_scales": model.log_scales, "quats": model.quats,
+                   "opacity_logits": model.opacity_logits, "sh_dc": model.sh[:, :1], "sh_rest": model.sh[:, 1:]}
+        self.params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in tensors.items()}
+        self.lr_means = config.lr_means * extent
+        lrs = {"means": self.lr_means, "log_scales": config.lr_scales, "quats": config.lr_quats,
+               "opacity_logits": config.lr_opacity, "sh_dc": config.lr_sh_dc, "sh_rest": config.lr_sh_rest}
+        self.optimizer = torch.optim.Adam([{"params": [self.params[k]], "lr": lrs[k], "name": k} for k in PARAMS],
+                                          eps=1e-15)
+
+    def model(self, active_degree: int | None = None) -> GaussianModel:
+        sh = torch.cat([self.params["sh_dc"], self.params["sh_rest"]], dim=1)
+        if active_degree is not None:   # unused higher bands contribute nothing yet
+            sh = sh[:, : (active_degree + 1) ** 2]
+        return GaussianModel(self.params["means"], self.params["log_scales"], self.params["quats"],
+                             self.params["opacity_logits"], sh)
+
+    def set_means_lr(self, fraction: float) -> None:
+        """Log-linear decay of the position rate to 1% of its start over the run."""
+        lr = self.lr_means * (0.01 ** fraction)
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = lr
+
+    def replace(self, select: torch.Tensor, extra: dict[str, torch.Tensor] | None = None) -> None:
+        """Keep rows `select` (bool [G]) and append `extra` rows; Adam state follows, new rows start at 0."""
+        for group in self.optimizer.param_groups:
+            name = group["name"]
+            old = group["params"][0]
+            state = self.optimizer.state.pop(old, None)
+            kept = old.detach()[select]
+            added = extra[name] if extra else kept[:0]
+            new = torch.nn.Parameter(torch.cat([kept, added]).contiguous())
+            if state:
+                for key in ("exp_avg", "exp_avg_sq"):
+                    state[key] = torch.cat([state[key][select], torch.zeros_like(added)])
+                self.optimizer.state[new] = state
+            group["params"][0] = new
+            self.params[name] = new
+
+    @property
+    def count(self) -> int:
+        return self.params["means"].shape[0]
+
+
+def densify(splats: Splats, grad_norm: torch.Tensor, config: TrainConfig, extent: float, budget: int,
+            gen: torch.Generator) -> None:
+    """Clone small and split large high-gradient splats; prune transparent ones."""
+    p = {k: v.detach() for k, v in splats.params.items()}
+    scales = p["log_scales"].exp().max(dim=-1).values
+    grow = grad_norm >= config.grad_threshold
+    room = max(0, budget - splats.count)
+    if grow.sum() > room:   # over budget: grow only the highest gradients
+        top = torch.topk(torch.where(grow, grad_norm, torch.zeros_like(grad_norm)), room).indices
+        grow = torch.zeros_like(grow)
+        grow[top] = True
+    clone = grow & (scales <= config.dense_fraction * extent)
+    split = grow & ~clone
+    extra = {k: v[clone] for k, v in p.items()}
+    # Split: two children sampled from the parent's Gaussian, 1/1.6 of its size.
+    idx = split.nonzero().squeeze(1).repeat(2)
+    if len(idx):
+        from .gaussian_render import quaternion_to_rotation
+        rot = quaternion_to_rotation(p["quats"][idx])
+        std = p["log_scales"][idx].exp()
+        offset = (rot @ (torch.randn(len(idx), 3, generator=gen) * std)[..., None]).squeeze(-1)
+        children = {k: v[idx] for k, v in p.items()}
+        children["means"] = children["means"] + offset
+        children["log_scales"] = children["log_scales"] - math.log(1.6)
+        extra = {k: torch.cat([extra[k], children[k]]) for k in p}
+    opacity = torch.sigmoid(p["opacity_logits"])
+    keep = ~split & (opacity >= config.min_opacity)
+    splats.replace(keep, extra)
+
+
+# ----------------------------------------------------------------------------- training
+
+def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downscale: float = 2,
+                    iterations: int | None = None, seed: int = 0, out: str | Path,
+                    progress: bool = True, **overrides: Any) -> GaussianRenderer:
+    """Train on the `train` split of a Blender dataset and write `out` (PLY) plus the
+    sidecar `<stem>.json` with the training cameras, the views and the settings."""
+    config = TrainConfig(seed=seed, **overrides)
+    if iterations is not None:
+        config.iterations = iterations
+    config.validate()
+    dataset = load_blender(data, "train", downscale=downscale, views=views)
+    started = time.perf_counter()
+    model, history = fit(dataset, config, progress=progress)
+    seconds = time.perf_counter() - started
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(model, out)
+    sidecar = {
+        "format": SIDECAR_FORMAT,
+        "dataset": str(Path(data).resolve()),
+        "split": "train",
+        "view_indices": dataset.indices,
+        "downscale": downscale,
+        "background": list(dataset.background),
+        "training_cameras": [c.to_frame() for c in dataset.cameras],
+        "settings": {k: v for k, v in asdict(config).items() if k != "extra"},
+        "num_splats": model.num_splats,
+        "train_seconds": round(seconds, 2),
+        "final_loss": history[-1] if history else None,
+    }
+    write_json_atomic(sidecar_path(out), sidecar)
+    return GaussianRenderer(model, dataset.background, dataset.cameras, tile=config.tile)
+
+
+def sidecar_path(ply: str | Path) -> Path:
+    ply = Path(ply)
+    return ply.with_name(ply.stem + ".json")
+
+
+def read_sidecar(ply: str | Path) -> dict[str, Any] | None:
+    """The sidecar written by `train_gaussians` next to a PLY, or None when absent."""
+    path = sidecar_path(ply)
+    if not path.exists():
+        return None
+    try:
+        sidecar = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError("sidecar", f"cannot read {path}: {exc}") from None
+    if not isinstance(sidecar, dict) or sidecar.get("format") != SIDECAR_FORMAT:
+        raise InputError("sidecar", f"{path} is not a phd training sidecar")
+    return sidecar
+
+
+def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True) -> tuple[GaussianModel, list[float]]:
+    """The optimisation loop; returns the trained model and the loss every 100 steps."""
+    if dataset.images is None:
+        raise InputError("data", "training needs the images")
+    gen = torch.Generator().manual_seed(config.seed)
+    torch.manual_seed(config.seed)
+    centre, extent = scene_bounds(dataset.cameras)
+    points, colours = carve_points(dataset, centre, extent, config.init_points, gen)
+    splats = Splats(initial_model(points, colours, config.sh_degree, extent, gen), config, extent)
+    background = torch.tensor(dataset.background)
+    cam0 = dataset.cameras[0]
+    budget = int(config.splats_per_pixel * cam0.width * cam0.height)
+    n_iter = config.iterations
+    densify_from, densify_until = int(config.densify_from * n_iter), int(config.densify_until * n_iter)
+    reset_every = int(config.opacity_reset_every * n_iter) if config.opacity_reset_every > 0 else 0
+    sh_up = max(1, int(config.sh_up_every * n_iter))
+    grad_sum = torch.zeros(splats.count)
+    grad_count = torch.zeros(splats.count)
+    history: list[float] = []
+    order = torch.randperm(len(dataset.cameras), generator=gen)
+    bar = tqdm(range(n_iter), disable=not progress, desc="3dgs", unit="it")
+    for step in bar:
+        if step % len(order) == 0 and step:
+            order = torch.randperm(len(dataset.cameras), generator=gen)
+        view = int(order[step % len(order)])
+        cam, target = dataset.cameras[view], dataset.images[view]
+        splats.set_means_lr(step / n_iter)
+        degree = min(config.sh_degree, step // sh_up)
+        out = rasterize(splats.model(degree), cam, background, tile=config.tile)
+        out.means2d.retain_grad()
+        image = out.rgb[0]
+        l1 = (image - target).abs().mean()
+        loss = (1 - config.ssim_weight) * l1 + config.ssim_weight * (1 - ssim(image, target))
+        splats.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if step < densify_until:
+            # Screen-space gradient in NDC units (pixels * W / 2), as the reference thresholds it.
+            g = out.means2d.grad.float() * torch.tensor([cam.width / 2, cam.height / 2])
+            grad_sum += torch.where(out.visible, g.norm(dim=-1), 0.0)
+            grad_count += out.visible.float()
+        splats.optimizer.step()
+        if densify_from <= step < densify_until and step % config.densify_every == 0 and step > 0:
+            densify(splats, grad_sum / grad_count.clamp_min(1), config, extent, budget, gen)
+            grad_sum = torch.zeros(splats.count)
+            grad_count = torch.zeros(splats.count)
+        if reset_every and step % reset_every == 0 and 0 < step < densify_until:
+            with torch.no_grad():
+                splats.params["opacity_logits"].clamp_(max=math.log(0.01 / 0.99))
+            opacity_state = splats.optimizer.state.get(splats.params["opacity_logits"])
+            if opacity_state:
+                opacity_state["exp_avg"].zero_()
+                opacity_state["exp_avg_sq"].zero_()
+        if step % 100 == 0 or step == n_iter - 1:
+            history.append(round(loss.item(), 5))
+            bar.set_postfix(loss=f"{loss.item():.4f}", splats=splats.count)
+    final = splats.model()
+    keep = torch.sigmoid(final.opacity_logits.detach()) >= config.min_opacity
+    detached = GaussianModel(*(t.detach().clone() for t in (final.means, final.log_scales, final.quats,
+                                                             final.opacity_logits, final.sh)))
+    return detached.subset(keep), history
