@@ -25,6 +25,7 @@ Pixel (i, j) has its centre at (i + 0.5, j + 0.5); see `phd_core.cameras`.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -33,6 +34,10 @@ import torch
 from .cameras import Camera
 from .gaussians import GaussianModel
 from .protocol import check_keep
+
+# Per-pixel sums use CSR products, which torch flags as beta; they are checked in the tests.
+warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
 
 # Reference constants (Kerbl et al. 2023 rasteriser).
 SH_C0 = 0.28209479177387814
@@ -224,13 +229,16 @@ class Fragments:
     """Stage 3 output: the (pair, pixel) entries with alpha >= 1/255, grouped by pixel.
 
     Entries of one pixel are contiguous and front to back, because they are taken from
-    alpha[M, P] in pixel-major order and pairs are sorted by (tile, depth).
+    alpha[M, P] in pixel-major order and pairs are sorted by (tile, depth). The S covered
+    pixels are the rows of a CSR matrix over the E entries (`row_ptr`), which turns
+    per-pixel sums into sparse-dense products.
     """
 
-    alpha: torch.Tensor   # [E]
-    pair: torch.Tensor    # [E] long, index into Pairs
-    pixel: torch.Tensor   # [E] long, tile * P + pixel-in-tile
-    start: torch.Tensor   # [E] long, position of the first entry of this entry's pixel
+    alpha: torch.Tensor    # [E]
+    pair: torch.Tensor     # [E] long, index into Pairs
+    start: torch.Tensor    # [E] long, position of the first entry of this entry's pixel
+    row_ptr: torch.Tensor  # [S + 1] long, entries of covered pixel s are row_ptr[s]:row_ptr[s+1]
+    pixel: torch.Tensor    # [S] long, covered pixel in tile layout (tile * P + pixel-in-tile)
 
 
 def fragments(alpha: torch.Tensor, pairs: Pairs) -> Fragments:
@@ -238,13 +246,14 @@ def fragments(alpha: torch.Tensor, pairs: Pairs) -> Fragments:
     m, p = alpha.shape
     flat = alpha.detach().T.reshape(-1).nonzero().squeeze(1)   # pixel-major positions
     in_tile, pair = flat // m, flat % m
-    pixel = pairs.tile[pair] * p + in_tile
+    pixel = pairs.tile[pair] * p + in_tile                     # [E]
     first = torch.ones_like(pixel, dtype=torch.bool)
     first[1:] = pixel[1:] != pixel[:-1]
     position = torch.arange(len(pixel))
     start = torch.cummax(torch.where(first, position, torch.zeros_like(position)), 0).values
-    return Fragments(alpha=alpha.reshape(-1).index_select(0, pair * p + in_tile), pair=pair,
-                     pixel=pixel, start=start)
+    begin = first.nonzero().squeeze(1)
+    return Fragments(alpha=alpha.reshape(-1).index_select(0, pair * p + in_tile), pair=pair, start=start,
+                     row_ptr=torch.cat([begin, torch.tensor([len(pixel)])]), pixel=pixel[begin])
 
 
 def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
@@ -254,7 +263,8 @@ def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
     values: [E, C] per-entry quantities (colour, depth); keep: [N, E] bool or None.
     Returns (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
     Transmittance is a running sum of log(1 - alpha) in float64 along the entries,
-    rebased at each pixel's first entry.
+    rebased at each pixel's first entry. Per-pixel sums of weight * value are one CSR
+    (pixels x entries, holding the values) times dense (entries x masks) product per channel.
     """
     alpha = frags.alpha[None] if keep is None else frags.alpha[None] * keep   # [N, E]
     log_1ma = torch.log1p(-alpha).double()
@@ -264,8 +274,15 @@ def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
     # An entry that would bring T below T_MIN ends the pixel, itself excluded.
     weight = torch.where(inclusive - base >= LOG_T_MIN, alpha * (exclusive - base).exp().float(),
                          torch.zeros_like(alpha))       # [N, E]
-    terms = torch.cat([weight[..., None] * values[None], weight[..., None]], dim=-1)   # [N, E, C+1]
-    totals = terms.new_zeros(terms.shape[0], num_pixels, terms.shape[2]).index_add_(1, frags.pixel, terms)
+    entries = torch.arange(weight.shape[1])
+    covered = len(frags.pixel)
+    channels = torch.cat([values, torch.ones_like(values[:, :1])], dim=1).T   # [C + 1, E]
+    weight_t = weight.T.contiguous()                                         # [E, N]
+    sums = torch.stack([torch.sparse_csr_tensor(frags.row_ptr, entries, channel.contiguous(),
+                                                size=(covered, len(entries))) @ weight_t
+                        for channel in channels], dim=-1)                    # [S, N, C + 1]
+    totals = sums.new_zeros(weight.shape[0], num_pixels, sums.shape[-1])
+    totals = totals.index_copy(1, frags.pixel, sums.transpose(0, 1))
     return totals[..., :-1], totals[..., -1]
 
 
