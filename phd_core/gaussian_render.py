@@ -237,6 +237,7 @@ class Fragments:
     alpha: torch.Tensor    # [E]
     pair: torch.Tensor     # [E] long, index into Pairs
     start: torch.Tensor    # [E] long, position of the first entry of this entry's pixel
+    row: torch.Tensor      # [E] long, which covered pixel (0..S-1) the entry belongs to
     row_ptr: torch.Tensor  # [S + 1] long, entries of covered pixel s are row_ptr[s]:row_ptr[s+1]
     pixel: torch.Tensor    # [S] long, covered pixel in tile layout (tile * P + pixel-in-tile)
 
@@ -253,7 +254,35 @@ def fragments(alpha: torch.Tensor, pairs: Pairs) -> Fragments:
     start = torch.cummax(torch.where(first, position, torch.zeros_like(position)), 0).values
     begin = first.nonzero().squeeze(1)
     return Fragments(alpha=alpha.reshape(-1).index_select(0, pair * p + in_tile), pair=pair, start=start,
-                     row_ptr=torch.cat([begin, torch.tensor([len(pixel)])]), pixel=pixel[begin])
+                     row=torch.cumsum(first, 0) - 1, row_ptr=torch.cat([begin, torch.tensor([len(pixel)])]),
+                     pixel=pixel[begin])
+
+
+class PixelSums(torch.autograd.Function):
+    """sums[s, n, c] = sum over the entries e of covered pixel s of weight[e, n] * values[e, c].
+
+    Forward: one CSR (pixels x entries, holding a value channel) times dense
+    (entries x masks) product per channel. Backward: each entry gathers its pixel's
+    gradient, O(E * N * C). (Autograd through CSR values would densify to S x E.)
+    """
+
+    @staticmethod
+    def forward(ctx, weight: torch.Tensor, values: torch.Tensor, row: torch.Tensor,
+                row_ptr: torch.Tensor) -> torch.Tensor:
+        # weight: [E, N], values: [E, C] -> [S, N, C]
+        ctx.save_for_backward(weight, values, row)
+        entries = torch.arange(len(row))
+        size = (len(row_ptr) - 1, len(row))
+        return torch.stack([torch.sparse_csr_tensor(row_ptr, entries, channel.contiguous(), size=size) @ weight
+                            for channel in values.T], dim=-1)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        weight, values, row = ctx.saved_tensors
+        per_entry = grad.index_select(0, row)                              # [E, N, C]
+        grad_weight = (per_entry * values[:, None, :]).sum(-1) if ctx.needs_input_grad[0] else None
+        grad_values = (per_entry * weight[:, :, None]).sum(1) if ctx.needs_input_grad[1] else None
+        return grad_weight, grad_values, None, None
 
 
 def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
@@ -263,8 +292,7 @@ def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
     values: [E, C] per-entry quantities (colour, depth); keep: [N, E] bool or None.
     Returns (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
     Transmittance is a running sum of log(1 - alpha) in float64 along the entries,
-    rebased at each pixel's first entry. Per-pixel sums of weight * value are one CSR
-    (pixels x entries, holding the values) times dense (entries x masks) product per channel.
+    rebased at each pixel's first entry. Per-pixel sums go through `PixelSums`.
     """
     alpha = frags.alpha[None] if keep is None else frags.alpha[None] * keep   # [N, E]
     log_1ma = torch.log1p(-alpha).double()
@@ -274,13 +302,8 @@ def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
     # An entry that would bring T below T_MIN ends the pixel, itself excluded.
     weight = torch.where(inclusive - base >= LOG_T_MIN, alpha * (exclusive - base).exp().float(),
                          torch.zeros_like(alpha))       # [N, E]
-    entries = torch.arange(weight.shape[1])
-    covered = len(frags.pixel)
-    channels = torch.cat([values, torch.ones_like(values[:, :1])], dim=1).T   # [C + 1, E]
-    weight_t = weight.T.contiguous()                                         # [E, N]
-    sums = torch.stack([torch.sparse_csr_tensor(frags.row_ptr, entries, channel.contiguous(),
-                                                size=(covered, len(entries))) @ weight_t
-                        for channel in channels], dim=-1)                    # [S, N, C + 1]
+    channels = torch.cat([values, torch.ones_like(values[:, :1])], dim=1)     # [E, C + 1]
+    sums = PixelSums.apply(weight.T.contiguous(), channels, frags.row, frags.row_ptr)  # [S, N, C + 1]
     totals = sums.new_zeros(weight.shape[0], num_pixels, sums.shape[-1])
     totals = totals.index_copy(1, frags.pixel, sums.transpose(0, 1))
     return totals[..., :-1], totals[..., -1]

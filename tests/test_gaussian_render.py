@@ -200,3 +200,15 @@ def test_renderer_protocol() -> None:
     assert info["kind"] == "3dgs" and info["sh_degree"] == 2 and info["num_units"] == 25
     with pytest.raises(ValueError, match="keep"):
         renderer.render(camera(), torch.ones(4, 24, dtype=torch.bool))
+
+
+def test_pixel_sums_backward_matches_finite_differences() -> None:
+    from phd_core.gaussian_render import PixelSums
+    gen = torch.Generator().manual_seed(0)
+    row = torch.tensor([0, 0, 0, 1, 2, 2, 3, 3, 3, 3])                  # 10 entries in 4 pixels
+    row_ptr = torch.tensor([0, 3, 4, 6, 10])
+    weight = torch.rand(10, 3, generator=gen, dtype=torch.float64, requires_grad=True)   # [E, N]
+    values = torch.rand(10, 2, generator=gen, dtype=torch.float64, requires_grad=True)   # [E, C]
+    assert torch.autograd.gradcheck(lambda w, v: PixelSums.apply(w, v, row, row_ptr), (weight, values))
+    expected = torch.zeros(4, 3, 2, dtype=torch.float64).index_add_(0, row, weight[:, :, None] * values[:, None])
+    assert torch.allclose(PixelSums.apply(weight, values, row, row_ptr), expected)
