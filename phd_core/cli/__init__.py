@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+# Idle OpenMP threads sleep instead of spinning: with spinning, torch on a busy or shared
+# 2-core machine ran 3-25x slower (docs/gaussians.md). Must be set before torch loads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from ..errors import InputError
 
 # Each module defines register(subparsers) and sets `func` on its parsers.
-COMMAND_MODULES = ("train", "render")
+COMMAND_MODULES = ("train", "render", "uq")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,264 @@
+"""`phd calibrate`, `phd uq` and `phd rank`: PH-Dropout from the command line.
+
+Thin wrappers: parse arguments, load the model and cameras, call `phd_core.phdropout`,
+print a summary and write JSON (and heat maps) atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from .. import phdropout as phd
+from ..cameras import Camera, cameras_from_json
+from ..errors import InputError
+from ..fileio import write_json_atomic
+from ..heatmap import write_heatmap
+from ..uq_metrics import image_uq_metrics, mean_defined, spearman
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    calibrate = subparsers.add_parser(
+        "calibrate", help="find r_drop for a model (Algorithm 1)",
+        description="Raise the dropout ratio in steps while the mean absolute change of the training views "
+                    "stays below epsilon; print r_drop and the error curve. Cameras: --data (its train split), "
+                    "--cameras JSON, else the training cameras stored with the model.")
+    _add_model_args(calibrate)
+    source = calibrate.add_mutually_exclusive_group()
+    source.add_argument("--data", type=Path, help="dataset directory: calibrate on the poses of its --split")
+    source.add_argument("--cameras", type=Path, help="transforms-style JSON (or a list of frames) of training poses")
+    calibrate.add_argument("--split", default="train", help="dataset split with --data (default train)")
+    calibrate.add_argument("--views", type=int, default=None, help="use this many evenly spaced frames of --data")
+    _add_camera_size_args(calibrate)
+    _add_calibration_args(calibrate, standalone=True)
+    calibrate.add_argument("--out", type=Path, help="also write the result as JSON to this file")
+    calibrate.set_defaults(func=run_calibrate)
+
+    uq = subparsers.add_parser(
+        "uq", help="uncertainty report of a dataset split: sigma-max-bar, per-view sigma_max, heat maps",
+        description="Calibrate (or take --dropout-ratio), render --samples masked copies of every view of the "
+                    "split and write report.json and one heat map per view into --out. With the split's "
+                    "images: Spearman, Pearson and AUSE between zeta and the error.")
+    _add_model_args(uq)
+    uq.add_argument("--data", type=Path, required=True, help="dataset directory")
+    uq.add_argument("--split", default="test", help="split to evaluate (default test)")
+    uq.add_argument("--views", type=int, default=None, help="evaluate this many evenly spaced frames")
+    _add_camera_size_args(uq, sizes=False)
+    _add_uncertainty_args(uq)
+    _add_calibration_args(uq)
+    uq.add_argument("--vmax", type=float, default=None,
+                    help="heat-map scale: zeta at or above this is the top colour (default: the largest "
+                         "sigma_max of the report, shared by every map)")
+    uq.add_argument("--no-heatmaps", action="store_true", help="write only report.json")
+    uq.add_argument("--out", type=Path, default=Path("phd-uq"), help="output directory (default phd-uq)")
+    uq.set_defaults(func=run_uq)
+
+    rank = subparsers.add_parser(
+        "rank", help="rank candidate camera poses for the next capture (most uncertain first)",
+        description="Render every candidate pose under --samples dropout masks and order the candidates by "
+                    "sigma_max. The ratio is --dropout-ratio, else calibrated on the model's training cameras.")
+    _add_model_args(rank)
+    rank.add_argument("--candidates", type=Path, required=True,
+                      help="transforms-style JSON or a list of frames (needs w/h, or give --width/--height)")
+    rank.add_argument("--top-k", type=int, default=None, help="keep only the k most uncertain candidates")
+    _add_camera_size_args(rank)
+    _add_uncertainty_args(rank)
+    _add_calibration_args(rank)
+    rank.add_argument("--out", type=Path, help="write the ranking JSON here (default: print it)")
+    rank.set_defaults(func=run_rank)
+
+
+# ---------------------------------------------------------------------------------------- arguments
+
+def _add_model_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS .ply or NeRF checkpoint")
+
+
+def _add_camera_size_args(parser: argparse.ArgumentParser, sizes: bool = True) -> None:
+    parser.add_argument("--downscale", type=float, default=1.0,
+                        help="render at 1/F of each camera's resolution (default 1)")
+    if sizes:
+        parser.add_argument("--width", type=int, default=None, help="image width for frames without w/h")
+        parser.add_argument("--height", type=int, default=None, help="image height for frames without w/h")
+
+
+def _add_calibration_args(parser: argparse.ArgumentParser, *, standalone: bool = False) -> None:
+    group = parser.add_argument_group("calibration")
+    group.add_argument("--epsilon", type=float, default=phd.DEFAULT_EPSILON,
+                       help=f"mean absolute error allowed on the training views (default {phd.DEFAULT_EPSILON})")
+    group.add_argument("--step", type=float, default=phd.DEFAULT_STEP,
+                       help=f"dropout-ratio step (default {phd.DEFAULT_STEP})")
+    samples_flag = "--samples" if standalone else "--calibration-samples"
+    group.add_argument(samples_flag, dest="calibration_samples", metavar="N", type=int,
+                       default=phd.DEFAULT_CALIBRATION_SAMPLES,
+                       help=f"masks per ratio (default {phd.DEFAULT_CALIBRATION_SAMPLES})")
+    group.add_argument("--method", choices=("linear", "bisection"), default="linear",
+                       help="linear scan (Algorithm 1) or bisection over the same nested masks")
+    if standalone:
+        group.add_argument("--seed", type=int, default=0, help="mask seed (default 0)")
+    else:
+        group.add_argument("--dropout-ratio", type=float, default=None,
+                           help="skip calibration and use this ratio")
+
+
+def _add_uncertainty_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--samples", type=int, default=phd.DEFAULT_SAMPLES,
+                        help=f"dropout masks per view (default {phd.DEFAULT_SAMPLES})")
+    parser.add_argument("--seed", type=int, default=0, help="mask seed (default 0)")
+
+
+# ---------------------------------------------------------------------------------------- helpers
+
+def _load(path: Path):
+    from ..models import load_model
+
+    return load_model(path)
+
+
+def _scaled(cameras: list[Camera], downscale: float) -> list[Camera]:
+    return cameras if downscale == 1 else [c.scaled(downscale) for c in cameras]
+
+
+def _training_cameras(renderer, downscale: float) -> list[Camera]:
+    cameras = getattr(renderer, "training_cameras", None)
+    if not cameras:
+        raise InputError("cameras", "the model carries no training cameras: give --data or --cameras "
+                         "(calibrate), or --dropout-ratio")
+    return _scaled(list(cameras), downscale)
+
+
+def _calibrate(args: argparse.Namespace, renderer, cameras: list[Camera]) -> phd.CalibrationResult:
+    return phd.calibrate(renderer, cameras, epsilon=args.epsilon, step=args.step,
+                         samples=args.calibration_samples, method=args.method, seed=args.seed)
+
+
+def _ratio(args: argparse.Namespace, renderer, cameras: list[Camera] | None = None
+           ) -> tuple[float, dict[str, Any] | None]:
+    """--dropout-ratio, else r_drop calibrated on `cameras` (default: the model's training
+    cameras), with the calibration as a dict (None when the ratio was given)."""
+    if args.dropout_ratio is not None:
+        return args.dropout_ratio, None
+    result = _calibrate(args, renderer, cameras or _training_cameras(renderer, args.downscale))
+    return result.r_drop, result.to_dict()
+
+
+def _write_json(path: Path, data: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, data)
+
+
+def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None) -> None:
+    file = file or sys.stdout
+    print("  ratio   error", file=file)
+    for ratio, error in zip(result.ratios, result.errors):
+        print(f"  {ratio:5.3f}   {error:.6f}", file=file)
+
+
+# ---------------------------------------------------------------------------------------- commands
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    renderer = _load(args.model)
+    if args.data is not None:
+        from ..data import load_dataset
+
+        dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale, with_images=False)
+        cameras = dataset.cameras
+    elif args.cameras is not None:
+        cameras = _scaled(cameras_from_json(args.cameras, width=args.width, height=args.height), args.downscale)
+    else:
+        cameras = _training_cameras(renderer, args.downscale)
+    try:
+        result = _calibrate(args, renderer, cameras)
+    except phd.CalibrationError as exc:
+        _print_curve(exc, file=sys.stderr)
+        raise
+    print(f"r_drop = {result.r_drop}  ({result.method}, epsilon {result.epsilon}, step {result.step}, "
+          f"{result.samples} masks, {len(cameras)} views, {renderer.num_units} units)")
+    _print_curve(result)
+    for warning in result.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    if args.out is not None:
+        _write_json(args.out, result.to_dict())
+    return 0
+
+
+def run_uq(args: argparse.Namespace) -> int:
+    from ..data import load_dataset
+
+    renderer = _load(args.model)
+    warnings: list[str] = []
+    try:
+        dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale)
+    except InputError as exc:
+        if not exc.field.endswith("file_path"):
+            raise
+        warnings.append(f"images of split {args.split!r} not available ({exc}): no error metrics")
+        dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale,
+                               with_images=False)
+    calibration_cameras = None
+    if args.dropout_ratio is None and not getattr(renderer, "training_cameras", None):
+        # No stored training poses: calibrate on the dataset's train split instead.
+        warnings.append("the model carries no training cameras: calibrated on every frame of the dataset's "
+                        "train split, which may include views the model was not trained on")
+        calibration_cameras = load_dataset(args.data, "train", downscale=args.downscale, with_images=False).cameras
+    ratio, calibration = _ratio(args, renderer, calibration_cameras)
+    if calibration is not None:
+        warnings.extend(calibration["warnings"])
+
+    views = phd.uncertainty(renderer, dataset.cameras, ratio=ratio, samples=args.samples, seed=args.seed,
+                            keep_maps=True)
+    vmax = args.vmax if args.vmax is not None else max(v.sigma_max for v in views)
+    rows = []
+    for i, (view, camera, index) in enumerate(zip(views, dataset.cameras, dataset.indices)):
+        row: dict[str, Any] = {"index": index, "sigma_max": view.sigma_max, "sigma_mean": view.sigma_mean}
+        if dataset.images is not None:
+            render = renderer.render(camera)[0]
+            row.update(image_uq_metrics(view.zeta, render, dataset.images[i]))
+        if not args.no_heatmaps:
+            name = f"heatmaps/{args.split}_{index:04d}.png"
+            row["heatmap"] = name
+            row["heatmap_vmax"] = write_heatmap(args.out / name, view.zeta, vmax if vmax > 0 else None)
+        rows.append(row)
+
+    sigma_bar = phd.sigma_max_bar(views)
+    report: dict[str, Any] = {
+        "model": renderer.describe(), "data": str(args.data), "split": args.split,
+        "dropout_ratio": ratio, "r_drop": calibration["r_drop"] if calibration else None,
+        "calibration": calibration, "samples": args.samples, "seed": args.seed, "ddof": 1,
+        "sigma_max_bar": sigma_bar,
+        "heatmap_scale": None if args.no_heatmaps else "zeta max over channels / heatmap_vmax, clipped to [0, 1]",
+        "views": rows, "warnings": warnings,
+    }
+    if dataset.images is not None:
+        report["summary"] = {
+            key: mean_defined([r[key] for r in rows])
+            for key in ("spearman", "pearson", "ause_rmse", "ause_mse", "ause_mae", "rmse")}
+        report["summary"]["spearman_sigma_max_vs_rmse"] = spearman([r["sigma_max"] for r in rows],
+                                                                   [r["rmse"] for r in rows])
+    _write_json(args.out / "report.json", report)
+    print(f"dropout ratio {ratio}, sigma-max-bar {sigma_bar:.6f} over {len(rows)} views of {args.split}; "
+          f"report: {args.out / 'report.json'}")
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    return 0
+
+
+def run_rank(args: argparse.Namespace) -> int:
+    renderer = _load(args.model)
+    candidates = _scaled(cameras_from_json(args.candidates, width=args.width, height=args.height), args.downscale)
+    ratio, calibration = _ratio(args, renderer)
+    ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
+                            top_k=args.top_k)
+    result = {"dropout_ratio": ratio, "calibration": calibration, "samples": args.samples, "seed": args.seed,
+              "candidates": len(candidates), "order": [r.index for r in ranked],
+              "ranking": [r.to_dict() for r in ranked]}
+    if args.out is None:
+        print(json.dumps(result, indent=2, allow_nan=False))
+    else:
+        _write_json(args.out, result)
+        print(f"ranked {len(candidates)} candidates at dropout ratio {ratio}; most uncertain: "
+              f"{result['order'][:5]}; written to {args.out}")
+    return 0
