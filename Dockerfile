@@ -1,0 +1,40 @@
+# PH-Dropout service: small CPU image running `phd serve`.
+#
+#   docker build -t ph-dropout-service .
+#   docker run -p 8000:8000 -v phd-data:/data ph-dropout-service
+#   docker run -p 8000:8000 -v phd-data:/data -e PHD_API_KEY=secret ph-dropout-service --workers 2
+#
+# It installs what the README's set-up installs: torch==2.13.0 (here the CPU build from
+# PyTorch's CPU wheel index, so no CUDA libraries), then the project itself.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+
+WORKDIR /app
+RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
+
+COPY pyproject.toml README.md ./
+COPY phd_core ./phd_core
+COPY service ./service
+COPY client ./client
+RUN pip install . \
+    && useradd --create-home --uid 10001 phd \
+    && mkdir -p /data \
+    && chown phd:phd /data
+
+USER phd
+# OMP_WAIT_POLICY=PASSIVE: idle OpenMP threads sleep instead of spinning, which keeps worker
+# threads from starving each other on few or shared cores (docs/service.md, "Benchmark").
+ENV PHD_DATA_DIR=/data \
+    OMP_WAIT_POLICY=PASSIVE
+VOLUME ["/data"]
+EXPOSE 8000
+
+HEALTHCHECK --interval=30s --timeout=5s --start-period=30s --retries=3 \
+    CMD ["python", "-c", "import sys, urllib.request; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/health', timeout=4).status != 200)"]
+
+# Extra arguments of `docker run IMAGE ...` are appended (e.g. --workers 2).
+ENTRYPOINT ["phd", "serve", "--host", "0.0.0.0", "--port", "8000", "--data-dir", "/data"]

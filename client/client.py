@@ -1,0 +1,331 @@
+"""`PHDClient`: the PH-Dropout service from Python, one method per route.
+
+    from client import PHDClient
+
+    with PHDClient("http://127.0.0.1:8000", api_key=None) as phd:
+        model = phd.upload_model("model.ply", cameras="data/transforms_train.json")
+        phd.calibrate(model.id)
+        ranking = phd.rank(model.id, candidates, downscale=4, top_k=5)
+        print([(v.index, v.sigma_max) for v in ranking.views])
+
+Results are the service's own pydantic types (`service.schemas`). Every error answer
+raises a `PHDError` subclass carrying the server's status, code, message and field. Work
+that the server turns into a job (asked with `run_async=True`, or too big to answer at
+once) is waited for when `wait=True` (the default), with an optional progress callback.
+
+Cameras may be given as `phd_core.cameras.Camera` objects, as frame dicts, as a
+transforms.json object, as the path of a transforms.json file, or as a trainer's sidecar
+JSON (`training_cameras`). Frames without an image size get it from their image file when
+that is a PNG next to the JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable, Union
+
+import httpx
+
+from service.schemas import (Calibration, Health, Job, ModelInfo, ModelList, RankResult, SelectResult)
+
+ProgressCallback = Callable[[float], None]
+Cameras = Union[str, Path, dict, Iterable[Any]]
+CAMERA_KEYS = ("transform_matrix", "fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
+DEFAULT_TIMEOUT = 300.0
+
+
+# ----------------------------------------------------------------------------- errors
+
+class PHDError(Exception):
+    """An error answer from the service (or no answer: status None)."""
+
+    def __init__(self, message: str, *, status: int | None = None, code: str = "error", field: str | None = None,
+                 retry_after: float | None = None):
+        super().__init__(message)
+        self.message = message
+        self.status = status
+        self.code = code
+        self.field = field
+        self.retry_after = retry_after
+
+    def __str__(self) -> str:
+        where = f" [{self.field}]" if self.field else ""
+        status = f"{self.status} " if self.status is not None else ""
+        return f"{status}{self.code}{where}: {self.message}"
+
+
+class AuthenticationError(PHDError):
+    """401: the API key is missing or wrong."""
+
+
+class NotFoundError(PHDError):
+    """404: unknown model, job or artefact id."""
+
+
+class ConflictError(PHDError):
+    """409: the model is not calibrated / has no training cameras, or the job was cancelled."""
+
+
+class PayloadTooLargeError(PHDError):
+    """413: the upload or body is over the server's cap."""
+
+
+class UnsupportedModelError(PHDError):
+    """415: the file is not a model the service reads (never a pickle)."""
+
+
+class InvalidInputError(PHDError):
+    """400/422: a field is invalid; `field` names it."""
+
+
+class QueueFullError(PHDError):
+    """429: the work queue is full; retry after `retry_after` seconds."""
+
+
+class ServerError(PHDError):
+    """5xx: the service failed."""
+
+
+class ServiceUnavailableError(PHDError):
+    """The service could not be reached (connection refused, timeout)."""
+
+
+class JobFailedError(PHDError):
+    """A job ended in state 'failed'; `job` holds it."""
+
+    def __init__(self, job: Job):
+        error = job.error
+        super().__init__(error.message if error else "job failed", status=None,
+                         code=error.code if error else "job_failed", field=error.field if error else None)
+        self.job = job
+
+
+class JobCancelledError(PHDError):
+    """A job ended in state 'cancelled'."""
+
+    def __init__(self, job: Job):
+        super().__init__(f"job {job.id} was cancelled", code="job_cancelled")
+        self.job = job
+
+
+_BY_STATUS = {400: InvalidInputError, 401: AuthenticationError, 404: NotFoundError, 409: ConflictError,
+              413: PayloadTooLargeError, 415: UnsupportedModelError, 422: InvalidInputError, 429: QueueFullError}
+
+
+def _raise_for(response: httpx.Response) -> None:
+    if response.status_code < 400:
+        return
+    try:
+        error = response.json()["error"]
+        code, message, field = error["code"], error["message"], error.get("field")
+    except (ValueError, KeyError, TypeError):
+        code, message, field = "http_error", response.text[:500] or response.reason_phrase, None
+    retry = response.headers.get("retry-after")
+    cls = _BY_STATUS.get(response.status_code, ServerError if response.status_code >= 500 else PHDError)
+    raise cls(message, status=response.status_code, code=code, field=field,
+              retry_after=float(retry) if retry and retry.replace(".", "", 1).isdigit() else None)
+
+
+# ----------------------------------------------------------------------------- cameras
+
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR chunk, or None if `path` is not a readable PNG."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return struct.unpack(">II", head[16:24])
+
+
+def _frames_of_transforms(data: dict, base: Path | None) -> list[dict]:
+    """A transforms.json object -> self-contained frames (top-level defaults folded in)."""
+    defaults = {k: v for k, v in data.items() if k in CAMERA_KEYS}
+    frames = []
+    for frame in data.get("frames", []):
+        if not isinstance(frame, dict):
+            frames.append(frame)  # the server names the bad entry
+            continue
+        merged = {**defaults, **{k: v for k, v in frame.items() if k in CAMERA_KEYS}}
+        if base is not None and ("w" not in merged or "h" not in merged) and isinstance(frame.get("file_path"), str):
+            path = base / frame["file_path"]
+            size = _png_size(path) or _png_size(path.with_name(path.name + ".png"))
+            if size is not None:
+                merged["w"], merged["h"] = size
+        frames.append(merged)
+    return frames
+
+
+def camera_frames(cameras: Cameras) -> list[dict]:
+    """Frames (JSON-ready dicts) from Camera objects, frame dicts, a transforms.json object or path."""
+    if isinstance(cameras, (str, Path)):
+        path = Path(cameras)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise InvalidInputError(f"cannot read camera JSON {path}: {exc}", field="cameras") from None
+        if isinstance(data, list):
+            return data
+        if not isinstance(data, dict):
+            raise InvalidInputError(f"{path} holds neither a frame list nor a transforms object", field="cameras")
+        if "frames" not in data:
+            return camera_frames(data)
+        return _frames_of_transforms(data, path.parent)
+    if isinstance(cameras, dict):
+        if isinstance(cameras.get("training_cameras"), list):  # a trainer's sidecar <stem>.json
+            return cameras["training_cameras"]
+        return _frames_of_transforms(cameras, None) if "frames" in cameras else [cameras]
+    if hasattr(cameras, "to_frame"):
+        return [cameras.to_frame()]
+    return [c.to_frame() if hasattr(c, "to_frame") else c for c in cameras]
+
+
+# ----------------------------------------------------------------------------- the client
+
+class PHDClient:
+    """A synchronous client of the PH-Dropout service (thread-safe: one httpx.Client)."""
+
+    def __init__(self, base_url: str, api_key: str | None = None, timeout: float = DEFAULT_TIMEOUT, *,
+                 transport: httpx.BaseTransport | None = None):
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        self.base_url = base_url.rstrip("/")
+        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> "PHDClient":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        try:
+            response = self._http.request(method, path, **kwargs)
+        except httpx.TimeoutException as exc:
+            raise ServiceUnavailableError(f"{method} {path} timed out: {exc}", code="timeout") from None
+        except httpx.TransportError as exc:
+            raise ServiceUnavailableError(f"{method} {path}: cannot reach {self.base_url}: {exc}",
+                                          code="unreachable") from None
+        _raise_for(response)
+        return response
+
+    # ------------------------------------------------------------------ models
+
+    def health(self) -> Health:
+        return Health.model_validate(self._request("GET", "/health").json())
+
+    def upload_model(self, path: str | Path, cameras: Cameras | None = None, name: str | None = None) -> ModelInfo:
+        """Upload a 3DGS PLY or NeRF checkpoint with its training cameras: `cameras`, else
+        the trainer's sidecar `<stem>.json` next to a PLY when there is one (NeRF
+        checkpoints carry theirs inside)."""
+        path = Path(path)
+        sidecar = path.with_name(path.stem + ".json")
+        if cameras is None and path.suffix.lower() == ".ply" and sidecar.is_file():
+            cameras = sidecar
+        data = {}
+        if cameras is not None:
+            data["cameras"] = json.dumps(camera_frames(cameras))
+        if name is not None:
+            data["name"] = name
+        try:
+            f = open(path, "rb")
+        except OSError as exc:
+            raise InvalidInputError(f"cannot open {path}: {exc.strerror or exc}", field="file") from None
+        with f:
+            response = self._request("POST", "/v1/models", data=data,
+                                     files={"file": (path.name, f, "application/octet-stream")})
+        return ModelInfo.model_validate(response.json())
+
+    def list_models(self) -> list[ModelInfo]:
+        return ModelList.model_validate(self._request("GET", "/v1/models").json()).models
+
+    def get_model(self, model_id: str) -> ModelInfo:
+        return ModelInfo.model_validate(self._request("GET", f"/v1/models/{model_id}").json())
+
+    def delete_model(self, model_id: str) -> None:
+        self._request("DELETE", f"/v1/models/{model_id}")
+
+    # ------------------------------------------------------------------ work
+
+    def calibrate(self, model_id: str, *, cameras: Cameras | None = None, epsilon: float | None = None,
+                  step: float | None = None, samples: int | None = None, method: str = "linear", seed: int = 0,
+                  downscale: float | None = None, width: int | None = None, height: int | None = None,
+                  run_async: bool = False, wait: bool = True, progress: ProgressCallback | None = None,
+                  poll_interval: float = 0.2, timeout: float | None = None) -> Calibration | Job:
+        """PH-Dropout calibration; uses the stored training cameras unless `cameras` is given."""
+        body = {"epsilon": epsilon, "step": step, "samples": samples, "method": method, "seed": seed,
+                "downscale": downscale, "width": width, "height": height, "async": run_async,
+                "training_cameras": None if cameras is None else camera_frames(cameras)}
+        return self._work(f"/v1/models/{model_id}/calibrate", body, Calibration, wait, progress, poll_interval, timeout)
+
+    def rank(self, model_id: str, cameras: Cameras, *, samples: int | None = None, seed: int = 0,
+             dropout_ratio: float | None = None, top_k: int | None = None, heatmaps: str = "none",
+             downscale: float | None = None, width: int | None = None, height: int | None = None,
+             run_async: bool = False, wait: bool = True, progress: ProgressCallback | None = None,
+             poll_interval: float = 0.2, timeout: float | None = None) -> RankResult | Job:
+        """Candidate poses ranked by sigma_max, most uncertain first."""
+        body = {"cameras": camera_frames(cameras), "samples": samples, "seed": seed, "dropout_ratio": dropout_ratio,
+                "top_k": top_k, "heatmaps": heatmaps, "downscale": downscale, "width": width, "height": height,
+                "async": run_async}
+        return self._work(f"/v1/models/{model_id}/rank", body, RankResult, wait, progress, poll_interval, timeout)
+
+    def select(self, model_a: str, model_b: str, cameras: Cameras, *, samples: int | None = None, seed: int = 0,
+               ratio_a: float | None = None, ratio_b: float | None = None, images: str = "none",
+               downscale: float | None = None, width: int | None = None, height: int | None = None,
+               run_async: bool = False, wait: bool = True, progress: ProgressCallback | None = None,
+               poll_interval: float = 0.2, timeout: float | None = None) -> SelectResult | Job:
+        """Per view, which of two models to trust (the lower mean zeta)."""
+        body = {"model_a": model_a, "model_b": model_b, "cameras": camera_frames(cameras), "samples": samples,
+                "seed": seed, "ratio_a": ratio_a, "ratio_b": ratio_b, "images": images, "downscale": downscale,
+                "width": width, "height": height, "async": run_async}
+        return self._work("/v1/select", body, SelectResult, wait, progress, poll_interval, timeout)
+
+    def _work(self, path: str, body: dict, result_type: type, wait: bool, progress: ProgressCallback | None,
+              poll_interval: float, timeout: float | None) -> Any:
+        response = self._request("POST", path, json={k: v for k, v in body.items() if v is not None})
+        if response.status_code == 202:
+            job = Job.model_validate(response.json())
+            return self.wait_job(job.id, progress=progress, poll_interval=poll_interval, timeout=timeout) if wait else job
+        result = result_type.model_validate(response.json())
+        if progress is not None:
+            progress(1.0)
+        return result
+
+    # ------------------------------------------------------------------ jobs
+
+    def get_job(self, job_id: str) -> Job:
+        return Job.model_validate(self._request("GET", f"/v1/jobs/{job_id}").json())
+
+    def cancel_job(self, job_id: str) -> Job:
+        return Job.model_validate(self._request("DELETE", f"/v1/jobs/{job_id}").json())
+
+    def wait_job(self, job_id: str, *, progress: ProgressCallback | None = None, poll_interval: float = 0.2,
+                 timeout: float | None = None) -> Calibration | RankResult | SelectResult:
+        """Poll a job until it ends; its result, or JobFailedError / JobCancelledError."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        last = -1.0
+        while True:
+            job = self.get_job(job_id)
+            if progress is not None and job.progress != last:
+                last = job.progress
+                progress(job.progress)
+            if job.state == "succeeded":
+                return job.result
+            if job.state == "failed":
+                raise JobFailedError(job)
+            if job.state == "cancelled":
+                raise JobCancelledError(job)
+            if deadline is not None and time.monotonic() > deadline:
+                raise ServiceUnavailableError(f"job {job_id} still {job.state} after {timeout} s", code="timeout")
+            time.sleep(poll_interval)
+
+    def download(self, url: str) -> bytes:
+        """The bytes of an artefact (a heatmap_url or image_url from a result)."""
+        return self._request("GET", url).content

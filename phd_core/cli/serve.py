@@ -1,0 +1,47 @@
+"""`phd serve`: run the REST service (uvicorn, one process, a pool of worker threads)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "serve", help="run the PH-Dropout REST service",
+        description="Serve the REST API (OpenAPI docs at /docs). Caps and the API key come from PHD_* "
+                    "environment variables (PHD_API_KEY, PHD_MAX_UPLOAD_BYTES, ...; see docs/service.md).")
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    parser.add_argument("--data-dir", type=Path, default=None,
+                        help="models, metadata and calibrations (default: PHD_DATA_DIR, else the user's data dir)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="threads running PH-Dropout work at once (default: PHD_WORKERS, else 1)")
+    parser.add_argument("--queue-size", type=int, default=None,
+                        help="jobs that may wait for a worker before requests get 429 (default 8)")
+    parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"))
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn  # web code stays out of phd_core's import path
+
+    from phd_core.errors import InputError
+    from service.app import create_app
+    from service.settings import Settings
+
+    if args.workers is not None and args.workers < 1:
+        raise InputError("workers", f"must be at least 1, got {args.workers}")
+    if args.queue_size is not None and args.queue_size < 1:
+        raise InputError("queue-size", f"must be at least 1, got {args.queue_size}")
+    if not 0 <= args.port <= 65535:
+        raise InputError("port", f"must lie in [0, 65535], got {args.port}")
+    try:
+        settings = Settings.from_env(data_dir=args.data_dir, workers=args.workers, queue_size=args.queue_size)
+    except ValueError as exc:
+        raise InputError("settings", str(exc)) from None
+    app = create_app(settings)
+    print(f"phd serve: data in {settings.data_dir}, {settings.workers} worker(s), queue {settings.queue_size}, "
+          f"API key {'required' if settings.api_key else 'off'}; http://{args.host}:{args.port}/docs", flush=True)
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    return 0

@@ -1,0 +1,51 @@
+"""The service's errors: one exception type that knows its HTTP status, code and field.
+
+Every error answer has the body `{"error": {"code", "message", "field"}}`
+(`service.schemas.ErrorResponse`). Library errors map onto it in one place,
+`from_exception`: `InputError` -> 422 naming its field, unknown model content -> 415.
+"""
+
+from __future__ import annotations
+
+from phd_core.errors import InputError
+from phd_core.phdropout import CalibrationError
+
+from .schemas import ErrorDetail
+
+
+class ServiceError(Exception):
+    """An error answer: HTTP status, stable code, message and the offending field."""
+
+    def __init__(self, status: int, code: str, message: str, field: str | None = None,
+                 headers: dict[str, str] | None = None):
+        super().__init__(message)
+        self.status = status
+        self.code = code
+        self.message = message
+        self.field = field
+        self.headers = headers or {}
+
+    def detail(self) -> ErrorDetail:
+        return ErrorDetail(code=self.code, message=self.message, field=self.field)
+
+
+def not_found(what: str, ident: str, field: str | None = None) -> ServiceError:
+    return ServiceError(404, f"{what}_not_found", f"no {what} with id '{ident}'", field)
+
+
+def invalid(field: str | None, message: str) -> ServiceError:
+    return ServiceError(422, "invalid_input", message, field)
+
+
+def from_exception(exc: BaseException) -> ServiceError | None:
+    """The error answer for a library exception, or None if it is a bug (-> 500)."""
+    if isinstance(exc, ServiceError):
+        return exc
+    if isinstance(exc, InputError):
+        from phd_core.models import UnknownModelError  # the library's content sniffer
+
+        if isinstance(exc, UnknownModelError):
+            return ServiceError(415, "unsupported_model", exc.reason, exc.field)
+        code = "calibration_failed" if isinstance(exc, CalibrationError) else "invalid_input"
+        return ServiceError(422, code, exc.reason, exc.field)
+    return None

@@ -1,0 +1,177 @@
+"""A bounded pool of worker threads that runs PH-Dropout work as jobs.
+
+Every calibrate/rank/select request becomes a `JobRecord`; a synchronous request simply
+awaits its job's future. `workers` threads take jobs from a waiting line of at most
+`queue_size` jobs; a submission past that raises `QueueFull` (the API answers 429 with
+Retry-After) instead of waiting. Cancelling a waiting job removes it from the line;
+cancelling a running job sets a flag that the engine's progress callback checks between
+views, raising `JobCancelled` inside the engine. Jobs live in memory only: the last
+`retention` finished jobs (and their artefacts) are kept, older ones are forgotten.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import traceback
+import uuid
+from collections import OrderedDict, deque
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from .errors import ServiceError, from_exception
+from .schemas import Job
+from .store import utc_now
+
+log = logging.getLogger("phd.service")
+
+# A job's work: gets a progress callback (fraction done), returns (result, artefacts by name).
+Work = Callable[[Callable[[float], None]], tuple[Any, dict[str, bytes]]]
+FINAL_STATES = ("succeeded", "failed", "cancelled")
+
+
+class QueueFull(Exception):
+    """The waiting line is full."""
+
+
+class JobCancelled(Exception):
+    """Raised from the progress callback to stop a job that was cancelled."""
+
+
+@dataclass
+class JobRecord:
+    id: str
+    kind: str
+    work: Work
+    estimated_pixels: float
+    state: str = "queued"
+    progress: float = 0.0
+    created_at: str = field(default_factory=utc_now)
+    started_at: str | None = None
+    finished_at: str | None = None
+    result: Any = None                       # a pydantic result model
+    error: ServiceError | None = None
+    artifacts: dict[str, bytes] = field(default_factory=dict)
+    cancel_requested: threading.Event = field(default_factory=threading.Event)
+    done: Future = field(default_factory=Future)   # resolves to the record itself when final
+
+    def to_schema(self) -> Job:
+        return Job(id=self.id, kind=self.kind, state=self.state, progress=self.progress,
+                   created_at=self.created_at, started_at=self.started_at, finished_at=self.finished_at,
+                   estimated_pixels=self.estimated_pixels, result=self.result,
+                   error=None if self.error is None else self.error.detail(),
+                   artifacts=sorted(self.artifacts))
+
+
+class JobManager:
+    def __init__(self, workers: int, queue_size: int, retention: int):
+        self.queue_size = queue_size
+        self.retention = retention
+        self._waiting: deque[JobRecord] = deque()
+        self._jobs: OrderedDict[str, JobRecord] = OrderedDict()
+        self._cond = threading.Condition()
+        self._stopping = False
+        self._threads = [threading.Thread(target=self._worker, name=f"phd-worker-{i}", daemon=True)
+                         for i in range(workers)]
+        for thread in self._threads:
+            thread.start()
+
+    # ------------------------------------------------------------------ API
+
+    @staticmethod
+    def new_id() -> str:
+        return uuid.uuid4().hex[:16]
+
+    def submit(self, job_id: str, kind: str, work: Work, estimated_pixels: float) -> JobRecord:
+        """Queue a job; raises QueueFull when `queue_size` jobs are already waiting."""
+        job = JobRecord(id=job_id, kind=kind, work=work, estimated_pixels=estimated_pixels)
+        with self._cond:
+            if self._stopping:
+                raise QueueFull("the service is shutting down")
+            if len(self._waiting) >= self.queue_size:
+                raise QueueFull(f"{len(self._waiting)} jobs are already waiting")
+            self._waiting.append(job)
+            self._jobs[job.id] = job
+            self._cond.notify()
+        return job
+
+    def get(self, job_id: str) -> JobRecord | None:
+        with self._cond:
+            return self._jobs.get(job_id)
+
+    def cancel(self, job_id: str) -> JobRecord | None:
+        """Cancel a waiting job at once, or ask a running one to stop at its next view."""
+        with self._cond:
+            job = self._jobs.get(job_id)
+            if job is None or job.state in FINAL_STATES:
+                return job
+            job.cancel_requested.set()
+            if job.state == "queued":
+                self._waiting.remove(job)
+                self._finish(job, "cancelled")
+        return job
+
+    def waiting(self) -> int:
+        with self._cond:
+            return len(self._waiting)
+
+    def shutdown(self) -> None:
+        """Cancel everything and stop the threads (running work stops at its next view)."""
+        with self._cond:
+            self._stopping = True
+            for job in list(self._jobs.values()):
+                if job.state not in FINAL_STATES:
+                    job.cancel_requested.set()
+            while self._waiting:
+                self._finish(self._waiting.popleft(), "cancelled")
+            self._cond.notify_all()
+        for thread in self._threads:
+            thread.join(timeout=30)
+
+    # ------------------------------------------------------------------ workers
+
+    def _worker(self) -> None:
+        while True:
+            with self._cond:
+                while not self._waiting and not self._stopping:
+                    self._cond.wait()
+                if self._stopping:
+                    return
+                job = self._waiting.popleft()
+                job.state, job.started_at = "running", utc_now()
+            self._run(job)
+
+    def _run(self, job: JobRecord) -> None:
+        def progress(fraction: float) -> None:
+            if job.cancel_requested.is_set():
+                raise JobCancelled()
+            job.progress = max(job.progress, min(1.0, float(fraction)))
+
+        try:
+            result, artifacts = job.work(progress)
+        except JobCancelled:
+            state, result, artifacts, error = "cancelled", None, {}, None
+        except BaseException as exc:  # a job never takes its worker thread down
+            error = from_exception(exc)
+            if error is None:
+                log.error("job %s (%s) failed:\n%s", job.id, job.kind, traceback.format_exc())
+                error = ServiceError(500, "internal_error", f"the {job.kind} job failed unexpectedly "
+                                     f"({type(exc).__name__}); see the server log")
+            state, result, artifacts = "failed", None, {}
+        else:
+            state, error = "succeeded", None
+        with self._cond:
+            job.result, job.artifacts, job.error = result, artifacts, error
+            if state == "succeeded":
+                job.progress = 1.0
+            self._finish(job, state)
+
+    def _finish(self, job: JobRecord, state: str) -> None:
+        """Mark a job final and forget the oldest finished jobs past `retention` (lock held)."""
+        job.state, job.finished_at = state, utc_now()
+        job.work = None  # type: ignore[assignment]  # drop references to renderers and inputs
+        job.done.set_result(job)
+        finished = [j for j in self._jobs.values() if j.state in FINAL_STATES]
+        for old in finished[:max(0, len(finished) - self.retention)]:
+            del self._jobs[old.id]

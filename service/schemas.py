@@ -1,0 +1,205 @@
+"""Request and response bodies of the REST API, shared by the service and the Python client.
+
+Pure pydantic: importing this module imports neither FastAPI nor torch, so the client
+(`client.PHDClient`) parses the server's answers into exactly these types.
+
+Cameras travel as JSON frames in the Blender / nerfstudio style that
+`phd_core.cameras.camera_from_frame` reads: `transform_matrix` (4x4 camera-to-world,
+OpenGL), intrinsics (`fl_x`/`fl_y`/`cx`/`cy` or `camera_angle_x`) and the image size
+`w`/`h`. A camera list is either a list of frames or a transforms.json object
+(`{"camera_angle_x": ..., "frames": [...]}`) whose top-level keys are defaults for
+every frame.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
+
+API_VERSION = "v1"
+
+CameraList = Union[list[dict[str, Any]], dict[str, Any]]
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+JobKind = Literal["calibrate", "rank", "select"]
+HeatmapMode = Literal["none", "base64", "files"]
+
+_CAMERAS_DOC = ("A list of Blender/nerfstudio frames, or a transforms.json object with a 'frames' "
+                "list (its other keys are defaults for every frame). Each frame needs "
+                "transform_matrix, a focal length (fl_x or camera_angle_x) and w/h (or give "
+                "width/height in the request).")
+
+
+class _Request(BaseModel):
+    """Request bodies reject unknown fields, so a misspelt option is a 422, not ignored."""
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+
+class _Response(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+
+# ----------------------------------------------------------------------------- errors
+
+class ErrorDetail(_Response):
+    code: str = Field(description="Stable machine-readable error code, e.g. 'model_not_found'.")
+    message: str = Field(description="What went wrong, for a person.")
+    field: str | None = Field(None, description="The offending request field, when one is to blame.")
+
+
+class ErrorResponse(_Response):
+    """The body of every error answer."""
+
+    error: ErrorDetail
+
+
+# ----------------------------------------------------------------------------- health and models
+
+class Health(_Response):
+    status: Literal["ok"] = "ok"
+    version: str
+    api_version: str = API_VERSION
+
+
+class Calibration(_Response):
+    """A stored PH-Dropout calibration (Algorithm 1): r_drop and its error curve."""
+
+    r_drop: float
+    ratios: list[float] = Field(description="Tested dropout ratios, ascending.")
+    errors: list[float] = Field(description="Mean error on the training views at each tested ratio.")
+    epsilon: float
+    step: float
+    samples: int
+    seed: int
+    method: str
+    capped: bool
+    warnings: list[str] = []
+    num_cameras: int = Field(description="How many training cameras the calibration rendered.")
+    created_at: str
+
+
+class ModelInfo(_Response):
+    id: str
+    name: str
+    kind: Literal["3dgs", "nerf"]
+    num_units: int = Field(description="Dropout units: splats (3DGS) or first-layer hidden units (NeRF).")
+    sh_degree: int | None = Field(None, description="Spherical-harmonic degree (3DGS).")
+    network: dict[str, Any] | None = Field(None, description="Network size facts (NeRF).")
+    bounds: dict[str, list[float]] | None = Field(None, description="Scene bounds {'min': [x,y,z], 'max': [x,y,z]}.")
+    size_bytes: int
+    sha256: str
+    created_at: str
+    has_training_cameras: bool
+    num_training_cameras: int
+    has_calibration: bool
+    calibration: Calibration | None = None
+    details: dict[str, Any] = Field(default_factory=dict, description="Everything the renderer reports (describe()).")
+
+
+class ModelList(_Response):
+    models: list[ModelInfo]
+
+
+# ----------------------------------------------------------------------------- work requests
+
+class RenderSize(_Request):
+    """Render resolution: the frames' own size, scaled by 1/downscale, or width x height."""
+
+    downscale: FiniteFloat | None = Field(None, gt=0, le=64, description="Render at 1/downscale of each frame's size.")
+    width: int | None = Field(None, ge=1, description="Render width in pixels (with height; overrides downscale).")
+    height: int | None = Field(None, ge=1, description="Render height in pixels (with width).")
+
+
+class CalibrateRequest(RenderSize):
+    epsilon: FiniteFloat | None = Field(None, gt=0, le=1, description="Error threshold; default the engine's.")
+    step: FiniteFloat | None = Field(None, ge=1e-4, lt=1, description="Dropout-ratio grid step.")
+    samples: int | None = Field(None, ge=1, description="Masks per tested ratio.")
+    method: Literal["linear", "bisection"] = "linear"
+    seed: int = Field(0, ge=0, le=2**63 - 1)
+    training_cameras: CameraList | None = Field(None, description="Training cameras; default the stored ones. "
+                                                + _CAMERAS_DOC)
+    run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
+
+
+class RankRequest(RenderSize):
+    cameras: CameraList = Field(description="Candidate poses. " + _CAMERAS_DOC)
+    samples: int | None = Field(None, ge=2, description="Dropout samples N per view; default the engine's.")
+    seed: int = Field(0, ge=0, le=2**63 - 1)
+    dropout_ratio: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: the stored calibration's r_drop.")
+    top_k: int | None = Field(None, ge=1, description="Return only the k most uncertain candidates.")
+    heatmaps: HeatmapMode = Field("none", description="zeta heat maps of the returned views: inline base64 PNG, "
+                                  "or PNG files to download from the job's artefacts.")
+    run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
+
+
+class SelectRequest(RenderSize):
+    model_a: str
+    model_b: str
+    cameras: CameraList = Field(description="Views to choose a model for. " + _CAMERAS_DOC)
+    samples: int | None = Field(None, ge=2)
+    seed: int = Field(0, ge=0, le=2**63 - 1)
+    ratio_a: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: model a's calibration.")
+    ratio_b: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: model b's calibration.")
+    images: HeatmapMode = Field("none", description="The selected model's render per view: inline base64 PNG "
+                                "or downloadable files.")
+    run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
+
+
+# ----------------------------------------------------------------------------- work results
+
+class RankedCandidate(_Response):
+    index: int = Field(description="Position of the candidate in the request's camera list.")
+    rank: int = Field(description="0 = most uncertain.")
+    sigma_max: float
+    sigma_mean: float
+    heatmap_png: str | None = Field(None, description="base64 PNG of zeta (heatmaps='base64').")
+    heatmap_url: str | None = Field(None, description="Path of the PNG artefact (heatmaps='files').")
+
+
+class RankResult(_Response):
+    model_id: str
+    dropout_ratio: float
+    ratio_source: Literal["request", "calibration"]
+    samples: int
+    seed: int
+    width: int = Field(description="Render width of the first candidate.")
+    height: int
+    num_candidates: int
+    heatmap_vmax: float | None = Field(None, description="zeta value drawn as the top colour of every heat map.")
+    views: list[RankedCandidate] = Field(description="Most uncertain first.")
+
+
+class SelectedView(_Response):
+    index: int
+    choice: Literal["a", "b"]
+    model_id: str
+    score_a: float = Field(description="Mean zeta of model a on this view (lower = more trusted).")
+    score_b: float
+    image_png: str | None = None
+    image_url: str | None = None
+
+
+class SelectResult(_Response):
+    model_a: str
+    model_b: str
+    ratio_a: float
+    ratio_b: float
+    samples: int
+    seed: int
+    counts: dict[str, int] = Field(description="How many views chose a and b.")
+    views: list[SelectedView]
+
+
+class Job(_Response):
+    id: str
+    kind: JobKind
+    state: JobState
+    progress: float = Field(description="Fraction done in [0, 1].")
+    created_at: str
+    started_at: str | None = None
+    finished_at: str | None = None
+    estimated_pixels: float = Field(description="The work estimate: rendered views x samples x pixels.")
+    result: Union[RankResult, SelectResult, Calibration, None] = None
+    error: ErrorDetail | None = None
+    artifacts: list[str] = Field(default_factory=list, description="Names of downloadable PNG artefacts.")

@@ -1,0 +1,173 @@
+"""Model uploads: stream a multipart body to a temp file, then check it fully.
+
+Form fields of `POST /v1/models`:
+- `file` (required): the model, a 3DGS PLY or one of our NeRF checkpoints. The kind comes
+  from the first bytes, never from the file name; anything else (a pickle named .pt, a
+  zip, text) is refused with 415 before any parser sees more than its head.
+- `cameras` (optional): training cameras as JSON, a transforms.json object or a list of
+  frames, as a text field or a file.
+- `name` (optional): a display name; default the uploaded file's name.
+
+The body is parsed as it arrives (python-multipart's streaming parser): the model bytes go
+straight to `tmp/` in the data directory and are hashed on the way, so an upload never sits
+in memory whole. The size cap itself is enforced by `service.guard` on the raw stream.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from python_multipart import MultipartParser
+from python_multipart.exceptions import MultipartParseError
+from python_multipart.multipart import parse_options_header
+from starlette.requests import ClientDisconnect, Request
+
+from phd_core.models import SNIFF_BYTES, model_kind
+
+from .errors import ServiceError, invalid
+
+MAX_NAME_BYTES = 256
+FIELDS = ("file", "cameras", "name")
+
+
+@dataclass
+class Upload:
+    path: Path
+    filename: str | None = None
+    name: str | None = None
+    cameras: bytes | None = None
+    size: int = 0
+    head: bytes = b""
+    sha256: str = ""
+    has_file: bool = False
+
+
+@dataclass
+class _Part:
+    headers: dict[str, str] = field(default_factory=dict)
+    header_name: bytes = b""
+    header_value: bytes = b""
+    name: str = ""
+    buffer: bytearray | None = None
+    file: BinaryIO | None = None
+
+
+async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: int) -> Upload:
+    """Parse the multipart body of `request`, writing the model to `temp_path` (then fsynced).
+
+    The caller deletes `temp_path` on any failure.
+    """
+    content_type, params = parse_options_header(request.headers.get("content-type", ""))
+    if content_type != b"multipart/form-data" or not params.get(b"boundary"):
+        raise ServiceError(415, "unsupported_media_type", "upload the model as multipart/form-data with a "
+                           "'file' part (and optionally 'cameras' and 'name')", "file")
+    upload = Upload(path=temp_path)
+    digest = hashlib.sha256()
+    part = _Part()
+
+    def on_part_begin() -> None:
+        nonlocal part
+        part = _Part()
+
+    def on_header_field(data: bytes, start: int, end: int) -> None:
+        part.header_name += data[start:end]
+
+    def on_header_value(data: bytes, start: int, end: int) -> None:
+        part.header_value += data[start:end]
+
+    def on_header_end() -> None:
+        part.headers[part.header_name.decode("latin-1").lower()] = part.header_value.decode("latin-1")
+        part.header_name, part.header_value = b"", b""
+
+    def on_headers_finished() -> None:
+        _, options = parse_options_header(part.headers.get("content-disposition", ""))
+        part.name = options.get(b"name", b"").decode("utf-8", "replace")
+        if part.name not in FIELDS:
+            raise invalid(part.name or "file", f"unknown form field '{part.name}': expected one of {', '.join(FIELDS)}")
+        if part.name == "file":
+            if upload.has_file:
+                raise invalid("file", "more than one 'file' part: upload one model per request")
+            upload.has_file = True
+            filename = options.get(b"filename")
+            upload.filename = None if filename is None else filename.decode("utf-8", "replace")
+            part.file = open(upload.path, "wb")
+        else:
+            part.buffer = bytearray()
+
+    def on_part_data(data: bytes, start: int, end: int) -> None:
+        chunk = data[start:end]
+        if part.file is not None:
+            if len(upload.head) < SNIFF_BYTES:
+                upload.head += chunk[:SNIFF_BYTES - len(upload.head)]
+            digest.update(chunk)
+            upload.size += len(chunk)
+            part.file.write(chunk)
+            return
+        part.buffer += chunk
+        cap = max_cameras_bytes if part.name == "cameras" else MAX_NAME_BYTES
+        if len(part.buffer) > cap:
+            raise ServiceError(413, "payload_too_large", f"the '{part.name}' field exceeds {cap} bytes", part.name)
+
+    def on_part_end() -> None:
+        if part.file is not None:
+            part.file.close()
+            part.file = None
+        elif part.name == "cameras":
+            upload.cameras = bytes(part.buffer)
+        elif part.name == "name":
+            upload.name = part.buffer.decode("utf-8", "replace").strip() or None
+
+    parser = MultipartParser(params[b"boundary"], {
+        "on_part_begin": on_part_begin, "on_header_field": on_header_field, "on_header_value": on_header_value,
+        "on_header_end": on_header_end, "on_headers_finished": on_headers_finished,
+        "on_part_data": on_part_data, "on_part_end": on_part_end,
+    })
+    try:
+        async for chunk in request.stream():
+            parser.write(chunk)
+        parser.finalize()
+    except ClientDisconnect:
+        raise ServiceError(400, "upload_incomplete", "the upload ended before the body was complete", "file") from None
+    except MultipartParseError as exc:
+        raise ServiceError(400, "invalid_multipart", f"malformed multipart body: {exc}", "file") from None
+    finally:
+        if part.file is not None:
+            part.file.close()
+    if not upload.has_file:
+        raise invalid("file", "no 'file' part: the request must include the model file")
+    upload.sha256 = digest.hexdigest()
+    await asyncio.to_thread(_fsync, upload.path)
+    return upload
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def sniff_kind(head: bytes) -> str:
+    """'3dgs' or 'nerf' from a file's first bytes; 415 for anything else."""
+    kind = model_kind(head)
+    if kind is not None:
+        return kind
+    what = "an empty file" if not head else "neither a 3DGS PLY nor a NeRF checkpoint of this service"
+    if head[:1] == b"\x80" or head[:2] == b"PK":
+        what = ("a Python pickle or zip archive (e.g. a torch.save file); such files can run code when loaded "
+                "and are never opened")
+    raise ServiceError(415, "unsupported_model", f"the uploaded file is {what}", "file")
+
+
+def parse_camera_json(raw: bytes) -> Any:
+    try:
+        return json.loads(raw)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise invalid("cameras", f"not valid JSON: {exc}") from None

@@ -1,0 +1,258 @@
+"""What the routes ask the worker pool to do: request checks, then calls into `phd_core`.
+
+Each `*_job` function validates a request on the event loop (cheap: parsing cameras,
+checking caps, finding the dropout ratio) and returns the `Work` that a worker thread runs
+later (expensive: loading the model, rendering). The work calls the engine
+(`phd_core.phdropout`) exactly as a Python user would, so the service's numbers are the
+library's numbers.
+"""
+
+from __future__ import annotations
+
+import base64
+import threading
+from collections import OrderedDict
+from typing import Any, Callable
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from phd_core import phdropout
+from phd_core.cameras import Camera, cameras_from_json
+from phd_core.errors import InputError
+from phd_core.heatmap import colorize
+from phd_core.models import load_model
+from phd_core.protocol import Renderer
+
+from .errors import ServiceError, invalid, not_found
+from .jobs import Work
+from .schemas import (Calibration, CalibrateRequest, RankedCandidate, RankRequest, RankResult, SelectedView,
+                      SelectRequest, SelectResult, RenderSize)
+from .settings import Settings
+from .store import ModelRecord, ModelStore, utc_now
+
+Progress = Callable[[float], None]
+
+
+# ----------------------------------------------------------------------------- loaded models
+
+class RendererCache:
+    """The last `capacity` loaded renderers, by model id (least recently used goes first)."""
+
+    def __init__(self, store: ModelStore, capacity: int):
+        self.store = store
+        self.capacity = capacity
+        self._items: OrderedDict[str, Renderer] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, model_id: str) -> Renderer:
+        with self._lock:
+            if model_id in self._items:
+                self._items.move_to_end(model_id)
+                return self._items[model_id]
+            record = self.store.get(model_id)  # the model may have been deleted while the job waited
+            if record is None:
+                raise not_found("model", model_id)
+            renderer = load_model(self.store.path(record))
+        self.put(model_id, renderer)
+        return renderer
+
+    def put(self, model_id: str, renderer: Renderer) -> None:
+        with self._lock:
+            self._items[model_id] = renderer
+            self._items.move_to_end(model_id)
+            while len(self._items) > self.capacity:
+                self._items.popitem(last=False)
+
+    def evict(self, model_id: str) -> None:
+        with self._lock:
+            self._items.pop(model_id, None)
+
+
+# ----------------------------------------------------------------------------- request checks
+
+FRAME_KEYS = {"fx": "fl_x", "fy": "fl_y", "width": "w", "height": "h"}  # Camera attribute -> frame key
+
+
+def _camera_field(prefix: str, library_field: str) -> str:
+    """'frames[3].fx' from the library -> 'cameras[3].fl_x', the key the user wrote."""
+    if library_field.startswith("frames"):
+        path, _, key = library_field[len("frames"):].rpartition(".")
+        return f"{prefix}{path}.{FRAME_KEYS.get(key, key)}" if path else prefix + key
+    return f"{prefix}.{library_field}"
+
+
+def parse_cameras(source: Any, size: RenderSize, settings: Settings, *, field: str, cap: int) -> list[Camera]:
+    """Validated cameras at the requested render size, or a 422 naming the frame and key."""
+    frames = source.get("frames") if isinstance(source, dict) else source
+    if isinstance(frames, list) and len(frames) > cap:
+        raise invalid(field, f"{len(frames)} cameras exceed the cap of {cap} per request")
+    if (size.width is None) != (size.height is None):
+        raise invalid("width" if size.width is None else "height", "give width and height together")
+    try:
+        cameras = cameras_from_json(source, width=size.width, height=size.height, max_size=settings.max_frame_size)
+        if size.width is not None:
+            cameras = [c.resized(size.width, size.height) for c in cameras]
+        elif size.downscale is not None:
+            cameras = [c.scaled(size.downscale) for c in cameras]
+    except InputError as exc:
+        name = exc.field if exc.field in ("downscale", "width", "height") else _camera_field(field, exc.field)
+        raise invalid(name, exc.reason) from None
+    for i, camera in enumerate(cameras):
+        if max(camera.width, camera.height) > settings.max_image_size:
+            raise invalid(f"{field}[{i}]", f"renders at {camera.width}x{camera.height}, above the cap of "
+                          f"{settings.max_image_size} pixels per side (lower the resolution with downscale "
+                          "or width/height)")
+    return cameras
+
+
+def check_samples(samples: int | None, settings: Settings, default: int) -> int:
+    samples = default if samples is None else samples
+    if samples > settings.max_samples:
+        raise invalid("samples", f"{samples} samples exceed the cap of {settings.max_samples}")
+    return samples
+
+
+def stored_ratio(record: ModelRecord, field: str, given: float | None) -> tuple[float, str]:
+    """The dropout ratio to use: the request's, else the stored calibration's, else 409."""
+    if given is not None:
+        return given, "request"
+    if record.calibration is None:
+        raise ServiceError(409, "not_calibrated", f"model '{record.id}' has no calibration: calibrate it "
+                           f"(POST /v1/models/{record.id}/calibrate) or give {field}", field)
+    return float(record.calibration["r_drop"]), "calibration"
+
+
+def pixels(cameras: list[Camera]) -> int:
+    return sum(c.width * c.height for c in cameras)
+
+
+# ----------------------------------------------------------------------------- images
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """PNG of an RGB uint8 [H, W, 3] image."""
+    return iio.imwrite("<bytes>", rgb, extension=".png")
+
+
+def image_png(image: torch.Tensor) -> bytes:
+    """PNG of a render: [H, W, 3] float in [0, 1]."""
+    return png_bytes((image.clamp(0, 1) * 255).round().to(torch.uint8).numpy())
+
+
+def b64(data: bytes) -> str:
+    return base64.b64encode(data).decode("ascii")
+
+
+def _span(progress: Progress, start: float, end: float) -> Progress:
+    """Progress of one phase mapped onto [start, end] of the job."""
+    return lambda fraction: progress(start + (end - start) * fraction)
+
+
+# ----------------------------------------------------------------------------- calibrate
+
+def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Settings, store: ModelStore,
+                  cache: RendererCache) -> tuple[Work, float]:
+    if body.training_cameras is not None:
+        source, field = body.training_cameras, "training_cameras"
+    elif record.training_frames:
+        source, field = record.training_frames, "training_cameras"
+    else:
+        raise ServiceError(409, "no_training_cameras", f"model '{record.id}' has no stored training cameras: "
+                           "give training_cameras (or upload the model with its cameras)", "training_cameras")
+    cameras = parse_cameras(source, body, settings, field=field, cap=settings.max_training_cameras)
+    samples = check_samples(body.samples, settings, phdropout.DEFAULT_CALIBRATION_SAMPLES)
+    options = {"epsilon": body.epsilon, "step": body.step}
+    options = {k: v for k, v in options.items() if v is not None}
+    step = body.step or phdropout.DEFAULT_STEP
+    estimate = pixels(cameras) * (1 + samples * int(1 / step))
+
+    def work(progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
+        renderer = cache.get(record.id)
+        result = phdropout.calibrate(renderer, cameras, samples=samples, method=body.method, seed=body.seed,
+                                     progress=progress, **options)
+        calibration = Calibration(**result.to_dict(), num_cameras=len(cameras), created_at=utc_now())
+        if not store.set_calibration(record.id, calibration.model_dump()):
+            raise not_found("model", record.id)
+        return calibration, {}
+
+    return work, float(estimate)
+
+
+# ----------------------------------------------------------------------------- rank
+
+def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: RendererCache,
+             job_url: Callable[[str], str]) -> tuple[Work, float]:
+    cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
+    samples = check_samples(body.samples, settings, phdropout.DEFAULT_SAMPLES)
+    ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
+    returned = len(cameras) if body.top_k is None else min(body.top_k, len(cameras))
+    mapped = 0 if body.heatmaps == "none" else returned  # heat-mapped views are rendered twice
+    estimate = (pixels(cameras) + pixels(cameras[:mapped])) * samples
+
+    def work(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
+        renderer = cache.get(record.id)
+        split = len(cameras) / (len(cameras) + mapped)
+        ranked = phdropout.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed,
+                                      top_k=body.top_k, progress=_span(progress, 0.0, split))
+        views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean)
+                 for r in ranked]
+        artifacts: dict[str, bytes] = {}
+        vmax = None
+        if body.heatmaps != "none":
+            # One colour scale for all maps (the largest sigma_max), so they compare by eye.
+            vmax = max(v.sigma_max for v in views)
+            done = _span(progress, split, 1.0)
+            for k, view in enumerate(views):
+                # Same seed -> the same N sub-models as the ranking: zeta is the ranked one's.
+                zeta = phdropout.view_uncertainty(renderer, cameras[view.index], ratio=ratio, samples=samples,
+                                                  seed=body.seed, keep_maps=True).zeta
+                png = png_bytes(colorize(zeta, vmax if vmax > 0 else None)[0])
+                if body.heatmaps == "base64":
+                    view.heatmap_png = b64(png)
+                else:
+                    name = f"heatmap_{view.index:04d}.png"
+                    artifacts[name] = png
+                    view.heatmap_url = job_url(name)
+                done((k + 1) / len(views))
+        result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, samples=samples,
+                            seed=body.seed, width=cameras[0].width, height=cameras[0].height,
+                            num_candidates=len(cameras), heatmap_vmax=vmax, views=views)
+        return result, artifacts
+
+    return work, float(estimate)
+
+
+# ----------------------------------------------------------------------------- select
+
+def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest, settings: Settings,
+               cache: RendererCache, job_url: Callable[[str], str]) -> tuple[Work, float]:
+    cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
+    samples = check_samples(body.samples, settings, phdropout.DEFAULT_SAMPLES)
+    ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
+    ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
+    estimate = pixels(cameras) * (2 * samples + (body.images != "none"))
+
+    def work(progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:
+        renderer_a, renderer_b = cache.get(record_a.id), cache.get(record_b.id)
+        result = phdropout.select_models(renderer_a, renderer_b, cameras, ratio_a=ratio_a, ratio_b=ratio_b,
+                                         samples=samples, seed=body.seed, keep_images=body.images != "none",
+                                         progress=progress)
+        views, artifacts = [], {}
+        for v in result.views:
+            view = SelectedView(index=v.index, choice=v.choice, score_a=v.score_a, score_b=v.score_b,
+                                model_id=record_a.id if v.choice == "a" else record_b.id)
+            if v.image is not None:
+                png = image_png(v.image)
+                if body.images == "base64":
+                    view.image_png = b64(png)
+                else:
+                    name = f"selected_{v.index:04d}.png"
+                    artifacts[name] = png
+                    view.image_url = job_url(name)
+            views.append(view)
+        counts = {"a": sum(v.choice == "a" for v in views), "b": sum(v.choice == "b" for v in views)}
+        return SelectResult(model_a=record_a.id, model_b=record_b.id, ratio_a=ratio_a, ratio_b=ratio_b,
+                            samples=samples, seed=body.seed, counts=counts, views=views), artifacts
+
+    return work, float(estimate)
