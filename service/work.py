@@ -208,12 +208,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
                 zeta = phdropout.view_uncertainty(renderer, cameras[view.index], ratio=ratio, samples=samples,
                                                   seed=body.seed, keep_maps=True).zeta
                 png = png_bytes(colorize(zeta, vmax if vmax > 0 else None)[0])
-                if body.heatmaps == "base64":
-                    view.heatmap_png = b64(png)
-                else:
-                    name = f"heatmap_{view.index:04d}.png"
-                    artifacts[name] = png
-                    view.heatmap_url = job_url(name)
+                view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
+                                                             artifacts, job_url)
                 done((k + 1) / len(views))
         result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, samples=samples,
                             seed=body.seed, width=cameras[0].width, height=cameras[0].height,
@@ -221,6 +217,15 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
         return result, artifacts
 
     return work, float(estimate)
+
+
+def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
+            job_url: Callable[[str], str]) -> tuple[str | None, str | None]:
+    """A PNG inline (mode "base64") or as a downloadable job artefact: (base64, url)."""
+    if mode == "base64":
+        return b64(png), None
+    artifacts[name] = png
+    return None, job_url(name)
 
 
 # ----------------------------------------------------------------------------- select
@@ -243,13 +248,8 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
             view = SelectedView(index=v.index, choice=v.choice, score_a=v.score_a, score_b=v.score_b,
                                 model_id=record_a.id if v.choice == "a" else record_b.id)
             if v.image is not None:
-                png = image_png(v.image)
-                if body.images == "base64":
-                    view.image_png = b64(png)
-                else:
-                    name = f"selected_{v.index:04d}.png"
-                    artifacts[name] = png
-                    view.image_url = job_url(name)
+                view.image_png, view.image_url = deliver(image_png(v.image), body.images,
+                                                         f"selected_{v.index:04d}.png", artifacts, job_url)
             views.append(view)
         counts = {"a": sum(v.choice == "a" for v in views), "b": sum(v.choice == "b" for v in views)}
         return SelectResult(model_a=record_a.id, model_b=record_b.id, ratio_a=ratio_a, ratio_b=ratio_b,

@@ -26,16 +26,6 @@ from phd_core.protocol import Renderer
 BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One intra-op thread: these are small tensors, and on a shared 2-core machine two
-    OpenMP threads spin-wait for each other (several times the CPU time for no gain)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def small_config(**kw) -> NeRFConfig:
     values = dict(depth=3, width=16, color_width=8, pos_freqs=3, dir_freqs=2, samples=24, near=1.0, far=7.0,
                   bounds=BOX, grid_resolution=8, hash_levels=3, hash_log2_size=10, hash_base_resolution=2,

@@ -20,16 +20,6 @@ pytestmark = pytest.mark.skipif(not LEGO.is_dir(), reason="lego_200 data not ava
 TINY = dict(width=32, color_width=16, pos_freqs=6, samples=32, batch_rays=256, grid_resolution=16)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One intra-op thread: these are small tensors, and on a shared 2-core machine two
-    OpenMP threads spin-wait for each other (several times the CPU time for no gain)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def tiny_lego():
     return load_blender(LEGO, "train", downscale=8, views=6)            # 25 x 25 pixels
