@@ -25,6 +25,15 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
         raise
 
 
+def fsync_path(path: str | Path) -> None:
+    """Flush a file's data, or a directory's entries (after a rename), to the disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def write_json_atomic(path: str | Path, obj: Any) -> None:
     """JSON with sorted-free, indented output; NaN/Inf refused (they are not JSON)."""
     write_bytes_atomic(path, (json.dumps(obj, indent=2, allow_nan=False) + "\n").encode())

@@ -26,6 +26,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from phd_core.fileio import fsync_path
+
 DB_NAME = "phd.sqlite3"
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS models (
@@ -64,14 +66,6 @@ class ModelRecord:
     training_frames: list[dict] | None     # nerfstudio-style frames (Camera.to_frame())
     calibration: dict[str, Any] | None     # CalibrationResult.to_dict() + num_cameras, created_at
     created_at: str
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 class ModelStore:
@@ -127,7 +121,7 @@ class ModelStore:
                              calibration=None, created_at=utc_now())
         os.replace(temp_path, target)
         try:
-            _fsync_dir(self.models_dir)
+            fsync_path(self.models_dir)
             with self._write_lock, self._connect() as db:
                 db.execute("BEGIN IMMEDIATE")
                 db.execute(

@@ -18,7 +18,6 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -28,6 +27,7 @@ from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
+from phd_core.fileio import fsync_path
 from phd_core.models import SNIFF_BYTES, model_kind
 
 from .errors import ServiceError, invalid
@@ -142,16 +142,8 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
     if not upload.has_file:
         raise invalid("file", "no 'file' part: the request must include the model file")
     upload.sha256 = digest.hexdigest()
-    await asyncio.to_thread(_fsync, upload.path)
+    await asyncio.to_thread(fsync_path, upload.path)
     return upload
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def sniff_kind(head: bytes) -> str:
