@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -31,7 +31,7 @@ from .cameras import Camera
 from .data import Dataset, load_blender
 from .errors import InputError
 from .fileio import write_json_atomic
-from .gaussian_render import SH_C0, GaussianRenderer, rasterize
+from .gaussian_render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
 from .gaussians import GaussianModel, write_ply
 from .metrics import ssim
 
@@ -61,7 +61,6 @@ class TrainConfig:
     sh_up_every: float = 0.1          # raise the active SH degree every this fraction of the run
     seed: int = 0
     tile: int = 4
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> None:
         if self.iterations < 1:
@@ -221,7 +220,6 @@ def densify(splats: Splats, grad_norm: torch.Tensor, config: TrainConfig, extent
     # Split: two children sampled from the parent's Gaussian, 1/1.6 of its size.
     idx = split.nonzero().squeeze(1).repeat(2)
     if len(idx):
-        from .gaussian_render import quaternion_to_rotation
         rot = quaternion_to_rotation(p["quats"][idx])
         std = p["log_scales"][idx].exp()
         offset = (rot @ (torch.randn(len(idx), 3, generator=gen) * std)[..., None]).squeeze(-1)
@@ -260,7 +258,7 @@ def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downsc
         "downscale": downscale,
         "background": list(dataset.background),
         "training_cameras": [c.to_frame() for c in dataset.cameras],
-        "settings": {k: v for k, v in asdict(config).items() if k != "extra"},
+        "settings": asdict(config),
         "num_splats": model.num_splats,
         "train_seconds": round(seconds, 2),
         "final_loss": history[-1] if history else None,
