@@ -40,7 +40,7 @@ from .protocol import Renderer
 DEFAULT_EPSILON = 0.0175           # mean |full - dropped| per pixel and channel on [0, 1]: on lego16 the
                                    # ratio where mean training SSIM drops 5 % (the reference criterion)
 DEFAULT_STEP = 0.05                # dropout-ratio grid of the search
-DEFAULT_SAMPLES = 16               # masks per view for zeta, ranking and selection
+DEFAULT_SAMPLES = 32               # masks per view for zeta, ranking and selection
 DEFAULT_CALIBRATION_SAMPLES = 4    # masks per ratio during calibration
 DEFAULT_SSIM_MARGIN = 0.05         # calibrate_ssim: allowed relative drop of mean SSIM
 MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds renderer memory)
