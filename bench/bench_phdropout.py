@@ -321,12 +321,15 @@ def angle_to_nearest(cameras: list, training: list) -> list[float]:
     return torch.rad2deg(torch.acos(cosines)).tolist()
 
 
+def load_test_at_size(data: Path, views: int, size: int):
+    """`views` evenly spaced test-split frames with their images, downscaled to `size` pixels wide."""
+    width = load_dataset(data, "test", views=1, with_images=False).cameras[0].width
+    return load_dataset(data, "test", views=views, downscale=width / size)
+
+
 def bench_evidence(renderer, ratio, samples, args, results) -> None:
-    data = load_dataset(args.data, "test", views=args.heldout)
     size = args.evidence_resolution
-    scale = data.cameras[0].width / size
-    if scale != 1:
-        data = load_dataset(args.data, "test", views=args.heldout, downscale=scale)
+    data = load_test_at_size(args.data, args.heldout, size)
     views = phd.uncertainty(renderer, data.cameras, ratio=ratio, samples=samples, keep_maps=True)
     rows = []
     for view, cam, truth in zip(views, data.cameras, data.images):

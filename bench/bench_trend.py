@@ -19,8 +19,8 @@ docs/phdropout.md.
 from __future__ import annotations
 
 import argparse
-import platform
 import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -30,10 +30,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench_phdropout import DATA, DOC, fmt, save, timed, write_doc  # noqa: E402
+from bench_phdropout import DATA, DOC, fmt, load_test_at_size, save, timed, write_doc  # noqa: E402
 from phd_core import phdropout as phd  # noqa: E402
 from phd_core import uq_metrics as uqm  # noqa: E402
-from phd_core.data import load_dataset  # noqa: E402
 from phd_core.metrics import rmse  # noqa: E402
 from phd_core.models import load_model  # noqa: E402
 
@@ -61,7 +60,6 @@ def measure(path: Path, test, args: argparse.Namespace) -> dict:
     if not renderer.training_cameras:
         raise SystemExit(f"{path}: no training cameras stored with the model (train it with `phd train`)")
     row = {"model": str(path), "views": len(renderer.training_cameras), "units": renderer.num_units}
-    cameras = test.cameras
     try:
         calibration, row["calibration_seconds"] = timed(phd.calibrate, renderer, renderer.training_cameras)
         row["r_drop"] = calibration.r_drop
@@ -73,12 +71,13 @@ def measure(path: Path, test, args: argparse.Namespace) -> dict:
     except phd.CalibrationError:
         row["r_drop_fine"] = 0.0
     for key, ratio in (("sigma_max_bar", row["r_drop"]), ("sigma_max_bar_fixed", args.fixed_ratio)):
-        views = phd.uncertainty(renderer, cameras, ratio=ratio, samples=args.samples)
+        views = phd.uncertainty(renderer, test.cameras, ratio=ratio, samples=args.samples)
         row[key] = phd.sigma_max_bar(views)
-    renders = torch.cat([renderer.render(c) for c in cameras])
+    renders = torch.cat([renderer.render(c) for c in test.cameras])
     row["rmse"] = float(rmse(renders, test.images))
-    print(f"{path}: {row['views']} views, r_drop {row['r_drop']} ({row['r_drop_fine']}), sigma-max-bar {row['sigma_max_bar']:.4f} "
-          f"(at {args.fixed_ratio}: {row['sigma_max_bar_fixed']:.4f}), RMSE {row['rmse']:.4f}", flush=True)
+    print(f"{path}: {row['views']} views, r_drop {row['r_drop']} (fine {row['r_drop_fine']}), "
+          f"sigma-max-bar {row['sigma_max_bar']:.4f} (at {args.fixed_ratio}: {row['sigma_max_bar_fixed']:.4f}), "
+          f"RMSE {row['rmse']:.4f}", flush=True)
     return row
 
 
@@ -105,8 +104,7 @@ def main() -> None:
     args = parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    probe = load_dataset(args.data, "test", views=args.test_views, with_images=False)
-    test = load_dataset(args.data, "test", views=args.test_views, downscale=probe.cameras[0].width / args.resolution)
+    test = load_test_at_size(args.data, args.test_views, args.resolution)
     rows = sorted((measure(path, test, args) for path in args.models), key=lambda r: r["views"])
     views = [r["views"] for r in rows]
     trends = uqm.trend_correlations(views, [r["sigma_max_bar"] for r in rows], [r["r_drop"] for r in rows])
@@ -115,7 +113,8 @@ def main() -> None:
     results = {"date": time.strftime("%Y-%m-%d %H:%M"), "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
                "machine": f"{platform.machine()} {os.cpu_count()} CPUs", "torch": torch.__version__,
                "threads": torch.get_num_threads(), "test_views": len(test.cameras), "resolution": args.resolution,
-               "samples": args.samples, "fixed_ratio": args.fixed_ratio, "fine_step": args.fine_step, "rows": rows, "trends": trends}
+               "samples": args.samples, "fixed_ratio": args.fixed_ratio, "fine_step": args.fine_step,
+               "rows": rows, "trends": trends}
     save(results, args.out)
     write_doc(args.doc, markdown(results), section="trend")
     print(markdown(results))

@@ -2,8 +2,9 @@
 
 Toy renderers (tests/toy_renderers.py) make every case cheap; the GS tests use a small
 random GaussianModel through the real rasteriser, and a model trained on lego for the
-checks the issue asks of a real model (float32 accumulation, bisection = linear scan). Expected values come from independent
-computations: one render per mask, numpy float64 std, explicit loops.
+checks asked of a real model (float32 accumulation, bisection = linear scan). Expected
+values come from independent computations: one render per mask, numpy float64 std,
+explicit loops.
 """
 
 from __future__ import annotations
