@@ -35,6 +35,7 @@ from torch import Tensor
 from .cameras import Camera
 from .errors import InputError
 from .protocol import Renderer
+from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
 
 # Defaults measured on the 16-view lego 3DGS model (docs/phdropout.md, bench/bench_phdropout.py).
 DEFAULT_EPSILON = 0.0175           # mean |full - dropped| per pixel and channel on [0, 1]: on lego16 the
@@ -472,26 +473,45 @@ class RankedView:
     index: int          # position of the candidate in the input list
     sigma_max: float
     sigma_mean: float
-    rank: int           # 0 = most uncertain
+    score: float        # the strategy's score when the candidate was ranked
+    rank: int           # 0 = capture first; ranks 0..k-1 are a batch to capture together
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,
-               seed: int = 0, top_k: int | None = None, progress: Progress | None = None) -> list[RankedView]:
-    """Candidates ordered by sigma_max, most uncertain first; ties go to the lower index.
+def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
+                       samples: int = DEFAULT_SAMPLES, seed: int = 0, captured: Sequence[Camera] | None = None,
+                       progress: Progress | None = None) -> Evidence:
+    """What a strategy sees: the candidates' PH-Dropout statistics under one draw of N
+    sub-models, and the captured poses (default: the model's training cameras)."""
+    views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, progress=progress)
+    if captured is None:
+        captured = renderer.training_cameras or []
+    captured = _check_cameras(captured, "captured") if captured else []
+    return Evidence(list(cameras), captured, torch.tensor([v.sigma_max for v in views], dtype=torch.float64),
+                    torch.tensor([v.sigma_mean for v in views], dtype=torch.float64))
 
-    top_k keeps the first k (all when k exceeds the number of candidates).
+
+def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,
+               seed: int = 0, top_k: int | None = None, strategy: str = DEFAULT_STRATEGY,
+               captured: Sequence[Camera] | None = None, progress: Progress | None = None) -> list[RankedView]:
+    """Candidates in the order the strategy would capture them; ties go to the lower index.
+
+    top_k keeps the first k, a batch meant to be captured together (all when k exceeds the
+    number of candidates). Every candidate carries sigma_max and sigma_mean whatever the
+    strategy. `captured` are the poses already taken (default: the model's training cameras).
     """
+    chosen = get_strategy(strategy)
     if top_k is not None:
         top_k = _check_int(top_k, "top_k", 1)
-    views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, progress=progress)
-    order = sorted(range(len(views)), key=lambda i: (-views[i].sigma_max, i))
-    if top_k is not None:
-        order = order[:top_k]
-    return [RankedView(index=i, sigma_max=views[i].sigma_max, sigma_mean=views[i].sigma_mean, rank=rank)
-            for rank, i in enumerate(order)]
+    evidence = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed, captured=captured,
+                                  progress=progress)
+    count = len(evidence.candidates)
+    selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
+    order = selection.order if top_k is None else selection.order[:top_k]
+    return [RankedView(index=i, sigma_max=float(evidence.sigma_max[i]), sigma_mean=float(evidence.sigma_mean[i]),
+                       score=selection.scores[i], rank=rank) for rank, i in enumerate(order)]
 
 
 # ----------------------------------------------------------------------------------------
@@ -501,7 +521,7 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
 class ViewSelection:
     index: int
     choice: str                     # "a" | "b"
-    score_a: float                  # mean zeta of model a on this view
+    score_a: float                  # model a's score of this view under the rule (lower wins)
     score_b: float
     image: Tensor | None = None     # [H, W, 3] the chosen model's full render (keep_images=True)
 
@@ -518,11 +538,41 @@ class SelectionResult:
         return {"views": [v.to_dict() for v in self.views], "metrics": self.metrics}
 
 
+SELECTION_RULES = ("distance_sigma", "sigma_mean")
+DEFAULT_SELECTION_RULE = "distance_sigma"
+SELECTION_TRAINING_VIEWS = 8       # training views (evenly spaced) that set a model's own zeta level
+
+
+def _nearest_distance(camera: Camera, training: Sequence[Camera]) -> float:
+    return float(torch.stack([c.center for c in training]).sub(camera.center).norm(dim=1).min())
+
+
+def _own_level(renderer: Renderer, training: Sequence[Camera] | None, keep: Tensor,
+               name: str) -> tuple[list[Camera], float]:
+    """A model's training cameras (default: the renderer's) and its mean zeta over up to 8 of
+    them: the level its uncertainty has where it was trained, which `distance_sigma` divides by."""
+    training = list(renderer.training_cameras or [] if training is None else training)
+    if not training:
+        raise InputError(name, "the model carries no training cameras, which rule 'distance_sigma' needs: "
+                               "give them with the model, or use rule 'sigma_mean'")
+    step = max(1, len(training) // SELECTION_TRAINING_VIEWS)
+    levels = [_view_uncertainty(renderer, c, keep, 1, False, torch.float64).sigma_mean
+              for c in training[::step][:SELECTION_TRAINING_VIEWS]]
+    return training, max(sum(levels) / len(levels), 1e-12)
+
+
 def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[Camera], *, ratio_a: float,
                   ratio_b: float, samples: int = DEFAULT_SAMPLES, seed: int = 0, images: Tensor | None = None,
-                  keep_images: bool = False, progress: Progress | None = None) -> SelectionResult:
-    """Per view, pick the model with the lower mean zeta (each at its own dropout ratio).
+                  rule: str = DEFAULT_SELECTION_RULE, training_a: Sequence[Camera] | None = None,
+                  training_b: Sequence[Camera] | None = None, keep_images: bool = False,
+                  progress: Progress | None = None) -> SelectionResult:
+    """Per view, pick the model with the lower score (each at its own dropout ratio).
 
+    rule "sigma_mean" (the paper): the mean zeta of the view. Rule "distance_sigma" (the
+    default, docs/nbv.md): the distance from the view to the model's nearest training
+    camera times the view's mean zeta relative to the model's mean zeta on its own
+    training views, so two models of different size and r_drop are compared like with like.
+    training_a / training_b: each model's training cameras (default: the renderer's own).
     Ties go to model a. With ground-truth `images` [V, H, W, 3], `metrics` holds the
     mean PSNR and SSIM of a, b and the selection, E_ME (mean over views of
     SSIM(selected) / max(SSIM(a), SSIM(b))) and how often the choice was the model
@@ -532,16 +582,28 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     samples, _ = _check_samples(samples, 1)
     seed = _check_seed(seed)
     cameras = _check_cameras(cameras)
+    if rule not in SELECTION_RULES:
+        raise InputError("rule", f"must be one of {', '.join(SELECTION_RULES)}, got {rule!r}")
     if images is not None:
         images = _check_images(images, cameras)
-    keep_a = keep_masks(dropout_uniforms(renderer_a.num_units, samples, seed), ratio_a)
-    keep_b = keep_masks(dropout_uniforms(renderer_b.num_units, samples, seed), ratio_b)
     renderers = {"a": renderer_a, "b": renderer_b}
+    keeps = {"a": keep_masks(dropout_uniforms(renderer_a.num_units, samples, seed), ratio_a),
+             "b": keep_masks(dropout_uniforms(renderer_b.num_units, samples, seed), ratio_b)}
+    if rule == "distance_sigma":
+        training = {"a": training_a, "b": training_b}
+        own = {key: _own_level(renderers[key], training[key], keeps[key], f"model_{key}") for key in renderers}
+
+    def score(key: str, camera: Camera) -> float:
+        sigma = _view_uncertainty(renderers[key], camera, keeps[key], 1, False, torch.float64).sigma_mean
+        if rule == "sigma_mean":
+            return sigma
+        training, level = own[key]
+        return _nearest_distance(camera, training) * sigma / level
+
     ticker = _ProgressTicker(progress, len(cameras))
     views, scores = [], {"a": [], "b": [], "selected": []}
     for i, camera in enumerate(cameras):
-        score_a = _view_uncertainty(renderer_a, camera, keep_a, 1, False, torch.float64).sigma_mean
-        score_b = _view_uncertainty(renderer_b, camera, keep_b, 1, False, torch.float64).sigma_mean
+        score_a, score_b = score("a", camera), score("b", camera)
         choice = "a" if score_a <= score_b else "b"
         # Full renders: both models when scoring against ground truth, else only the chosen one.
         needed = ("a", "b") if images is not None else (choice,) if keep_images else ()
@@ -574,6 +636,9 @@ def _selection_metrics(views: list[ViewSelection], scores: dict[str, list]) -> d
         mean_psnr = sum(p for p, _ in values) / len(values)     # inf when a render equals its image
         metrics[f"psnr_{key}"] = mean_psnr if math.isfinite(mean_psnr) else None
         metrics[f"ssim_{key}"] = sum(s for _, s in values) / len(values)
+    per_view = [max(a, b) for (a, _), (b, _) in zip(scores["a"], scores["b"])]
+    oracle = sum(per_view) / len(per_view)
+    metrics["psnr_oracle"] = oracle if math.isfinite(oracle) else None   # the better model per view
     metrics["e_me"] = ensemble_efficiency(ssim_of["selected"], ssim_of["a"], ssim_of["b"])
     better = ["a" if a >= b else "b" for a, b in zip(ssim_of["a"], ssim_of["b"])]
     metrics["choices_a"] = sum(v.choice == "a" for v in views)

@@ -339,9 +339,9 @@ def test_ssim_criterion_matches_its_definition(blobs: BlobRenderer) -> None:
 
 # ---------------------------------------------------------------------------------------- ranking
 
-def test_ranking_orders_by_sigma_max_with_index_ties(blobs: BlobRenderer) -> None:
+def test_sigma_max_ranking_orders_by_sigma_max_with_index_ties(blobs: BlobRenderer) -> None:
     cameras = [away_camera(), CAMERAS[0], CAMERAS[2], away_camera(), CAMERAS[0], CAMERAS[4]]
-    ranked = phd.rank_views(blobs, cameras, ratio=0.4, samples=8, seed=1)
+    ranked = phd.rank_views(blobs, cameras, ratio=0.4, samples=8, seed=1, strategy="sigma_max")
     views = phd.uncertainty(blobs, cameras, ratio=0.4, samples=8, seed=1)
     assert [r.rank for r in ranked] == list(range(6))
     expected = sorted(range(6), key=lambda i: (-views[i].sigma_max, i))
@@ -350,7 +350,8 @@ def test_ranking_orders_by_sigma_max_with_index_ties(blobs: BlobRenderer) -> Non
     assert positions[1] + 1 == positions[4]       # identical candidates: lower index first
     assert [r.index for r in ranked[-2:]] == [0, 3]   # seeing nothing: last, by index
     assert ranked[-1].sigma_max == 0.0
-    top = phd.rank_views(blobs, cameras, ratio=0.4, samples=8, seed=1, top_k=2)
+    assert [r.score for r in ranked] == [r.sigma_max for r in ranked]
+    top = phd.rank_views(blobs, cameras, ratio=0.4, samples=8, seed=1, top_k=2, strategy="sigma_max")
     assert [r.index for r in top] == expected[:2]
     assert len(phd.rank_views(blobs, cameras, ratio=0.4, samples=8, seed=1, top_k=50)) == 6
     with pytest.raises(InputError) as info:
@@ -360,9 +361,10 @@ def test_ranking_orders_by_sigma_max_with_index_ties(blobs: BlobRenderer) -> Non
 
 # ---------------------------------------------------------------------------------------- selection
 
-def test_selection_picks_the_lower_mean_zeta(blobs: BlobRenderer) -> None:
+def test_paper_selection_picks_the_lower_mean_zeta(blobs: BlobRenderer) -> None:
     other = BlobRenderer.random(40, seed=6)
-    result = phd.select_models(blobs, other, CAMERAS, ratio_a=0.3, ratio_b=0.3, samples=6, keep_images=True)
+    result = phd.select_models(blobs, other, CAMERAS, ratio_a=0.3, ratio_b=0.3, samples=6, keep_images=True,
+                               rule="sigma_mean")
     ua = phd.uncertainty(blobs, CAMERAS, ratio=0.3, samples=6)
     ub = phd.uncertainty(other, CAMERAS, ratio=0.3, samples=6)
     assert [v.score_a for v in result.views] == [v.sigma_mean for v in ua]
@@ -373,14 +375,15 @@ def test_selection_picks_the_lower_mean_zeta(blobs: BlobRenderer) -> None:
         chosen = blobs if view.choice == "a" else other
         assert torch.equal(view.image, chosen.render(camera)[0])
     assert result.metrics is None
-    tie = phd.select_models(blobs, blobs, CAMERAS[:2], ratio_a=0.3, ratio_b=0.3, samples=4)
+    tie = phd.select_models(blobs, blobs, CAMERAS[:2], ratio_a=0.3, ratio_b=0.3, samples=4, rule="sigma_mean")
     assert [v.choice for v in tie.views] == ["a", "a"] and tie.views[0].image is None
 
 
 def test_selection_metrics_with_ground_truth(blobs: BlobRenderer) -> None:
     other = BlobRenderer.random(40, seed=6)
     truth = torch.stack([blobs.render(c)[0] for c in CAMERAS]) * 0.8 + 0.1
-    result = phd.select_models(blobs, other, CAMERAS, ratio_a=0.3, ratio_b=0.3, samples=6, images=truth)
+    result = phd.select_models(blobs, other, CAMERAS, ratio_a=0.3, ratio_b=0.3, samples=6, images=truth,
+                               rule="sigma_mean")
     ratios, matches = [], []
     for view, camera, gt in zip(result.views, CAMERAS, truth):
         sa, sb = float(ssim(blobs.render(camera)[0], gt)), float(ssim(other.render(camera)[0], gt))
@@ -392,6 +395,10 @@ def test_selection_metrics_with_ground_truth(blobs: BlobRenderer) -> None:
     assert m["choices_a"] + m["choices_b"] == len(CAMERAS)
     expected_psnr_a = np.mean([psnr(blobs.render(c)[0], gt) for c, gt in zip(CAMERAS, truth)])
     assert m["psnr_a"] == pytest.approx(expected_psnr_a, abs=1e-9)
+    expected_oracle = np.mean([max(psnr(blobs.render(c)[0], gt), psnr(other.render(c)[0], gt))
+                               for c, gt in zip(CAMERAS, truth)])
+    assert m["psnr_oracle"] == pytest.approx(expected_oracle, abs=1e-9)
+    assert m["psnr_oracle"] >= max(m["psnr_a"], m["psnr_b"], m["psnr_selected"]) - 1e-9
     assert min(m["ssim_a"], m["ssim_b"]) <= m["ssim_selected"] + 1e-12
 
 

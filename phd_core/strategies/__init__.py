@@ -1,0 +1,39 @@
+"""Next-best-view strategies: one module per family, one registry entry per strategy.
+
+`STRATEGIES` maps a name to a `Strategy`; the CLI, the REST schema and the client take
+their allowed names from it. Adding a strategy is one module plus one `register` call.
+"""
+
+from __future__ import annotations
+
+from ..errors import InputError
+from .base import Evidence, Selection, Strategy
+from .baselines import FVS, RANDOM
+from .hybrid import FVS_SIGMA, FVS_SIGMA_FLOOR
+from .uncertainty import SIGMA_MAX, SIGMA_MEAN
+
+STRATEGIES: dict[str, Strategy] = {}
+
+
+def register(strategy: Strategy) -> Strategy:
+    """Add a strategy under its name (a name is registered once)."""
+    if strategy.name in STRATEGIES:
+        raise ValueError(f"strategy {strategy.name!r} is already registered")
+    STRATEGIES[strategy.name] = strategy
+    return strategy
+
+
+for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR):
+    register(_strategy)
+
+DEFAULT_STRATEGY = "fvs_sigma_floor"
+
+
+def get_strategy(name: str) -> Strategy:
+    """The registered strategy called `name`, or an InputError listing the known names."""
+    if name not in STRATEGIES:
+        raise InputError("strategy", f"unknown strategy {name!r}; known: {', '.join(sorted(STRATEGIES))}")
+    return STRATEGIES[name]
+
+
+__all__ = ["DEFAULT_STRATEGY", "STRATEGIES", "Evidence", "Selection", "Strategy", "get_strategy", "register"]
