@@ -266,24 +266,31 @@ class PHDClient:
         return self._work(f"/v1/models/{model_id}/calibrate", body, Calibration, wait, progress, poll_interval, timeout)
 
     def rank(self, model_id: str, cameras: Cameras, *, samples: int | None = None, seed: int = 0,
-             dropout_ratio: float | None = None, top_k: int | None = None, heatmaps: str = "none",
-             downscale: float | None = None, width: int | None = None, height: int | None = None,
-             run_async: bool = False, wait: bool = True, progress: ProgressCallback | None = None,
-             poll_interval: float = 0.2, timeout: float | None = None) -> RankResult | Job:
-        """Candidate poses ranked by sigma_max, most uncertain first."""
+             dropout_ratio: float | None = None, top_k: int | None = None, strategy: str | None = None,
+             captured: Cameras | None = None, heatmaps: str = "none", downscale: float | None = None,
+             width: int | None = None, height: int | None = None, run_async: bool = False, wait: bool = True,
+             progress: ProgressCallback | None = None, poll_interval: float = 0.2,
+             timeout: float | None = None) -> RankResult | Job:
+        """Candidate poses in the order to capture them (the service's default strategy unless `strategy`
+        names another). The first `top_k` are a batch meant to be captured together. `captured`: poses
+        already taken, default the model's training cameras."""
         body = {"cameras": camera_frames(cameras), "samples": samples, "seed": seed, "dropout_ratio": dropout_ratio,
-                "top_k": top_k, "heatmaps": heatmaps, "downscale": downscale, "width": width, "height": height,
-                "async": run_async}
+                "top_k": top_k, "strategy": strategy, "heatmaps": heatmaps, "downscale": downscale,
+                "width": width, "height": height, "async": run_async,
+                "captured": None if captured is None else camera_frames(captured)}
         return self._work(f"/v1/models/{model_id}/rank", body, RankResult, wait, progress, poll_interval, timeout)
 
     def select(self, model_a: str, model_b: str, cameras: Cameras, *, samples: int | None = None, seed: int = 0,
-               ratio_a: float | None = None, ratio_b: float | None = None, images: str = "none",
+               ratio_a: float | None = None, ratio_b: float | None = None, rule: str | None = None,
+               images: str = "none",
                downscale: float | None = None, width: int | None = None, height: int | None = None,
                run_async: bool = False, wait: bool = True, progress: ProgressCallback | None = None,
                poll_interval: float = 0.2, timeout: float | None = None) -> SelectResult | Job:
-        """Per view, which of two models to trust (the lower mean zeta)."""
+        """Per view, which of two models to trust (rule: the service's default 'distance_sigma', or the
+        paper's 'sigma_mean')."""
         body = {"model_a": model_a, "model_b": model_b, "cameras": camera_frames(cameras), "samples": samples,
-                "seed": seed, "ratio_a": ratio_a, "ratio_b": ratio_b, "images": images, "downscale": downscale,
+                "seed": seed, "ratio_a": ratio_a, "ratio_b": ratio_b, "rule": rule, "images": images,
+                "downscale": downscale,
                 "width": width, "height": height, "async": run_async}
         return self._work("/v1/select", body, SelectResult, wait, progress, poll_interval, timeout)
 

@@ -15,7 +15,10 @@ from __future__ import annotations
 
 from typing import Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator
+
+from phd_core.phdropout import DEFAULT_SELECTION_RULE
+from phd_core.strategies import DEFAULT_STRATEGY, STRATEGIES
 
 API_VERSION = "v1"
 
@@ -127,10 +130,23 @@ class RankRequest(RenderSize):
     samples: int | None = Field(None, ge=2, description="Dropout samples N per view; default the engine's.")
     seed: int = Field(0, ge=0, le=2**63 - 1)
     dropout_ratio: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: the stored calibration's r_drop.")
-    top_k: int | None = Field(None, ge=1, description="Return only the k most uncertain candidates.")
+    top_k: int | None = Field(None, ge=1, description="Return only the first k candidates: a batch meant to be "
+                              "captured together (diverse for the default strategy).")
+    strategy: str = Field(DEFAULT_STRATEGY, description="Next-best-view strategy, one of the names in the "
+                          "registry: " + ", ".join(f"{name} ({s.summary})" for name, s in STRATEGIES.items())
+                          + ". The default won the active-learning benchmark (docs/nbv.md).")
+    captured: CameraList | None = Field(None, description="Poses already captured; default the model's stored "
+                                        "training cameras. " + _CAMERAS_DOC)
     heatmaps: HeatmapMode = Field("none", description="zeta heat maps of the returned views: inline base64 PNG, "
                                   "or PNG files to download from the job's artefacts.")
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
+
+    @field_validator("strategy")
+    @classmethod
+    def _known_strategy(cls, name: str) -> str:
+        if name not in STRATEGIES:
+            raise ValueError(f"unknown strategy {name!r}; known: {', '.join(sorted(STRATEGIES))}")
+        return name
 
 
 class SelectRequest(RenderSize):
@@ -141,6 +157,10 @@ class SelectRequest(RenderSize):
     seed: int = Field(0, ge=0, le=2**63 - 1)
     ratio_a: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: model a's calibration.")
     ratio_b: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: model b's calibration.")
+    rule: Literal["distance_sigma", "sigma_mean"] = Field(
+        DEFAULT_SELECTION_RULE, description="distance_sigma (default): distance to the model's nearest training "
+        "camera times the view's mean zeta relative to the model's own training views (needs both models' training "
+        "cameras); sigma_mean: the paper's rule, the lower mean zeta.")
     images: HeatmapMode = Field("none", description="The selected model's render per view: inline base64 PNG "
                                 "or downloadable files.")
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
@@ -150,9 +170,10 @@ class SelectRequest(RenderSize):
 
 class RankedCandidate(_Response):
     index: int = Field(description="Position of the candidate in the request's camera list.")
-    rank: int = Field(description="0 = most uncertain.")
+    rank: int = Field(description="0 = capture first; ranks 0..top_k-1 form one batch.")
     sigma_max: float
     sigma_mean: float
+    score: float = Field(description="The strategy's score of this candidate when it was ranked.")
     heatmap_png: str | None = Field(None, description="base64 PNG of zeta (heatmaps='base64').")
     heatmap_url: str | None = Field(None, description="Path of the PNG artefact (heatmaps='files').")
 
@@ -161,20 +182,21 @@ class RankResult(_Response):
     model_id: str
     dropout_ratio: float
     ratio_source: Literal["request", "calibration"]
+    strategy: str
     samples: int
     seed: int
     width: int = Field(description="Render width of the first candidate.")
     height: int
     num_candidates: int
     heatmap_vmax: float | None = Field(None, description="zeta value drawn as the top colour of every heat map.")
-    views: list[RankedCandidate] = Field(description="Most uncertain first.")
+    views: list[RankedCandidate] = Field(description="In the order the strategy would capture them.")
 
 
 class SelectedView(_Response):
     index: int
     choice: Literal["a", "b"]
     model_id: str
-    score_a: float = Field(description="Mean zeta of model a on this view (lower = more trusted).")
+    score_a: float = Field(description="Model a's score of this view under the rule (lower = more trusted).")
     score_b: float
     image_png: str | None = None
     image_url: str | None = None
@@ -185,6 +207,7 @@ class SelectResult(_Response):
     model_b: str
     ratio_a: float
     ratio_b: float
+    rule: str
     samples: int
     seed: int
     counts: dict[str, int] = Field(description="How many views chose a and b.")

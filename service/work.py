@@ -107,6 +107,11 @@ def parse_cameras(source: Any, size: RenderSize, settings: Settings, *, field: s
     return cameras
 
 
+def stored_cameras(record: ModelRecord) -> list[Camera]:
+    """The training cameras stored with a model (validated at upload), [] when there are none."""
+    return cameras_from_json(record.training_frames) if record.training_frames else []
+
+
 def check_samples(samples: int | None, settings: Settings, default: int) -> int:
     samples = default if samples is None else samples
     if samples > settings.max_samples:
@@ -186,6 +191,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, phdropout.DEFAULT_SAMPLES)
     ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
+    captured = (stored_cameras(record) if body.captured is None else
+                parse_cameras(body.captured, body, settings, field="captured", cap=settings.max_training_cameras))
     returned = len(cameras) if body.top_k is None else min(body.top_k, len(cameras))
     mapped = 0 if body.heatmaps == "none" else returned  # heat-mapped views are rendered twice
     estimate = (pixels(cameras) + pixels(cameras[:mapped])) * samples
@@ -194,9 +201,10 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
         renderer = cache.get(record.id)
         split = len(cameras) / (len(cameras) + mapped)
         ranked = phdropout.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed,
-                                      top_k=body.top_k, progress=_span(progress, 0.0, split))
-        views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean)
-                 for r in ranked]
+                                      top_k=body.top_k, strategy=body.strategy, captured=captured,
+                                      progress=_span(progress, 0.0, split))
+        views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
+                                 score=r.score) for r in ranked]
         artifacts: dict[str, bytes] = {}
         vmax = None
         if body.heatmaps != "none":
@@ -211,7 +219,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
                 view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
                                                              artifacts, job_url)
                 done((k + 1) / len(views))
-        result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, samples=samples,
+        result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, strategy=body.strategy,
+                            samples=samples,
                             seed=body.seed, width=cameras[0].width, height=cameras[0].height,
                             num_candidates=len(cameras), heatmap_vmax=vmax, views=views)
         return result, artifacts
@@ -236,12 +245,21 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     samples = check_samples(body.samples, settings, phdropout.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
+    if body.rule == "distance_sigma":
+        for name, record in (("model_a", record_a), ("model_b", record_b)):
+            if not record.training_frames:
+                raise invalid(name, "the model has no training cameras, which rule 'distance_sigma' needs: upload "
+                              "it with its cameras, or use rule 'sigma_mean'")
     estimate = pixels(cameras) * (2 * samples + (body.images != "none"))
+    if body.rule == "distance_sigma":   # each model's zeta level on up to 8 of its training views
+        estimate += 2 * phdropout.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples
 
     def work(progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:
         renderer_a, renderer_b = cache.get(record_a.id), cache.get(record_b.id)
         result = phdropout.select_models(renderer_a, renderer_b, cameras, ratio_a=ratio_a, ratio_b=ratio_b,
-                                         samples=samples, seed=body.seed, keep_images=body.images != "none",
+                                         samples=samples, seed=body.seed, rule=body.rule,
+                                         training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
+                                         keep_images=body.images != "none",
                                          progress=progress)
         views, artifacts = [], {}
         for v in result.views:
@@ -253,6 +271,6 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
             views.append(view)
         counts = {"a": sum(v.choice == "a" for v in views), "b": sum(v.choice == "b" for v in views)}
         return SelectResult(model_a=record_a.id, model_b=record_b.id, ratio_a=ratio_a, ratio_b=ratio_b,
-                            samples=samples, seed=body.seed, counts=counts, views=views), artifacts
+                            rule=body.rule, samples=samples, seed=body.seed, counts=counts, views=views), artifacts
 
     return work, float(estimate)

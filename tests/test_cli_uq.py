@@ -212,6 +212,29 @@ def test_rank_orders_candidates(files, capsys) -> None:
     assert code == 0 and strict_json(out)["order"] == result["order"][:2]
 
 
+def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
+    argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
+            SIZE, "--dropout-ratio", 0.4, "--samples", 5]
+    candidates = [away_camera(SIZE)] + ring_cameras(4, size=SIZE, height=0.5)
+    renderer = load_model(files["model"])
+    code, out, _ = run(capsys, *argv, "--strategy", "sigma_max")
+    paper = strict_json(out)
+    assert code == 0 and paper["strategy"] == "sigma_max"
+    assert paper["order"] == [r.index for r in phd.rank_views(renderer, candidates, ratio=0.4, samples=5,
+                                                               strategy="sigma_max")]
+    assert [r["score"] for r in paper["ranking"]] == [r["sigma_max"] for r in paper["ranking"]]
+    captured = files["root"] / "captured.json"
+    captured.write_text(json.dumps([c.to_frame() for c in candidates[1:3]]))
+    code, out, _ = run(capsys, *argv, "--captured", captured, "--top-k", 2)
+    expected = phd.rank_views(renderer, candidates, ratio=0.4, samples=5, captured=candidates[1:3], top_k=2)
+    assert code == 0 and strict_json(out)["order"] == [r.index for r in expected]
+    assert not {1, 2} & set(strict_json(out)["order"])          # captured poses are not picked again
+    with pytest.raises(SystemExit) as exit_info:   # argparse: usage and the known names on stderr
+        run(capsys, *argv, "--strategy", "sharpest")
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "invalid choice: 'sharpest'" in err and "fvs_sigma" in err
+
+
 @pytest.mark.parametrize("extra, field", [
     (["--samples", "1"], "samples"), (["--dropout-ratio", "1.5"], "ratio"), (["--top-k", "0"], "top_k"),
     (["--downscale", "0"], "downscale"),

@@ -34,6 +34,7 @@ def _assert_ranking_equal(got, expected) -> None:
     assert [v.rank for v in got.views] == [r.rank for r in expected]
     assert [v.sigma_max for v in got.views] == pytest.approx([r.sigma_max for r in expected], rel=1e-6, abs=1e-9)
     assert [v.sigma_mean for v in got.views] == pytest.approx([r.sigma_mean for r in expected], rel=1e-6, abs=1e-9)
+    assert [v.score for v in got.views] == pytest.approx([r.score for r in expected], rel=1e-6, abs=1e-9)
 
 
 def test_ply_upload_calibrate_rank_equal_the_library(svc_start, svc_model_files):
@@ -41,7 +42,7 @@ def test_ply_upload_calibrate_rank_equal_the_library(svc_start, svc_model_files)
     path = svc_model_files["ply"]
     model = read_ply(path)
     train, candidates = svc_cameras(3), svc_cameras(6, phase=0.3)
-    renderer = GaussianRenderer(model)
+    renderer = GaussianRenderer(model, training_cameras=train)
     with PHDClient(server.url) as phd:
         assert phd.health().version == phd_core.__version__
         info = phd.upload_model(path, cameras=train)
@@ -64,7 +65,16 @@ def test_ply_upload_calibrate_rank_equal_the_library(svc_start, svc_model_files)
         ranking = phd.rank(info.id, candidates, samples=6, seed=2, heatmaps="base64")
         expected = phdropout.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6, seed=2)
         _assert_ranking_equal(ranking, expected)
+        assert ranking.strategy == phdropout.DEFAULT_STRATEGY
         assert (ranking.ratio_source, ranking.dropout_ratio, ranking.width) == ("calibration", direct.r_drop, 24)
+        # Another strategy and other captured poses give the library's answer for the same arguments.
+        paper = phd.rank(info.id, candidates, samples=6, seed=2, strategy="sigma_max", top_k=3)
+        _assert_ranking_equal(paper, phdropout.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6,
+                                                          seed=2, strategy="sigma_max", top_k=3))
+        moved = phd.rank(info.id, candidates, samples=6, seed=2, captured=candidates[:2], top_k=2)
+        _assert_ranking_equal(moved, phdropout.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6,
+                                                          seed=2, captured=candidates[:2], top_k=2))
+        assert not {0, 1} & {v.index for v in moved.views}   # captured poses are not worth capturing again
         assert ranking.heatmap_vmax == pytest.approx(max(r.sigma_max for r in expected), rel=1e-6)
         for view in ranking.views[:2]:  # the PNG is zeta of that view on the shared colour scale
             zeta = phdropout.view_uncertainty(renderer, candidates[view.index], ratio=direct.r_drop, samples=6,
@@ -106,9 +116,14 @@ def test_nerf_checkpoint_and_selection_equal_the_library(svc_start, svc_model_fi
             phd.select(a.id, b.id, views, samples=4)
         assert (no_calibration.value.status, no_calibration.value.field) == (409, "ratio_b")
 
-        result = phd.select(a.id, b.id, views, samples=4, seed=5, ratio_b=0.3, images="base64")
+        with pytest.raises(InvalidInputError) as no_cameras:  # the default rule needs both models' cameras
+            phd.select(a.id, b.id, views, samples=4, ratio_b=0.3)
+        assert (no_cameras.value.status, no_cameras.value.field) == (422, "model_b")
+
+        result = phd.select(a.id, b.id, views, samples=4, seed=5, ratio_b=0.3, images="base64", rule="sigma_mean")
         expected = phdropout.select_models(nerf, splats, views, ratio_a=direct.r_drop, ratio_b=0.3, samples=4,
-                                           seed=5, keep_images=True)
+                                           seed=5, keep_images=True, rule="sigma_mean")
+        assert result.rule == "sigma_mean"
         assert (result.ratio_a, result.ratio_b) == (direct.r_drop, 0.3)
         assert [v.choice for v in result.views] == [v.choice for v in expected.views]
         assert [v.score_a for v in result.views] == pytest.approx([v.score_a for v in expected.views], rel=1e-6)

@@ -172,6 +172,9 @@ def test_invalid_cameras_and_parameters_get_422(svc_small):
         ({"width": 16}, "height"),
         ({"seed": -1}, "seed"),
         ({"heatmaps": "jpeg"}, "heatmaps"),
+        ({"strategy": "sharpest"}, "strategy"),
+        ({"strategy": 3}, "strategy"),
+        ({"captured": [_frame(fl_x=-1)]}, "captured[0].fl_x"),
         ({"sample": 4}, "sample"),                                                         # a typo
     ]
     for changes, field in cases:

@@ -17,6 +17,7 @@ from ..cameras import Camera, cameras_from_json
 from ..errors import InputError
 from ..fileio import write_json_atomic
 from ..heatmap import write_heatmap
+from ..strategies import DEFAULT_STRATEGY, STRATEGIES
 from ..uq_metrics import image_uq_metrics, mean_defined, spearman
 
 
@@ -57,13 +58,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     uq.set_defaults(func=run_uq)
 
     rank = subparsers.add_parser(
-        "rank", help="rank candidate camera poses for the next capture (most uncertain first)",
+        "rank", help="rank candidate camera poses for the next capture (capture first comes first)",
         description="Render every candidate pose under --samples dropout masks and order the candidates by "
-                    "sigma_max. The ratio is --dropout-ratio, else calibrated on the model's training cameras.")
+                    f"--strategy (default {DEFAULT_STRATEGY}, the active-learning benchmark's winner, docs/nbv.md); "
+                    "every candidate reports sigma_max, sigma_mean and the strategy's score. The ratio is "
+                    "--dropout-ratio, else calibrated on the model's training cameras.")
     _add_model_args(rank)
     rank.add_argument("--candidates", type=Path, required=True,
                       help="transforms-style JSON or a list of frames (needs w/h, or give --width/--height)")
-    rank.add_argument("--top-k", type=int, default=None, help="keep only the k most uncertain candidates")
+    rank.add_argument("--strategy", choices=sorted(STRATEGIES), default=DEFAULT_STRATEGY,
+                      help="; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items())))
+    rank.add_argument("--captured", type=Path, default=None,
+                      help="JSON of the poses already captured (default: the model's training cameras)")
+    rank.add_argument("--top-k", type=int, default=None,
+                      help="keep only the first k: a batch meant to be captured together")
     _add_camera_size_args(rank)
     _add_uncertainty_args(rank)
     _add_calibration_args(rank)
@@ -250,15 +258,20 @@ def run_rank(args: argparse.Namespace) -> int:
     renderer = _load(args.model)
     candidates = _scaled(cameras_from_json(args.candidates, width=args.width, height=args.height), args.downscale)
     ratio, calibration = _ratio(args, renderer)
+    captured = None
+    if args.captured is not None:
+        # Only the poses matter here: frames without w/h get a placeholder size.
+        captured = cameras_from_json(args.captured, width=args.width or 1, height=args.height or 1)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
-                            top_k=args.top_k)
-    result = {"dropout_ratio": ratio, "calibration": calibration, "samples": args.samples, "seed": args.seed,
+                            top_k=args.top_k, strategy=args.strategy, captured=captured)
+    result = {"strategy": args.strategy, "dropout_ratio": ratio, "calibration": calibration,
+              "samples": args.samples, "seed": args.seed,
               "candidates": len(candidates), "order": [r.index for r in ranked],
               "ranking": [r.to_dict() for r in ranked]}
     if args.out is None:
         print(json.dumps(result, indent=2, allow_nan=False))
     else:
         _write_json(args.out, result)
-        print(f"ranked {len(candidates)} candidates at dropout ratio {ratio}; most uncertain: "
+        print(f"ranked {len(candidates)} candidates ({args.strategy}) at dropout ratio {ratio}; first: "
               f"{result['order'][:5]}; written to {args.out}")
     return 0
