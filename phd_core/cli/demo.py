@@ -94,14 +94,15 @@ def _progress(label: str):
     return show
 
 
-def _true_errors(model_path: Path, cameras, images) -> tuple[list[float], list[float], list]:
-    """Per view RMSE and PSNR of the model's full render against the ground truth, and the renders."""
-    from phd_core.metrics import psnr, rmse
+def _true_errors(model_path: Path, cameras, images) -> tuple[list[float], list[float], list[float], list]:
+    """Per view RMSE, PSNR and SSIM of the model's full render against the ground truth, and the renders."""
+    from phd_core.metrics import psnr, rmse, ssim
     from phd_core.models import load_model
 
     renderer = load_model(model_path)
     renders = [renderer.render(camera)[0] for camera in cameras]
-    return ([rmse(r, t) for r, t in zip(renders, images)], [psnr(r, t) for r, t in zip(renders, images)], renders)
+    return ([rmse(r, t) for r, t in zip(renders, images)], [psnr(r, t) for r, t in zip(renders, images)],
+            [float(ssim(r, t)) for r, t in zip(renders, images)], renders)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -112,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
     from client import PHDClient
     from phd_core.data import load_blender, select_views, split_size
     from phd_core.fileio import write_bytes_atomic, write_json_atomic
-    from phd_core.uq_metrics import spearman
+    from phd_core.uq_metrics import ensemble_efficiency, spearman
     from service.runner import BackgroundServer
     from service.settings import Settings
 
@@ -175,23 +176,26 @@ def run(args: argparse.Namespace) -> int:
                                    progress=_progress("select"))
             lap("select")
 
-    rmse_a, psnr_a, renders_a = _true_errors(model_a, test.cameras, test.images)
-    _, psnr_b, _ = _true_errors(model_b, test.cameras, test.images)
+    rmse_a, psnr_a, ssim_a, renders_a = _true_errors(model_a, test.cameras, test.images)
+    _, psnr_b, ssim_b, _ = _true_errors(model_b, test.cameras, test.images)
     lap("ground_truth")
 
     by_view = {v.index: v for v in ranking.views}
     rmse_rank = {i: r for r, i in enumerate(sorted(range(len(rmse_a)), key=lambda i: -rmse_a[i]))}
     rho = spearman([by_view[i].sigma_max for i in range(len(rmse_a))], rmse_a)
-    rho_text = "undefined" if rho is None else f"{rho:.3f}"
-    print(f"\nTop {TOP} candidates to capture next (of {len(test.cameras)}; Spearman(sigma_max, RMSE) over all "
-          f"= {rho_text}):")
-    print(f"  {'rank':>4}  {'test view':>9}  {'sigma_max':>9}  {'true RMSE':>9}  {'RMSE rank':>9}")
+    rho_score = spearman([by_view[i].score for i in range(len(rmse_a))], rmse_a)
+    text = lambda value: "undefined" if value is None else f"{value:.3f}"  # noqa: E731
+    print(f"\nTop {TOP} candidates to capture next with {ranking.strategy} (of {len(test.cameras)}; over all, "
+          f"Spearman(score, RMSE) = {text(rho_score)}, Spearman(sigma_max, RMSE) = {text(rho)}):")
+    print(f"  {'rank':>4}  {'test view':>9}  {'score':>9}  {'sigma_max':>9}  {'true RMSE':>9}  {'RMSE rank':>9}")
     heat_dir = out / "heatmaps"
     heat_dir.mkdir(exist_ok=True)
     top_rows = []
-    for view, mapped in zip(top, maps.views):
+    heatmap_of = {v.index: v for v in maps.views}          # maps.views index into the top list
+    for k, view in enumerate(top):
+        mapped = heatmap_of[k]
         frame = candidates_idx[view.index]
-        print(f"  {view.rank:>4}  {frame:>9}  {view.sigma_max:9.4f}  {rmse_a[view.index]:9.4f}  "
+        print(f"  {view.rank:>4}  {frame:>9}  {view.score:9.4f}  {view.sigma_max:9.4f}  {rmse_a[view.index]:9.4f}  "
               f"{rmse_rank[view.index]:>9}")
         stem = f"rank{view.rank}_test{frame:03d}"
         write_bytes_atomic(heat_dir / f"{stem}_zeta.png", base64.b64decode(mapped.heatmap_png))
@@ -199,28 +203,32 @@ def run(args: argparse.Namespace) -> int:
         truth = (test.images[view.index].clamp(0, 1) * 255).round().byte().numpy()
         write_bytes_atomic(heat_dir / f"{stem}_render.png", iio.imwrite("<bytes>", render, extension=".png"))
         write_bytes_atomic(heat_dir / f"{stem}_truth.png", iio.imwrite("<bytes>", truth, extension=".png"))
-        top_rows.append({"rank": view.rank, "test_view": frame, "sigma_max": view.sigma_max,
+        top_rows.append({"rank": view.rank, "test_view": frame, "score": view.score, "sigma_max": view.sigma_max,
                          "rmse": rmse_a[view.index], "rmse_rank": rmse_rank[view.index],
                          "heatmap": f"heatmaps/{stem}_zeta.png"})
 
     chosen = [psnr_a[v.index] if v.choice == "a" else psnr_b[v.index] for v in selection.views]
+    chosen_ssim = [ssim_a[v.index] if v.choice == "a" else ssim_b[v.index] for v in selection.views]
     mean = lambda xs: sum(xs) / len(xs)  # noqa: E731
     summary = {"psnr_a": mean(psnr_a), "psnr_b": mean(psnr_b), "psnr_selected": mean(chosen),
                "psnr_oracle": mean([max(a, b) for a, b in zip(psnr_a, psnr_b)]),
+               "e_me": ensemble_efficiency(chosen_ssim, ssim_a, ssim_b), "rule": selection.rule,
                "choices": selection.counts,
                "choice_matches_higher_psnr": mean([(v.choice == "a") == (psnr_a[v.index] >= psnr_b[v.index])
                                                    for v in selection.views])}
     print(f"\nEnsemble selection over {len(selection.views)} views: A chosen {selection.counts['a']}x, "
           f"B {selection.counts['b']}x; mean PSNR A {summary['psnr_a']:.2f}, B {summary['psnr_b']:.2f}, "
-          f"selected {summary['psnr_selected']:.2f} (oracle {summary['psnr_oracle']:.2f}) dB")
+          f"selected {summary['psnr_selected']:.2f} (oracle {summary['psnr_oracle']:.2f}) dB; rule "
+          f"{selection.rule}, E_ME {text(summary['e_me'])}")
 
     report = {
         "data": str(data), "downscale": DOWNSCALE, "samples": args.samples, "iterations": args.iterations,
         "train_views": {"a": views_a, "b": views_b}, "candidate_test_views": candidates_idx,
         "models": {"a": info_a.model_dump(mode="json"), "b": info_b.model_dump(mode="json")},
         "calibration": {"a": cal_a.model_dump(mode="json"), "b": cal_b.model_dump(mode="json")},
-        "spearman_sigma_max_rmse": rho, "top": top_rows,
-        "ranking": [{"rank": v.rank, "test_view": candidates_idx[v.index], "sigma_max": v.sigma_max,
+        "strategy": ranking.strategy, "spearman_score_rmse": rho_score, "spearman_sigma_max_rmse": rho,
+        "top": top_rows,
+        "ranking": [{"rank": v.rank, "test_view": candidates_idx[v.index], "score": v.score, "sigma_max": v.sigma_max,
                      "sigma_mean": v.sigma_mean, "rmse": rmse_a[v.index]} for v in ranking.views],
         "selection": {**summary, "views": [{"test_view": candidates_idx[v.index], "choice": v.choice,
                                             "score_a": v.score_a, "score_b": v.score_b,
