@@ -452,22 +452,23 @@ def write_doc(path: Path, body: str, section: str = "phdropout") -> None:
 
 
 def svg_plot(path: Path, series: dict[str, list[tuple[float, float]]], xlabel: str, ylabel: str,
-             log_y: bool = False) -> None:
-    """A minimal line chart: log2 x axis (N), one polyline per series."""
+             log_y: bool = False, log_x: bool = True) -> None:
+    """A minimal line chart, one polyline per series (log2 x axis by default: N)."""
     width, height, left, right, top, bottom = 420, 280, 60, 110, 20, 45
     points = [p for s in series.values() for p in s if p[1] is not None and (p[1] > 0 or not log_y)]
     if not points:
         return
     fy = (lambda v: math.log10(v)) if log_y else (lambda v: v)
-    x0, x1 = math.log2(min(p[0] for p in points)), math.log2(max(p[0] for p in points))
+    fx = math.log2 if log_x else (lambda v: v)
+    x0, x1 = fx(min(p[0] for p in points)), fx(max(p[0] for p in points))
     y0, y1 = min(fy(p[1]) for p in points), max(fy(p[1]) for p in points)
     x1, y1 = (x1 if x1 > x0 else x0 + 1), (y1 if y1 > y0 else y0 + 1)
 
     def xy(x: float, y: float) -> tuple[float, float]:
-        return (left + (math.log2(x) - x0) / (x1 - x0) * (width - left - right),
+        return (left + (fx(x) - x0) / (x1 - x0) * (width - left - right),
                 height - bottom - (fy(y) - y0) / (y1 - y0) * (height - top - bottom))
 
-    colours = ["#440154", "#31688e", "#35b779", "#b5de2b", "#fde725"]
+    colours = ["#440154", "#31688e", "#35b779", "#b5de2b", "#fde725", "#e4572e", "#888888"]
     out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" '
            f'font-size="11"><rect width="100%" height="100%" fill="white"/>',
            f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="black"/>',

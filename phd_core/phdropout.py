@@ -18,8 +18,10 @@ draw serves every ratio, r = 0 keeps everything and r = 1 drops everything.
 - Uncertainty: zeta = per-pixel, per-channel standard deviation over the N masked
   renders; sigma_max = max of zeta over H, W, C; sigma-max-bar = mean of sigma_max over
   views (Appendix A.1).
-- Next-best view: candidates sorted by sigma_max, most uncertain first.
-- Ensemble selection (Section 5.4): per view, the model with the lower mean zeta.
+- Next-best view: candidates ordered by a strategy from `phd_core.strategies` (the paper's
+  sigma_max is one; the default won the active-learning benchmark, docs/nbv.md).
+- Ensemble selection (Section 5.4): per view, the model with the lower score: the paper's
+  mean zeta, or (default) distance to the model's training views times its relative zeta.
 """
 
 from __future__ import annotations

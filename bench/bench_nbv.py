@@ -1,0 +1,251 @@
+"""Active-learning benchmark: which next-best-view strategy gives the best reconstruction?
+
+The protocol (issue 10), the same for every strategy and seed:
+1. Start from `--initial` train views: one drawn by the seed, the rest farthest-view sampled.
+2. Train a 3DGS model on the chosen views (`fit`, `--iterations`, seeded, at `--resolution`).
+3. Rank the remaining train poses with the strategy through the product's `rank_views`
+   (r_drop calibrated on the chosen views, N = `--samples` masks) and add its top
+   `--per-round` views, a batch captured together. Retrain from scratch. `--rounds` times.
+4. After every round: mean PSNR over `--test-views` evenly spaced held-out test views.
+Also, on each seed's initial model: the per-view Spearman correlation between each
+strategy's score of a held-out test view (before any pick) and that view's true RMSE.
+
+Each (scene, seed) is one task written to bench/results/nbv/<scene>-<seed>.json after every
+strategy, so an interrupted run resumes; `--report` rewrites docs/nbv.md from those files.
+
+    .venv/bin/python bench/bench_nbv.py --jobs 2                  # shipped strategies, seeds 0 1 2
+    .venv/bin/python bench/bench_nbv.py --jobs 2 --seeds 0 --strategies sigma_mean kmedian kmedian_sigma \
+        kmedian_sq fvs_prefilter                                  # the ones tried and not shipped
+    .venv/bin/python bench/bench_nbv.py --report
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import platform
+import random
+import statistics
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from nbv_experiments import EXPERIMENTS  # noqa: E402  (importing registers the strategies tried, not shipped)
+from bench_phdropout import fmt, save, svg_plot, write_doc  # noqa: E402
+from phd_core import phdropout as phd  # noqa: E402
+from phd_core.data import Dataset, load_blender  # noqa: E402
+from phd_core.gaussian_render import GaussianRenderer  # noqa: E402
+from phd_core.gaussian_train import TrainConfig, fit  # noqa: E402
+from phd_core.metrics import psnr, rmse  # noqa: E402
+from phd_core.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy  # noqa: E402
+from phd_core.uq_metrics import spearman  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data"
+RESULTS = ROOT / "bench" / "results" / "nbv"
+DOC = ROOT / "docs" / "nbv.md"
+SHIPPED = ["random", "fvs", "sigma_max", "fvs_sigma", "fvs_sigma_floor"]   # the table's main rows
+
+
+def parse_args() -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--scenes", nargs="+", default=["lego_200", "donut_200"], help="Blender scenes under --data")
+    p.add_argument("--data", type=Path, default=DATA)
+    p.add_argument("--resolution", type=int, default=50, help="square image size for training and testing")
+    p.add_argument("--iterations", type=int, default=600)
+    p.add_argument("--initial", type=int, default=4)
+    p.add_argument("--per-round", type=int, default=2)
+    p.add_argument("--rounds", type=int, default=4)
+    p.add_argument("--test-views", type=int, default=40)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--strategies", nargs="+", default=SHIPPED, choices=list(STRATEGIES))
+    p.add_argument("--samples", type=int, default=phd.DEFAULT_SAMPLES)
+    p.add_argument("--jobs", type=int, default=1, help="(scene, seed) tasks run in parallel, one thread each")
+    p.add_argument("--results", type=Path, default=RESULTS)
+    p.add_argument("--doc", type=Path, default=DOC)
+    p.add_argument("--report", action="store_true", help="only rewrite the doc from the stored results")
+    return p.parse_args()
+
+
+def protocol(args: argparse.Namespace) -> dict:
+    """The settings a stored result must match to be reused."""
+    return {k: getattr(args, k) for k in ("resolution", "iterations", "initial", "per_round", "rounds",
+                                          "test_views", "samples")}
+
+
+# ---------------------------------------------------------------------------------------- one task
+
+def subset(data: Dataset, indices: list[int]) -> Dataset:
+    return dataclasses.replace(data, cameras=[data.cameras[i] for i in indices], images=data.images[indices],
+                               alphas=None if data.alphas is None else data.alphas[indices],
+                               indices=[data.indices[i] for i in indices])
+
+
+def train(data: Dataset, indices: list[int], iterations: int, seed: int) -> GaussianRenderer:
+    chosen = subset(data, indices)
+    model, _ = fit(chosen, TrainConfig(iterations=iterations, seed=seed), progress=False)
+    return GaussianRenderer(model, chosen.background, chosen.cameras)
+
+
+def test_errors(renderer: GaussianRenderer, test: Dataset) -> tuple[float, list[float]]:
+    """Mean PSNR over the test views and each view's RMSE."""
+    renders = [renderer.render(camera)[0] for camera in test.cameras]
+    values = [psnr(r, image) for r, image in zip(renders, test.images)]
+    return sum(values) / len(values), [rmse(r, image) for r, image in zip(renders, test.images)]
+
+
+def initial_views(cameras: list, count: int, seed: int) -> list[int]:
+    """One view drawn by the seed, then farthest-view sampling for the rest."""
+    start = random.Random(seed).randrange(len(cameras))
+    pool = [i for i in range(len(cameras)) if i != start]
+    empty = torch.zeros(len(pool), dtype=torch.float64)
+    evidence = Evidence([cameras[i] for i in pool], [cameras[start]], empty, empty)
+    order = STRATEGIES["fvs"].select(evidence, count - 1, seed).order
+    return [start] + [pool[i] for i in order[:count - 1]]
+
+
+def calibrated_ratio(renderer: GaussianRenderer, captured: list) -> float:
+    return phd.calibrate(renderer, captured).r_drop
+
+
+def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
+    torch.set_num_threads(1)
+    path = args.results / f"{scene}-{seed}.json"
+    stored = json.loads(path.read_text()) if path.exists() else {}
+    if stored.get("protocol") != protocol(args):
+        stored = {}
+    size = load_blender(args.data / scene, "train", with_images=False).cameras[0].width
+    downscale = size / args.resolution
+    train_data = load_blender(args.data / scene, "train", downscale=downscale)
+    test = load_blender(args.data / scene, "test", downscale=downscale, views=args.test_views)
+    init = initial_views(train_data.cameras, args.initial, seed)
+    result = stored or {"scene": scene, "seed": seed, "protocol": protocol(args), "initial": init, "runs": {},
+                        "spearman": {}}
+    todo = [s for s in args.strategies if s not in result["runs"] or s not in result["spearman"]]
+    if not todo:
+        return f"{scene} seed {seed}: stored"
+    started = time.perf_counter()
+    base = train(train_data, init, args.iterations, seed)
+    base_psnr, base_rmse = test_errors(base, test)
+    captured = [train_data.cameras[i] for i in init]
+    ratio = calibrated_ratio(base, captured)
+    test_evidence = phd.candidate_evidence(base, test.cameras, ratio=ratio, samples=args.samples, seed=seed,
+                                           captured=captured)
+    result["initial_seconds"] = round(time.perf_counter() - started, 1)
+    for name in todo:
+        strategy = get_strategy(name)
+        result["spearman"][name] = spearman(strategy.select(test_evidence, 0, seed).scores, base_rmse)
+        started = time.perf_counter()
+        chosen, renderer, curve, ratios = list(init), base, [base_psnr], [ratio]
+        for round_ in range(args.rounds):
+            pool = [i for i in range(len(train_data.cameras)) if i not in chosen]
+            captured = [train_data.cameras[i] for i in chosen]
+            candidates = [train_data.cameras[i] for i in pool]
+            if strategy.uses_dropout:
+                ranked = phd.rank_views(renderer, candidates, ratio=ratios[-1], samples=args.samples,
+                                        seed=seed + round_, top_k=args.per_round, strategy=name, captured=captured)
+                picks = [r.index for r in ranked]
+            else:   # the same picks rank_views makes, without the dropout renders it would report
+                empty = torch.zeros(len(candidates), dtype=torch.float64)
+                evidence = Evidence(candidates, captured, empty, empty)
+                picks = strategy.select(evidence, args.per_round, seed + round_).order[:args.per_round]
+            chosen += [pool[i] for i in picks]
+            renderer = train(train_data, chosen, args.iterations, seed)
+            curve.append(test_errors(renderer, test)[0])
+            if strategy.uses_dropout and round_ < args.rounds - 1:
+                ratios.append(calibrated_ratio(renderer, [train_data.cameras[i] for i in chosen]))
+        result["runs"][name] = {"psnr": curve, "chosen": chosen, "ratios": ratios,
+                                "seconds": round(time.perf_counter() - started, 1)}
+        save(result, path)
+        print(f"{scene} seed {seed} {name}: " + " ".join(f"{p:.2f}" for p in curve), flush=True)
+    return f"{scene} seed {seed}: done"
+
+
+# ---------------------------------------------------------------------------------------- report
+
+def load_results(args: argparse.Namespace) -> dict[str, list[dict]]:
+    """Stored tasks of the current protocol, by scene."""
+    by_scene: dict[str, list[dict]] = {}
+    for path in sorted(args.results.glob("*.json")):
+        task = json.loads(path.read_text())
+        if task.get("protocol") == protocol(args) and task["scene"] in args.scenes and task["seed"] in args.seeds:
+            by_scene.setdefault(task["scene"], []).append(task)
+    return by_scene
+
+
+def summary(tasks: list[dict], name: str) -> dict | None:
+    runs = [t["runs"][name] for t in tasks if name in t["runs"]]
+    if not runs:
+        return None
+    finals = [r["psnr"][-1] for r in runs]
+    overall = [sum(r["psnr"][1:]) / (len(r["psnr"]) - 1) for r in runs]
+    curve = [statistics.mean(values) for values in zip(*(r["psnr"] for r in runs))]
+    rhos = [t["spearman"][name] for t in tasks if t["spearman"].get(name) is not None]
+    return {"seeds": len(runs), "final": statistics.mean(finals),
+            "final_sd": statistics.stdev(finals) if len(finals) > 1 else 0.0,
+            "rounds": statistics.mean(overall), "curve": curve, "finals": finals,
+            "spearman": statistics.mean(rhos) if rhos else None}
+
+
+def markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> str:
+    lines = [f"Command: `.venv/bin/python bench/bench_nbv.py --jobs 2` ({platform.machine()}, "
+             f"{os.cpu_count()} cores, one thread per task). Protocol: {args.resolution}x{args.resolution} px, "
+             f"{args.iterations} iterations, {args.initial} initial views (one by the seed, then FVS), "
+             f"{args.per_round} views per round, {args.rounds} rounds, PSNR on {args.test_views} evenly spaced "
+             f"test views, N = {args.samples} masks, r_drop calibrated every round.", "",
+             "Final = mean test PSNR after the last round over the seeds (with the standard deviation and each "
+             "seed's value); rounds = mean PSNR over rounds 1..R; vs FVS = difference of the means; "
+             "Spearman = per held-out view, the strategy's score against the true RMSE on the initial model.", ""]
+    for scene, tasks in sorted(by_scene.items()):
+        rows = {name: summary(tasks, name) for name in sorted({n for t in tasks for n in t["runs"]})}
+        fvs = rows.get("fvs")
+        lines += [f"### {scene}", "",
+                  "| strategy | seeds | final PSNR | per seed | rounds mean | final vs FVS | rounds vs FVS | "
+                  "Spearman(score, RMSE) |", "|---|---|---|---|---|---|---|---|"]
+        for name, row in sorted(((n, r) for n, r in rows.items() if r), key=lambda item: -item[1]["final"]):
+            label = (f"**{name}** (default)" if name == DEFAULT_STRATEGY else
+                     f"{name} (tried, bench/nbv_experiments.py)" if name in EXPERIMENTS else name)
+            delta = (f"{row['final'] - fvs['final']:+.2f}", f"{row['rounds'] - fvs['rounds']:+.2f}") if fvs \
+                else ("", "")
+            lines.append(f"| {label} | {row['seeds']} | {row['final']:.2f} ± {row['final_sd']:.2f} | "
+                         f"{' / '.join(f'{v:.2f}' for v in row['finals'])} | {row['rounds']:.2f} | {delta[0]} | "
+                         f"{delta[1]} | {fmt(row['spearman'], 2)} |")
+        lines += ["", f"![PSNR per round on {scene}](nbv_{scene}.svg)", ""]
+    return "\n".join(lines)
+
+
+def plots(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> None:
+    for scene, tasks in by_scene.items():
+        series = {}
+        for name in SHIPPED:
+            row = summary(tasks, name)
+            if row:
+                views = [args.initial + args.per_round * r for r in range(len(row["curve"]))]
+                series[name] = list(zip(views, row["curve"]))
+        svg_plot(args.doc.parent / f"nbv_{scene}.svg", series, "captured views", "test PSNR (dB)", log_x=False)
+
+
+def main() -> None:
+    args = parse_args()
+    if not args.report:
+        tasks = [(scene, seed) for seed in args.seeds for scene in args.scenes]
+        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            for message in pool.map(run_task, *zip(*tasks), [args] * len(tasks)):
+                print(message, flush=True)
+    by_scene = load_results(args)
+    write_doc(args.doc, markdown(by_scene, args), section="nbv")
+    plots(by_scene, args)
+    print(f"wrote {args.doc}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""Strategies tried on the active-learning benchmark and not shipped (docs/nbv.md, "Also tried").
+
+Each is one `Strategy` registered from here, which is all a new strategy takes; importing
+this module (bench_nbv.py does) makes them selectable by name in that process only.
+
+- kmedian, kmedian_sigma: greedy weighted k-median over the candidate pool: the gain of
+  a candidate is how much closer it brings every candidate q to its nearest captured
+  pose, weighted by 1 or by q's sigma_mean (facility location: representative views).
+- kmedian_sq: the same on squared distances (between k-median and FVS).
+- fvs_prefilter: among the candidates at least as far from the captured poses as the
+  median candidate, the highest sigma_mean (a coverage prefilter, then uncertainty).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from phd_core.strategies import Evidence, Selection, Strategy, register
+from phd_core.strategies.base import centres, greedy
+
+
+def _k_median(evidence: Evidence, k: int, demand: Tensor, power: int) -> Selection:
+    cand = centres(evidence.candidates)
+    dist = torch.cdist(cand, cand).pow(power)                      # [C, C]
+
+    def gain(nearest: Tensor) -> Tensor:
+        reach = nearest.pow(power)[:, None]                        # [C, 1] each q's current distance
+        return (demand[:, None] * (reach - torch.minimum(reach, dist))).sum(0)
+    return greedy(evidence, k, gain)
+
+
+def _uniform(evidence: Evidence) -> Tensor:
+    return torch.ones(len(evidence.candidates), dtype=torch.float64)
+
+
+def _prefilter(evidence: Evidence, k: int, seed: int) -> Selection:
+    sigma = evidence.sigma_mean
+
+    def gain(nearest: Tensor) -> Tensor:
+        far = nearest >= nearest.median()
+        return torch.where(far, sigma, sigma - sigma.max() - 1)     # near ones rank after every far one
+    return greedy(evidence, k, gain)
+
+
+def _k_median_strategy(demand: Callable[[Evidence], Tensor], power: int) -> Callable[[Evidence, int, int], Selection]:
+    return lambda evidence, k, seed: _k_median(evidence, k, demand(evidence), power)
+
+
+EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter")
+
+for _strategy in (
+        Strategy("kmedian", "greedy k-median over the candidate poses", _k_median_strategy(_uniform, 1),
+                 uses_dropout=False),
+        Strategy("kmedian_sigma", "greedy k-median weighted by sigma_mean",
+                 _k_median_strategy(lambda ev: ev.sigma_mean, 1)),
+        Strategy("kmedian_sq", "greedy k-median on squared distances", _k_median_strategy(_uniform, 2),
+                 uses_dropout=False),
+        Strategy("fvs_prefilter", "the most uncertain of the farther half of the candidates", _prefilter)):
+    register(_strategy)
