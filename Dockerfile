@@ -18,6 +18,7 @@ RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
 
 COPY pyproject.toml README.md ./
 COPY phd_core ./phd_core
+COPY phd_cli ./phd_cli
 COPY service ./service
 COPY client ./client
 RUN pip install . \

@@ -86,7 +86,7 @@ def start_server(data_dir: Path, workers: int) -> tuple[subprocess.Popen, str]:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    code = ("import argparse, sys; from phd_core.cli import serve; p = argparse.ArgumentParser(); "
+    code = ("import argparse, sys; from phd_cli import serve; p = argparse.ArgumentParser(); "
             "serve.register(p.add_subparsers()); a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))")
     proc = subprocess.Popen([sys.executable, "-c", code, "serve", "--port", str(port), "--data-dir", str(data_dir),
                              "--workers", str(workers), "--queue-size", "32", "--log-level", "warning"],

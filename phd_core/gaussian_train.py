@@ -17,7 +17,6 @@ What the scene needs is derived from the data, not configured:
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -32,11 +31,8 @@ from .data import Dataset, load_blender
 from .errors import InputError
 from .fileio import write_json_atomic
 from .gaussian_render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
-from .gaussians import GaussianModel, write_ply
+from .gaussians import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
 from .metrics import ssim
-
-SIDECAR_FORMAT = "phd-3dgs-sidecar/1"
-
 
 @dataclass
 class TrainConfig:
@@ -265,25 +261,6 @@ def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downsc
     }
     write_json_atomic(sidecar_path(out), sidecar)
     return GaussianRenderer(model, dataset.background, dataset.cameras, tile=config.tile)
-
-
-def sidecar_path(ply: str | Path) -> Path:
-    ply = Path(ply)
-    return ply.with_name(ply.stem + ".json")
-
-
-def read_sidecar(ply: str | Path) -> dict[str, Any] | None:
-    """The sidecar written by `train_gaussians` next to a PLY, or None when absent."""
-    path = sidecar_path(ply)
-    if not path.exists():
-        return None
-    try:
-        sidecar = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError("sidecar", f"cannot read {path}: {exc}") from None
-    if not isinstance(sidecar, dict) or sidecar.get("format") != SIDECAR_FORMAT:
-        raise InputError("sidecar", f"{path} is not a phd training sidecar")
-    return sidecar
 
 
 def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True) -> tuple[GaussianModel, list[float]]:

@@ -14,9 +14,11 @@ exactly those details. Every malformed file raises `InputError` naming the PLY f
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -312,3 +314,27 @@ def write_ply(model: GaussianModel, path: str | Path) -> None:
     body = packed.numpy().astype("<f4").tobytes()
 
     write_bytes_atomic(path, header.encode("ascii") + body)
+
+
+# ----------------------------------------------------------------------------- sidecar
+
+SIDECAR_FORMAT = "phd-3dgs-sidecar/1"   # the JSON `phd train` writes next to a PLY
+
+
+def sidecar_path(ply: str | Path) -> Path:
+    ply = Path(ply)
+    return ply.with_name(ply.stem + ".json")
+
+
+def read_sidecar(ply: str | Path) -> dict[str, Any] | None:
+    """The sidecar written by `train_gaussians` next to a PLY, or None when absent."""
+    path = sidecar_path(ply)
+    if not path.exists():
+        return None
+    try:
+        sidecar = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError("sidecar", f"cannot read {path}: {exc}") from None
+    if not isinstance(sidecar, dict) or sidecar.get("format") != SIDECAR_FORMAT:
+        raise InputError("sidecar", f"{path} is not a phd training sidecar")
+    return sidecar

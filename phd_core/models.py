@@ -12,8 +12,7 @@ from pathlib import Path
 from .cameras import Camera, cameras_from_json
 from .errors import InputError
 from .gaussian_render import GaussianRenderer
-from .gaussian_train import read_sidecar
-from .gaussians import is_ply, parse_ply
+from .gaussians import is_ply, parse_ply, read_sidecar
 from .nerf import is_nerf_checkpoint, load_nerf_bytes
 from .protocol import Renderer
 

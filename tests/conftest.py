@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 import os
 
-# Before torch loads: idle OpenMP threads sleep instead of spinning (see phd_core/cli).
+# Before torch loads: idle OpenMP threads sleep instead of spinning (see phd_cli).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import socket
 import subprocess
@@ -94,7 +94,7 @@ class SvcProcess:
         self.port = svc_free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         # `phd serve` through its own CLI module (independent of the other commands' modules).
-        code = ("import argparse, sys; from phd_core.cli import serve; parser = argparse.ArgumentParser(prog='phd'); "
+        code = ("import argparse, sys; from phd_cli import serve; parser = argparse.ArgumentParser(prog='phd'); "
                 "serve.register(parser.add_subparsers()); args = parser.parse_args(sys.argv[1:]); "
                 "sys.exit(args.func(args))")
         argv = ["serve", "--host", "127.0.0.1", "--port", str(self.port), "--data-dir", str(data_dir),

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from phd_core import phdropout as phd
-from phd_core.cli import main
+from phd_cli import main
 from phd_core.data import load_dataset
 from phd_core.gaussians import GaussianModel, write_ply
 from phd_core.models import load_model
@@ -112,7 +112,7 @@ def test_calibrate_prints_r_drop_and_writes_the_curve(files, curve, capsys) -> N
 
 
 def test_a_trained_model_calibrates_and_ranks_with_its_stored_cameras(files, curve, capsys) -> None:
-    from phd_core.gaussian_train import SIDECAR_FORMAT, sidecar_path
+    from phd_core.gaussians import SIDECAR_FORMAT, sidecar_path
 
     trained = files["root"] / "trained.ply"
     shutil.copy(files["model"], trained)

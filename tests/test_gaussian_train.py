@@ -10,11 +10,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from phd_core.cli import main as phd
+from phd_cli import main as phd
 from phd_core.data import load_blender
 from phd_core.errors import InputError
-from phd_core.gaussian_train import (Splats, TrainConfig, carve_points, densify, fit, initial_model,
-                                     read_sidecar, scene_bounds, train_gaussians)
+from phd_core.gaussian_train import (Splats, TrainConfig, carve_points, densify, fit, initial_model, scene_bounds,
+                                     train_gaussians)
+from phd_core.gaussians import read_sidecar
 from phd_core.gaussian_render import rasterize
 from phd_core.gaussians import read_ply
 from phd_core.metrics import psnr

@@ -185,7 +185,7 @@ def test_cancel_queued_and_running_jobs(svc_start, svc_model_files):
 
 
 def test_client_reads_cameras_from_transforms_and_sidecars(svc_start, svc_model_files, tmp_path):
-    from phd_core.gaussian_train import SIDECAR_FORMAT
+    from phd_core.gaussians import SIDECAR_FORMAT
 
     transforms = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lego_200" / "transforms_val.json"
     frames = camera_frames(transforms)  # Blender style: no w/h in the JSON, taken from the PNGs

@@ -12,13 +12,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .. import phdropout as phd
-from ..cameras import Camera, cameras_from_json
-from ..errors import InputError
-from ..fileio import write_json_atomic
-from ..heatmap import write_heatmap
-from ..strategies import DEFAULT_STRATEGY, STRATEGIES
-from ..uq_metrics import image_uq_metrics, mean_defined, spearman
+from phd_core import phdropout as phd
+from phd_core.cameras import Camera, cameras_from_json
+from phd_core.errors import InputError
+from phd_core.fileio import write_json_atomic
+from phd_core.heatmap import write_heatmap
+from phd_core.strategies import DEFAULT_STRATEGY, STRATEGIES
+from phd_core.uq_metrics import image_uq_metrics, mean_defined, spearman
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -121,7 +121,7 @@ def _add_uncertainty_args(parser: argparse.ArgumentParser) -> None:
 # ---------------------------------------------------------------------------------------- helpers
 
 def _load(path: Path):
-    from ..models import load_model
+    from phd_core.models import load_model
 
     return load_model(path)
 
@@ -170,7 +170,7 @@ def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None
 def run_calibrate(args: argparse.Namespace) -> int:
     renderer = _load(args.model)
     if args.data is not None:
-        from ..data import load_dataset
+        from phd_core.data import load_dataset
 
         dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale, with_images=False)
         cameras = dataset.cameras
@@ -194,7 +194,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
 
 def run_uq(args: argparse.Namespace) -> int:
-    from ..data import load_dataset
+    from phd_core.data import load_dataset
 
     renderer = _load(args.model)
     warnings: list[str] = []

@@ -22,10 +22,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..data import load_dataset, split_size
-    from ..fileio import write_bytes_atomic, write_json_atomic
-    from ..metrics import psnr, ssim
-    from ..models import load_model
+    from phd_core.data import load_dataset, split_size
+    from phd_core.fileio import write_bytes_atomic, write_json_atomic
+    from phd_core.metrics import psnr, ssim
+    from phd_core.models import load_model
     from .train import parse_views
 
     renderer = load_model(args.model)
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
 def training_downscale(renderer, data: Path, split: str) -> float:
     """The factor that brings the dataset to the model's training resolution (1 if unknown)."""
-    from ..data import load_dataset
+    from phd_core.data import load_dataset
     cams = getattr(renderer, "training_cameras", None)
     if not cams:
         return 1.0

@@ -11,7 +11,7 @@ import sys
 # 2-core machine ran 3-25x slower (docs/gaussians.md). Must be set before torch loads.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from ..errors import InputError
+from phd_core.errors import InputError
 
 # Each module defines register(subparsers) and sets `func` on its parsers.
 COMMAND_MODULES = ("train", "render", "serve", "demo", "uq")

@@ -25,7 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def parse_views(text: str) -> int | list[int]:
-    from ..errors import InputError
+    from phd_core.errors import InputError
     try:
         return [int(v) for v in text.split(",")] if "," in text else int(text)
     except ValueError:
@@ -36,12 +36,12 @@ def run(args: argparse.Namespace) -> int:
     views = parse_views(args.views)
     started = time.perf_counter()
     if args.model == "nerf":
-        from ..nerf_train import train_nerf
+        from phd_core.nerf_train import train_nerf
         renderer = train_nerf(data=args.data, views=views, downscale=args.downscale, encoding=args.encoding,
                               freenerf=args.freenerf, iterations=args.iterations, seed=args.seed, out=args.out,
                               progress=not args.quiet)
     else:
-        from ..gaussian_train import train_gaussians
+        from phd_core.gaussian_train import train_gaussians
         renderer = train_gaussians(args.data, views=views, downscale=args.downscale, iterations=args.iterations,
                                    seed=args.seed, out=args.out, progress=not args.quiet)
     print(f"trained {renderer.kind} with {renderer.num_units} dropout units in "
