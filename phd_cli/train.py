@@ -3,21 +3,26 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import time
 from pathlib import Path
+
+from phd_core.models import FAMILIES
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("train", help="train a 3DGS or NeRF model on a Blender dataset",
                               description="Train on the train split; saves the model with its training cameras.")
-    p.add_argument("--model", choices=("3dgs", "nerf"), default="3dgs", help="model family (default 3dgs)")
+    trainable = sorted(kind for kind, family in FAMILIES.items() if family.trainer)
+    p.add_argument("--model", choices=trainable, default="3dgs", help="model family (default 3dgs)")
     p.add_argument("--data", required=True, type=Path, help="dataset directory (transforms_train.json)")
     p.add_argument("--views", default="16",
                    help="number of evenly spaced training views, or a comma-separated index list (default 16)")
     p.add_argument("--downscale", type=float, default=2.0, help="image downscale factor (default 2)")
     p.add_argument("--iterations", type=int, default=None, help="optimisation steps (default: the trainer's)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True, type=Path, help="output file (.ply for 3dgs, .nerf for nerf)")
+    p.add_argument("--out", required=True, type=Path, help="output file (" + ", ".join(
+        f"{FAMILIES[kind].extension} for {kind}" for kind in trainable) + ")")
     p.add_argument("--encoding", choices=("pe", "spe", "hash"), default="pe", help="NeRF input encoding")
     p.add_argument("--freenerf", action="store_true", help="NeRF: FreeNeRF frequency and occlusion regularisation")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -35,15 +40,12 @@ def parse_views(text: str) -> int | list[int]:
 def run(args: argparse.Namespace) -> int:
     views = parse_views(args.views)
     started = time.perf_counter()
-    if args.model == "nerf":
-        from phd_core.nerf_train import train_nerf
-        renderer = train_nerf(data=args.data, views=views, downscale=args.downscale, encoding=args.encoding,
-                              freenerf=args.freenerf, iterations=args.iterations, seed=args.seed, out=args.out,
-                              progress=not args.quiet)
-    else:
-        from phd_core.gaussian_train import train_gaussians
-        renderer = train_gaussians(args.data, views=views, downscale=args.downscale, iterations=args.iterations,
-                                   seed=args.seed, out=args.out, progress=not args.quiet)
+    family = FAMILIES[args.model]
+    module, function = family.trainer.split(":")
+    train = getattr(importlib.import_module(module), function)   # imported only to train
+    options = {name: getattr(args, name) for name in family.train_options}
+    renderer = train(args.data, views=views, downscale=args.downscale, iterations=args.iterations, seed=args.seed,
+                     out=args.out, progress=not args.quiet, **options)
     print(f"trained {renderer.kind} with {renderer.num_units} dropout units in "
           f"{time.perf_counter() - started:.1f} s -> {args.out}")
     return 0

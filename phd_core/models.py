@@ -1,67 +1,121 @@
-"""Load any supported model by its content, never by its file name.
+"""Model families and loading: any supported model is recognised by its content, never by
+its file name.
 
-A 3DGS PLY starts with `ply`; a NeRF checkpoint is a safetensors file marked as ours.
-Anything else (a pickle, an archive, random bytes) is refused before it is parsed, so
-no file can execute code on load.
+`FAMILIES` maps a kind ("3dgs", "nerf") to a `Family`: how its files are recognised (a
+3DGS PLY starts with `ply`; a NeRF checkpoint is a safetensors file marked as ours), how
+they are loaded, which file extension the service stores them under, and which trainer
+`phd train` calls. Anything no family recognises (a pickle, an archive, random bytes) is
+refused before it is parsed, so no file can execute code on load. A new family is one
+module plus one `register_family` call; the CLI and the service take their names from here.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from .cameras import Camera, cameras_from_json
 from .errors import InputError
 from .gaussian_render import GaussianRenderer
 from .gaussians import is_ply, parse_ply, read_sidecar
-from .nerf import is_nerf_checkpoint, load_nerf_bytes
+from .nerf import NeRFRenderer, is_nerf_checkpoint, load_nerf_bytes
 from .protocol import Renderer
 
 SNIFF_BYTES = 4096
 
 
+@dataclass(frozen=True)
+class Family:
+    """One model family: how its files are recognised, loaded, stored and trained."""
+
+    kind: str                                               # the renderer's `kind`
+    title: str                                              # for messages: "a 3DGS PLY"
+    extension: str                                          # file extension the service stores it under
+    sniff: Callable[[bytes], bool]                          # True for the first SNIFF_BYTES of its files
+    load: Callable[[bytes, str, list[Camera] | None], Renderer]   # (content, name, training cameras or None)
+    beside: Callable[[Path, Renderer], Renderer] | None = None    # extras stored next to a model file
+    trainer: str | None = None                              # "module:function" that `phd train` calls
+    train_options: tuple[str, ...] = ()                     # `phd train` flags the trainer takes
+
+
+FAMILIES: dict[str, Family] = {}
+
+
+def register_family(family: Family) -> Family:
+    """Add a model family (a kind is registered once)."""
+    if family.kind in FAMILIES:
+        raise ValueError(f"model family {family.kind!r} is already registered")
+    FAMILIES[family.kind] = family
+    return family
+
+
 class UnknownModelError(InputError):
-    """The content is neither a 3DGS PLY nor a phd NeRF checkpoint."""
+    """No registered family recognises the content."""
 
     def __init__(self, name: str):
-        super().__init__("model", f"{name} is neither a 3DGS PLY nor a phd NeRF checkpoint "
-                                  "(the kind is detected from the content, not the file name)")
+        known = " nor ".join(f.title for f in FAMILIES.values())
+        super().__init__("model", f"{name} is neither {known} (the kind is detected from the content, "
+                                  "not the file name)")
+
+
+def family_of(head: bytes) -> Family | None:
+    """The family whose files start like `head` (the first SNIFF_BYTES of a file), or None."""
+    return next((f for f in FAMILIES.values() if f.sniff(head)), None)
 
 
 def model_kind(head: bytes) -> str | None:
-    """'3dgs', 'nerf' or None from the first bytes of a file."""
-    if is_ply(head):
-        return "3dgs"
-    if is_nerf_checkpoint(head):
-        return "nerf"
-    return None
+    """The kind of a file from its first bytes, or None."""
+    family = family_of(head)
+    return None if family is None else family.kind
 
 
 def load_model_bytes(data: bytes, name: str = "model",
                      training_cameras: list[Camera] | None = None) -> Renderer:
     """Parse a model held in memory. `training_cameras` overrides any stored in the file."""
-    kind = model_kind(data[:SNIFF_BYTES])
-    if kind == "3dgs":
-        return GaussianRenderer(parse_ply(data, name), training_cameras=training_cameras)
-    if kind == "nerf":
-        renderer = load_nerf_bytes(data, name)
-        if training_cameras is not None:
-            renderer.training_cameras = training_cameras
-        return renderer
-    raise UnknownModelError(name)
+    family = family_of(data[:SNIFF_BYTES])
+    if family is None:
+        raise UnknownModelError(name)
+    return family.load(data, name, training_cameras)
 
 
 def load_model(path: str | Path) -> Renderer:
-    """Load a model file. A PLY takes its training cameras and background from the
-    sidecar `<stem>.json` that `phd train` writes next to it, when there is one."""
+    """Load a model file, with what its family keeps next to it (a PLY's sidecar `<stem>.json`
+    from `phd train`: training cameras and background)."""
     path = Path(path)
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise InputError("model", f"cannot read {path}: {exc.strerror or exc}") from None
-    renderer = load_model_bytes(data, path.name)
-    if isinstance(renderer, GaussianRenderer):
-        sidecar = read_sidecar(path)
-        if sidecar is not None:
-            renderer = GaussianRenderer(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
-                                        cameras_from_json(sidecar["training_cameras"]))
-    return renderer
+    family = family_of(data[:SNIFF_BYTES])
+    if family is None:
+        raise UnknownModelError(path.name)
+    renderer = family.load(data, path.name, None)
+    return renderer if family.beside is None else family.beside(path, renderer)
+
+
+# ---------------------------------------------------------------------------- the built-in families
+
+def _load_gaussians(data: bytes, name: str, cameras: list[Camera] | None) -> GaussianRenderer:
+    return GaussianRenderer(parse_ply(data, name), training_cameras=cameras)
+
+
+def _gaussian_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
+    sidecar = read_sidecar(path)
+    if sidecar is None:
+        return renderer
+    return GaussianRenderer(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
+                            cameras_from_json(sidecar["training_cameras"]))
+
+
+def _load_nerf(data: bytes, name: str, cameras: list[Camera] | None) -> NeRFRenderer:
+    renderer = load_nerf_bytes(data, name)
+    if cameras is None:
+        return renderer
+    return NeRFRenderer(renderer.model, cameras, rescale=renderer.rescale, use_grid=renderer.use_grid)
+
+
+register_family(Family("3dgs", "a 3DGS PLY", ".ply", is_ply, _load_gaussians, _gaussian_sidecar,
+                       trainer="phd_core.gaussian_train:train_gaussians"))
+register_family(Family("nerf", "a phd NeRF checkpoint", ".nerf", is_nerf_checkpoint, _load_nerf,
+                       trainer="phd_core.nerf_train:train_nerf", train_options=("encoding", "freenerf")))

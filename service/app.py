@@ -33,7 +33,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import phd_core
 from phd_core.errors import InputError
-from phd_core.models import load_model
+from phd_core.models import FAMILIES, load_model
 
 from .errors import ServiceError, from_exception, not_found
 from .guard import Guard
@@ -108,7 +108,7 @@ class ServiceState:
         renderer = load_model(upload.path)
         cameras = cameras if cameras is not None else renderer.training_cameras
         frames = None if not cameras else [c.to_frame() for c in cameras]
-        name = upload.name or upload.filename or f"model{'.ply' if kind == '3dgs' else '.nerf'}"
+        name = upload.name or upload.filename or f"model{FAMILIES[kind].extension}"
         # The stored cameras are the truth about training cameras, not what the file carried.
         facts = {k: v for k, v in renderer.describe().items() if k != "has_training_cameras"}
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,

@@ -17,6 +17,7 @@ from typing import Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator
 
+from phd_core.models import FAMILIES
 from phd_core.phdropout import DEFAULT_SELECTION_RULE
 from phd_core.strategies import DEFAULT_STRATEGY, STRATEGIES
 
@@ -85,7 +86,7 @@ class Calibration(_Response):
 class ModelInfo(_Response):
     id: str
     name: str
-    kind: Literal["3dgs", "nerf"]
+    kind: str = Field(description="Model family, one of the registry's kinds (phd_core.models.FAMILIES).")
     num_units: int = Field(description="Dropout units: splats (3DGS) or first-layer hidden units (NeRF).")
     sh_degree: int | None = Field(None, description="Spherical-harmonic degree (3DGS).")
     network: dict[str, Any] | None = Field(None, description="Network size facts (NeRF).")
@@ -97,6 +98,13 @@ class ModelInfo(_Response):
     num_training_cameras: int
     has_calibration: bool
     calibration: Calibration | None = None
+
+    @field_validator("kind")
+    @classmethod
+    def _known_family(cls, kind: str) -> str:
+        if kind not in FAMILIES:
+            raise ValueError(f"unknown model family {kind!r}; known: {', '.join(sorted(FAMILIES))}")
+        return kind
     details: dict[str, Any] = Field(default_factory=dict, description="Everything the renderer reports (describe()).")
 
 

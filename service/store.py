@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from phd_core.fileio import fsync_path
+from phd_core.models import FAMILIES
 
 DB_NAME = "phd.sqlite3"
 SCHEMA = """
@@ -44,7 +45,6 @@ CREATE TABLE IF NOT EXISTS models (
     created_at TEXT NOT NULL
 )
 """
-EXTENSIONS = {"3dgs": ".ply", "nerf": ".nerf"}
 
 
 def utc_now() -> str:
@@ -114,7 +114,7 @@ class ModelStore:
         The temp file must already be fsynced. On any failure neither file nor row remains.
         """
         model_id = uuid.uuid4().hex[:16]
-        file = model_id + EXTENSIONS[kind]
+        file = model_id + FAMILIES[kind].extension
         target = self.models_dir / file
         record = ModelRecord(id=model_id, name=name, kind=kind, file=file, size_bytes=size_bytes, sha256=sha256,
                              num_units=num_units, describe=describe, training_frames=training_frames,

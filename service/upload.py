@@ -28,7 +28,7 @@ from python_multipart.multipart import parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
 from phd_core.fileio import fsync_path
-from phd_core.models import SNIFF_BYTES, model_kind
+from phd_core.models import FAMILIES, SNIFF_BYTES, model_kind
 
 from .errors import ServiceError, invalid
 
@@ -147,11 +147,12 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
 
 
 def sniff_kind(head: bytes) -> str:
-    """'3dgs' or 'nerf' from a file's first bytes; 415 for anything else."""
+    """The model family's kind from a file's first bytes; 415 for anything else."""
     kind = model_kind(head)
     if kind is not None:
         return kind
-    what = "an empty file" if not head else "neither a 3DGS PLY nor a NeRF checkpoint of this service"
+    known = " nor ".join(family.title for family in FAMILIES.values())
+    what = "an empty file" if not head else f"neither {known}"
     if head[:1] == b"\x80" or head[:2] == b"PK":
         what = ("a Python pickle or zip archive (e.g. a torch.save file); such files can run code when loaded "
                 "and are never opened")
