@@ -42,12 +42,12 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from nbv_experiments import EXPERIMENTS  # noqa: E402  (importing registers the strategies tried, not shipped)
 from bench_phdropout import fmt, save, svg_plot, write_doc  # noqa: E402
-from phd_core import phdropout as phd  # noqa: E402
+from phd_core import uq as phd  # noqa: E402
 from phd_core.data import Dataset, load_blender  # noqa: E402
 from phd_core.gaussian_render import GaussianRenderer  # noqa: E402
 from phd_core.gaussian_train import TrainConfig, fit  # noqa: E402
 from phd_core.metrics import psnr, rmse  # noqa: E402
-from phd_core.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy  # noqa: E402
+from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy  # noqa: E402
 from phd_core.uq_metrics import spearman  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"

@@ -15,8 +15,8 @@ Measures, in one run on this machine:
 
 Recommends the cheapest (time per view) grid cell whose mean Kendall tau >= 0.9, or, when
 none does, >= 0.9 x the reference's agreement with its re-run.
-Writes bench/results/phdropout.json after every section (a cut run keeps its numbers),
-the tables between the bench markers of docs/phdropout.md and two SVG plots in docs/.
+Writes bench/results/uq.json after every section (a cut run keeps its numbers),
+the tables between the bench markers of docs/uq.md and two SVG plots in docs/.
 
     .venv/bin/python bench/bench_phdropout.py --model runs/lego16/model.ply --data ../shared/data/lego_200
     .venv/bin/python bench/bench_phdropout.py --quick      # smoke run on a random model
@@ -42,14 +42,14 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from phd_core import phdropout as phd  # noqa: E402
+from phd_core import uq as phd  # noqa: E402
 from phd_core import uq_metrics as uqm  # noqa: E402
 from phd_core.data import load_dataset  # noqa: E402
 from phd_core.fileio import write_bytes_atomic, write_json_atomic  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "lego_200"
-RESULTS = ROOT / "bench" / "results" / "phdropout.json"
-DOC = ROOT / "docs" / "phdropout.md"
+RESULTS = ROOT / "bench" / "results" / "uq.json"
+DOC = ROOT / "docs" / "uq.md"
 REFERENCE_SEED = 1000      # the reference ranking's masks differ from every tested seed
 TAU_TARGET = 0.9
 TOP_K = 5

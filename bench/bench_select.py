@@ -3,7 +3,7 @@
 Two 3DGS models of one scene trained on disjoint view sets ("random": two random disjoint
 sets drawn by the seed; "demo": the demo's evenly spaced set and the same shifted by 3),
 each calibrated on its own training poses. For every selection rule of
-`phd_core.phdropout.select_models`: mean PSNR of model a, model b, the selection and the
+`phd_core.uq.select_models`: mean PSNR of model a, model b, the selection and the
 per-view oracle, and E_ME (the paper's mean over views of SSIM(selected) / max SSIM).
 Writes bench/results/select.json and the table between the `bench:select` markers of
 docs/nbv.md.
@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_nbv import DATA, DOC, train  # noqa: E402
 from bench_phdropout import save, write_doc  # noqa: E402
-from phd_core import phdropout as phd  # noqa: E402
+from phd_core import uq as phd  # noqa: E402
 from phd_core.data import load_blender, select_views  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "select.json"

@@ -1,7 +1,7 @@
 """Benchmark of the service: `rank` with 10 candidates at 100x100, N = 16.
 
 Measures, in one run on this machine:
-- the latency of `phd_core.phdropout.rank_views` called directly (the floor), on a worker
+- the latency of `phd_core.uq.rank_views` called directly (the floor), on a worker
   thread like the service's,
 - requests per second and latency p50/p95 of POST /v1/models/{id}/rank against `phd serve`
   (a separate process, as users run it) with 1 and with 4 concurrent clients,
@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from client import PHDClient  # noqa: E402
-from phd_core import phdropout  # noqa: E402
+from phd_core import uq  # noqa: E402
 from phd_core.cameras import hemisphere_cameras  # noqa: E402
 from phd_core.gaussians import GaussianModel, write_ply  # noqa: E402
 from phd_core.models import load_model  # noqa: E402
@@ -162,12 +162,12 @@ def main() -> int:
     # shared cores runs ~3x slower than on a worker thread (unless OMP_WAIT_POLICY=passive),
     # which would flatter the service.
     worker = ThreadPoolExecutor(1)
-    expected = worker.submit(phdropout.rank_views, renderer, cameras, ratio=args.ratio, samples=args.samples,
+    expected = worker.submit(uq.rank_views, renderer, cameras, ratio=args.ratio, samples=args.samples,
                              seed=0).result()  # warm-up and the reference answer
 
     def direct_call() -> float:
         start = time.perf_counter()
-        worker.submit(phdropout.rank_views, renderer, cameras, ratio=args.ratio, samples=args.samples,
+        worker.submit(uq.rank_views, renderer, cameras, ratio=args.ratio, samples=args.samples,
                       seed=0).result()
         return time.perf_counter() - start
 
@@ -210,7 +210,7 @@ def main() -> int:
     direct_p50 = percentile(direct, 50)
     single = [r for r in runs if r["clients"] == 1]
     report = {
-        "benchmark": "service rank: POST /v1/models/{id}/rank vs phdropout.rank_views",
+        "benchmark": "service rank: POST /v1/models/{id}/rank vs uq.rank_views",
         "machine": {"platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
                     "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                     "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "load_average": os.getloadavg()},

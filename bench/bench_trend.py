@@ -10,7 +10,7 @@ every model); the held-out RMSE for context. Across models:
     rho_R = Spearman(r_drop, number of training views)          expected positive
 
 Writes bench/results/trend.json and the table between the `bench:trend` markers of
-docs/phdropout.md.
+docs/uq.md.
 
     for v in 4 8 16 32 100; do phd train --data ../shared/data/lego_200 --views $v --out runs/lego$v/model.ply; done
     .venv/bin/python bench/bench_trend.py --models runs/lego{4,8,16,32,100}/model.ply --threads 1
@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench_phdropout import DATA, DOC, fmt, load_test_at_size, save, timed, write_doc  # noqa: E402
-from phd_core import phdropout as phd  # noqa: E402
+from phd_core import uq as phd  # noqa: E402
 from phd_core import uq_metrics as uqm  # noqa: E402
 from phd_core.metrics import rmse  # noqa: E402
 from phd_core.models import load_model  # noqa: E402

@@ -18,8 +18,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from phd_core.strategies import Evidence, Selection, Strategy, register
-from phd_core.strategies.base import centres, greedy
+from phd_core.uq.strategies import Evidence, Selection, Strategy, register
+from phd_core.uq.strategies.base import centres, greedy
 
 
 def _k_median(evidence: Evidence, k: int, demand: Tensor, power: int) -> Selection:

@@ -1,6 +1,6 @@
 """`phd calibrate`, `phd uq` and `phd rank`: PH-Dropout from the command line.
 
-Thin wrappers: parse arguments, load the model and cameras, call `phd_core.phdropout`,
+Thin wrappers: parse arguments, load the model and cameras, call `phd_core.uq`,
 print a summary and write JSON (and heat maps) atomically.
 """
 
@@ -12,12 +12,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from phd_core import phdropout as phd
+from phd_core import uq as phd
 from phd_core.cameras import Camera, cameras_from_json
 from phd_core.errors import InputError
 from phd_core.fileio import write_json_atomic
 from phd_core.heatmap import write_heatmap
-from phd_core.strategies import DEFAULT_STRATEGY, STRATEGIES
+from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 from phd_core.uq_metrics import image_uq_metrics, mean_defined, spearman
 
 

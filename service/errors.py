@@ -8,7 +8,7 @@ Every error answer has the body `{"error": {"code", "message", "field"}}`
 from __future__ import annotations
 
 from phd_core.errors import InputError
-from phd_core.phdropout import CalibrationError
+from phd_core.uq import CalibrationError
 
 from .schemas import ErrorDetail
 

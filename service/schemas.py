@@ -18,8 +18,8 @@ from typing import Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator
 
 from phd_core.models import FAMILIES
-from phd_core.phdropout import DEFAULT_SELECTION_RULE
-from phd_core.strategies import DEFAULT_STRATEGY, STRATEGIES
+from phd_core.uq import DEFAULT_SELECTION_RULE
+from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 
 API_VERSION = "v1"
 

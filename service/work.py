@@ -3,7 +3,7 @@
 Each `*_job` function validates a request on the event loop (cheap: parsing cameras,
 checking caps, finding the dropout ratio) and returns the `Work` that a worker thread runs
 later (expensive: loading the model, rendering). The work calls the engine
-(`phd_core.phdropout`) exactly as a Python user would, so the service's numbers are the
+(`phd_core.uq`) exactly as a Python user would, so the service's numbers are the
 library's numbers.
 """
 
@@ -18,7 +18,7 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from phd_core import phdropout
+from phd_core import uq
 from phd_core.cameras import Camera, cameras_from_json
 from phd_core.errors import InputError
 from phd_core.heatmap import colorize
@@ -166,15 +166,15 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
         raise ServiceError(409, "no_training_cameras", f"model '{record.id}' has no stored training cameras: "
                            "give training_cameras (or upload the model with its cameras)", "training_cameras")
     cameras = parse_cameras(source, body, settings, field=field, cap=settings.max_training_cameras)
-    samples = check_samples(body.samples, settings, phdropout.DEFAULT_CALIBRATION_SAMPLES)
+    samples = check_samples(body.samples, settings, uq.DEFAULT_CALIBRATION_SAMPLES)
     options = {"epsilon": body.epsilon, "step": body.step}
     options = {k: v for k, v in options.items() if v is not None}
-    step = body.step or phdropout.DEFAULT_STEP
+    step = body.step or uq.DEFAULT_STEP
     estimate = pixels(cameras) * (1 + samples * int(1 / step))
 
     def work(progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
         renderer = cache.get(record.id)
-        result = phdropout.calibrate(renderer, cameras, samples=samples, method=body.method, seed=body.seed,
+        result = uq.calibrate(renderer, cameras, samples=samples, method=body.method, seed=body.seed,
                                      progress=progress, **options)
         calibration = Calibration(**result.to_dict(), num_cameras=len(cameras), created_at=utc_now())
         if not store.set_calibration(record.id, calibration.model_dump()):
@@ -189,7 +189,7 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
 def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: RendererCache,
              job_url: Callable[[str], str]) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
-    samples = check_samples(body.samples, settings, phdropout.DEFAULT_SAMPLES)
+    samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
     captured = (stored_cameras(record) if body.captured is None else
                 parse_cameras(body.captured, body, settings, field="captured", cap=settings.max_training_cameras))
@@ -200,7 +200,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
     def work(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
         renderer = cache.get(record.id)
         split = len(cameras) / (len(cameras) + mapped)
-        ranked = phdropout.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed,
+        ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed,
                                       top_k=body.top_k, strategy=body.strategy, captured=captured,
                                       progress=_span(progress, 0.0, split))
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
@@ -213,7 +213,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
             done = _span(progress, split, 1.0)
             for k, view in enumerate(views):
                 # Same seed -> the same N sub-models as the ranking: zeta is the ranked one's.
-                zeta = phdropout.view_uncertainty(renderer, cameras[view.index], ratio=ratio, samples=samples,
+                zeta = uq.view_uncertainty(renderer, cameras[view.index], ratio=ratio, samples=samples,
                                                   seed=body.seed, keep_maps=True).zeta
                 png = png_bytes(colorize(zeta, vmax if vmax > 0 else None)[0])
                 view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
@@ -242,7 +242,7 @@ def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
 def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest, settings: Settings,
                cache: RendererCache, job_url: Callable[[str], str]) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
-    samples = check_samples(body.samples, settings, phdropout.DEFAULT_SAMPLES)
+    samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
     if body.rule == "distance_sigma":
@@ -252,11 +252,11 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
                               "it with its cameras, or use rule 'sigma_mean'")
     estimate = pixels(cameras) * (2 * samples + (body.images != "none"))
     if body.rule == "distance_sigma":   # each model's zeta level on up to 8 of its training views
-        estimate += 2 * phdropout.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples
+        estimate += 2 * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples
 
     def work(progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:
         renderer_a, renderer_b = cache.get(record_a.id), cache.get(record_b.id)
-        result = phdropout.select_models(renderer_a, renderer_b, cameras, ratio_a=ratio_a, ratio_b=ratio_b,
+        result = uq.select_models(renderer_a, renderer_b, cameras, ratio_a=ratio_a, ratio_b=ratio_b,
                                          samples=samples, seed=body.seed, rule=body.rule,
                                          training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
                                          keep_images=body.images != "none",

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core import phdropout as phd
+from phd_core import uq as phd
 from phd_cli import main
 from phd_core.data import load_dataset
 from phd_core.gaussians import GaussianModel, write_ply

@@ -14,7 +14,7 @@ import torch
 
 from client import PHDClient, UnsupportedModelError
 from conftest import svc_cameras
-from phd_core import phdropout
+from phd_core import uq
 from phd_core.models import FAMILIES, Family, load_model, load_model_bytes, model_kind, register_family
 from toy_renderers import BlobRenderer
 
@@ -72,7 +72,7 @@ def test_the_service_and_client_accept_a_registered_family(svc_start, toy_family
         assert (info.kind, info.num_units, info.num_training_cameras) == ("toy", 20, 3)
         assert [p.name for p in server.settings.data_dir.rglob(f"{info.id}.*")] == [f"{info.id}.toy"]
         ranking = phd.rank(info.id, candidates, samples=4, dropout_ratio=0.3, top_k=2)
-        expected = phdropout.rank_views(load_toy(toy_file.read_bytes(), "x", train), candidates, ratio=0.3,
+        expected = uq.rank_views(load_toy(toy_file.read_bytes(), "x", train), candidates, ratio=0.3,
                                         samples=4, top_k=2)
         assert [v.index for v in ranking.views] == [r.index for r in expected]
         assert phd.get_model(info.id).kind == "toy"

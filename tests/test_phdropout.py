@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core import phdropout as phd
+from phd_core import uq as phd
 from phd_core.errors import InputError
 from phd_core.metrics import psnr, ssim
 from toy_renderers import BlobRenderer, ConstantRenderer, EmptyRenderer, away_camera, ring_cameras

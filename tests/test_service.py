@@ -18,7 +18,7 @@ import torch
 import phd_core
 from client import ConflictError, InvalidInputError, JobCancelledError, NotFoundError, PHDClient, camera_frames
 from conftest import svc_cameras
-from phd_core import phdropout
+from phd_core import uq
 from phd_core.gaussian_render import GaussianRenderer
 from phd_core.gaussians import read_ply
 from phd_core.heatmap import colorize
@@ -55,7 +55,7 @@ def test_ply_upload_calibrate_rank_equal_the_library(svc_start, svc_model_files)
         assert [m.id for m in phd.list_models()] == [info.id]
 
         calibration = phd.calibrate(info.id, epsilon=0.05, step=0.2, samples=3, seed=1)
-        direct = phdropout.calibrate(renderer, train, epsilon=0.05, step=0.2, samples=3, seed=1)
+        direct = uq.calibrate(renderer, train, epsilon=0.05, step=0.2, samples=3, seed=1)
         assert calibration.r_drop == direct.r_drop and calibration.ratios == direct.ratios
         assert calibration.errors == pytest.approx(direct.errors, rel=1e-9)
         assert (calibration.capped, calibration.num_cameras) == (direct.capped, 3)
@@ -63,26 +63,26 @@ def test_ply_upload_calibrate_rank_equal_the_library(svc_start, svc_model_files)
         assert stored.has_calibration and stored.calibration == calibration  # stored with the model
 
         ranking = phd.rank(info.id, candidates, samples=6, seed=2, heatmaps="base64")
-        expected = phdropout.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6, seed=2)
+        expected = uq.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6, seed=2)
         _assert_ranking_equal(ranking, expected)
-        assert ranking.strategy == phdropout.DEFAULT_STRATEGY
+        assert ranking.strategy == uq.DEFAULT_STRATEGY
         assert (ranking.ratio_source, ranking.dropout_ratio, ranking.width) == ("calibration", direct.r_drop, 24)
         # Another strategy and other captured poses give the library's answer for the same arguments.
         paper = phd.rank(info.id, candidates, samples=6, seed=2, strategy="sigma_max", top_k=3)
-        _assert_ranking_equal(paper, phdropout.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6,
+        _assert_ranking_equal(paper, uq.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6,
                                                           seed=2, strategy="sigma_max", top_k=3))
         moved = phd.rank(info.id, candidates, samples=6, seed=2, captured=candidates[:2], top_k=2)
-        _assert_ranking_equal(moved, phdropout.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6,
+        _assert_ranking_equal(moved, uq.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6,
                                                           seed=2, captured=candidates[:2], top_k=2))
         assert not {0, 1} & {v.index for v in moved.views}   # captured poses are not worth capturing again
         assert ranking.heatmap_vmax == pytest.approx(max(r.sigma_max for r in expected), rel=1e-6)
         for view in ranking.views[:2]:  # the PNG is zeta of that view on the shared colour scale
-            zeta = phdropout.view_uncertainty(renderer, candidates[view.index], ratio=direct.r_drop, samples=6,
+            zeta = uq.view_uncertainty(renderer, candidates[view.index], ratio=direct.r_drop, samples=6,
                                               seed=2, keep_maps=True).zeta
             assert np.array_equal(_png(view.heatmap_png), colorize(zeta, ranking.heatmap_vmax)[0])
 
         top = phd.rank(info.id, [c.to_frame() for c in candidates], samples=6, seed=2, top_k=2, dropout_ratio=0.3)
-        _assert_ranking_equal(top, phdropout.rank_views(renderer, candidates, ratio=0.3, samples=6, seed=2, top_k=2))
+        _assert_ranking_equal(top, uq.rank_views(renderer, candidates, ratio=0.3, samples=6, seed=2, top_k=2))
         assert top.ratio_source == "request" and top.num_candidates == 6
 
         phd.delete_model(info.id)
@@ -105,12 +105,12 @@ def test_nerf_checkpoint_and_selection_equal_the_library(svc_start, svc_model_fi
         assert b.name == "b" and b.num_training_cameras == 0
 
         calibration = phd.calibrate(a.id, epsilon=0.5, step=0.25, samples=2)
-        direct = phdropout.calibrate(nerf, nerf.training_cameras, epsilon=0.5, step=0.25, samples=2)
+        direct = uq.calibrate(nerf, nerf.training_cameras, epsilon=0.5, step=0.25, samples=2)
         assert calibration.r_drop == direct.r_drop
         assert calibration.errors == pytest.approx(direct.errors, rel=1e-9)
 
         ranking = phd.rank(a.id, views, samples=4, seed=3)
-        _assert_ranking_equal(ranking, phdropout.rank_views(nerf, views, ratio=direct.r_drop, samples=4, seed=3))
+        _assert_ranking_equal(ranking, uq.rank_views(nerf, views, ratio=direct.r_drop, samples=4, seed=3))
 
         with pytest.raises(ConflictError) as no_calibration:  # b has no calibration and no ratio_b
             phd.select(a.id, b.id, views, samples=4)
@@ -121,7 +121,7 @@ def test_nerf_checkpoint_and_selection_equal_the_library(svc_start, svc_model_fi
         assert (no_cameras.value.status, no_cameras.value.field) == (422, "model_b")
 
         result = phd.select(a.id, b.id, views, samples=4, seed=5, ratio_b=0.3, images="base64", rule="sigma_mean")
-        expected = phdropout.select_models(nerf, splats, views, ratio_a=direct.r_drop, ratio_b=0.3, samples=4,
+        expected = uq.select_models(nerf, splats, views, ratio_a=direct.r_drop, ratio_b=0.3, samples=4,
                                            seed=5, keep_images=True, rule="sigma_mean")
         assert result.rule == "sigma_mean"
         assert (result.ratio_a, result.ratio_b) == (direct.r_drop, 0.3)

@@ -12,7 +12,7 @@ import pytest
 
 from client import PHDClient, QueueFullError
 from conftest import svc_cameras
-from phd_core import phdropout
+from phd_core import uq
 from phd_core.gaussian_render import GaussianRenderer
 from phd_core.gaussians import read_ply
 
@@ -20,7 +20,7 @@ from phd_core.gaussians import read_ply
 def test_eight_clients_rank_at_once(svc_start, svc_model_files):
     server = svc_start(workers=2, queue_size=8)
     cameras = svc_cameras(2, size=12)
-    expected = phdropout.rank_views(GaussianRenderer(read_ply(svc_model_files["ply"])), cameras, ratio=0.2,
+    expected = uq.rank_views(GaussianRenderer(read_ply(svc_model_files["ply"])), cameras, ratio=0.2,
                                     samples=4, seed=7)
     with PHDClient(server.url) as phd:
         model_id = phd.upload_model(svc_model_files["ply"]).id

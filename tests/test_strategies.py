@@ -7,11 +7,11 @@ import math
 import pytest
 import torch
 
-from phd_core import phdropout as phd
+from phd_core import uq as phd
 from phd_core.cameras import look_at
 from phd_core.errors import InputError
-from phd_core.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, Strategy, get_strategy, register
-from phd_core.strategies.base import by_score
+from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, Strategy, get_strategy, register
+from phd_core.uq.strategies.base import by_score
 from toy_renderers import BlobRenderer, ring_cameras
 
 BATCH_DIVERSE = ("fvs", "fvs_sigma", "fvs_sigma_floor")

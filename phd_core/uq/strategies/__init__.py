@@ -6,7 +6,7 @@ their allowed names from it. Adding a strategy is one module plus one `register`
 
 from __future__ import annotations
 
-from ..errors import InputError
+from ...errors import InputError
 from .base import Evidence, Selection, Strategy
 from .baselines import FVS, RANDOM
 from .hybrid import FVS_SIGMA, FVS_SIGMA_FLOOR

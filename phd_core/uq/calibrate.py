@@ -1,0 +1,219 @@
+"""Calibration (Algorithm 1): r_drop is the largest multiple of `step` below 1 whose mean
+|F(x; theta) - F(x; D(theta, r))| over the training views stays below `epsilon`.
+
+Linear scan (the paper's loop) or bisection over the same nested masks; bisection assumes
+that the error grows with r for a fixed draw. Nesting makes that the rule, not a theorem:
+dropping a splat can uncover one of similar colour, so the mean error may dip. Both
+searches only return ratios they have evaluated as passing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Sequence
+
+from torch import Tensor
+
+from ..cameras import Camera
+from ..errors import InputError
+from ..metrics import ssim
+from ..protocol import Renderer
+from .sampling import (Progress, ProgressTicker, check_cameras, check_float, check_images, check_int, check_seed,
+                       check_step, dropout_uniforms, keep_masks, render_masks)
+
+# Defaults measured on the 16-view lego 3DGS model (docs/uq.md, bench/bench_phdropout.py).
+DEFAULT_EPSILON = 0.0175           # mean |full - dropped| per pixel and channel on [0, 1]: on lego16 the
+                                   # ratio where mean training SSIM drops 5 % (the reference criterion)
+DEFAULT_STEP = 0.05                # dropout-ratio grid of the search
+DEFAULT_CALIBRATION_SAMPLES = 4    # masks per ratio during calibration
+DEFAULT_SSIM_MARGIN = 0.05         # calibrate_ssim: allowed relative drop of mean SSIM
+
+
+class CalibrationError(InputError):
+    """r_drop = 0: even the smallest ratio breaks the training views.
+
+    Carries the evaluated error curve so that callers can show it.
+    """
+
+    def __init__(self, field: str, reason: str, ratios: list[float], errors: list[float]):
+        super().__init__(field, reason)
+        self.ratios = ratios
+        self.errors = errors
+
+
+# ----------------------------------------------------------------------------------------
+# Calibration (Algorithm 1)
+
+@dataclass
+class CalibrationResult:
+    """r_drop and the error curve it came from (tested ratios, ascending)."""
+
+    r_drop: float
+    ratios: list[float]
+    errors: list[float]
+    epsilon: float          # the threshold (for method "ssim": the SSIM margin)
+    step: float
+    samples: int
+    seed: int
+    method: str             # "linear" | "bisection" | "ssim"
+    capped: bool            # every ratio passed; r_drop capped at the largest multiple of step below 1
+    warnings: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _grid_ratio(k: int, step: float) -> float:
+    """k * step without float noise (0.30000000000000004 -> 0.3)."""
+    return round(k * step, 10)
+
+
+def _grid_size(step: float) -> int:
+    """K: the number of grid ratios step, 2 step, ... strictly below 1."""
+    k = math.floor(1.0 / step)
+    while _grid_ratio(k, step) >= 1.0:
+        k -= 1
+    return k
+
+
+def _search(evaluate: Callable[[int], float], grid: int, threshold: float, method: str) -> int:
+    """Largest k in [1, grid] with evaluate(k) < threshold, 0 if none.
+
+    linear: k = 1, 2, ... until the first failure (Algorithm 1).
+    bisection: assumes evaluate is non-decreasing in k; k = 0 passes and k = grid + 1
+    fails by definition, and the bracket halves until it closes.
+    """
+    if method == "linear":
+        for k in range(1, grid + 1):
+            if not evaluate(k) < threshold:
+                return k - 1
+        return grid
+    passing, failing = 0, grid + 1
+    while failing - passing > 1:
+        k = (passing + failing) // 2
+        if evaluate(k) < threshold:
+            passing = k
+        else:
+            failing = k
+    return passing
+
+
+def _expected_probes(grid: int, method: str) -> int:
+    return grid if method == "linear" else max(1, math.ceil(math.log2(grid + 1)))
+
+
+def _finish_calibration(k: int, grid: int, step: float, probes: dict[int, float], *, epsilon: float,
+                        samples: int, seed: int, method: str, criterion: str) -> CalibrationResult:
+    ks = sorted(probes)
+    ratios = [_grid_ratio(j, step) for j in ks]
+    errors = [float(probes[j]) for j in ks]
+    if k == 0:
+        raise CalibrationError(
+            "epsilon",
+            f"r_drop = 0: dropping even {ratios[0]:.3g} of the units changes the training views by "
+            f"{errors[0]:.4g} ({criterion}), which is not below {epsilon:.4g}. The model is not properly "
+            f"trained (too few units for the scene) or epsilon is too small.", ratios, errors)
+    r_drop = _grid_ratio(k, step)
+    capped = k == grid
+    warnings = []
+    if capped:
+        warnings.append(f"every tested ratio up to {r_drop} stayed below epsilon={epsilon}: r_drop is capped "
+                        f"at {r_drop} (never 1, which would drop every unit); epsilon is likely too large")
+    return CalibrationResult(r_drop=r_drop, ratios=ratios, errors=errors, epsilon=epsilon, step=step,
+                             samples=samples, seed=seed, method=method, capped=capped, warnings=warnings)
+
+
+def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float = DEFAULT_EPSILON,
+              step: float = DEFAULT_STEP, samples: int = DEFAULT_CALIBRATION_SAMPLES,
+              method: str = "linear", seed: int = 0, progress: Progress | None = None) -> CalibrationResult:
+    """Algorithm 1: the largest dropout ratio whose mean absolute error on the training
+    views stays below `epsilon`.
+
+    Error(r) = mean over views (each view weighs the same), masks, pixels and channels of
+    |F(x; theta) - F(x; D(theta, r))|, with the same `samples` nested masks for every r.
+    Raises CalibrationError when r_drop would be 0.
+    """
+    epsilon = check_float(epsilon, "epsilon")
+    if epsilon <= 0:
+        raise InputError("epsilon", f"must be positive, got {epsilon}")
+    step = check_step(step)
+    samples = check_int(samples, "samples", 1)
+    seed = check_seed(seed)
+    if method not in ("linear", "bisection"):
+        raise InputError("method", f"must be 'linear' or 'bisection', got {method!r}")
+    cameras = check_cameras(cameras)
+
+    grid = _grid_size(step)
+    ticker = ProgressTicker(progress, len(cameras) * (1 + _expected_probes(grid, method)))
+    references = []                                   # [1, H, W, 3] full renders
+    for camera in cameras:
+        references.append(render_masks(renderer, camera, None).double())
+        ticker.tick()
+    uniforms = dropout_uniforms(renderer.num_units, samples, seed)
+    probes: dict[int, float] = {}
+
+    def error(k: int) -> float:
+        if k not in probes:
+            keep = keep_masks(uniforms, _grid_ratio(k, step))
+            per_view = []
+            for camera, reference in zip(cameras, references):
+                per_view.append((render_masks(renderer, camera, keep).double() - reference).abs().mean().item())
+                ticker.tick()
+            probes[k] = sum(per_view) / len(per_view)
+        return probes[k]
+
+    k = _search(error, grid, epsilon, method)
+    result = _finish_calibration(k, grid, step, probes, epsilon=epsilon, samples=samples, seed=seed,
+                                 method=method, criterion="mean absolute error")
+    ticker.finish()
+    return result
+
+
+def calibrate_ssim(renderer: Renderer, cameras: Sequence[Camera], images: Tensor, *,
+                   margin: float = DEFAULT_SSIM_MARGIN, step: float = DEFAULT_STEP,
+                   samples: int = DEFAULT_CALIBRATION_SAMPLES, seed: int = 0,
+                   progress: Progress | None = None) -> CalibrationResult:
+    """The public reference code's criterion: the largest ratio whose mean SSIM against
+    the training images drops by less than `margin` relative to the full model's.
+
+    Error(r) = (S(0) - S(r)) / S(0), S = mean SSIM over views and masks. Linear scan.
+    images: [V, H, W, 3] float in [0, 1], one per camera.
+    """
+    margin = check_float(margin, "margin")
+    if not 0 < margin < 1:
+        raise InputError("margin", f"must lie in (0, 1), got {margin}")
+    step = check_step(step)
+    samples = check_int(samples, "samples", 1)
+    seed = check_seed(seed)
+    cameras = check_cameras(cameras)
+    images = check_images(images, cameras)
+
+    grid = _grid_size(step)
+    ticker = ProgressTicker(progress, len(cameras) * (1 + grid))
+    full = []
+    for camera, image in zip(cameras, images):
+        full.append(float(ssim(render_masks(renderer, camera, None), image[None]).mean()))
+        ticker.tick()
+    baseline = sum(full) / len(full)
+    if baseline <= 0:
+        raise CalibrationError("images", f"the full model's mean SSIM against the images is {baseline:.4g}; "
+                               "a relative drop is undefined (wrong images or an untrained model)", [], [])
+    uniforms = dropout_uniforms(renderer.num_units, samples, seed)
+    probes: dict[int, float] = {}
+
+    def drop(k: int) -> float:
+        keep = keep_masks(uniforms, _grid_ratio(k, step))
+        scores = []
+        for camera, image in zip(cameras, images):
+            masked = render_masks(renderer, camera, keep)
+            scores.append(float(ssim(masked, image[None].expand_as(masked)).mean()))
+            ticker.tick()
+        probes[k] = (baseline - sum(scores) / len(scores)) / baseline
+        return probes[k]
+
+    k = _search(drop, grid, margin, "linear")
+    result = _finish_calibration(k, grid, step, probes, epsilon=margin, samples=samples, seed=seed,
+                                 method="ssim", criterion="relative drop of mean SSIM")
+    ticker.finish()
+    return result

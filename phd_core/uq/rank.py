@@ -1,0 +1,63 @@
+"""Next-best view: candidates ordered by a strategy from `phd_core.uq.strategies` (the
+paper's sigma_max is one; the default won the active-learning benchmark, docs/nbv.md)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Sequence
+
+import torch
+
+from ..cameras import Camera
+from ..protocol import Renderer
+from .sampling import Progress, check_cameras, check_int
+from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
+from .uncertainty import DEFAULT_SAMPLES, uncertainty
+
+# ----------------------------------------------------------------------------------------
+# Next-best-view ranking
+
+@dataclass
+class RankedView:
+    index: int          # position of the candidate in the input list
+    sigma_max: float
+    sigma_mean: float
+    score: float        # the strategy's score when the candidate was ranked
+    rank: int           # 0 = capture first; ranks 0..k-1 are a batch to capture together
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
+                       samples: int = DEFAULT_SAMPLES, seed: int = 0, captured: Sequence[Camera] | None = None,
+                       progress: Progress | None = None) -> Evidence:
+    """What a strategy sees: the candidates' PH-Dropout statistics under one draw of N
+    sub-models, and the captured poses (default: the model's training cameras)."""
+    views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, progress=progress)
+    if captured is None:
+        captured = renderer.training_cameras or []
+    captured = check_cameras(captured, "captured") if captured else []
+    return Evidence(list(cameras), captured, torch.tensor([v.sigma_max for v in views], dtype=torch.float64),
+                    torch.tensor([v.sigma_mean for v in views], dtype=torch.float64))
+
+
+def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,
+               seed: int = 0, top_k: int | None = None, strategy: str = DEFAULT_STRATEGY,
+               captured: Sequence[Camera] | None = None, progress: Progress | None = None) -> list[RankedView]:
+    """Candidates in the order the strategy would capture them; ties go to the lower index.
+
+    top_k keeps the first k, a batch meant to be captured together (all when k exceeds the
+    number of candidates). Every candidate carries sigma_max and sigma_mean whatever the
+    strategy. `captured` are the poses already taken (default: the model's training cameras).
+    """
+    chosen = get_strategy(strategy)
+    if top_k is not None:
+        top_k = check_int(top_k, "top_k", 1)
+    evidence = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed, captured=captured,
+                                  progress=progress)
+    count = len(evidence.candidates)
+    selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
+    order = selection.order if top_k is None else selection.order[:top_k]
+    return [RankedView(index=i, sigma_max=float(evidence.sigma_max[i]), sigma_mean=float(evidence.sigma_mean[i]),
+                       score=selection.scores[i], rank=rank) for rank, i in enumerate(order)]

@@ -1,0 +1,188 @@
+"""What every PH-Dropout computation shares: argument checks, nested keep-masks, batched
+masked renders, progress reporting and the two-pass standard deviation.
+
+Masks are nested: every (sample, unit) gets one uniform number u in [0, 1) from a seeded
+generator and the unit is kept where u >= r. Raising r only ever drops more units, one
+draw serves every ratio, r = 0 keeps everything and r = 1 drops everything.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from typing import Any, Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from ..cameras import Camera
+from ..errors import InputError
+from ..protocol import Renderer
+
+MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds renderer memory)
+
+Progress = Callable[[float], None]
+
+
+# ----------------------------------------------------------------------------------------
+# Argument checks (every public function validates its numbers with InputError)
+
+def check_int(value: Any, name: str, minimum: int) -> int:
+    if isinstance(value, bool):
+        raise InputError(name, f"must be an integer, got {value!r}")
+    try:
+        value = operator.index(value)
+    except TypeError:
+        raise InputError(name, f"must be an integer, got {value!r}") from None
+    if value < minimum:
+        raise InputError(name, f"must be at least {minimum}, got {value}")
+    return value
+
+
+def check_float(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(name, f"must be a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise InputError(name, f"must be finite, got {value}")
+    return value
+
+
+def check_ratio(value: Any, name: str = "ratio") -> float:
+    value = check_float(value, name)
+    if not 0.0 <= value <= 1.0:
+        raise InputError(name, f"dropout ratio must lie in [0, 1], got {value}")
+    return value
+
+
+def check_seed(seed: Any) -> int:
+    seed = check_int(seed, "seed", 0)
+    if seed >= 2**63:
+        raise InputError("seed", f"must be below 2**63, got {seed}")
+    return seed
+
+
+def check_samples(samples: Any, ddof: Any) -> tuple[int, int]:
+    ddof = check_int(ddof, "ddof", 0)
+    samples = check_int(samples, "samples", 1)
+    if samples - ddof < 1:
+        raise InputError("samples", f"need more than ddof={ddof} samples for a standard deviation, "
+                         f"got {samples} (use at least {ddof + 1})")
+    return samples, ddof
+
+
+def check_cameras(cameras: Sequence[Camera], name: str = "cameras") -> list[Camera]:
+    cameras = list(cameras)
+    if not cameras:
+        raise InputError(name, "no cameras given")
+    for i, camera in enumerate(cameras):
+        if not isinstance(camera, Camera):
+            raise InputError(f"{name}[{i}]", f"must be a Camera, got {type(camera).__name__}")
+    return cameras
+
+
+def check_step(step: Any) -> float:
+    step = check_float(step, "step")
+    if not 0.0 < step < 1.0:
+        raise InputError("step", f"must lie in (0, 1), got {step}")
+    if step < 1e-4:
+        raise InputError("step", f"must be at least 1e-4 (at most 10000 ratios), got {step}")
+    return step
+
+
+def check_images(images: Tensor, cameras: list[Camera], name: str = "images") -> Tensor:
+    if not isinstance(images, Tensor):
+        raise InputError(name, f"must be a tensor [V, H, W, 3], got {type(images).__name__}")
+    if images.dim() != 4 or images.shape[0] != len(cameras) or images.shape[-1] != 3:
+        raise InputError(name, f"must have shape [{len(cameras)}, H, W, 3] (one per camera), "
+                         f"got {list(images.shape)}")
+    for i, camera in enumerate(cameras):
+        if tuple(images.shape[1:3]) != (camera.height, camera.width):
+            raise InputError(name, f"image {i} is {images.shape[2]}x{images.shape[1]} but its camera "
+                             f"renders {camera.width}x{camera.height}")
+    if not torch.isfinite(images).all():
+        raise InputError(name, "contains NaN or infinite values")
+    return images.to(torch.float32)
+
+
+def check_dtype(dtype: Any) -> torch.dtype:
+    if dtype not in (torch.float32, torch.float64):
+        raise InputError("dtype", f"accumulation dtype must be torch.float32 or torch.float64, got {dtype}")
+    return dtype
+
+
+# ----------------------------------------------------------------------------------------
+# Masks and rendering
+
+def dropout_uniforms(num_units: int, samples: int, seed: int) -> Tensor:
+    """One uniform number per (sample, unit): [N, U] float32 in [0, 1), reproducible from `seed`."""
+    num_units = check_int(num_units, "num_units", 0)
+    samples = check_int(samples, "samples", 1)
+    generator = torch.Generator().manual_seed(check_seed(seed))
+    return torch.rand((samples, num_units), generator=generator, dtype=torch.float32)
+
+
+def keep_masks(uniforms: Tensor, ratio: float) -> Tensor:
+    """Keep-masks [N, U] bool for dropout ratio `ratio`: unit kept where u >= ratio.
+
+    Masks of a larger ratio are subsets of those of a smaller one (nested).
+    """
+    return uniforms >= check_ratio(ratio)
+
+
+def render_masks(renderer: Renderer, camera: Camera, keep: Tensor | None) -> Tensor:
+    """Render with a batch of keep-masks (None = full model), MAX_MASKS_PER_RENDER at a time.
+
+    Returns [N, H, W, 3] float32, checked for shape and finiteness.
+    """
+    if keep is None:
+        images = renderer.render(camera)
+        expected = 1
+    else:
+        parts = [renderer.render(camera, chunk) for chunk in keep.split(MAX_MASKS_PER_RENDER)]
+        images = torch.cat(parts) if len(parts) > 1 else parts[0]
+        expected = keep.shape[0]
+    shape = (expected, camera.height, camera.width, 3)
+    if tuple(images.shape) != shape:
+        raise RuntimeError(f"renderer returned shape {list(images.shape)}, expected {list(shape)}")
+    if not torch.isfinite(images).all():
+        raise RuntimeError("renderer returned NaN or infinite pixel values")
+    return images.to(torch.float32)
+
+
+def sample_std(images: Tensor, *, ddof: int = 1, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
+    """Per-element standard deviation and mean over the first axis, accumulated in `dtype`.
+
+    images: [N, ...]. Two passes over the samples shifted by the first one, so identical
+    samples give a standard deviation of exactly 0 in any dtype and nearly equal ones
+    lose no precision to cancellation. Divides by N - ddof.
+    Returns (std [...], mean [...]), both in `dtype`.
+    """
+    n = images.shape[0]
+    check_samples(n, ddof)
+    shift = images[0].to(dtype)                       # [...]
+    total = torch.zeros_like(shift)
+    for chunk in images.split(MAX_MASKS_PER_RENDER):
+        total += (chunk.to(dtype) - shift).sum(0)
+    mean_offset = total / n                          # mean of (x_i - x_0)
+    squares = torch.zeros_like(shift)
+    for chunk in images.split(MAX_MASKS_PER_RENDER):
+        squares += ((chunk.to(dtype) - shift) - mean_offset).square().sum(0)
+    std = (squares / (n - ddof)).sqrt()
+    return std, shift + mean_offset
+
+
+class ProgressTicker:
+    """Turns 'one more view done' into progress(fraction) calls, never beyond 0.99 until done."""
+
+    def __init__(self, progress: Progress | None, total: int):
+        self.progress, self.total, self.done = progress, max(total, 1), 0
+
+    def tick(self) -> None:
+        self.done += 1
+        if self.progress is not None:
+            self.progress(min(self.done / self.total, 0.99))
+
+    def finish(self) -> None:
+        if self.progress is not None:
+            self.progress(1.0)

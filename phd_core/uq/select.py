@@ -1,0 +1,150 @@
+"""Ensemble selection (Section 5.4): per view, the model with the lower score: the paper's
+mean zeta, or (default) distance to the model's training views times its relative zeta."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import torch
+from torch import Tensor
+
+from ..cameras import Camera
+from ..errors import InputError
+from ..metrics import psnr, ssim
+from ..protocol import Renderer
+from ..uq_metrics import ensemble_efficiency
+from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_ratio, check_samples, check_seed,
+                       dropout_uniforms, keep_masks, render_masks)
+from .uncertainty import DEFAULT_SAMPLES, measure_view
+
+# ----------------------------------------------------------------------------------------
+# Ensemble selection (Section 5.4)
+
+@dataclass
+class ViewSelection:
+    index: int
+    choice: str                     # "a" | "b"
+    score_a: float                  # model a's score of this view under the rule (lower wins)
+    score_b: float
+    image: Tensor | None = None     # [H, W, 3] the chosen model's full render (keep_images=True)
+
+    def to_dict(self) -> dict:
+        return {"index": self.index, "choice": self.choice, "score_a": self.score_a, "score_b": self.score_b}
+
+
+@dataclass
+class SelectionResult:
+    views: list[ViewSelection]
+    metrics: dict | None = None     # with ground truth: E_ME, PSNR/SSIM of a, b and the selection
+
+    def to_dict(self) -> dict:
+        return {"views": [v.to_dict() for v in self.views], "metrics": self.metrics}
+
+
+SELECTION_RULES = ("distance_sigma", "sigma_mean")
+DEFAULT_SELECTION_RULE = "distance_sigma"
+SELECTION_TRAINING_VIEWS = 8       # training views (evenly spaced) that set a model's own zeta level
+
+
+def _nearest_distance(camera: Camera, training: Sequence[Camera]) -> float:
+    return float(torch.stack([c.center for c in training]).sub(camera.center).norm(dim=1).min())
+
+
+def _own_level(renderer: Renderer, training: Sequence[Camera] | None, keep: Tensor,
+               name: str) -> tuple[list[Camera], float]:
+    """A model's training cameras (default: the renderer's) and its mean zeta over up to 8 of
+    them: the level its uncertainty has where it was trained, which `distance_sigma` divides by."""
+    training = list(renderer.training_cameras or [] if training is None else training)
+    if not training:
+        raise InputError(name, "the model carries no training cameras, which rule 'distance_sigma' needs: "
+                               "give them with the model, or use rule 'sigma_mean'")
+    step = max(1, len(training) // SELECTION_TRAINING_VIEWS)
+    levels = [measure_view(renderer, c, keep, 1, False, torch.float64).sigma_mean
+              for c in training[::step][:SELECTION_TRAINING_VIEWS]]
+    return training, max(sum(levels) / len(levels), 1e-12)
+
+
+def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[Camera], *, ratio_a: float,
+                  ratio_b: float, samples: int = DEFAULT_SAMPLES, seed: int = 0, images: Tensor | None = None,
+                  rule: str = DEFAULT_SELECTION_RULE, training_a: Sequence[Camera] | None = None,
+                  training_b: Sequence[Camera] | None = None, keep_images: bool = False,
+                  progress: Progress | None = None) -> SelectionResult:
+    """Per view, pick the model with the lower score (each at its own dropout ratio).
+
+    rule "sigma_mean" (the paper): the mean zeta of the view. Rule "distance_sigma" (the
+    default, docs/nbv.md): the distance from the view to the model's nearest training
+    camera times the view's mean zeta relative to the model's mean zeta on its own
+    training views, so two models of different size and r_drop are compared like with like.
+    training_a / training_b: each model's training cameras (default: the renderer's own).
+    Ties go to model a. With ground-truth `images` [V, H, W, 3], `metrics` holds the
+    mean PSNR and SSIM of a, b and the selection, E_ME (mean over views of
+    SSIM(selected) / max(SSIM(a), SSIM(b))) and how often the choice was the model
+    with the higher SSIM.
+    """
+    ratio_a, ratio_b = check_ratio(ratio_a, "ratio_a"), check_ratio(ratio_b, "ratio_b")
+    samples, _ = check_samples(samples, 1)
+    seed = check_seed(seed)
+    cameras = check_cameras(cameras)
+    if rule not in SELECTION_RULES:
+        raise InputError("rule", f"must be one of {', '.join(SELECTION_RULES)}, got {rule!r}")
+    if images is not None:
+        images = check_images(images, cameras)
+    renderers = {"a": renderer_a, "b": renderer_b}
+    keeps = {"a": keep_masks(dropout_uniforms(renderer_a.num_units, samples, seed), ratio_a),
+             "b": keep_masks(dropout_uniforms(renderer_b.num_units, samples, seed), ratio_b)}
+    if rule == "distance_sigma":
+        training = {"a": training_a, "b": training_b}
+        own = {key: _own_level(renderers[key], training[key], keeps[key], f"model_{key}") for key in renderers}
+
+    def score(key: str, camera: Camera) -> float:
+        sigma = measure_view(renderers[key], camera, keeps[key], 1, False, torch.float64).sigma_mean
+        if rule == "sigma_mean":
+            return sigma
+        training, level = own[key]
+        return _nearest_distance(camera, training) * sigma / level
+
+    ticker = ProgressTicker(progress, len(cameras))
+    views, scores = [], {"a": [], "b": [], "selected": []}
+    for i, camera in enumerate(cameras):
+        score_a, score_b = score("a", camera), score("b", camera)
+        choice = "a" if score_a <= score_b else "b"
+        # Full renders: both models when scoring against ground truth, else only the chosen one.
+        needed = ("a", "b") if images is not None else (choice,) if keep_images else ()
+        full = {key: render_masks(renderers[key], camera, None)[0] for key in needed}
+        image = full.get(choice)
+        if images is not None:
+            _score_images(scores, full["a"], full["b"], image, images[i])
+        views.append(ViewSelection(index=i, choice=choice, score_a=score_a, score_b=score_b,
+                                   image=image if keep_images else None))
+        ticker.tick()
+    metrics = _selection_metrics(views, scores) if images is not None else None
+    ticker.finish()
+    return SelectionResult(views=views, metrics=metrics)
+
+
+def _score_images(scores: dict[str, list], image_a: Tensor, image_b: Tensor, selected: Tensor,
+                  truth: Tensor) -> None:
+
+    for key, image in (("a", image_a), ("b", image_b), ("selected", selected)):
+        scores[key].append((float(psnr(image, truth)), float(ssim(image[None], truth[None]).mean())))
+
+
+def _selection_metrics(views: list[ViewSelection], scores: dict[str, list]) -> dict:
+
+    ssim_of = {key: [s for _, s in values] for key, values in scores.items()}
+    metrics: dict[str, Any] = {}
+    for key, values in scores.items():
+        mean_psnr = sum(p for p, _ in values) / len(values)     # inf when a render equals its image
+        metrics[f"psnr_{key}"] = mean_psnr if math.isfinite(mean_psnr) else None
+        metrics[f"ssim_{key}"] = sum(s for _, s in values) / len(values)
+    per_view = [max(a, b) for (a, _), (b, _) in zip(scores["a"], scores["b"])]
+    oracle = sum(per_view) / len(per_view)
+    metrics["psnr_oracle"] = oracle if math.isfinite(oracle) else None   # the better model per view
+    metrics["e_me"] = ensemble_efficiency(ssim_of["selected"], ssim_of["a"], ssim_of["b"])
+    better = ["a" if a >= b else "b" for a, b in zip(ssim_of["a"], ssim_of["b"])]
+    metrics["choices_a"] = sum(v.choice == "a" for v in views)
+    metrics["choices_b"] = sum(v.choice == "b" for v in views)
+    metrics["choice_matches_higher_ssim"] = sum(v.choice == b for v, b in zip(views, better)) / len(views)
+    return metrics

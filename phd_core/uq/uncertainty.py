@@ -1,0 +1,80 @@
+"""Uncertainty: zeta = per-pixel, per-channel standard deviation over N masked renders;
+sigma_max = max of zeta over H, W, C; sigma-max-bar = mean of sigma_max over views (Appendix A.1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from ..cameras import Camera
+from ..errors import InputError
+from ..protocol import Renderer
+from .sampling import (Progress, ProgressTicker, check_cameras, check_dtype, check_ratio, check_samples, check_seed,
+                       dropout_uniforms, keep_masks, render_masks, sample_std)
+
+DEFAULT_SAMPLES = 32               # masks per view for zeta, ranking and selection
+
+
+# ----------------------------------------------------------------------------------------
+# Uncertainty
+
+@dataclass
+class ViewUncertainty:
+    """Uncertainty of one view under N dropout masks."""
+
+    sigma_max: float                # max of zeta over H, W, C
+    sigma_mean: float               # mean of zeta over H, W, C
+    mean: Tensor | None = None      # [H, W, 3] float32 mean image over the N samples (keep_maps=True)
+    zeta: Tensor | None = None      # [H, W, 3] float32 per-pixel per-channel std (keep_maps=True)
+
+
+def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, keep_maps: bool,
+                      dtype: torch.dtype) -> ViewUncertainty:
+    images = render_masks(renderer, camera, keep)             # [N, H, W, 3]
+    zeta, mean = sample_std(images, ddof=ddof, dtype=dtype)
+    return ViewUncertainty(
+        sigma_max=float(zeta.max()), sigma_mean=float(zeta.mean()),
+        mean=mean.to(torch.float32) if keep_maps else None,
+        zeta=zeta.to(torch.float32) if keep_maps else None)
+
+
+def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, samples: int = DEFAULT_SAMPLES,
+                     seed: int = 0, ddof: int = 1, keep_maps: bool = False,
+                     dtype: torch.dtype = torch.float64) -> ViewUncertainty:
+    """zeta, sigma_max and sigma_mean of one view from `samples` masked renders (one batched pass).
+
+    ddof=1 (default) is the unbiased sample std and needs samples >= 2; ddof=0 is the
+    population std. `dtype` is the accumulation precision of the std.
+    """
+    return uncertainty(renderer, [camera], ratio=ratio, samples=samples, seed=seed, ddof=ddof,
+                       keep_maps=keep_maps, dtype=dtype)[0]
+
+
+def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
+                samples: int = DEFAULT_SAMPLES, seed: int = 0, ddof: int = 1, keep_maps: bool = False,
+                progress: Progress | None = None, dtype: torch.dtype = torch.float64) -> list[ViewUncertainty]:
+    """view_uncertainty for every camera under the SAME N sub-models (one draw from `seed`)."""
+    ratio = check_ratio(ratio)
+    samples, ddof = check_samples(samples, ddof)
+    seed = check_seed(seed)
+    dtype = check_dtype(dtype)
+    cameras = check_cameras(cameras)
+    keep = keep_masks(dropout_uniforms(renderer.num_units, samples, seed), ratio)
+    ticker = ProgressTicker(progress, len(cameras))
+    views = []
+    for camera in cameras:
+        views.append(measure_view(renderer, camera, keep, ddof, keep_maps, dtype))
+        ticker.tick()
+    ticker.finish()
+    return views
+
+
+def sigma_max_bar(views: Sequence[ViewUncertainty]) -> float:
+    """Appendix A.1: the mean over views of each view's sigma_max."""
+    if not views:
+        raise InputError("views", "no views to average")
+    return sum(v.sigma_max for v in views) / len(views)
