@@ -13,7 +13,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Sequence
 
 import torch
 
@@ -257,9 +257,3 @@ def hemisphere_cameras(count: int, *, center: Sequence[float] = (0, 0, 0), radiu
         cameras.append(look_at(eye.tolist(), center_t.tolist(), up_t.tolist(),
                                width=width, height=height, fov_x=fov_x))
     return cameras
-
-
-def held_out_indices(total: int, used: Iterable[int]) -> list[int]:
-    """Indices of a split's frames that were not used for training, in order."""
-    used_set = set(used)
-    return [i for i in range(total) if i not in used_set]

@@ -1,8 +1,15 @@
-"""One error type for bad input, carrying the offending field.
+"""One error type for bad input, carrying the offending field, and the number checks
+every layer shares.
 
 Every layer (library, CLI, service) reports user mistakes through `InputError`, so the
 CLI can print it and the service can turn it into a 422 with the field named.
 """
+
+from __future__ import annotations
+
+import math
+import operator
+from typing import Any
 
 
 class InputError(ValueError):
@@ -12,3 +19,35 @@ class InputError(ValueError):
         super().__init__(f"{field}: {reason}")
         self.field = field
         self.reason = reason
+
+
+def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | None = None) -> int:
+    """`value` as an int (bools refused) within [minimum, maximum], else an InputError naming `name`."""
+    if isinstance(value, bool):
+        raise InputError(name, f"must be an integer, got {value!r}")
+    try:
+        value = operator.index(value)
+    except TypeError:
+        raise InputError(name, f"must be an integer, got {value!r}") from None
+    _check_range(value, name, minimum, maximum)
+    return value
+
+
+def check_float(value: Any, name: str, minimum: float | None = None, maximum: float | None = None) -> float:
+    """`value` as a finite float (bools refused) within [minimum, maximum], else an InputError."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(name, f"must be a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise InputError(name, f"must be finite, got {value}")
+    _check_range(value, name, minimum, maximum)
+    return value
+
+
+def _check_range(value: float, name: str, minimum: float | None, maximum: float | None) -> None:
+    if minimum is not None and maximum is not None and not minimum <= value <= maximum:
+        raise InputError(name, f"must lie in [{minimum}, {maximum}], got {value}")
+    if minimum is not None and value < minimum:
+        raise InputError(name, f"must be at least {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        raise InputError(name, f"must be at most {maximum}, got {value}")

@@ -38,7 +38,7 @@ from safetensors.torch import save as st_save
 from torch import Tensor, nn
 
 from .cameras import Camera, cameras_from_json
-from .errors import InputError
+from .errors import InputError, check_float, check_int
 from .fileio import write_bytes_atomic
 from .protocol import check_keep
 
@@ -99,18 +99,18 @@ class NeRFConfig:
                              ("hash_features", 1, 8), ("hash_log2_size", 8, 24),
                              ("hash_base_resolution", 1, 4096), ("hash_max_resolution", 1, 8192),
                              ("samples", 1, 4096), ("grid_resolution", 1, 256)):
-            _check_int(name, getattr(self, name), lo, hi)
+            check_int(getattr(self, name), name, lo, hi)
         if self.hash_max_resolution < self.hash_base_resolution:
             raise InputError("hash_max_resolution", f"must be >= hash_base_resolution ({self.hash_base_resolution}), "
                              f"got {self.hash_max_resolution}")
         for name in ("skip", "freenerf_frequency", "freenerf_occlusion"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(name, f"must be true or false, got {getattr(self, name)!r}")
-        _check_float("near", self.near, lo=0.0)
-        _check_float("far", self.far, lo=0.0)
+        check_float(self.near, "near", 0.0)
+        check_float(self.far, "far", 0.0)
         if not self.far > self.near:
             raise InputError("far", f"must exceed near ({self.near}), got {self.far}")
-        _check_float("grid_threshold", self.grid_threshold, lo=0.0)
+        check_float(self.grid_threshold, "grid_threshold", 0.0)
         if not 0 < self.grid_threshold < 1:
             raise InputError("grid_threshold", f"must lie in (0, 1), got {self.grid_threshold}")
         self.bounds = _check_bounds(self.bounds)
@@ -130,20 +130,6 @@ class NeRFConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def _check_int(name: str, value: Any, lo: int, hi: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise InputError(name, f"must be an integer, got {value!r}")
-    if not lo <= value <= hi:
-        raise InputError(name, f"must lie in [{lo}, {hi}], got {value}")
-
-
-def _check_float(name: str, value: Any, lo: float | None = None) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputError(name, f"must be a finite number, got {value!r}")
-    if lo is not None and value < lo:
-        raise InputError(name, f"must be >= {lo}, got {value}")
 
 
 def _check_bounds(bounds: Any) -> list[list[float]]:

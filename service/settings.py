@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 APP_NAME = "ph-dropout-service"
@@ -74,9 +74,6 @@ class Settings:
                 values[f.name] = int(raw)
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**values)
-
-    def with_(self, **changes) -> "Settings":
-        return replace(self, **changes)
 
 
 ENV_VARS = {f.name: f"PHD_{f.name.upper()}" for f in fields(Settings)}

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from phd_core import uq
+from phd_core.uq import Progress
 from phd_core.cameras import Camera, cameras_from_json
 from phd_core.errors import InputError
 from phd_core.heatmap import colorize
@@ -32,7 +33,6 @@ from .schemas import (Calibration, CalibrateRequest, RankedCandidate, RankReques
 from .settings import Settings
 from .store import ModelRecord, ModelStore, utc_now
 
-Progress = Callable[[float], None]
 
 
 # ----------------------------------------------------------------------------- loaded models

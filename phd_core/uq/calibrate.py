@@ -16,11 +16,11 @@ from typing import Callable, Sequence
 from torch import Tensor
 
 from ..cameras import Camera
-from ..errors import InputError
+from ..errors import InputError, check_float, check_int
 from ..metrics import ssim
 from ..protocol import Renderer
-from .sampling import (Progress, ProgressTicker, check_cameras, check_float, check_images, check_int, check_seed,
-                       check_step, dropout_uniforms, keep_masks, render_masks)
+from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_seed, check_step,
+                       dropout_uniforms, keep_masks, render_masks)
 
 # Defaults measured on the 16-view lego 3DGS model (docs/uq.md, bench/bench_phdropout.py).
 DEFAULT_EPSILON = 0.0175           # mean |full - dropped| per pixel and channel on [0, 1]: on lego16 the

@@ -9,8 +9,9 @@ from typing import Sequence
 import torch
 
 from ..cameras import Camera
+from ..errors import check_int
 from ..protocol import Renderer
-from .sampling import Progress, check_cameras, check_int
+from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
 from .uncertainty import DEFAULT_SAMPLES, uncertainty
 

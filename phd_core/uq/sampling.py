@@ -8,15 +8,13 @@ draw serves every ratio, r = 0 keeps everything and r = 1 drops everything.
 
 from __future__ import annotations
 
-import math
-import operator
 from typing import Any, Callable, Sequence
 
 import torch
 from torch import Tensor
 
 from ..cameras import Camera
-from ..errors import InputError
+from ..errors import InputError, check_float, check_int
 from ..protocol import Renderer
 
 MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds renderer memory)
@@ -26,27 +24,6 @@ Progress = Callable[[float], None]
 
 # ----------------------------------------------------------------------------------------
 # Argument checks (every public function validates its numbers with InputError)
-
-def check_int(value: Any, name: str, minimum: int) -> int:
-    if isinstance(value, bool):
-        raise InputError(name, f"must be an integer, got {value!r}")
-    try:
-        value = operator.index(value)
-    except TypeError:
-        raise InputError(name, f"must be an integer, got {value!r}") from None
-    if value < minimum:
-        raise InputError(name, f"must be at least {minimum}, got {value}")
-    return value
-
-
-def check_float(value: Any, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(name, f"must be a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise InputError(name, f"must be finite, got {value}")
-    return value
-
 
 def check_ratio(value: Any, name: str = "ratio") -> float:
     value = check_float(value, name)
