@@ -247,8 +247,8 @@ def test_chunking_does_not_change_the_render(monkeypatch):
     camera = small_camera()
     keep = torch.rand(7, 16, generator=torch.Generator().manual_seed(2)) >= 0.3
     reference = NeRFRenderer(model).render_full(camera, keep)
-    monkeypatch.setattr(nerf, "CHUNK_SAMPLES", 50)        # 2 rays per chunk
-    monkeypatch.setattr(nerf, "CHUNK_ELEMENTS", 300)      # one mask per group
+    monkeypatch.setattr(nerf.renderer, "CHUNK_SAMPLES", 50)   # 2 rays per chunk (read where rays are cut)
+    monkeypatch.setattr(nerf.volume, "CHUNK_ELEMENTS", 300)   # one mask per group
     chunked = NeRFRenderer(model).render_full(camera, keep)
     for name in ("rgb", "alpha", "depth"):
         assert torch.allclose(getattr(chunked, name), getattr(reference, name), atol=1e-6), name

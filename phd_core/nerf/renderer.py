@@ -1,0 +1,87 @@
+"""`NeRFRenderer`: a trained radiance field behind the renderer protocol."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..cameras import Camera
+from ..protocol import check_keep
+from .config import CHUNK_SAMPLES, NeRFConfig
+from .field import RadianceField
+from .volume import camera_rays, render_rays
+
+# --------------------------------------------------------------------------- the renderer
+
+@dataclass
+class NeRFOutput:
+    rgb: Tensor     # [N, H, W, 3] composited on the background
+    alpha: Tensor   # [N, H, W] accumulated opacity
+    depth: Tensor   # [N, H, W] alpha-weighted distance along the ray (divide by alpha for the mean)
+
+
+class NeRFRenderer:
+    """A trained radiance field behind the renderer protocol (`phd_core.protocol.Renderer`).
+
+    Dropout units are the first trunk layer's hidden units: keep [N, width]. One mask is
+    one sub-network shared by every ray and sample of a render; survivors are not rescaled
+    unless `rescale=True` (divide by the kept share, like the public reference code).
+    """
+
+    kind = "nerf"
+
+    def __init__(self, model: RadianceField, training_cameras: list[Camera] | None = None, *,
+                 rescale: bool = False, use_grid: bool = True):
+        self.model = model.eval()
+        self.training_cameras = training_cameras
+        self.rescale = rescale
+        self.use_grid = use_grid
+
+    @property
+    def num_units(self) -> int:
+        return self.model.config.width
+
+    @property
+    def config(self) -> NeRFConfig:
+        return self.model.config
+
+    @torch.no_grad()
+    def render_full(self, camera: Camera, keep: Tensor | None = None) -> NeRFOutput:
+        keep = check_keep(keep, self.num_units)
+        n = 1 if keep is None else keep.shape[0]
+        origins, dirs = camera_rays(camera)
+        rays_per_chunk = max(1, CHUNK_SAMPLES // self.config.samples)
+        parts = [render_rays(self.model, origins[i:i + rays_per_chunk], dirs[i:i + rays_per_chunk], keep=keep,
+                             rescale=self.rescale, use_grid=self.use_grid)
+                 for i in range(0, origins.shape[0], rays_per_chunk)]
+        h, w = camera.height, camera.width
+        return NeRFOutput(torch.cat([p.rgb for p in parts], 1).view(n, h, w, 3),
+                          torch.cat([p.alpha for p in parts], 1).view(n, h, w),
+                          torch.cat([p.depth for p in parts], 1).view(n, h, w))
+
+    def render(self, camera: Camera, keep: Tensor | None = None) -> Tensor:
+        return self.render_full(camera, keep).rgb.clamp(0.0, 1.0)
+
+    def describe(self) -> dict[str, Any]:
+        c = self.config
+        return {
+            "kind": self.kind,
+            "num_units": self.num_units,
+            "encoding": c.encoding,
+            "depth": c.depth,
+            "width": c.width,
+            "parameters": sum(p.numel() for p in self.model.parameters()),
+            "samples_per_ray": c.samples,
+            "near": c.near,
+            "far": c.far,
+            "bounds": {"min": c.bounds[0], "max": c.bounds[1]},
+            "background": c.background,
+            "occupancy_grid": {"resolution": c.grid_resolution, "occupied_fraction": self.model.grid.fraction,
+                               "in_use": self.use_grid},
+            "freenerf": {"frequency_mask": c.freenerf_frequency, "occlusion": c.freenerf_occlusion},
+            "rescale": self.rescale,
+            "has_training_cameras": self.training_cameras is not None,
+        }
