@@ -109,11 +109,10 @@ def _true_errors(model_path: Path, cameras, images) -> tuple[list[float], list[f
 def run(args: argparse.Namespace) -> int:
     import base64
 
-    import imageio.v3 as iio
-
     from client import PHDClient
     from phd_core.data import load_blender, select_views, split_size
     from phd_core.fileio import write_bytes_atomic, write_json_atomic
+    from phd_core.png import write_png
     from phd_core.uq_metrics import ensemble_efficiency, spearman
     from service.runner import BackgroundServer
     from service.settings import Settings
@@ -200,10 +199,8 @@ def run(args: argparse.Namespace) -> int:
               f"{rmse_rank[view.index]:>9}")
         stem = f"rank{view.rank}_test{frame:03d}"
         write_bytes_atomic(heat_dir / f"{stem}_zeta.png", base64.b64decode(mapped.heatmap_png))
-        render = (renders_a[view.index].clamp(0, 1) * 255).round().byte().numpy()
-        truth = (test.images[view.index].clamp(0, 1) * 255).round().byte().numpy()
-        write_bytes_atomic(heat_dir / f"{stem}_render.png", iio.imwrite("<bytes>", render, extension=".png"))
-        write_bytes_atomic(heat_dir / f"{stem}_truth.png", iio.imwrite("<bytes>", truth, extension=".png"))
+        write_png(heat_dir / f"{stem}_render.png", renders_a[view.index])
+        write_png(heat_dir / f"{stem}_truth.png", test.images[view.index])
         top_rows.append({"rank": view.rank, "test_view": frame, "score": view.score, "sigma_max": view.sigma_max,
                          "rmse": rmse_a[view.index], "rmse_rank": rmse_rank[view.index],
                          "heatmap": f"heatmaps/{stem}_zeta.png"})

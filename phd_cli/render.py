@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import imageio.v3 as iio
-import torch
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -23,7 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from phd_core.data import load_dataset, split_size
-    from phd_core.fileio import write_bytes_atomic, write_json_atomic
+    from phd_core.fileio import write_json_atomic
+    from phd_core.png import write_png
     from phd_core.metrics import psnr, ssim
     from phd_core.models import load_model
     from .train import parse_views
@@ -39,8 +38,7 @@ def run(args: argparse.Namespace) -> int:
     per_view = []
     for index, camera, target in zip(data.indices, data.cameras, data.images):
         image = renderer.render(camera)[0]
-        png = (image.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
-        write_bytes_atomic(args.out / f"r_{index}.png", iio.imwrite("<bytes>", png, extension=".png"))
+        write_png(args.out / f"r_{index}.png", image)
         per_view.append({"index": index, "psnr": psnr(image, target), "ssim": float(ssim(image, target))})
     mean_psnr = sum(v["psnr"] for v in per_view) / len(per_view)
     mean_ssim = sum(v["ssim"] for v in per_view) / len(per_view)

@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from .cameras import Camera, camera_from_frame
-from .errors import InputError
+from .errors import InputError, check_color
 
 # The NeRF-synthetic scenes fit in [-1.5, 1.5]^3 seen from radius ~4: near 2, far 6.
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
@@ -188,7 +188,7 @@ def _load(json_path: Path, split: str, *, default_near_far: tuple[float | None, 
           downscale: float, views: int | Sequence[int] | None, background: Sequence[float],
           seed: int | None, with_images: bool) -> Dataset:
     """Shared loader of both layouts: select frames, build cameras, read and downscale images."""
-    bg = _check_background(background)
+    bg = check_color(background, "background")
     _check_downscale(downscale)
     frames, defaults = _read_transforms(json_path)
     near, far = _near_far(defaults, default_near_far)
@@ -280,16 +280,6 @@ def _check_pinhole(frame: dict, defaults: dict, field: str) -> None:
     for key in _DISTORTION_KEYS:
         if merged.get(key, 0) != 0:
             raise InputError(f"{field}.{key}", "lens distortion is not supported: undistort the images first")
-
-
-def _check_background(background: Sequence[float]) -> tuple[float, float, float]:
-    try:
-        bg = tuple(float(c) for c in background)
-    except (TypeError, ValueError):
-        raise InputError("background", f"must be three numbers in [0, 1], got {background!r}") from None
-    if len(bg) != 3 or not all(0 <= c <= 1 for c in bg):
-        raise InputError("background", f"must be three numbers in [0, 1], got {background!r}")
-    return bg
 
 
 def _check_downscale(downscale: float) -> None:

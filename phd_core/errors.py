@@ -44,6 +44,22 @@ def check_float(value: Any, name: str, minimum: float | None = None, maximum: fl
     return value
 
 
+def check_color(value: Any, name: str) -> tuple[float, float, float]:
+    """'white', 'black' or three numbers in [0, 1] -> (r, g, b)."""
+    if isinstance(value, str):
+        named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+        if value not in named:
+            raise InputError(name, f"must be 'white', 'black' or three numbers in [0, 1], got {value!r}")
+        return named[value]
+    try:
+        color = [float(c) for c in value]
+    except (TypeError, ValueError):
+        raise InputError(name, f"must be three numbers in [0, 1], got {value!r}") from None
+    if len(color) != 3 or not all(0.0 <= c <= 1.0 for c in color):
+        raise InputError(name, f"must be three numbers in [0, 1], got {value!r}")
+    return tuple(color)
+
+
 def _check_range(value: float, name: str, minimum: float | None, maximum: float | None) -> None:
     if minimum is not None and maximum is not None and not minimum <= value <= maximum:
         raise InputError(name, f"must lie in [{minimum}, {maximum}], got {value}")

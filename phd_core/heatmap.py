@@ -12,13 +12,12 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 import torch
 from torch import Tensor
 
 from .errors import InputError
-from .fileio import write_bytes_atomic
+from .png import write_png
 
 # Anchor colours of the ramp at 0, 1/9, ..., 1 (sRGB, 0-255).
 ANCHORS = np.array([
@@ -63,5 +62,5 @@ def write_heatmap(path: str | Path, values: Tensor, vmax: float | None = None) -
     rgb, used = colorize(values, vmax)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_bytes_atomic(path, iio.imwrite("<bytes>", rgb, extension=".png"))
+    write_png(path, rgb)
     return used

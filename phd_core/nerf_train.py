@@ -32,8 +32,8 @@ from tqdm import tqdm
 
 from .cameras import Camera
 from .data import Dataset, load_dataset
-from .errors import InputError
-from .nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays, parse_color,
+from .errors import InputError, check_color
+from .nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays,
                    render_rays, save_nerf)
 
 # 100x100 images, 16 views, 2 shared CPU cores: about 0.1 s per iteration, 4 minutes (docs/nerf.md).
@@ -109,7 +109,7 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
         if key not in config_keys | settings_keys or key == "encoding":
             raise InputError(key, "unknown training option")
     settings = TrainSettings(**{k: v for k, v in overrides.items() if k in settings_keys}).validate()
-    background = parse_color("background", overrides.get("background", "white"))
+    background = list(check_color(overrides.get("background", "white"), "background"))
     if isinstance(data, Dataset):
         dataset = data
         if "background" in overrides and background != list(dataset.background):

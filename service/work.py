@@ -14,15 +14,13 @@ import threading
 from collections import OrderedDict
 from typing import Any, Callable
 
-import imageio.v3 as iio
-import numpy as np
-import torch
 
 from phd_core import uq
 from phd_core.uq import Progress
 from phd_core.cameras import Camera, cameras_from_json
 from phd_core.errors import InputError
 from phd_core.heatmap import colorize
+from phd_core.png import png_bytes
 from phd_core.models import load_model
 from phd_core.protocol import Renderer
 
@@ -132,17 +130,6 @@ def stored_ratio(record: ModelRecord, field: str, given: float | None) -> tuple[
 def pixels(cameras: list[Camera]) -> int:
     return sum(c.width * c.height for c in cameras)
 
-
-# ----------------------------------------------------------------------------- images
-
-def png_bytes(rgb: np.ndarray) -> bytes:
-    """PNG of an RGB uint8 [H, W, 3] image."""
-    return iio.imwrite("<bytes>", rgb, extension=".png")
-
-
-def image_png(image: torch.Tensor) -> bytes:
-    """PNG of a render: [H, W, 3] float in [0, 1]."""
-    return png_bytes((image.clamp(0, 1) * 255).round().to(torch.uint8).numpy())
 
 
 def b64(data: bytes) -> str:
@@ -266,7 +253,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
             view = SelectedView(index=v.index, choice=v.choice, score_a=v.score_a, score_b=v.score_b,
                                 model_id=record_a.id if v.choice == "a" else record_b.id)
             if v.image is not None:
-                view.image_png, view.image_url = deliver(image_png(v.image), body.images,
+                view.image_png, view.image_url = deliver(png_bytes(v.image), body.images,
                                                          f"selected_{v.index:04d}.png", artifacts, job_url)
             views.append(view)
         counts = {"a": sum(v.choice == "a" for v in views), "b": sum(v.choice == "b" for v in views)}

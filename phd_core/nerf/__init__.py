@@ -38,7 +38,7 @@ from .checkpoint import (
                          nerf_bytes,
                          save_nerf,
 )
-from .config import ENCODINGS, NeRFConfig, parse_color
+from .config import ENCODINGS, NeRFConfig
 from .field import (
                          DENSITY_SHIFT,
                          HASH_PRIMES,
@@ -56,6 +56,6 @@ __all__ = [
     "CAMERAS_TENSOR", "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "DENSITY_SHIFT", "ENCODINGS", "HASH_PRIMES",
     "HashEncoding", "NeRFConfig", "NeRFOutput", "NeRFRenderer", "OccupancyGrid", "PositionalEncoding",
     "RadianceField", "RayOutput", "band_weights", "camera_rays", "composite", "is_nerf_checkpoint", "load_nerf",
-    "load_nerf_bytes", "mask_scale", "nerf_bytes", "parse_color", "ray_box", "ray_samples", "render_rays",
+    "load_nerf_bytes", "mask_scale", "nerf_bytes", "ray_box", "ray_samples", "render_rays",
     "save_nerf",
 ]

@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from ..errors import InputError, check_float, check_int
+from ..errors import InputError, check_color, check_float, check_int
 
 ENCODINGS = ("pe", "spe", "hash")
 # Memory bounds of one rendering step: samples per ray chunk, and elements of one
@@ -74,7 +74,7 @@ class NeRFConfig:
         if not 0 < self.grid_threshold < 1:
             raise InputError("grid_threshold", f"must lie in (0, 1), got {self.grid_threshold}")
         self.bounds = _check_bounds(self.bounds)
-        self.background = parse_color("background", self.background)
+        self.background = list(check_color(self.background, "background"))
         return self
 
     @classmethod
@@ -102,19 +102,3 @@ def _check_bounds(bounds: Any) -> list[list[float]]:
     if not (box[1] > box[0]).all():
         raise InputError("bounds", f"max must exceed min on every axis, got {box.tolist()}")
     return box.tolist()
-
-
-def parse_color(name: str, value: Any) -> list[float]:
-    """'white', 'black' or three numbers in [0, 1] -> [r, g, b]."""
-    if isinstance(value, str):
-        named = {"white": [1.0, 1.0, 1.0], "black": [0.0, 0.0, 0.0]}
-        if value not in named:
-            raise InputError(name, f"must be 'white', 'black' or three numbers in [0, 1], got {value!r}")
-        return named[value]
-    try:
-        color = [float(c) for c in value]
-    except (TypeError, ValueError):
-        raise InputError(name, f"must be three numbers in [0, 1], got {value!r}") from None
-    if len(color) != 3 or not all(0.0 <= c <= 1.0 for c in color):
-        raise InputError(name, f"must be three numbers in [0, 1], got {value!r}")
-    return color
