@@ -16,6 +16,7 @@ strategy, so an interrupted run resumes; `--report` rewrites docs/nbv.md from th
     .venv/bin/python bench/bench_nbv.py --jobs 2                  # shipped strategies, seeds 0 1 2
     .venv/bin/python bench/bench_nbv.py --jobs 2 --seeds 0 --strategies sigma_mean kmedian kmedian_sigma \
         kmedian_sq fvs_prefilter                                  # the ones tried and not shipped
+    .venv/bin/python bench/bench_nbv.py --jobs 2 --seeds 3 4 --strategies fvs fvs_sigma_floor   # more pairs
     .venv/bin/python bench/bench_nbv.py --report
 """
 
@@ -171,14 +172,30 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
 
 # ---------------------------------------------------------------------------------------- report
 
-def load_results(args: argparse.Namespace) -> dict[str, list[dict]]:
-    """Stored tasks of the current protocol, by scene."""
+def load_results(args: argparse.Namespace, every_seed: bool = False) -> dict[str, list[dict]]:
+    """Stored tasks of the current protocol, by scene (of --seeds, or of every stored seed)."""
     by_scene: dict[str, list[dict]] = {}
     for path in sorted(args.results.glob("*.json")):
         task = json.loads(path.read_text())
-        if task.get("protocol") == protocol(args) and task["scene"] in args.scenes and task["seed"] in args.seeds:
+        if (task.get("protocol") == protocol(args) and task["scene"] in args.scenes
+                and (every_seed or task["seed"] in args.seeds)):
             by_scene.setdefault(task["scene"], []).append(task)
     return by_scene
+
+
+def paired(tasks: list[dict], name: str, baseline: str = "fvs") -> str:
+    """`name` minus `baseline`, seed by seed, over every stored seed that ran both."""
+    pairs = [(t["runs"][name]["psnr"], t["runs"][baseline]["psnr"]) for t in tasks
+             if name in t["runs"] and baseline in t["runs"]]
+    if len(pairs) < 2:
+        return ""
+    finals = [a[-1] - b[-1] for a, b in pairs]
+    rounds = [statistics.mean(a[1:]) - statistics.mean(b[1:]) for a, b in pairs]
+    return (f"Paired with {baseline} seed by seed over every stored seed (n = {len(pairs)}): {name} final "
+            f"{statistics.mean(finals):+.2f} ± {statistics.stdev(finals):.2f} dB (ahead on "
+            f"{sum(d > 0 for d in finals)} of {len(pairs)} seeds), mean over rounds "
+            f"{statistics.mean(rounds):+.2f} ± {statistics.stdev(rounds):.2f} dB (ahead on "
+            f"{sum(d > 0 for d in rounds)} of {len(pairs)}).")
 
 
 def summary(tasks: list[dict], name: str) -> dict | None:
@@ -195,7 +212,7 @@ def summary(tasks: list[dict], name: str) -> dict | None:
             "spearman": statistics.mean(rhos) if rhos else None}
 
 
-def markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> str:
+def markdown(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]], args: argparse.Namespace) -> str:
     lines = [f"Command: `.venv/bin/python bench/bench_nbv.py --jobs 2` ({platform.machine()}, "
              f"{os.cpu_count()} cores, one thread per task). Protocol: {args.resolution}x{args.resolution} px, "
              f"{args.iterations} iterations, {args.initial} initial views (one by the seed, then FVS), "
@@ -218,7 +235,8 @@ def markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> str:
             lines.append(f"| {label} | {row['seeds']} | {row['final']:.2f} ± {row['final_sd']:.2f} | "
                          f"{' / '.join(f'{v:.2f}' for v in row['finals'])} | {row['rounds']:.2f} | {delta[0]} | "
                          f"{delta[1]} | {fmt(row['spearman'], 2)} |")
-        lines += ["", f"![PSNR per round on {scene}](nbv_{scene}.svg)", ""]
+        lines += ["", paired(every_seed.get(scene, []), DEFAULT_STRATEGY), "",
+                  f"![PSNR per round on {scene}](nbv_{scene}.svg)", ""]
     return "\n".join(lines)
 
 
@@ -241,7 +259,7 @@ def main() -> None:
             for message in pool.map(run_task, *zip(*tasks), [args] * len(tasks)):
                 print(message, flush=True)
     by_scene = load_results(args)
-    write_doc(args.doc, markdown(by_scene, args), section="nbv")
+    write_doc(args.doc, markdown(by_scene, load_results(args, every_seed=True), args), section="nbv")
     plots(by_scene, args)
     print(f"wrote {args.doc}")
 
