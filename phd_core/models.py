@@ -21,6 +21,7 @@ from .gaussian_render import GaussianRenderer
 from .gaussians import is_ply, parse_ply, read_sidecar
 from .nerf import NeRFRenderer, is_nerf_checkpoint, load_nerf_bytes
 from .protocol import Renderer
+from .registry import Registry
 
 SNIFF_BYTES = 4096
 
@@ -39,15 +40,12 @@ class Family:
     train_options: tuple[str, ...] = ()                     # `phd train` flags the trainer takes
 
 
-FAMILIES: dict[str, Family] = {}
+FAMILIES: Registry[Family] = Registry("model family")
 
 
 def register_family(family: Family) -> Family:
     """Add a model family (a kind is registered once)."""
-    if family.kind in FAMILIES:
-        raise ValueError(f"model family {family.kind!r} is already registered")
-    FAMILIES[family.kind] = family
-    return family
+    return FAMILIES.add(family.kind, family)
 
 
 class UnknownModelError(InputError):

@@ -18,6 +18,7 @@ from typing import Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator
 
 from phd_core.models import FAMILIES
+from phd_core.registry import Registry
 from phd_core.uq import DEFAULT_SELECTION_RULE
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 
@@ -27,6 +28,13 @@ CameraList = Union[list[dict[str, Any]], dict[str, Any]]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 JobKind = Literal["calibrate", "rank", "select"]
 HeatmapMode = Literal["none", "base64", "files"]
+
+def _registered(registry: Registry, name: str) -> str:
+    """`name` when the registry has it; else a validation error that lists the known names."""
+    if name not in registry:
+        raise ValueError(registry.unknown(name))
+    return name
+
 
 _CAMERAS_DOC = ("A list of Blender/nerfstudio frames, or a transforms.json object with a 'frames' "
                 "list (its other keys are defaults for every frame). Each frame needs "
@@ -102,9 +110,7 @@ class ModelInfo(_Response):
     @field_validator("kind")
     @classmethod
     def _known_family(cls, kind: str) -> str:
-        if kind not in FAMILIES:
-            raise ValueError(f"unknown model family {kind!r}; known: {', '.join(sorted(FAMILIES))}")
-        return kind
+        return _registered(FAMILIES, kind)
     details: dict[str, Any] = Field(default_factory=dict, description="Everything the renderer reports (describe()).")
 
 
@@ -152,9 +158,7 @@ class RankRequest(RenderSize):
     @field_validator("strategy")
     @classmethod
     def _known_strategy(cls, name: str) -> str:
-        if name not in STRATEGIES:
-            raise ValueError(f"unknown strategy {name!r}; known: {', '.join(sorted(STRATEGIES))}")
-        return name
+        return _registered(STRATEGIES, name)
 
 
 class SelectRequest(RenderSize):

@@ -6,21 +6,18 @@ their allowed names from it. Adding a strategy is one module plus one `register`
 
 from __future__ import annotations
 
-from ...errors import InputError
+from ...registry import Registry
 from .base import Evidence, Selection, Strategy
 from .baselines import FVS, RANDOM
 from .hybrid import FVS_SIGMA, FVS_SIGMA_FLOOR
 from .uncertainty import SIGMA_MAX, SIGMA_MEAN
 
-STRATEGIES: dict[str, Strategy] = {}
+STRATEGIES: Registry[Strategy] = Registry("strategy")
 
 
 def register(strategy: Strategy) -> Strategy:
     """Add a strategy under its name (a name is registered once)."""
-    if strategy.name in STRATEGIES:
-        raise ValueError(f"strategy {strategy.name!r} is already registered")
-    STRATEGIES[strategy.name] = strategy
-    return strategy
+    return STRATEGIES.add(strategy.name, strategy)
 
 
 for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR):
@@ -31,9 +28,7 @@ DEFAULT_STRATEGY = "fvs_sigma_floor"
 
 def get_strategy(name: str) -> Strategy:
     """The registered strategy called `name`, or an InputError listing the known names."""
-    if name not in STRATEGIES:
-        raise InputError("strategy", f"unknown strategy {name!r}; known: {', '.join(sorted(STRATEGIES))}")
-    return STRATEGIES[name]
+    return STRATEGIES.lookup(name, "strategy")
 
 
 __all__ = ["DEFAULT_STRATEGY", "STRATEGIES", "Evidence", "Selection", "Strategy", "get_strategy", "register"]
