@@ -25,6 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import uvicorn  # web code stays out of phd_core's import path
+    from pydantic import ValidationError
 
     from phd_core.errors import InputError
     from service.app import create_app
@@ -38,8 +39,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("port", f"must lie in [0, 65535], got {args.port}")
     try:
         settings = Settings.from_env(data_dir=args.data_dir, workers=args.workers, queue_size=args.queue_size)
-    except ValueError as exc:
-        raise InputError("settings", str(exc)) from None
+    except ValidationError as exc:
+        error = exc.errors()[0]
+        name = str(error["loc"][0]) if error["loc"] else "settings"
+        raise InputError(name, f"{error['msg']} (the flag or PHD_{name.upper()}), got {error.get('input')!r}") from None
     app = create_app(settings)
     print(f"phd serve: data in {settings.data_dir}, {settings.workers} worker(s), queue {settings.queue_size}, "
           f"API key {'required' if settings.api_key else 'off'}; http://{args.host}:{args.port}/docs", flush=True)

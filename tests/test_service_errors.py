@@ -314,3 +314,17 @@ def test_fuzzed_bodies_never_give_5xx(svc_start, svc_model_files):
     assert sum(statuses.values()) >= 100
     assert {202, 422} <= set(statuses) and len(jobs) > 0  # both kinds were exercised
     assert len(_leftovers(server)) == 1
+
+
+def test_settings_come_from_phd_environment_variables(monkeypatch, capsys):
+    from phd_cli import main
+    from service.settings import Settings
+
+    monkeypatch.setenv("PHD_QUEUE_SIZE", "3")
+    monkeypatch.setenv("PHD_API_KEY", "")
+    assert (Settings().queue_size, Settings().api_key) == (3, None)
+    assert Settings.from_env(queue_size=5, workers=None).queue_size == 5     # a given flag wins
+    monkeypatch.setenv("PHD_WORKERS", "many")
+    assert main(["serve", "--port", "0"]) == 2                               # refused before serving
+    err = capsys.readouterr().err
+    assert "workers:" in err and "PHD_WORKERS" in err and "Traceback" not in err
