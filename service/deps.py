@@ -1,0 +1,99 @@
+"""What every route depends on: the service's state (settings, store, renderer cache, jobs)
+and the OpenAPI metadata shared by the /v1 routers."""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from fastapi import Depends, Request
+from fastapi.responses import JSONResponse
+
+from phd_core.models import FAMILIES, load_model
+
+from .errors import ServiceError, not_found
+from .jobs import JobManager, JobRecord, QueueFull, Work
+from .schemas import ErrorResponse, Job, RenderSize
+from .settings import Settings
+from .store import ModelRecord, ModelStore
+from .upload import Upload, parse_camera_json
+from .work import RendererCache, parse_cameras
+
+ERRORS: dict[int | str, dict[str, Any]] = {
+    status: {"model": ErrorResponse, "description": text} for status, text in (
+        (401, "Missing or wrong API key"), (404, "Unknown id"), (409, "No calibration / training cameras"),
+        (413, "Body too large"), (415, "Not a model this service reads"), (422, "Invalid field"),
+        (429, "Work queue full: retry after Retry-After seconds"))
+}
+ACCEPTED = {202: {"model": Job, "description": "Queued as a job: poll GET /v1/jobs/{id}"}}
+ACCEPTED = {202: {"model": Job, "description": "Queued as a job: poll GET /v1/jobs/{id}"}}
+
+
+@dataclass
+class ServiceState:
+    settings: Settings
+    store: ModelStore
+    cache: RendererCache
+    jobs: JobManager | None = None
+
+    def model(self, model_id: str, field: str | None = None) -> ModelRecord:
+        record = self.store.get(model_id)
+        if record is None:
+            raise not_found("model", model_id, field)
+        return record
+
+    def job(self, job_id: str) -> JobRecord:
+        job = self.jobs.get(job_id)
+        if job is None:
+            raise not_found("job", job_id)
+        return job
+
+    async def run(self, job_id: str, kind: str, work: Work, estimate: float, run_async: bool) -> Any:
+        """Queue the work; answer 202 with the job when asked or when it is big, else wait for it."""
+        try:
+            job = self.jobs.submit(job_id, kind, work, estimate)
+        except QueueFull as exc:
+            raise ServiceError(429, "queue_full", f"the work queue is full ({exc}); retry later", None,
+                               {"Retry-After": str(self.settings.retry_after)}) from None
+        if run_async or estimate > self.settings.async_threshold:
+            return JSONResponse(job.to_schema().model_dump(mode="json"), status_code=202,
+                                headers={"Location": f"/v1/jobs/{job.id}"})
+        await asyncio.wrap_future(job.done)
+        if job.state == "succeeded":
+            return job.result
+        if job.state == "cancelled":
+            raise ServiceError(409, "job_cancelled", f"job '{job.id}' was cancelled before it finished")
+        raise job.error
+
+    def ingest(self, upload: Upload, kind: str) -> ModelRecord:
+        """Load the uploaded file fully (worker thread), then move it into the store."""
+        cameras = None
+        if upload.cameras is not None:  # the cheap check first
+            cameras = parse_cameras(parse_camera_json(upload.cameras), RenderSize(), self.settings,
+                                    field="cameras", cap=self.settings.max_training_cameras)
+        renderer = load_model(upload.path)
+        cameras = cameras if cameras is not None else renderer.training_cameras
+        frames = None if not cameras else [c.to_frame() for c in cameras]
+        name = upload.name or upload.filename or f"model{FAMILIES[kind].extension}"
+        # The stored cameras are the truth about training cameras, not what the file carried.
+        facts = {k: v for k, v in renderer.describe().items() if k != "has_training_cameras"}
+        record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
+                                sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
+                                training_frames=frames)
+        self.cache.put(record.id, renderer)
+        return record
+
+
+def service_state(request: Request) -> ServiceState:
+    return request.app.state.service
+
+
+Service = Annotated[ServiceState, Depends(service_state)]
+
+
+def service_state(request: Request) -> ServiceState:
+    return request.app.state.service
+
+
+Service = Annotated[ServiceState, Depends(service_state)]

@@ -1,0 +1,73 @@
+"""/v1/models: upload, list, read and delete models."""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi import APIRouter, Request, Response
+from fastapi.responses import JSONResponse
+
+from ..deps import ERRORS, Service
+from ..errors import not_found
+from ..schemas import Calibration, ModelInfo, ModelList
+from ..store import ModelRecord
+from ..upload import receive_upload, sniff_kind
+
+router = APIRouter(prefix="/v1", responses=ERRORS, tags=["models"])
+NETWORK_FACTS = ("encoding", "depth", "width", "parameters", "samples_per_ray")  # NeRF describe() keys
+UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
+    "type": "object", "required": ["file"], "properties": {
+        "file": {"type": "string", "format": "binary", "description": "3DGS PLY or NeRF checkpoint"},
+        "cameras": {"type": "string", "description": "Training cameras as JSON (transforms.json or a list of frames)"},
+        "name": {"type": "string", "description": "Display name (default: the file name)"},
+    }}}}}}
+
+
+def model_info(record: ModelRecord) -> ModelInfo:
+    facts = record.describe
+    bounds = facts.get("bounds")
+    network = {k: facts[k] for k in NETWORK_FACTS if k in facts} or None
+    return ModelInfo(
+        id=record.id, name=record.name, kind=record.kind, num_units=record.num_units,
+        sh_degree=facts.get("sh_degree") if isinstance(facts.get("sh_degree"), int) else None,
+        network=network,
+        bounds=bounds if isinstance(bounds, dict) and all(isinstance(v, list) for v in bounds.values()) else None,
+        size_bytes=record.size_bytes, sha256=record.sha256, created_at=record.created_at,
+        has_training_cameras=bool(record.training_frames),
+        num_training_cameras=len(record.training_frames or []),
+        has_calibration=record.calibration is not None,
+        calibration=None if record.calibration is None else Calibration(**record.calibration),
+        details=facts)
+
+
+@router.post("/models", status_code=201, response_model=ModelInfo, openapi_extra=UPLOAD_BODY)
+async def upload_model(request: Request, svc: Service) -> JSONResponse:
+    """Upload a model (3DGS PLY or NeRF checkpoint) with optional training cameras."""
+    temp = svc.store.new_temp_path()
+    try:
+        upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes)
+        kind = sniff_kind(upload.head)
+        record = await asyncio.to_thread(svc.ingest, upload, kind)
+    finally:
+        temp.unlink(missing_ok=True)  # gone already after a successful move into the store
+    info = model_info(record)
+    return JSONResponse(info.model_dump(mode="json"), status_code=201, headers={"Location": f"/v1/models/{record.id}"})
+
+
+@router.get("/models", response_model=ModelList)
+async def list_models(svc: Service) -> ModelList:
+    records = await asyncio.to_thread(svc.store.list)
+    return ModelList(models=[model_info(r) for r in records])
+
+
+@router.get("/models/{model_id}", response_model=ModelInfo)
+async def get_model(model_id: str, svc: Service) -> ModelInfo:
+    return model_info(svc.model(model_id))
+
+
+@router.delete("/models/{model_id}", status_code=204)
+async def delete_model(model_id: str, svc: Service) -> Response:
+    if not await asyncio.to_thread(svc.store.delete, model_id):
+        raise not_found("model", model_id)
+    svc.cache.evict(model_id)
+    return Response(status_code=204)
