@@ -261,3 +261,29 @@ def test_missing_data_and_nerfstudio_errors_name_the_field(tmp_path):
         with pytest.raises(InputError) as info:
             load()
         assert info.value.field == field, load
+
+
+def test_a_capture_format_is_one_registry_entry(tmp_path):
+    """A format registered in FORMATS is sniffed and loaded by load_dataset with no other change."""
+    from phd_core.data import FORMATS, DataFormat, load_nerfstudio
+
+    folder = tmp_path / "capture"
+    folder.mkdir()
+    (folder / "cameras.toy").write_text("a toy capture: its frames live in frames.json")
+    frame = {"transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]],
+             "fl_x": 10.0, "w": 8, "h": 6}
+    (folder / "frames.json").write_text(json.dumps({"frames": [frame, frame]}))
+
+    def locate(path, split):
+        return path / "frames.json" if (path / "cameras.toy").is_file() else None
+
+    FORMATS.add("toy", DataFormat("toy", locate, lambda file, split, **kw: load_nerfstudio(file, **kw)))
+    try:
+        dataset = load_dataset(folder, "train", with_images=False)
+        assert len(dataset.cameras) == 2 and dataset.cameras[0].width == 8
+        assert split_size(folder, "train") == 2
+    finally:
+        del FORMATS["toy"]
+    with pytest.raises(InputError) as info:
+        load_dataset(folder, "train", with_images=False)
+    assert info.value.field == "data"

@@ -1,7 +1,7 @@
-"""Datasets in the Blender (NeRF-synthetic) and nerfstudio layouts.
+"""What every capture format shares: the Dataset, frame selection, transforms JSON, images.
 
-Both layouts are a transforms JSON with one frame per image: an OpenGL camera-to-world
-`transform_matrix`, intrinsics (Blender: `camera_angle_x`; nerfstudio: `fl_x`, `fl_y`,
+The transforms layouts (Blender, nerfstudio) are a JSON with one frame per image: an OpenGL
+camera-to-world `transform_matrix`, intrinsics (Blender: `camera_angle_x`; nerfstudio: `fl_x`, `fl_y`,
 `cx`, `cy`, `w`, `h`, at the top level or per frame) and a `file_path` relative to the
 JSON's directory (Blender leaves off the `.png`).
 
@@ -31,11 +31,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .cameras import Camera, camera_from_frame
-from .errors import InputError, check_color
+from ..cameras import Camera, camera_from_frame
+from ..errors import InputError, check_color
 
-# The NeRF-synthetic scenes fit in [-1.5, 1.5]^3 seen from radius ~4: near 2, far 6.
-BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV only with zero distortion
 
@@ -107,90 +105,18 @@ def _validated_indices(views: Sequence[Any], total: int) -> list[int]:
     return indices
 
 
-def load_blender(root: str | Path, split: str = "train", *, downscale: float = 1,
-                 views: int | Sequence[int] | None = None, background: Sequence[float] = (1, 1, 1),
-                 seed: int | None = None, with_images: bool = True) -> Dataset:
-    """Load `root/transforms_{split}.json` and its images (Blender / NeRF-synthetic layout).
-
-    near/far come from top-level "near"/"far" keys when present, else the NeRF-synthetic
-    convention of 2 and 6.
-    """
-    root = Path(root)
-    _check_split(split)
-    if not root.is_dir():
-        raise InputError("data", f"dataset directory not found: {root}")
-    json_path = root / f"transforms_{split}.json"
-    if not json_path.is_file():
-        raise InputError("data", f"no transforms_{split}.json in {root}")
-    return _load(json_path, split, default_near_far=(BLENDER_NEAR, BLENDER_FAR), downscale=downscale,
-                 views=views, background=background, seed=seed, with_images=with_images)
-
-
-def load_nerfstudio(path: str | Path, *, downscale: float = 1, views: int | Sequence[int] | None = None,
-                    background: Sequence[float] = (1, 1, 1), seed: int | None = None,
-                    with_images: bool = True) -> Dataset:
-    """Load a nerfstudio transforms.json (or a directory holding one) and its images.
-
-    All frames form one split, "all". Only undistorted pinhole cameras are accepted.
-    near/far come from top-level "near"/"far" keys when present, else None.
-    """
-    path = Path(path)
-    json_path = path / "transforms.json" if path.is_dir() else path
-    if not json_path.is_file():
-        raise InputError("data", f"no transforms.json at {path}")
-    return _load(json_path, "all", default_near_far=(None, None), downscale=downscale,
-                 views=views, background=background, seed=seed, with_images=with_images)
-
-
-def load_dataset(path: str | Path, split: str = "train", **kw: Any) -> Dataset:
-    """Load either layout: a directory with transforms_{split}.json is Blender; a
-    transforms.json (or a directory with one) is nerfstudio, whose one frame list is
-    served as the "train" (or "all") split."""
-    kind, json_path = _locate(path, split)
-    if kind == "blender":
-        return load_blender(json_path.parent, split, **kw)
-    return load_nerfstudio(json_path, **kw)
-
-
-def split_size(root: str | Path, split: str) -> int:
-    """Number of frames in a split, read from the JSON alone (no images)."""
-    _, json_path = _locate(root, split)
-    frames, _ = _read_transforms(json_path)
-    return len(frames)
-
-
-def _locate(path: str | Path, split: str) -> tuple[str, Path]:
-    """("blender" | "nerfstudio", path of the transforms JSON) for a dataset path and split."""
-    _check_split(split)
-    path = Path(path)
-    if path.is_file():
-        json_path = path
-    elif not path.is_dir():
-        raise InputError("data", f"no such file or directory: {path}")
-    elif (path / f"transforms_{split}.json").is_file():
-        return "blender", path / f"transforms_{split}.json"
-    elif (path / "transforms.json").is_file():
-        json_path = path / "transforms.json"
-    else:
-        raise InputError("data", f"{path} has neither transforms_{split}.json nor transforms.json")
-    if split not in ("train", "all"):
-        raise InputError("split", f"a nerfstudio transforms.json has no '{split}' split: "
-                         "load 'all' and pick frames with views")
-    return "nerfstudio", json_path
-
-
-def _check_split(split: str) -> None:
+def check_split(split: str) -> None:
     if not isinstance(split, str) or not re.fullmatch(r"[A-Za-z0-9_-]+", split):
         raise InputError("split", f"must be a name of letters, digits, '_' or '-', got {split!r}")
 
 
-def _load(json_path: Path, split: str, *, default_near_far: tuple[float | None, float | None],
+def load_frames(json_path: Path, split: str, *, default_near_far: tuple[float | None, float | None],
           downscale: float, views: int | Sequence[int] | None, background: Sequence[float],
           seed: int | None, with_images: bool) -> Dataset:
-    """Shared loader of both layouts: select frames, build cameras, read and downscale images."""
+    """Shared loader of the transforms layouts: select frames, build cameras, read and downscale images."""
     bg = check_color(background, "background")
     _check_downscale(downscale)
-    frames, defaults = _read_transforms(json_path)
+    frames, defaults = read_transforms(json_path)
     near, far = _near_far(defaults, default_near_far)
     indices = select_views(len(frames), views, seed=seed)
     base = json_path.parent
@@ -249,7 +175,7 @@ def _read_images(paths: list[Path], indices: list[int], full_res: list[Camera], 
     return images, (alphas if has_alpha else None)
 
 
-def _read_transforms(json_path: Path) -> tuple[list, dict]:
+def read_transforms(json_path: Path) -> tuple[list, dict]:
     """(frames, top-level defaults) of a transforms JSON."""
     try:
         data = json.loads(json_path.read_text())
