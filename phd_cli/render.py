@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
 def training_downscale(renderer, data: Path, split: str) -> float:
     """The factor that brings the dataset to the model's training resolution (1 if unknown)."""
     from phd_core.data import load_dataset
-    cams = getattr(renderer, "training_cameras", None)
+    cams = renderer.training_cameras
     if not cams:
         return 1.0
     full = load_dataset(data, split, views=[0], with_images=False).cameras[0]

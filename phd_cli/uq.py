@@ -131,7 +131,7 @@ def _scaled(cameras: list[Camera], downscale: float) -> list[Camera]:
 
 
 def _training_cameras(renderer, downscale: float) -> list[Camera]:
-    cameras = getattr(renderer, "training_cameras", None)
+    cameras = renderer.training_cameras
     if not cameras:
         raise InputError("cameras", "the model carries no training cameras: give --data or --cameras "
                          "(calibrate), or --dropout-ratio")
@@ -207,7 +207,7 @@ def run_uq(args: argparse.Namespace) -> int:
         dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale,
                                with_images=False)
     calibration_cameras = None
-    if args.dropout_ratio is None and not getattr(renderer, "training_cameras", None):
+    if args.dropout_ratio is None and not renderer.training_cameras:
         # No stored training poses: calibrate on the dataset's train split instead.
         warnings.append("the model carries no training cameras: calibrated on every frame of the dataset's "
                         "train split, which may include views the model was not trained on")

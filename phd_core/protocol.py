@@ -21,7 +21,8 @@ from .cameras import Camera
 class Renderer(Protocol):
     """What PH-Dropout, ranking and ensemble selection need from a model."""
 
-    kind: str  # "3dgs" or "nerf"
+    kind: str  # the model family (phd_core.models.FAMILIES)
+    training_cameras: list[Camera] | None   # the poses the model was trained on, when known
 
     @property
     def num_units(self) -> int:
