@@ -107,12 +107,9 @@ def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
     colour_sum = torch.zeros(len(grid), 3, dtype=torch.float64)
     seen = torch.zeros(len(grid))
     for cam, image, alpha in zip(data.cameras, data.images, data.alphas):
-        w2c = cam.world_to_camera()
-        p = grid @ w2c[:3, :3].T + w2c[:3, 3]
-        z = p[:, 2].clamp_min(1e-6)
-        u = (cam.fx * p[:, 0] / z + cam.cx).floor().long()
-        v = (cam.fy * p[:, 1] / z + cam.cy).floor().long()
-        in_view = (p[:, 2] > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        uv, depth = cam.project(grid, min_depth=1e-6)
+        u, v = uv.floor().long().unbind(-1)
+        in_view = (depth > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
         uu, vv = u.clamp(0, cam.width - 1), v.clamp(0, cam.height - 1)
         foreground = alpha[vv, uu] > 0.5
         inside &= ~in_view | foreground

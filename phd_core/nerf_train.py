@@ -247,12 +247,10 @@ def frustum_bounds(cameras: list[Camera], near: float, far: float) -> list[list[
 
 def _in_frustum(camera: Camera, points: torch.Tensor, near: float, far: float) -> torch.Tensor:
     """[P] bool: the point projects into the image at a distance in [near, far]."""
-    w2c = camera.world_to_camera()
-    p = points @ w2c[:3, :3].T + w2c[:3, 3]                                 # OpenCV camera frame
-    z = p[:, 2].clamp_min(1e-9)
-    u, v = camera.fx * p[:, 0] / z + camera.cx, camera.fy * p[:, 1] / z + camera.cy
+    uv, depth = camera.project(points)
+    u, v = uv.unbind(-1)
     dist = (points - camera.center).norm(dim=1)
-    return (p[:, 2] > 0) & (u >= 0) & (u <= camera.width) & (v >= 0) & (v <= camera.height) \
+    return (depth > 0) & (u >= 0) & (u <= camera.width) & (v >= 0) & (v <= camera.height) \
         & (dist >= near) & (dist <= far)
 
 
@@ -268,12 +266,10 @@ def visual_hull(model: RadianceField, cameras: list[Camera], alphas: torch.Tenso
     half_diagonal = float((grid.size.double() / grid.resolution).norm() / 2)
     inside = torch.ones(centers.shape[0], dtype=torch.bool)
     for camera, alpha in zip(cameras, alphas):
-        w2c = camera.world_to_camera()
-        p = centers @ w2c[:3, :3].T + w2c[:3, 3]
-        z = p[:, 2]
-        front = z > half_diagonal
-        z = z.clamp_min(half_diagonal)
-        u, v = camera.fx * p[:, 0] / z + camera.cx, camera.fy * p[:, 1] / z + camera.cy
+        uv, depth = camera.project(centers, min_depth=half_diagonal)
+        u, v = uv.unbind(-1)
+        front = depth > half_diagonal
+        z = depth.clamp_min(half_diagonal)
         radius = half_diagonal * max(camera.fx, camera.fy) / (z - half_diagonal).clamp_min(1e-6) + 1
         u0, u1 = (u - radius).floor(), (u + radius).ceil()
         v0, v1 = (v - radius).floor(), (v + radius).ceil()

@@ -287,3 +287,16 @@ def test_a_capture_format_is_one_registry_entry(tmp_path):
     with pytest.raises(InputError) as info:
         load_dataset(folder, "train", with_images=False)
     assert info.value.field == "data"
+
+
+def test_camera_projection_matches_the_pinhole_model():
+    from phd_core.cameras import look_at
+
+    camera = look_at((0.0, -4.0, 1.0), (0.0, 0.0, 1.0), (0, 0, 1), width=40, height=30, fov_x=0.8)
+    points = torch.tensor([[0.0, 0.0, 1.0], [0.5, 0.0, 1.25], [0.0, -6.0, 1.0]], dtype=torch.float64)
+    uv, depth = camera.project(points)
+    assert depth.tolist() == pytest.approx([4.0, 4.0, -2.0])
+    assert uv[0].tolist() == pytest.approx([20.0, 15.0])                   # on the axis: the principal point
+    # +x in the world is +x (right) in the image, +z (up) is -y (image rows grow downwards).
+    assert uv[1].tolist() == pytest.approx([20.0 + camera.fx * 0.5 / 4, 15.0 - camera.fy * 0.25 / 4])
+    assert torch.isfinite(uv[2]).all()                                       # behind the camera: finite
