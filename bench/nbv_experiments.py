@@ -7,6 +7,9 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
   a candidate is how much closer it brings every candidate q to its nearest captured
   pose, weighted by 1 or by q's sigma_mean (facility location: representative views).
 - kmedian_sq: the same on squared distances (between k-median and FVS).
+- sigma_top, sigma_area: other aggregations of zeta than the max: the mean of the top 10 %
+  of pixels, and the share of pixels above 0.05 (phd_core.uq.uncertainty).
+- fvs_top: fvs_sigma_floor with sigma_top in place of sigma_mean.
 - fvs_prefilter: among the candidates at least as far from the captured poses as the
   median candidate, the highest sigma_mean (a coverage prefilter, then uncertainty).
 """
@@ -19,7 +22,7 @@ import torch
 from torch import Tensor
 
 from phd_core.uq.strategies import Evidence, Selection, Strategy, register
-from phd_core.uq.strategies.base import centres, greedy
+from phd_core.uq.strategies.base import by_score, centres, greedy
 
 
 def _k_median(evidence: Evidence, k: int, demand: Tensor, power: int) -> Selection:
@@ -45,11 +48,16 @@ def _prefilter(evidence: Evidence, k: int, seed: int) -> Selection:
     return greedy(evidence, k, gain)
 
 
+def _fvs_top(evidence: Evidence, k: int, seed: int) -> Selection:
+    weight = evidence.sigma_top + evidence.sigma_top.mean()
+    return greedy(evidence, k, lambda nearest: weight * nearest)
+
+
 def _k_median_strategy(demand: Callable[[Evidence], Tensor], power: int) -> Callable[[Evidence, int, int], Selection]:
     return lambda evidence, k, seed: _k_median(evidence, k, demand(evidence), power)
 
 
-EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter")
+EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma_top", "sigma_area", "fvs_top")
 
 for _strategy in (
         Strategy("kmedian", "greedy k-median over the candidate poses", _k_median_strategy(_uniform, 1),
@@ -58,5 +66,9 @@ for _strategy in (
                  _k_median_strategy(lambda ev: ev.sigma_mean, 1)),
         Strategy("kmedian_sq", "greedy k-median on squared distances", _k_median_strategy(_uniform, 2),
                  uses_dropout=False),
-        Strategy("fvs_prefilter", "the most uncertain of the farther half of the candidates", _prefilter)):
+        Strategy("fvs_prefilter", "the most uncertain of the farther half of the candidates", _prefilter),
+        Strategy("sigma_top", "highest mean of the top 10 % of pixels' zeta",
+                 lambda ev, k, seed: by_score(ev.sigma_top)),
+        Strategy("sigma_area", "largest share of pixels with zeta above 0.05", lambda ev, k, seed: by_score(ev.area)),
+        Strategy("fvs_top", "distance times (sigma_top + its mean), greedy", _fvs_top)):
     register(_strategy)

@@ -505,3 +505,16 @@ def test_nerf_through_the_same_engine(tiny_nerf) -> None:
     assert torch.count_nonzero(phd.view_uncertainty(tiny_nerf, camera, ratio=0.0, samples=3, keep_maps=True).zeta) == 0
     everything = phd.view_uncertainty(tiny_nerf, camera, ratio=1.0, samples=3, keep_maps=True)
     assert everything.sigma_max == 0.0 and torch.isfinite(everything.mean).all()   # no units: one finite render
+
+
+def test_other_aggregations_of_zeta_match_their_definition(blobs: BlobRenderer) -> None:
+    from phd_core.uq.uncertainty import AREA_THRESHOLD, TOP_SHARE
+
+    view = phd.view_uncertainty(blobs, CAMERAS[0], ratio=0.4, samples=8, seed=3, keep_maps=True)
+    per_pixel = np.sort(view.zeta.double().amax(-1).flatten().numpy())[::-1]
+    count = max(1, round(TOP_SHARE * per_pixel.size))
+    assert view.sigma_top == pytest.approx(per_pixel[:count].mean(), rel=1e-6)
+    assert view.area == pytest.approx((per_pixel > AREA_THRESHOLD).mean(), abs=1.5 / per_pixel.size)
+    assert view.sigma_mean <= view.sigma_top <= view.sigma_max and 0 < view.area < 1
+    still = phd.view_uncertainty(ConstantRenderer(), CAMERAS[0], ratio=0.4, samples=4)
+    assert (still.sigma_top, still.area) == (0.0, 0.0)

@@ -25,8 +25,8 @@ from .strategies import DEFAULT_STRATEGY, STRATEGIES
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, sigma_max_bar, uncertainty, view_uncertainty
 
 __all__ = [
-    "DEFAULT_CALIBRATION_SAMPLES", "DEFAULT_EPSILON", "DEFAULT_SAMPLES", "DEFAULT_SELECTION_RULE", "DEFAULT_SSIM_MARGIN",
-    "DEFAULT_STEP", "DEFAULT_STRATEGY", "MAX_MASKS_PER_RENDER", "SELECTION_RULES", "SELECTION_TRAINING_VIEWS",
+    "DEFAULT_CALIBRATION_SAMPLES", "DEFAULT_EPSILON", "DEFAULT_SAMPLES", "DEFAULT_SELECTION_RULE",
+    "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "MAX_MASKS_PER_RENDER", "SELECTION_RULES", "SELECTION_TRAINING_VIEWS",
     "STRATEGIES", "CalibrationError", "CalibrationResult", "Progress", "RankedView", "SelectionResult",
     "ViewSelection", "ViewUncertainty", "calibrate", "calibrate_ssim", "candidate_evidence", "dropout_uniforms",
     "keep_masks", "rank_views", "sample_std", "select_models", "sigma_max_bar", "uncertainty", "view_uncertainty",

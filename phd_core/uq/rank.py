@@ -39,8 +39,9 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
     if captured is None:
         captured = renderer.training_cameras or []
     captured = check_cameras(captured, "captured") if captured else []
-    return Evidence(list(cameras), captured, torch.tensor([v.sigma_max for v in views], dtype=torch.float64),
-                    torch.tensor([v.sigma_mean for v in views], dtype=torch.float64))
+    def stat(name: str) -> torch.Tensor:
+        return torch.tensor([getattr(v, name) for v in views], dtype=torch.float64)
+    return Evidence(list(cameras), captured, stat("sigma_max"), stat("sigma_mean"), stat("sigma_top"), stat("area"))
 
 
 def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,

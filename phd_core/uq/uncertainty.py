@@ -16,6 +16,8 @@ from ..protocol import Renderer
 from .sampling import (Progress, ProgressTicker, check_cameras, check_dtype, check_ratio, check_samples, check_seed,
                        dropout_uniforms, keep_masks, render_masks, sample_std)
 
+TOP_SHARE = 0.1                    # sigma_top: the share of pixels it averages
+AREA_THRESHOLD = 0.05              # area: zeta above this (on [0, 1] colours) counts as uncertain
 DEFAULT_SAMPLES = 32               # masks per view for zeta, ranking and selection
 
 
@@ -28,16 +30,21 @@ class ViewUncertainty:
 
     sigma_max: float                # max of zeta over H, W, C
     sigma_mean: float               # mean of zeta over H, W, C
+    sigma_top: float = 0.0          # mean of the top TOP_SHARE of pixels' zeta (max over C): an upper-quantile mean
+    area: float = 0.0               # share of pixels whose zeta (max over C) exceeds AREA_THRESHOLD
     mean: Tensor | None = None      # [H, W, 3] float32 mean image over the N samples (keep_maps=True)
     zeta: Tensor | None = None      # [H, W, 3] float32 per-pixel per-channel std (keep_maps=True)
 
 
 def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, keep_maps: bool,
-                      dtype: torch.dtype) -> ViewUncertainty:
+                 dtype: torch.dtype) -> ViewUncertainty:
     images = render_masks(renderer, camera, keep)             # [N, H, W, 3]
     zeta, mean = sample_std(images, ddof=ddof, dtype=dtype)
+    per_pixel = zeta.amax(dim=-1).flatten()                   # [H * W]
+    top = per_pixel.topk(max(1, round(TOP_SHARE * per_pixel.numel()))).values
     return ViewUncertainty(
-        sigma_max=float(zeta.max()), sigma_mean=float(zeta.mean()),
+        sigma_max=float(zeta.max()), sigma_mean=float(zeta.mean()), sigma_top=float(top.mean()),
+        area=float((per_pixel > AREA_THRESHOLD).double().mean()),
         mean=mean.to(torch.float32) if keep_maps else None,
         zeta=zeta.to(torch.float32) if keep_maps else None)
 

@@ -26,6 +26,8 @@ class Evidence:
     captured: list[Camera]        # [T] poses the model was trained on (may be empty)
     sigma_max: Tensor             # [C] float64, max of zeta over H, W, C (the paper's score)
     sigma_mean: Tensor            # [C] float64, mean of zeta over H, W, C
+    sigma_top: Tensor | None = None   # [C] float64, mean of the top 10 % of pixels' zeta
+    area: Tensor | None = None        # [C] float64, share of pixels with zeta above a threshold
 
 
 @dataclass
