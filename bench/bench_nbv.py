@@ -219,7 +219,9 @@ def markdown(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]],
              f"{args.per_round} views per round, {args.rounds} rounds, PSNR on {args.test_views} evenly spaced "
              f"test views, N = {args.samples} masks, r_drop calibrated every round.", "",
              "Final = mean test PSNR after the last round over the seeds (with the standard deviation and each "
-             "seed's value); rounds = mean PSNR over rounds 1..R; vs FVS = difference of the means; "
+             "seed's value); rounds = mean PSNR over rounds 1..R; vs FVS = difference of the means (rows with fewer "
+             "seeds than FVS compare with FVS's mean over all of its seeds; the paired line below each table "
+             "compares seed by seed); "
              "Spearman = per held-out view, the strategy's score against the true RMSE on the initial model.", ""]
     for scene, tasks in sorted(by_scene.items()):
         rows = {name: summary(tasks, name) for name in sorted({n for t in tasks for n in t["runs"]})}

@@ -42,9 +42,6 @@ class CalibrationError(InputError):
         self.errors = errors
 
 
-# ----------------------------------------------------------------------------------------
-# Calibration (Algorithm 1)
-
 @dataclass
 class CalibrationResult:
     """r_drop and the error curve it came from (tested ratios, ascending)."""

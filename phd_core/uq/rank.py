@@ -15,9 +15,6 @@ from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
 from .uncertainty import DEFAULT_SAMPLES, uncertainty
 
-# ----------------------------------------------------------------------------------------
-# Next-best-view ranking
-
 @dataclass
 class RankedView:
     index: int          # position of the candidate in the input list
@@ -39,6 +36,7 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
     if captured is None:
         captured = renderer.training_cameras or []
     captured = check_cameras(captured, "captured") if captured else []
+
     def stat(name: str) -> torch.Tensor:
         return torch.tensor([getattr(v, name) for v in views], dtype=torch.float64)
     return Evidence(list(cameras), captured, stat("sigma_max"), stat("sigma_mean"), stat("sigma_top"), stat("area"))

@@ -19,9 +19,6 @@ from .sampling import (Progress, ProgressTicker, check_cameras, check_images, ch
                        dropout_uniforms, keep_masks, render_masks)
 from .uncertainty import DEFAULT_SAMPLES, measure_view
 
-# ----------------------------------------------------------------------------------------
-# Ensemble selection (Section 5.4)
-
 @dataclass
 class ViewSelection:
     index: int
@@ -56,7 +53,7 @@ def _own_level(renderer: Renderer, training: Sequence[Camera] | None, keep: Tens
                name: str) -> tuple[list[Camera], float]:
     """A model's training cameras (default: the renderer's) and its mean zeta over up to 8 of
     them: the level its uncertainty has where it was trained, which `distance_sigma` divides by."""
-    training = list(renderer.training_cameras or [] if training is None else training)
+    training = list((renderer.training_cameras or []) if training is None else training)
     if not training:
         raise InputError(name, "the model carries no training cameras, which rule 'distance_sigma' needs: "
                                "give them with the model, or use rule 'sigma_mean'")

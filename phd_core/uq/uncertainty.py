@@ -21,9 +21,6 @@ AREA_THRESHOLD = 0.05              # area: zeta above this (on [0, 1] colours) c
 DEFAULT_SAMPLES = 32               # masks per view for zeta, ranking and selection
 
 
-# ----------------------------------------------------------------------------------------
-# Uncertainty
-
 @dataclass
 class ViewUncertainty:
     """Uncertainty of one view under N dropout masks."""
