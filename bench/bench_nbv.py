@@ -237,13 +237,19 @@ def markdown(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]],
             lines.append(f"| {label} | {row['seeds']} | {row['final']:.2f} ± {row['final_sd']:.2f} | "
                          f"{' / '.join(f'{v:.2f}' for v in row['finals'])} | {row['rounds']:.2f} | {delta[0]} | "
                          f"{delta[1]} | {fmt(row['spearman'], 2)} |")
+        common = [t["seed"] for t in tasks if all(name in t["runs"] for name in SHIPPED)]
         lines += ["", paired(every_seed.get(scene, []), DEFAULT_STRATEGY), "",
-                  f"![PSNR per round on {scene}](nbv_{scene}.svg)", ""]
+                  f"![PSNR per round on {scene}](nbv_{scene}.svg)",
+                  f"(mean test PSNR per round over seeds {', '.join(map(str, common))}, which every shipped "
+                  "strategy ran)", ""]
     return "\n".join(lines)
 
 
 def plots(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> None:
+    """PSNR per round of the shipped strategies, over the seeds every one of them ran (so the
+    curves share their starting models)."""
     for scene, tasks in by_scene.items():
+        tasks = [t for t in tasks if all(name in t["runs"] for name in SHIPPED)]
         series = {}
         for name in SHIPPED:
             row = summary(tasks, name)
