@@ -162,7 +162,7 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
     def work(progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
         renderer = cache.get(record.id)
         result = uq.calibrate(renderer, cameras, samples=samples, method=body.method, seed=body.seed,
-                                     progress=progress, **options)
+                              progress=progress, **options)
         calibration = Calibration(**result.to_dict(), num_cameras=len(cameras), created_at=utc_now())
         if not store.set_calibration(record.id, calibration.model_dump()):
             raise not_found("model", record.id)
@@ -187,9 +187,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
     def work(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
         renderer = cache.get(record.id)
         split = len(cameras) / (len(cameras) + mapped)
-        ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed,
-                                      top_k=body.top_k, strategy=body.strategy, captured=captured,
-                                      progress=_span(progress, 0.0, split))
+        ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
+                               strategy=body.strategy, captured=captured, progress=_span(progress, 0.0, split))
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score) for r in ranked]
         artifacts: dict[str, bytes] = {}
@@ -201,7 +200,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
             for k, view in enumerate(views):
                 # Same seed -> the same N sub-models as the ranking: zeta is the ranked one's.
                 zeta = uq.view_uncertainty(renderer, cameras[view.index], ratio=ratio, samples=samples,
-                                                  seed=body.seed, keep_maps=True).zeta
+                                           seed=body.seed, keep_maps=True).zeta
                 png = png_bytes(colorize(zeta, vmax if vmax > 0 else None)[0])
                 view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
                                                              artifacts, job_url)
@@ -232,22 +231,21 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
+    estimate = pixels(cameras) * (2 * samples + (body.images != "none"))
     if body.rule == "distance_sigma":
         for name, record in (("model_a", record_a), ("model_b", record_b)):
             if not record.training_frames:
                 raise invalid(name, "the model has no training cameras, which rule 'distance_sigma' needs: upload "
                               "it with its cameras, or use rule 'sigma_mean'")
-    estimate = pixels(cameras) * (2 * samples + (body.images != "none"))
-    if body.rule == "distance_sigma":   # each model's zeta level on up to 8 of its training views
-        estimate += 2 * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples
+        estimate += 2 * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples   # each model's own zeta level
 
     def work(progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:
         renderer_a, renderer_b = cache.get(record_a.id), cache.get(record_b.id)
         result = uq.select_models(renderer_a, renderer_b, cameras, ratio_a=ratio_a, ratio_b=ratio_b,
-                                         samples=samples, seed=body.seed, rule=body.rule,
-                                         training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
-                                         keep_images=body.images != "none",
-                                         progress=progress)
+                                  samples=samples, seed=body.seed, rule=body.rule,
+                                  training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
+                                  keep_images=body.images != "none",
+                                  progress=progress)
         views, artifacts = [], {}
         for v in result.views:
             view = SelectedView(index=v.index, choice=v.choice, score_a=v.score_a, score_b=v.score_b,

@@ -73,7 +73,7 @@ def test_the_service_and_client_accept_a_registered_family(svc_start, toy_family
         assert [p.name for p in server.settings.data_dir.rglob(f"{info.id}.*")] == [f"{info.id}.toy"]
         ranking = phd.rank(info.id, candidates, samples=4, dropout_ratio=0.3, top_k=2)
         expected = uq.rank_views(load_toy(toy_file.read_bytes(), "x", train), candidates, ratio=0.3,
-                                        samples=4, top_k=2)
+                                 samples=4, top_k=2)
         assert [v.index for v in ranking.views] == [r.index for r in expected]
         assert phd.get_model(info.id).kind == "toy"
 

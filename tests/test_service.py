@@ -70,15 +70,15 @@ def test_ply_upload_calibrate_rank_equal_the_library(svc_start, svc_model_files)
         # Another strategy and other captured poses give the library's answer for the same arguments.
         paper = phd.rank(info.id, candidates, samples=6, seed=2, strategy="sigma_max", top_k=3)
         _assert_ranking_equal(paper, uq.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6,
-                                                          seed=2, strategy="sigma_max", top_k=3))
+                                                   seed=2, strategy="sigma_max", top_k=3))
         moved = phd.rank(info.id, candidates, samples=6, seed=2, captured=candidates[:2], top_k=2)
         _assert_ranking_equal(moved, uq.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6,
-                                                          seed=2, captured=candidates[:2], top_k=2))
+                                                   seed=2, captured=candidates[:2], top_k=2))
         assert not {0, 1} & {v.index for v in moved.views}   # captured poses are not worth capturing again
         assert ranking.heatmap_vmax == pytest.approx(max(r.sigma_max for r in expected), rel=1e-6)
         for view in ranking.views[:2]:  # the PNG is zeta of that view on the shared colour scale
             zeta = uq.view_uncertainty(renderer, candidates[view.index], ratio=direct.r_drop, samples=6,
-                                              seed=2, keep_maps=True).zeta
+                                       seed=2, keep_maps=True).zeta
             assert np.array_equal(_png(view.heatmap_png), colorize(zeta, ranking.heatmap_vmax)[0])
 
         top = phd.rank(info.id, [c.to_frame() for c in candidates], samples=6, seed=2, top_k=2, dropout_ratio=0.3)
@@ -122,7 +122,7 @@ def test_nerf_checkpoint_and_selection_equal_the_library(svc_start, svc_model_fi
 
         result = phd.select(a.id, b.id, views, samples=4, seed=5, ratio_b=0.3, images="base64", rule="sigma_mean")
         expected = uq.select_models(nerf, splats, views, ratio_a=direct.r_drop, ratio_b=0.3, samples=4,
-                                           seed=5, keep_images=True, rule="sigma_mean")
+                                    seed=5, keep_images=True, rule="sigma_mean")
         assert result.rule == "sigma_mean"
         assert (result.ratio_a, result.ratio_b) == (direct.r_drop, 0.3)
         assert [v.choice for v in result.views] == [v.choice for v in expected.views]

@@ -21,7 +21,7 @@ def test_eight_clients_rank_at_once(svc_start, svc_model_files):
     server = svc_start(workers=2, queue_size=8)
     cameras = svc_cameras(2, size=12)
     expected = uq.rank_views(GaussianRenderer(read_ply(svc_model_files["ply"])), cameras, ratio=0.2,
-                                    samples=4, seed=7)
+                             samples=4, seed=7)
     with PHDClient(server.url) as phd:
         model_id = phd.upload_model(svc_model_files["ply"]).id
     barrier = threading.Barrier(8)

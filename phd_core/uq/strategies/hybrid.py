@@ -1,7 +1,7 @@
 """Uncertainty times distance: farthest-view sampling weighted by PH-Dropout.
 
 Per held-out view, the render error follows the distance to the nearest captured pose
-(Spearman about 0.5-0.65 on lego and donut, docs/nbv.md); sigma_mean adds what distance
+(Spearman about 0.75-0.78 on lego and donut, docs/nbv.md); sigma_mean adds what distance
 cannot see (how much of the model a view depends on is fragile). The score is their
 product, and picks are greedy: each pick counts as captured before the next is scored,
 so a batch spreads out like farthest-view sampling does.
