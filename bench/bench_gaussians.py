@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from phd_core.data import load_blender
-from phd_core.fileio import write_json_atomic
+from phd_core.io import write_json_atomic
 from phd_core.gaussian_train import train_gaussians
 from phd_core.metrics import psnr, ssim
 from phd_core.models import load_model

@@ -111,8 +111,8 @@ def run(args: argparse.Namespace) -> int:
 
     from client import PHDClient
     from phd_core.data import load_blender, select_views, split_size
-    from phd_core.fileio import write_bytes_atomic, write_json_atomic
-    from phd_core.png import write_png
+    from phd_core.io import write_bytes_atomic, write_json_atomic
+    from phd_core.io import write_png
     from phd_core.uq_metrics import ensemble_efficiency, spearman
     from service.runner import BackgroundServer
     from service.settings import Settings

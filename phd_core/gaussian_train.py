@@ -29,7 +29,7 @@ from tqdm import tqdm
 from .cameras import Camera
 from .data import Dataset, load_blender
 from .errors import InputError
-from .fileio import write_json_atomic
+from .io import write_json_atomic
 from .gaussian_render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
 from .gaussians import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
 from .metrics import ssim

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from .errors import InputError
-from .fileio import write_bytes_atomic
+from .io import write_bytes_atomic
 
 SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
 _REST_COUNTS = {3 * (k - 1): k for k in SH_COEFFS}  # f_rest count -> K: 0, 9, 24, 45

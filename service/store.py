@@ -26,7 +26,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from phd_core.fileio import fsync_path
+from phd_core.io import fsync_path
 from phd_core.models import FAMILIES
 
 DB_NAME = "phd.sqlite3"

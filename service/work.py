@@ -19,8 +19,8 @@ from phd_core import uq
 from phd_core.uq import Progress
 from phd_core.cameras import Camera, cameras_from_json
 from phd_core.errors import InputError
-from phd_core.heatmap import colorize
-from phd_core.png import png_bytes
+from phd_core.io import colorize
+from phd_core.io import png_bytes
 from phd_core.models import load_model
 from phd_core.protocol import Renderer
 

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core import fileio, gaussians
+from phd_core import gaussians
+from phd_core.io import files
 from phd_core.errors import InputError
 from phd_core.gaussians import GaussianModel, is_ply, parse_ply, read_ply, write_ply
 
@@ -247,7 +248,7 @@ def test_failed_write_cleans_up_and_keeps_old_file(tmp_path, monkeypatch):
     def failing_replace(src, dst):
         raise OSError("disk full")
 
-    monkeypatch.setattr(fileio.os, "replace", failing_replace)
+    monkeypatch.setattr(files.os, "replace", failing_replace)
     with pytest.raises(OSError, match="disk full"):
         write_ply(random_model(4, 4), target)
     assert target.read_bytes() == b"old contents" and os.listdir(tmp_path) == ["scene.ply"]

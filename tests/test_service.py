@@ -21,7 +21,7 @@ from conftest import svc_cameras
 from phd_core import uq
 from phd_core.gaussian_render import GaussianRenderer
 from phd_core.gaussians import read_ply
-from phd_core.heatmap import colorize
+from phd_core.io import colorize
 from phd_core.nerf import load_nerf
 
 

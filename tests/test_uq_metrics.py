@@ -14,7 +14,7 @@ import torch
 
 from phd_core import uq_metrics as m
 from phd_core.errors import InputError
-from phd_core.heatmap import ANCHORS, apply_colormap, colorize, write_heatmap
+from phd_core.io.heatmap import ANCHORS, apply_colormap, colorize, write_heatmap
 
 RNG = np.random.default_rng(0)
 

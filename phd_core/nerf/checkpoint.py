@@ -14,7 +14,7 @@ from safetensors.torch import save as st_save
 
 from ..cameras import Camera, cameras_from_json
 from ..errors import InputError
-from ..fileio import write_bytes_atomic
+from ..io import write_bytes_atomic
 from .config import NeRFConfig
 from .field import RadianceField
 from .renderer import NeRFRenderer

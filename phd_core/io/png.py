@@ -8,7 +8,7 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from .fileio import write_bytes_atomic
+from .files import write_bytes_atomic
 
 
 def png_bytes(image: torch.Tensor | np.ndarray) -> bytes:

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import InputError
+from ..errors import InputError
 from .png import write_png
 
 # Anchor colours of the ramp at 0, 1/9, ..., 1 (sRGB, 0-255).
