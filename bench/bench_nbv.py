@@ -45,9 +45,8 @@ from phd_core import uq as phd  # noqa: E402
 from phd_core.data import Dataset, load_blender  # noqa: E402
 from phd_core.gaussian_render import GaussianRenderer  # noqa: E402
 from phd_core.gaussian_train import TrainConfig, fit  # noqa: E402
-from phd_core.metrics import psnr, rmse  # noqa: E402
+from phd_core.eval import psnr, rmse, spearman  # noqa: E402
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy  # noqa: E402
-from phd_core.uq_metrics import spearman  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results" / "nbv"

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from phd_core.data import load_blender  # noqa: E402
-from phd_core.metrics import psnr, ssim  # noqa: E402
+from phd_core.eval import psnr, ssim  # noqa: E402
 from phd_core.nerf_train import DEFAULT_ITERATIONS, train_nerf  # noqa: E402
 
 VARIANTS = {

@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from phd_core import uq as phd  # noqa: E402
-from phd_core import uq_metrics as uqm  # noqa: E402
+from phd_core.eval import uq as uqm  # noqa: E402
 from phd_core.data import load_dataset  # noqa: E402
 from phd_core.io import write_bytes_atomic, write_json_atomic  # noqa: E402
 

@@ -97,7 +97,7 @@ def _progress(label: str):
 
 def _true_errors(model_path: Path, cameras, images) -> tuple[list[float], list[float], list[float], list]:
     """Per view RMSE, PSNR and SSIM of the model's full render against the ground truth, and the renders."""
-    from phd_core.metrics import psnr, rmse, ssim
+    from phd_core.eval import psnr, rmse, ssim
     from phd_core.models import load_model
 
     renderer = load_model(model_path)
@@ -111,9 +111,8 @@ def run(args: argparse.Namespace) -> int:
 
     from client import PHDClient
     from phd_core.data import load_blender, select_views, split_size
-    from phd_core.io import write_bytes_atomic, write_json_atomic
-    from phd_core.io import write_png
-    from phd_core.uq_metrics import ensemble_efficiency, spearman
+    from phd_core.io import write_bytes_atomic, write_json_atomic, write_png
+    from phd_core.eval import ensemble_efficiency, spearman
     from service.runner import BackgroundServer
     from service.settings import Settings
 

@@ -21,9 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from phd_core.data import load_dataset, split_size
-    from phd_core.io import write_json_atomic
-    from phd_core.io import write_png
-    from phd_core.metrics import psnr, ssim
+    from phd_core.io import write_json_atomic, write_png
+    from phd_core.eval import psnr, ssim
     from phd_core.models import load_model
     from .train import parse_views
 

@@ -15,10 +15,9 @@ from typing import Any
 from phd_core import uq as phd
 from phd_core.cameras import Camera, cameras_from_json
 from phd_core.errors import InputError
-from phd_core.io import write_json_atomic
-from phd_core.io import write_heatmap
+from phd_core.io import write_heatmap, write_json_atomic
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
-from phd_core.uq_metrics import image_uq_metrics, mean_defined, spearman
+from phd_core.eval import image_uq_metrics, mean_defined, spearman
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

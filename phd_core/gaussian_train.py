@@ -32,7 +32,7 @@ from .errors import InputError
 from .io import write_json_atomic
 from .gaussian_render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
 from .gaussians import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
-from .metrics import ssim
+from .eval import ssim
 
 @dataclass
 class TrainConfig:

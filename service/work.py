@@ -19,8 +19,7 @@ from phd_core import uq
 from phd_core.uq import Progress
 from phd_core.cameras import Camera, cameras_from_json
 from phd_core.errors import InputError
-from phd_core.io import colorize
-from phd_core.io import png_bytes
+from phd_core.io import colorize, png_bytes
 from phd_core.models import load_model
 from phd_core.protocol import Renderer
 

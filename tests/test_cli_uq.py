@@ -17,7 +17,7 @@ from phd_cli import main
 from phd_core.data import load_dataset
 from phd_core.gaussians import GaussianModel, write_ply
 from phd_core.models import load_model
-from phd_core.uq_metrics import image_uq_metrics
+from phd_core.eval import image_uq_metrics
 from toy_renderers import away_camera, ring_cameras
 
 SIZE, FOV, STEP = 16, 0.7, 0.25

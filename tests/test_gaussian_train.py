@@ -18,7 +18,7 @@ from phd_core.gaussian_train import (Splats, TrainConfig, carve_points, densify,
 from phd_core.gaussians import read_sidecar
 from phd_core.gaussian_render import rasterize
 from phd_core.gaussians import read_ply
-from phd_core.metrics import psnr
+from phd_core.eval import psnr
 from phd_core.models import UnknownModelError, load_model, load_model_bytes
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"

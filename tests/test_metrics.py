@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from phd_core.errors import InputError
-from phd_core.metrics import psnr, rmse, ssim
+from phd_core.eval import psnr, rmse, ssim
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2
 

@@ -18,7 +18,7 @@ import torch
 
 from phd_core import uq as phd
 from phd_core.errors import InputError
-from phd_core.metrics import psnr, ssim
+from phd_core.eval import psnr, ssim
 from toy_renderers import BlobRenderer, ConstantRenderer, EmptyRenderer, away_camera, ring_cameras
 
 CAMERAS = ring_cameras(6)

@@ -12,9 +12,8 @@ from torch import Tensor
 
 from ..cameras import Camera
 from ..errors import InputError
-from ..metrics import psnr, ssim
+from ..eval import ensemble_efficiency, psnr, ssim
 from ..protocol import Renderer
-from ..uq_metrics import ensemble_efficiency
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_ratio, check_samples, check_seed,
                        dropout_uniforms, keep_masks, render_masks)
 from .uncertainty import DEFAULT_SAMPLES, measure_view

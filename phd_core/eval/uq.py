@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import InputError
+from ..errors import InputError
 
 AUSE_STEPS = 100        # removed fractions 0, 1/100, ..., 99/100
 AUSE_METRICS = ("rmse", "mse", "mae")

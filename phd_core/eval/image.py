@@ -14,7 +14,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from .errors import InputError
+from ..errors import InputError
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
