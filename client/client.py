@@ -13,7 +13,7 @@ raises a `PHDError` subclass carrying the server's status, code, message and fie
 that the server turns into a job (asked with `run_async=True`, or too big to answer at
 once) is waited for when `wait=True` (the default), with an optional progress callback.
 
-Cameras may be given as `phd_core.cameras.Camera` objects, as frame dicts, as a
+Cameras may be given as `phd_core.scene.Camera` objects, as frame dicts, as a
 transforms.json object, as the path of a transforms.json file, or as a trainer's sidecar
 JSON (`training_cameras`). Frames without an image size get it from their image file when
 that is a PNG next to the JSON.

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from phd_core import uq as phd
-from phd_core.cameras import Camera, cameras_from_json
+from phd_core.scene import Camera, cameras_from_json
 from phd_core.errors import InputError
 from phd_core.io import write_heatmap, write_json_atomic
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES

@@ -19,7 +19,7 @@ transmittance below 1e-4. A splat is listed in every tile its alpha >= 1/255 ell
 touches, so the image does not depend on the tile size (the reference cuts splats at a
 3-sigma square, which makes its images depend on the tiling).
 
-Pixel (i, j) has its centre at (i + 0.5, j + 0.5); see `phd_core.cameras`.
+Pixel (i, j) has its centre at (i + 0.5, j + 0.5); see `phd_core.scene`.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from typing import Any, Sequence
 
 import torch
 
-from .cameras import Camera
+from .scene import Camera
 from .gaussians import GaussianModel
 from .protocol import check_keep
 

@@ -26,7 +26,7 @@ from typing import Any, Sequence
 import torch
 from tqdm import tqdm
 
-from .cameras import Camera
+from .scene import Camera
 from .data import Dataset, load_blender
 from .errors import InputError
 from .io import write_json_atomic

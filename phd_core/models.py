@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from .cameras import Camera, cameras_from_json
+from .scene import Camera, cameras_from_json
 from .errors import InputError
 from .gaussian_render import GaussianRenderer
 from .gaussians import is_ply, parse_ply, read_sidecar

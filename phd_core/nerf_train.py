@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from .cameras import Camera
+from .scene import Camera
 from .data import Dataset, load_dataset
 from .errors import InputError, check_color
 from .nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays,

@@ -14,7 +14,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import torch
 
-from .cameras import Camera
+from .scene import Camera
 
 
 @runtime_checkable

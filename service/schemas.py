@@ -4,7 +4,7 @@ Pure pydantic: importing this module imports neither FastAPI nor torch, so the c
 (`client.PHDClient`) parses the server's answers into exactly these types.
 
 Cameras travel as JSON frames in the Blender / nerfstudio style that
-`phd_core.cameras.camera_from_frame` reads: `transform_matrix` (4x4 camera-to-world,
+`phd_core.scene.camera_from_frame` reads: `transform_matrix` (4x4 camera-to-world,
 OpenGL), intrinsics (`fl_x`/`fl_y`/`cx`/`cy` or `camera_angle_x`) and the image size
 `w`/`h`. A camera list is either a list of frames or a transforms.json object
 (`{"camera_angle_x": ..., "frames": [...]}`) whose top-level keys are defaults for

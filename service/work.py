@@ -17,7 +17,7 @@ from typing import Any, Callable
 
 from phd_core import uq
 from phd_core.uq import Progress
-from phd_core.cameras import Camera, cameras_from_json
+from phd_core.scene import Camera, cameras_from_json
 from phd_core.errors import InputError
 from phd_core.io import colorize, png_bytes
 from phd_core.models import load_model

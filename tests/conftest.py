@@ -19,7 +19,7 @@ import httpx
 import pytest
 import torch
 
-from phd_core.cameras import Camera, look_at
+from phd_core.scene import Camera, look_at
 from phd_core.gaussians import GaussianModel, write_ply
 
 SVC_SIZE = 24  # test render size in pixels: small enough for 2 cores

@@ -290,7 +290,7 @@ def test_a_capture_format_is_one_registry_entry(tmp_path):
 
 
 def test_camera_projection_matches_the_pinhole_model():
-    from phd_core.cameras import look_at
+    from phd_core.scene import look_at
 
     camera = look_at((0.0, -4.0, 1.0), (0.0, 0.0, 1.0), (0, 0, 1), width=40, height=30, fov_x=0.8)
     points = torch.tensor([[0.0, 0.0, 1.0], [0.5, 0.0, 1.25], [0.0, -6.0, 1.0]], dtype=torch.float64)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core.cameras import Camera, look_at
+from phd_core.scene import Camera, look_at
 from phd_core.gaussian_render import GaussianRenderer, rasterize
 from phd_core.gaussians import GaussianModel
 from gs_reference import render_reference

@@ -16,7 +16,7 @@ import torch
 from safetensors.torch import save as st_save
 
 from phd_core import nerf
-from phd_core.cameras import look_at
+from phd_core.scene import look_at
 from phd_core.errors import InputError
 from phd_core.nerf import (HASH_PRIMES, HashEncoding, NeRFConfig, NeRFRenderer, PositionalEncoding, RadianceField,
                            band_weights, composite, is_nerf_checkpoint, load_nerf, load_nerf_bytes, nerf_bytes,

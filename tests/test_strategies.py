@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from phd_core import uq as phd
-from phd_core.cameras import look_at
+from phd_core.scene import look_at
 from phd_core.errors import InputError
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, Strategy, get_strategy, register
 from phd_core.uq.strategies.base import by_score

@@ -15,7 +15,7 @@ import math
 
 import torch
 
-from phd_core.cameras import Camera, look_at
+from phd_core.scene import Camera, look_at
 from phd_core.protocol import check_keep
 
 

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..cameras import Camera, camera_from_frame
+from ..scene import Camera, camera_from_frame
 from ..errors import InputError, check_color
 
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")

@@ -12,7 +12,7 @@ import torch
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
-from ..cameras import Camera, cameras_from_json
+from ..scene import Camera, cameras_from_json
 from ..errors import InputError
 from ..io import write_bytes_atomic
 from .config import NeRFConfig

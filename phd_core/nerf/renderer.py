@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
+from ..scene import Camera
 from ..protocol import check_keep
 from .config import CHUNK_SAMPLES, NeRFConfig
 from .field import RadianceField

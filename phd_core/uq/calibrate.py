@@ -15,7 +15,7 @@ from typing import Callable, Sequence
 
 from torch import Tensor
 
-from ..cameras import Camera
+from ..scene import Camera
 from ..errors import InputError, check_float, check_int
 from ..eval import ssim
 from ..protocol import Renderer

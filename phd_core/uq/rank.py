@@ -8,7 +8,7 @@ from typing import Sequence
 
 import torch
 
-from ..cameras import Camera
+from ..scene import Camera
 from ..errors import check_int
 from ..protocol import Renderer
 from .sampling import Progress, check_cameras

@@ -13,7 +13,7 @@ from typing import Any, Callable, Sequence
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
+from ..scene import Camera
 from ..errors import InputError, check_float, check_int
 from ..protocol import Renderer
 

@@ -10,7 +10,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
+from ..scene import Camera
 from ..errors import InputError
 from ..eval import ensemble_efficiency, psnr, ssim
 from ..protocol import Renderer

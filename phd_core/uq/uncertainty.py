@@ -10,7 +10,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ..cameras import Camera
+from ..scene import Camera
 from ..errors import InputError
 from ..protocol import Renderer
 from .sampling import (Progress, ProgressTicker, check_cameras, check_dtype, check_ratio, check_samples, check_seed,

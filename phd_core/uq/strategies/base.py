@@ -15,7 +15,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ...cameras import Camera
+from ...scene import Camera
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Pinhole cameras: parsing, validation, conversion and candidate-pose generators.
+"""Pinhole cameras: the `Camera`, its one world-to-pixel projection, pose checks, look-at.
 
 A `Camera` stores a camera-to-world matrix in the OpenGL convention used by Blender and
 nerfstudio frames (+x right, +y up, the camera looks down -z) plus pinhole intrinsics in
@@ -9,15 +9,13 @@ world-to-camera matrix (+y down, looks down +z) from `world_to_camera()`.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Sequence
 
 import torch
 
-from .errors import InputError
+from ..errors import InputError
 
 DEFAULT_MAX_SIZE = 4096
 ORTHONORMAL_TOL = 1e-3
@@ -118,92 +116,6 @@ def validate_pose(c2w: torch.Tensor, name: str = "transform_matrix") -> None:
         raise InputError(name, "rotation has determinant -1 (a reflection), not a rotation")
     if c2w.shape[0] == 4 and (c2w[3] - torch.tensor([0, 0, 0, 1.0], dtype=c2w.dtype)).abs().max() > ORTHONORMAL_TOL:
         raise InputError(name, "last row must be [0, 0, 0, 1]")
-
-
-def _number(frame: dict, key: str) -> float:
-    value = frame[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(key, f"must be a number, got {type(value).__name__}")
-    return float(value)
-
-
-def _matrix(value: Any) -> torch.Tensor:
-    try:
-        c2w = torch.tensor(value, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise InputError("transform_matrix", f"must be a 4x4 list of numbers ({exc})") from None
-    validate_pose(c2w)
-    if c2w.shape[0] == 3:
-        c2w = torch.cat([c2w, torch.tensor([[0, 0, 0, 1.0]], dtype=torch.float64)])
-    return c2w
-
-
-def camera_from_frame(frame: dict, defaults: dict | None = None, *, width: int | None = None,
-                      height: int | None = None, max_size: int = DEFAULT_MAX_SIZE) -> Camera:
-    """Build a camera from a Blender or nerfstudio frame.
-
-    Intrinsics are looked up in the frame first, then in `defaults` (the top level of a
-    transforms.json). Blender style gives `camera_angle_x` (horizontal field of view) and
-    needs the image size from `w`/`h` or the `width`/`height` arguments; nerfstudio style
-    gives `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h`.
-    """
-    if not isinstance(frame, dict):
-        raise InputError("frame", f"must be an object, got {type(frame).__name__}")
-    if "transform_matrix" not in frame:
-        raise InputError("transform_matrix", "missing from frame")
-    merged = {**(defaults or {}), **frame}
-    c2w = _matrix(merged["transform_matrix"])
-    w = _number(merged, "w") if "w" in merged else width
-    h = _number(merged, "h") if "h" in merged else height
-    if w is None or h is None:
-        raise InputError("w", "image size unknown: give w and h (or load with the images)")
-    if "fl_x" in merged:
-        fx = _number(merged, "fl_x")
-        fy = _number(merged, "fl_y") if "fl_y" in merged else fx
-    elif "camera_angle_x" in merged:
-        angle = _number(merged, "camera_angle_x")
-        if not 0 < angle < math.pi:
-            raise InputError("camera_angle_x", f"field of view must lie in (0, pi) radians, got {angle}")
-        fx = 0.5 * w / math.tan(0.5 * angle)
-        if "camera_angle_y" in merged:
-            angle_y = _number(merged, "camera_angle_y")
-            if not 0 < angle_y < math.pi:
-                raise InputError("camera_angle_y", f"field of view must lie in (0, pi) radians, got {angle_y}")
-            fy = 0.5 * h / math.tan(0.5 * angle_y)
-        else:
-            fy = fx
-    else:
-        raise InputError("fl_x", "no focal length: give fl_x (nerfstudio) or camera_angle_x (Blender)")
-    cx = _number(merged, "cx") if "cx" in merged else w / 2
-    cy = _number(merged, "cy") if "cy" in merged else h / 2
-    if w != int(w) or h != int(h):
-        raise InputError("w", f"image size must be whole pixels, got {w} x {h}")
-    return Camera(c2w, fx, fy, cx, cy, int(w), int(h), max_size)
-
-
-def cameras_from_json(source: str | Path | dict | list, *, width: int | None = None,
-                      height: int | None = None, max_size: int = DEFAULT_MAX_SIZE) -> list[Camera]:
-    """Cameras from a transforms.json path, its parsed dict, or a plain list of frames."""
-    if isinstance(source, (str, Path)):
-        try:
-            source = json.loads(Path(source).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise InputError("cameras", f"cannot read camera JSON {source}: {exc}") from None
-    if isinstance(source, list):
-        frames, defaults = source, {}
-    elif isinstance(source, dict) and isinstance(source.get("frames"), list):
-        frames, defaults = source["frames"], {k: v for k, v in source.items() if k != "frames"}
-    else:
-        raise InputError("frames", "expected a list of frames or an object with a 'frames' list")
-    if not frames:
-        raise InputError("frames", "no frames given")
-    cameras = []
-    for i, frame in enumerate(frames):
-        try:
-            cameras.append(camera_from_frame(frame, defaults, width=width, height=height, max_size=max_size))
-        except InputError as exc:
-            raise InputError(f"frames[{i}].{exc.field}", exc.reason) from None
-    return cameras
 
 
 def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0, 0, 1), *,
