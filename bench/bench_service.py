@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT))
 
 from client import PHDClient  # noqa: E402
 from phd_core import uq  # noqa: E402
-from phd_core.scene import hemisphere_cameras  # noqa: E402
+from phd_core.uq.candidates import hemisphere_cameras  # noqa: E402
 from phd_core.gaussians import GaussianModel, write_ply  # noqa: E402
 from phd_core.models import load_model  # noqa: E402
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from phd_core.scene import hemisphere_cameras
+from phd_core.uq.candidates import hemisphere_cameras
 from phd_core.data import load_blender
 from phd_core.errors import InputError
 from phd_core.eval import psnr

@@ -9,6 +9,7 @@ one image per mask, so N sub-models of one view cost one batched pass.
     calibrate    Algorithm 1: r_drop on the training poses
     uncertainty  zeta, sigma_max, sigma_mean, sigma-max-bar
     strategies/  next-best-view strategies (a registry)
+    candidates/  candidate-pose generators (a registry; hemisphere today)
     rank         candidates in the order a strategy would capture them
     select       per view, which of two models to trust
 
@@ -17,6 +18,7 @@ Everything public is importable from here: `from phd_core import uq`.
 
 from .calibrate import (DEFAULT_CALIBRATION_SAMPLES, DEFAULT_EPSILON, DEFAULT_SSIM_MARGIN, DEFAULT_STEP,
                         CalibrationError, CalibrationResult, calibrate, calibrate_ssim)
+from .candidates import GENERATORS
 from .rank import RankedView, candidate_evidence, rank_views
 from .sampling import MAX_MASKS_PER_RENDER, Progress, dropout_uniforms, keep_masks, sample_std
 from .select import (DEFAULT_SELECTION_RULE, SELECTION_RULES, SELECTION_TRAINING_VIEWS, SelectionResult,
@@ -26,8 +28,9 @@ from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, sigma_max_bar, uncert
 
 __all__ = [
     "DEFAULT_CALIBRATION_SAMPLES", "DEFAULT_EPSILON", "DEFAULT_SAMPLES", "DEFAULT_SELECTION_RULE",
-    "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "MAX_MASKS_PER_RENDER", "SELECTION_RULES", "SELECTION_TRAINING_VIEWS",
-    "STRATEGIES", "CalibrationError", "CalibrationResult", "Progress", "RankedView", "SelectionResult",
-    "ViewSelection", "ViewUncertainty", "calibrate", "calibrate_ssim", "candidate_evidence", "dropout_uniforms",
-    "keep_masks", "rank_views", "sample_std", "select_models", "sigma_max_bar", "uncertainty", "view_uncertainty",
+    "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "GENERATORS", "MAX_MASKS_PER_RENDER",
+    "SELECTION_RULES", "SELECTION_TRAINING_VIEWS", "STRATEGIES", "CalibrationError", "CalibrationResult",
+    "Progress", "RankedView", "SelectionResult", "ViewSelection", "ViewUncertainty", "calibrate", "calibrate_ssim",
+    "candidate_evidence", "dropout_uniforms", "keep_masks", "rank_views", "sample_std", "select_models",
+    "sigma_max_bar", "uncertainty", "view_uncertainty",
 ]
