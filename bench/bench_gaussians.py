@@ -23,7 +23,7 @@ from phd_core.data import load_blender
 from phd_core.io import write_json_atomic
 from phd_core.gaussian_train import train_gaussians
 from phd_core.eval import psnr, ssim
-from phd_core.models import load_model
+from phd_core.renderers import load_model
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "lego_200"

@@ -114,15 +114,14 @@ def at_size(cameras: list, size: int) -> list:
 def load_renderer(args: argparse.Namespace):
     """(renderer, description) from --model, else a seeded random splat cloud."""
     if args.random_splats is None and args.model is not None:
-        from phd_core.models import load_model, load_model_bytes
+        from phd_core.renderers import load_model, load_model_bytes
 
         renderer = load_model(args.model)
         if not renderer.training_cameras:
             train = load_dataset(args.data, "train", views=args.train_views, with_images=False)
             renderer = load_model_bytes(args.model.read_bytes(), args.model.name, training_cameras=train.cameras)
         return renderer, f"{args.model} ({renderer.num_units} splats)"
-    from phd_core.gaussian_render import GaussianRenderer
-    from phd_core.gaussians import GaussianModel
+    from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 
     count = args.random_splats or 20000
     g = torch.Generator().manual_seed(0)

@@ -42,8 +42,8 @@ sys.path.insert(0, str(ROOT))
 from client import PHDClient  # noqa: E402
 from phd_core import uq  # noqa: E402
 from phd_core.uq.candidates import hemisphere_cameras  # noqa: E402
-from phd_core.gaussians import GaussianModel, write_ply  # noqa: E402
-from phd_core.models import load_model  # noqa: E402
+from phd_core.renderers.gs3d import GaussianModel, write_ply  # noqa: E402
+from phd_core.renderers import load_model  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "lego_200"
 TRAINED = ROOT / "runs" / "lego16" / "model.ply"

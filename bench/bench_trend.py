@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 from bench_phdropout import DATA, DOC, fmt, load_test_at_size, save, timed, write_doc  # noqa: E402
 from phd_core import uq as phd  # noqa: E402
 from phd_core.eval import rmse, uq as uqm  # noqa: E402
-from phd_core.models import load_model  # noqa: E402
+from phd_core.renderers import load_model  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "trend.json"
 

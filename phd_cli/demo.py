@@ -66,7 +66,7 @@ def _train(data: Path, views: list[int], iterations: int | None, out: Path, retr
     """Train a 3DGS model on `views` of the train split, or reuse a cached one whose
     sidecar (written by the trainer) records the same scene, views and settings."""
     from phd_core.gaussian_train import TrainConfig, train_gaussians
-    from phd_core.gaussians import read_sidecar
+    from phd_core.renderers.gs3d import read_sidecar
 
     model = out / "models" / f"{name}.ply"
     wanted_iterations = iterations if iterations is not None else TrainConfig().iterations
@@ -98,7 +98,7 @@ def _progress(label: str):
 def _true_errors(model_path: Path, cameras, images) -> tuple[list[float], list[float], list[float], list]:
     """Per view RMSE, PSNR and SSIM of the model's full render against the ground truth, and the renders."""
     from phd_core.eval import psnr, rmse, ssim
-    from phd_core.models import load_model
+    from phd_core.renderers import load_model
 
     renderer = load_model(model_path)
     renders = [renderer.render(camera)[0] for camera in cameras]

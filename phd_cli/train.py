@@ -7,7 +7,7 @@ import importlib
 import time
 from pathlib import Path
 
-from phd_core.models import FAMILIES
+from phd_core.renderers import FAMILIES
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -120,7 +120,7 @@ def _add_uncertainty_args(parser: argparse.ArgumentParser) -> None:
 # ---------------------------------------------------------------------------------------- helpers
 
 def _load(path: Path):
-    from phd_core.models import load_model
+    from phd_core.renderers import load_model
 
     return load_model(path)
 

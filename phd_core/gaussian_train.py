@@ -30,8 +30,8 @@ from .scene import Camera
 from .data import Dataset, load_blender
 from .errors import InputError
 from .io import write_json_atomic
-from .gaussian_render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
-from .gaussians import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
+from .renderers.gs3d.render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
+from .renderers.gs3d import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
 from .eval import ssim
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Train a NeRF (`phd_core.nerf`) on Blender or nerfstudio data on the CPU.
+"""Train a NeRF (`phd_core.renderers.nerf`) on Blender or nerfstudio data on the CPU.
 
 Adam on random batches of training rays with an exponentially decaying learning rate.
 The loss is the colour MSE, plus (when the images have alpha) the MSE of the accumulated
@@ -33,7 +33,7 @@ from tqdm import tqdm
 from .scene import Camera
 from .data import Dataset, load_dataset
 from .errors import InputError, check_color
-from .nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays,
+from .renderers.nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays,
                    render_rays, save_nerf)
 
 # 100x100 images, 16 views, 2 shared CPU cores: about 0.1 s per iteration, 4 minutes (docs/nerf.md).

@@ -10,7 +10,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from fastapi.responses import JSONResponse
 
-from phd_core.models import FAMILIES, load_model
+from phd_core.renderers import FAMILIES, load_model
 
 from .errors import ServiceError, not_found
 from .jobs import JobManager, JobRecord, QueueFull, Work

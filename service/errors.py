@@ -42,7 +42,7 @@ def from_exception(exc: BaseException) -> ServiceError | None:
     if isinstance(exc, ServiceError):
         return exc
     if isinstance(exc, InputError):
-        from phd_core.models import UnknownModelError  # the library's content sniffer
+        from phd_core.renderers import UnknownModelError  # the library's content sniffer
 
         if isinstance(exc, UnknownModelError):
             return ServiceError(415, "unsupported_model", exc.reason, exc.field)

@@ -17,7 +17,7 @@ from typing import Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator
 
-from phd_core.models import FAMILIES
+from phd_core.renderers import FAMILIES
 from phd_core.registry import Registry
 from phd_core.uq import DEFAULT_SELECTION_RULE
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
@@ -94,7 +94,7 @@ class Calibration(_Response):
 class ModelInfo(_Response):
     id: str
     name: str
-    kind: str = Field(description="Model family, one of the registry's kinds (phd_core.models.FAMILIES).")
+    kind: str = Field(description="Model family, one of the registry's kinds (phd_core.renderers.FAMILIES).")
     num_units: int = Field(description="Dropout units: splats (3DGS) or first-layer hidden units (NeRF).")
     sh_degree: int | None = Field(None, description="Spherical-harmonic degree (3DGS).")
     network: dict[str, Any] | None = Field(None, description="Network size facts (NeRF).")

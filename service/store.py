@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from phd_core.io import fsync_path
-from phd_core.models import FAMILIES
+from phd_core.renderers import FAMILIES
 
 DB_NAME = "phd.sqlite3"
 SCHEMA = """

@@ -28,7 +28,7 @@ from python_multipart.multipart import parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
 from phd_core.io import fsync_path
-from phd_core.models import FAMILIES, SNIFF_BYTES, model_kind
+from phd_core.renderers import FAMILIES, SNIFF_BYTES, model_kind
 
 from .errors import ServiceError, invalid
 

@@ -20,8 +20,7 @@ from phd_core.uq import Progress
 from phd_core.scene import Camera, cameras_from_json
 from phd_core.errors import InputError
 from phd_core.io import colorize, png_bytes
-from phd_core.models import load_model
-from phd_core.protocol import Renderer
+from phd_core.renderers import Renderer, load_model
 
 from .errors import ServiceError, invalid, not_found
 from .jobs import Work

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from phd_core.scene import Camera, look_at
-from phd_core.gaussians import GaussianModel, write_ply
+from phd_core.renderers.gs3d import GaussianModel, write_ply
 
 SVC_SIZE = 24  # test render size in pixels: small enough for 2 cores
 
@@ -50,7 +50,7 @@ def svc_random_gaussians(count: int = 300, seed: int = 0) -> GaussianModel:
 @pytest.fixture(scope="session")
 def svc_model_files(tmp_path_factory) -> dict[str, Path]:
     """Two random PLYs and a tiny NeRF checkpoint (with training cameras inside)."""
-    from phd_core.nerf import NeRFConfig, NeRFRenderer, RadianceField, save_nerf
+    from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, save_nerf
 
     root = tmp_path_factory.mktemp("svc_models")
     files = {"ply": root / "splats.ply", "ply_b": root / "splats_b.ply", "nerf": root / "tiny.nerf"}

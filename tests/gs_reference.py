@@ -1,6 +1,6 @@
 """An independent, slow, float64 per-pixel 3DGS renderer used only to check the fast one.
 
-It shares no code with `phd_core.gaussian_render`: NumPy, explicit loops over pixels and
+It shares no code with `phd_core.renderers.gs3d`: NumPy, explicit loops over pixels and
 over splats in depth order, the model definition written out from the reference
 rasteriser's equations.
 """

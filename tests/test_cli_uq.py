@@ -15,8 +15,8 @@ import torch
 from phd_core import uq as phd
 from phd_cli import main
 from phd_core.data import load_dataset
-from phd_core.gaussians import GaussianModel, write_ply
-from phd_core.models import load_model
+from phd_core.renderers.gs3d import GaussianModel, write_ply
+from phd_core.renderers import load_model
 from phd_core.eval import image_uq_metrics
 from toy_renderers import away_camera, ring_cameras
 
@@ -112,7 +112,7 @@ def test_calibrate_prints_r_drop_and_writes_the_curve(files, curve, capsys) -> N
 
 
 def test_a_trained_model_calibrates_and_ranks_with_its_stored_cameras(files, curve, capsys) -> None:
-    from phd_core.gaussians import SIDECAR_FORMAT, sidecar_path
+    from phd_core.renderers.gs3d import SIDECAR_FORMAT, sidecar_path
 
     trained = files["root"] / "trained.ply"
     shutil.copy(files["model"], trained)

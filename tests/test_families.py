@@ -15,7 +15,7 @@ import torch
 from client import PHDClient, UnsupportedModelError
 from conftest import svc_cameras
 from phd_core import uq
-from phd_core.models import FAMILIES, Family, load_model, load_model_bytes, model_kind, register_family
+from phd_core.renderers import FAMILIES, Family, load_model, load_model_bytes, model_kind, register_family
 from toy_renderers import BlobRenderer
 
 MAGIC = b"PHD-TOY-BLOBS\n"

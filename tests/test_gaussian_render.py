@@ -9,8 +9,7 @@ import pytest
 import torch
 
 from phd_core.scene import Camera, look_at
-from phd_core.gaussian_render import GaussianRenderer, rasterize
-from phd_core.gaussians import GaussianModel
+from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, rasterize
 from gs_reference import render_reference
 
 WHITE = torch.ones(3)
@@ -102,7 +101,7 @@ def test_all_ones_mask_equals_unmasked_render() -> None:
 
 
 def test_masks_share_one_projection(monkeypatch) -> None:
-    import phd_core.gaussian_render as gr
+    import phd_core.renderers.gs3d.render as gr
     calls = {"project": 0, "intersect": 0, "splat_alpha": 0, "fragments": 0}
     for name in calls:
         original = getattr(gr, name)
@@ -190,7 +189,7 @@ def test_gradients_flow_to_every_parameter() -> None:
 
 
 def test_renderer_protocol() -> None:
-    from phd_core.protocol import Renderer
+    from phd_core.renderers import Renderer
     renderer = GaussianRenderer(random_scene(25, 2, seed=14))
     assert isinstance(renderer, Renderer)
     assert renderer.num_units == 25
@@ -203,7 +202,7 @@ def test_renderer_protocol() -> None:
 
 
 def test_pixel_sums_backward_matches_finite_differences() -> None:
-    from phd_core.gaussian_render import PixelSums
+    from phd_core.renderers.gs3d.render import PixelSums
     gen = torch.Generator().manual_seed(0)
     row = torch.tensor([0, 0, 0, 1, 2, 2, 3, 3, 3, 3])                  # 10 entries in 4 pixels
     row_ptr = torch.tensor([0, 3, 4, 6, 10])

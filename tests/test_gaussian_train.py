@@ -15,11 +15,9 @@ from phd_core.data import load_blender
 from phd_core.errors import InputError
 from phd_core.gaussian_train import (Splats, TrainConfig, carve_points, densify, fit, initial_model, scene_bounds,
                                      train_gaussians)
-from phd_core.gaussians import read_sidecar
-from phd_core.gaussian_render import rasterize
-from phd_core.gaussians import read_ply
+from phd_core.renderers.gs3d import rasterize, read_ply, read_sidecar
 from phd_core.eval import psnr
-from phd_core.models import UnknownModelError, load_model, load_model_bytes
+from phd_core.renderers import UnknownModelError, load_model, load_model_bytes
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"
 

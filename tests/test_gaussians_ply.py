@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core import gaussians
+from phd_core.renderers import gs3d
 from phd_core.io import files
 from phd_core.errors import InputError
-from phd_core.gaussians import GaussianModel, is_ply, parse_ply, read_ply, write_ply
+from phd_core.renderers.gs3d import GaussianModel, is_ply, parse_ply, read_ply, write_ply
 
 NUMPY_TYPES = {"float": "f4", "double": "f8", "uchar": "u1", "short": "i2", "int": "i4"}
 
@@ -83,7 +83,7 @@ def ply_file(props: list[tuple[str, str, np.ndarray]], *, fmt: str = "binary_lit
 def standard_props(cols: dict[str, np.ndarray], k: int) -> list[tuple[str, str, np.ndarray]]:
     """The properties in the order the reference trainer writes them (normals zero)."""
     zeros = np.zeros(len(cols["x"]), dtype=np.float32)
-    return [(n, "float", cols.get(n, zeros)) for n in gaussians.property_names(k)]
+    return [(n, "float", cols.get(n, zeros)) for n in gs3d.property_names(k)]
 
 
 def assert_models_equal(got: GaussianModel, want: GaussianModel) -> None:

@@ -1,4 +1,4 @@
-"""NeRF model, encodings, volume rendering, keep-masks and checkpoints (phd_core.nerf).
+"""NeRF model, encodings, volume rendering, keep-masks and checkpoints (phd_core.renderers.nerf).
 
 Reference values are computed independently: by hand (math in float64), in closed form,
 or by an equivalent model edited by hand (a dropped unit = a zeroed row of the first layer).
@@ -15,13 +15,12 @@ import pytest
 import torch
 from safetensors.torch import save as st_save
 
-from phd_core import nerf
+from phd_core.renderers import Renderer, nerf
 from phd_core.scene import look_at
 from phd_core.errors import InputError
-from phd_core.nerf import (HASH_PRIMES, HashEncoding, NeRFConfig, NeRFRenderer, PositionalEncoding, RadianceField,
+from phd_core.renderers.nerf import (HASH_PRIMES, HashEncoding, NeRFConfig, NeRFRenderer, PositionalEncoding, RadianceField,
                            band_weights, composite, is_nerf_checkpoint, load_nerf, load_nerf_bytes, nerf_bytes,
                            save_nerf)
-from phd_core.protocol import Renderer
 
 BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
 

@@ -11,7 +11,7 @@ from phd_core.uq.candidates import hemisphere_cameras
 from phd_core.data import load_blender
 from phd_core.errors import InputError
 from phd_core.eval import psnr
-from phd_core.nerf import NeRFConfig, NeRFRenderer, RadianceField, camera_rays, load_nerf
+from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, camera_rays, load_nerf
 from phd_core.nerf_train import TrainSettings, fit, frustum_bounds, train_nerf, visual_hull
 
 LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"

@@ -406,8 +406,7 @@ def test_selection_metrics_with_ground_truth(blobs: BlobRenderer) -> None:
 
 @pytest.fixture(scope="module")
 def splats():
-    from phd_core.gaussian_render import GaussianRenderer
-    from phd_core.gaussians import GaussianModel
+    from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 
     g = torch.Generator().manual_seed(0)
     count = 300
@@ -488,7 +487,7 @@ def test_real_model_calibrates_and_bisection_agrees(lego) -> None:
 
 @pytest.fixture(scope="module")
 def tiny_nerf():
-    from phd_core.nerf import NeRFConfig, NeRFRenderer, RadianceField
+    from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField
 
     config = NeRFConfig(depth=2, width=16, color_width=8, pos_freqs=3, dir_freqs=1, samples=12,
                         grid_resolution=8, bounds=[[-1, -1, -1], [1, 1, 1]], near=1.0, far=6.0)

@@ -19,10 +19,9 @@ import phd_core
 from client import ConflictError, InvalidInputError, JobCancelledError, NotFoundError, PHDClient, camera_frames
 from conftest import svc_cameras
 from phd_core import uq
-from phd_core.gaussian_render import GaussianRenderer
-from phd_core.gaussians import read_ply
+from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 from phd_core.io import colorize
-from phd_core.nerf import load_nerf
+from phd_core.renderers.nerf import load_nerf
 
 
 def _png(data: str | bytes) -> np.ndarray:
@@ -185,7 +184,7 @@ def test_cancel_queued_and_running_jobs(svc_start, svc_model_files):
 
 
 def test_client_reads_cameras_from_transforms_and_sidecars(svc_start, svc_model_files, tmp_path):
-    from phd_core.gaussians import SIDECAR_FORMAT
+    from phd_core.renderers.gs3d import SIDECAR_FORMAT
 
     transforms = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lego_200" / "transforms_val.json"
     frames = camera_frames(transforms)  # Blender style: no w/h in the JSON, taken from the PNGs

@@ -13,8 +13,7 @@ import pytest
 from client import PHDClient, QueueFullError
 from conftest import svc_cameras
 from phd_core import uq
-from phd_core.gaussian_render import GaussianRenderer
-from phd_core.gaussians import read_ply
+from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 
 
 def test_eight_clients_rank_at_once(svc_start, svc_model_files):

@@ -16,7 +16,7 @@ import math
 import torch
 
 from phd_core.scene import Camera, look_at
-from phd_core.protocol import check_keep
+from phd_core.renderers import check_keep
 
 
 class BlobRenderer:

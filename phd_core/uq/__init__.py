@@ -2,7 +2,7 @@
 
 A keep-mask drops whole dropout units of a trained model (splats for Gaussian Splatting,
 first-layer hidden units for NeRF) without rescaling the survivors. The engine only talks
-to the renderer protocol (`phd_core.protocol.Renderer`): `render(camera, keep)` returns
+to the renderer protocol (`phd_core.renderers.Renderer`): `render(camera, keep)` returns
 one image per mask, so N sub-models of one view cost one batched pass.
 
     sampling     argument checks, nested keep-masks, batched masked renders, the std

@@ -18,7 +18,7 @@ from torch import Tensor
 from ..scene import Camera
 from ..errors import InputError, check_float, check_int
 from ..eval import ssim
-from ..protocol import Renderer
+from ..renderers import Renderer
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_seed, check_step,
                        dropout_uniforms, keep_masks, render_masks)
 

@@ -10,7 +10,7 @@ import torch
 
 from ..scene import Camera
 from ..errors import check_int
-from ..protocol import Renderer
+from ..renderers import Renderer
 from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
 from .uncertainty import DEFAULT_SAMPLES, uncertainty

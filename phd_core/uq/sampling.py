@@ -15,7 +15,7 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError, check_float, check_int
-from ..protocol import Renderer
+from ..renderers import Renderer
 
 MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds renderer memory)
 

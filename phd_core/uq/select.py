@@ -13,7 +13,7 @@ from torch import Tensor
 from ..scene import Camera
 from ..errors import InputError
 from ..eval import ensemble_efficiency, psnr, ssim
-from ..protocol import Renderer
+from ..renderers import Renderer
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_ratio, check_samples, check_seed,
                        dropout_uniforms, keep_masks, render_masks)
 from .uncertainty import DEFAULT_SAMPLES, measure_view

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError
-from ..protocol import Renderer
+from ..renderers import Renderer
 from .sampling import (Progress, ProgressTicker, check_cameras, check_dtype, check_ratio, check_samples, check_seed,
                        dropout_uniforms, keep_masks, render_masks, sample_std)
 

@@ -4,9 +4,11 @@ its file name.
 `FAMILIES` maps a kind ("3dgs", "nerf") to a `Family`: how its files are recognised (a
 3DGS PLY starts with `ply`; a NeRF checkpoint is a safetensors file marked as ours), how
 they are loaded, which file extension the service stores them under, and which trainer
-`phd train` calls. Anything no family recognises (a pickle, an archive, random bytes) is
-refused before it is parsed, so no file can execute code on load. A new family is one
-module plus one `register_family` call; the CLI and the service take their names from here.
+`phd train` calls (named, so loading a model never imports a trainer). Anything no family
+recognises (a pickle, an archive, random bytes) is refused before it is parsed, so no file
+can execute code on load. A new family is one module defining its `Family` plus one
+`register_family` call (`phd_core/renderers/__init__.py` registers the built-in ones); the
+CLI and the service take their names from here.
 """
 
 from __future__ import annotations
@@ -15,13 +17,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from .scene import Camera, cameras_from_json
-from .errors import InputError
-from .gaussian_render import GaussianRenderer
-from .gaussians import is_ply, parse_ply, read_sidecar
-from .nerf import NeRFRenderer, is_nerf_checkpoint, load_nerf_bytes
+from ..errors import InputError
+from ..registry import Registry
+from ..scene import Camera
 from .protocol import Renderer
-from .registry import Registry
 
 SNIFF_BYTES = 4096
 
@@ -90,30 +89,3 @@ def load_model(path: str | Path) -> Renderer:
         raise UnknownModelError(path.name)
     renderer = family.load(data, path.name, None)
     return renderer if family.beside is None else family.beside(path, renderer)
-
-
-# ---------------------------------------------------------------------------- the built-in families
-
-def _load_gaussians(data: bytes, name: str, cameras: list[Camera] | None) -> GaussianRenderer:
-    return GaussianRenderer(parse_ply(data, name), training_cameras=cameras)
-
-
-def _gaussian_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
-    sidecar = read_sidecar(path)
-    if sidecar is None:
-        return renderer
-    return GaussianRenderer(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
-                            cameras_from_json(sidecar["training_cameras"]))
-
-
-def _load_nerf(data: bytes, name: str, cameras: list[Camera] | None) -> NeRFRenderer:
-    renderer = load_nerf_bytes(data, name)
-    if cameras is None:
-        return renderer
-    return NeRFRenderer(renderer.model, cameras, rescale=renderer.rescale, use_grid=renderer.use_grid)
-
-
-register_family(Family("3dgs", "a 3DGS PLY", ".ply", is_ply, _load_gaussians, _gaussian_sidecar,
-                       trainer="phd_core.gaussian_train:train_gaussians"))
-register_family(Family("nerf", "a phd NeRF checkpoint", ".nerf", is_nerf_checkpoint, _load_nerf,
-                       trainer="phd_core.nerf_train:train_nerf", train_options=("encoding", "freenerf")))

@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from ..errors import InputError, check_color, check_float, check_int
+from ...errors import InputError, check_color, check_float, check_int
 
 ENCODINGS = ("pe", "spe", "hash")
 # Memory bounds of one rendering step: samples per ray chunk, and elements of one

@@ -14,14 +14,14 @@ from typing import Any, Protocol, runtime_checkable
 
 import torch
 
-from .scene import Camera
+from ..scene import Camera
 
 
 @runtime_checkable
 class Renderer(Protocol):
     """What PH-Dropout, ranking and ensemble selection need from a model."""
 
-    kind: str  # the model family (phd_core.models.FAMILIES)
+    kind: str  # the model family (phd_core.renderers.FAMILIES)
     training_cameras: list[Camera] | None   # the poses the model was trained on, when known
 
     @property

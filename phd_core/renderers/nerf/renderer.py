@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..scene import Camera
+from ...scene import Camera
 from ..protocol import check_keep
 from .config import CHUNK_SAMPLES, NeRFConfig
 from .field import RadianceField
@@ -24,7 +24,7 @@ class NeRFOutput:
 
 
 class NeRFRenderer:
-    """A trained radiance field behind the renderer protocol (`phd_core.protocol.Renderer`).
+    """A trained radiance field behind the renderer protocol (`phd_core.renderers.Renderer`).
 
     Dropout units are the first trunk layer's hidden units: keep [N, width]. One mask is
     one sub-network shared by every ray and sample of a render; survivors are not rescaled

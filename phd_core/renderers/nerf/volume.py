@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..scene import Camera
+from ...scene import Camera
 from .config import CHUNK_ELEMENTS
 from .field import RadianceField
 

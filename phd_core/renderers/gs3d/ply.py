@@ -1,8 +1,6 @@
-"""The 3D Gaussian Splatting model container and the standard (Inria) 3DGS PLY format.
+"""The standard (Inria) 3DGS PLY format, and the sidecar JSON `phd train` writes beside it.
 
-A `GaussianModel` holds G splats in the parameterisation the reference trainer stores:
-log-scales, unnormalised wxyz quaternions, opacity logits and spherical-harmonic colour
-coefficients. The PLY file holds one float32 record per splat with the properties
+The PLY file holds one float32 record per `GaussianModel` splat with the properties
 
     x y z nx ny nz f_dc_0..2 f_rest_0..f_rest_{3(K-1)-1} opacity scale_0..2 rot_0..3
 
@@ -15,7 +13,6 @@ exactly those details. Every malformed file raises `InputError` naming the PLY f
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,10 +20,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from .errors import InputError
-from .io import write_bytes_atomic
+from ...errors import InputError
+from ...io import write_bytes_atomic
+from .model import SH_COEFFS, GaussianModel
 
-SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
 _REST_COUNTS = {3 * (k - 1): k for k in SH_COEFFS}  # f_rest count -> K: 0, 9, 24, 45
 
 # PLY scalar type names (and their sized aliases) -> numpy type codes, without byte order.
@@ -37,68 +34,6 @@ _PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
 _FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
-
-
-@dataclass
-class GaussianModel:
-    """G Gaussian splats as a trainer stores them (all tensors float32)."""
-
-    means: torch.Tensor           # [G, 3] centres
-    log_scales: torch.Tensor      # [G, 3] log of the std along each local axis
-    quats: torch.Tensor           # [G, 4] rotation, wxyz, not necessarily normalised
-    opacity_logits: torch.Tensor  # [G] opacity before the sigmoid
-    sh: torch.Tensor              # [G, K, 3] SH colour coefficients, sh[:, 0] is the DC term
-
-    @property
-    def num_splats(self) -> int:
-        return self.means.shape[0]
-
-    @property
-    def sh_degree(self) -> int:
-        return math.isqrt(self.sh.shape[1]) - 1
-
-    def validate(self) -> None:
-        """Raise `InputError` naming the field unless shapes agree, K is 1, 4, 9 or 16,
-        every tensor is float32 and every value is finite."""
-        described = {"means": "[G, 3]", "log_scales": "[G, 3]", "quats": "[G, 4]",
-                     "opacity_logits": "[G]", "sh": "[G, K, 3]"}
-        for name in described:
-            value = getattr(self, name)
-            if not isinstance(value, torch.Tensor):
-                raise InputError(name, f"must be a torch.Tensor, got {type(value).__name__}")
-            if value.dtype != torch.float32:
-                raise InputError(name, f"must be float32, got {value.dtype}")
-        num = self.means.shape[0] if self.means.dim() > 0 else -1
-        k = self.sh.shape[1] if self.sh.dim() == 3 else -1
-        expected = {"means": (num, 3), "log_scales": (num, 3), "quats": (num, 4),
-                    "opacity_logits": (num,), "sh": (num, k, 3)}
-        for name, shape in expected.items():
-            if tuple(getattr(self, name).shape) != shape:
-                detail = "" if name == "means" else f" with G = {num} (the rows of means)"
-                raise InputError(name, f"must have shape {described[name]}{detail}, "
-                                       f"got {list(getattr(self, name).shape)}")
-        if k not in SH_COEFFS:
-            raise InputError("sh", f"must have K = 1, 4, 9 or 16 coefficients (SH degree 0-3), got {k}")
-        for name in expected:
-            if not torch.isfinite(getattr(self, name)).all():
-                raise InputError(name, "contains NaN or infinite values")
-
-    def subset(self, index: torch.Tensor) -> "GaussianModel":
-        """The splats selected by `index`: [M] integer indices or a [G] bool mask."""
-        return GaussianModel(self.means[index], self.log_scales[index], self.quats[index],
-                             self.opacity_logits[index], self.sh[index])
-
-    def bounds(self, quantile: float = 0.0) -> tuple[list[float], list[float]]:
-        """Per-axis (low, high) of the splat centres: the min/max for quantile 0, else the
-        `quantile` and `1 - quantile` quantiles, which ignore stray floaters.
-        An empty model has no bounds: ([], [])."""
-        if not 0.0 <= quantile < 0.5:
-            raise InputError("quantile", f"must lie in [0, 0.5), got {quantile}")
-        if self.num_splats == 0:
-            return [], []
-        means = self.means.detach().cpu().double().numpy()  # [G, 3]
-        low, high = np.quantile(means, [quantile, 1.0 - quantile], axis=0)  # [3] each
-        return low.tolist(), high.tolist()
 
 
 def is_ply(head: bytes) -> bool:

@@ -19,7 +19,7 @@ transmittance below 1e-4. A splat is listed in every tile its alpha >= 1/255 ell
 touches, so the image does not depend on the tile size (the reference cuts splats at a
 3-sigma square, which makes its images depend on the tiling).
 
-Pixel (i, j) has its centre at (i + 0.5, j + 0.5); see `phd_core.scene`.
+Pixel (i, j) has its centre at (i + 0.5, j + 0.5); see `phd_core.scene.camera`.
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ from typing import Any, Sequence
 
 import torch
 
-from .scene import Camera
-from .gaussians import GaussianModel
-from .protocol import check_keep
+from ...scene import Camera
+from ..protocol import check_keep
+from .model import GaussianModel
 
 # Per-pixel sums use CSR products, which torch flags as beta; they are checked in the tests.
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
@@ -346,7 +346,7 @@ def rasterize(model: GaussianModel, camera: Camera, background: torch.Tensor,
 
 
 class GaussianRenderer:
-    """A trained 3DGS model behind the renderer protocol (`phd_core.protocol.Renderer`).
+    """A trained 3DGS model behind the renderer protocol (`phd_core.renderers.Renderer`).
 
     Dropout units are the splats: keep [N, G].
     """

@@ -1,0 +1,22 @@
+"""Renderers: every model family behind one protocol, and the registry that recognises them.
+
+    protocol   the Renderer protocol PH-Dropout sees (render with keep-masks, num_units,
+               training_cameras, describe)
+    families   FAMILIES: sniff, load, store and train each model family; load_model
+    gs3d/      3D Gaussian Splatting (model, PLY, rasteriser)
+    nerf/      NeRF (config, field, volume rendering, renderer, checkpoint)
+
+A new family is one module defining a `Family` plus one entry in the tuple below.
+"""
+
+from .families import (FAMILIES, SNIFF_BYTES, Family, UnknownModelError, family_of, load_model, load_model_bytes,
+                       model_kind, register_family)
+from .gs3d.family import GS3D
+from .nerf.family import NERF
+from .protocol import Renderer, check_keep
+
+for _family in (GS3D, NERF):
+    register_family(_family)
+
+__all__ = ["FAMILIES", "SNIFF_BYTES", "Family", "Renderer", "UnknownModelError", "check_keep", "family_of",
+           "load_model", "load_model_bytes", "model_kind", "register_family"]

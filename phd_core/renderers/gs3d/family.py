@@ -1,0 +1,26 @@
+"""The 3DGS model family: a standard 3DGS PLY, with the training cameras and background from
+the sidecar `phd train` writes next to it; trained by `phd_core.train.gs3d`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ...scene import Camera, cameras_from_json
+from ..families import Family
+from .ply import is_ply, parse_ply, read_sidecar
+from .render import GaussianRenderer
+
+
+def _load(data: bytes, name: str, cameras: list[Camera] | None) -> GaussianRenderer:
+    return GaussianRenderer(parse_ply(data, name), training_cameras=cameras)
+
+
+def _beside(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
+    sidecar = read_sidecar(path)
+    if sidecar is None:
+        return renderer
+    return GaussianRenderer(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
+                            cameras_from_json(sidecar["training_cameras"]))
+
+
+GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_ply, _load, _beside, trainer="phd_core.gaussian_train:train_gaussians")

@@ -1,0 +1,77 @@
+"""The 3D Gaussian Splatting model: G splats in the parameterisation the reference trainer
+stores (log-scales, unnormalised wxyz quaternions, opacity logits and spherical-harmonic
+colour coefficients)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ...errors import InputError
+
+SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
+
+
+@dataclass
+class GaussianModel:
+    """G Gaussian splats as a trainer stores them (all tensors float32)."""
+
+    means: torch.Tensor           # [G, 3] centres
+    log_scales: torch.Tensor      # [G, 3] log of the std along each local axis
+    quats: torch.Tensor           # [G, 4] rotation, wxyz, not necessarily normalised
+    opacity_logits: torch.Tensor  # [G] opacity before the sigmoid
+    sh: torch.Tensor              # [G, K, 3] SH colour coefficients, sh[:, 0] is the DC term
+
+    @property
+    def num_splats(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        return math.isqrt(self.sh.shape[1]) - 1
+
+    def validate(self) -> None:
+        """Raise `InputError` naming the field unless shapes agree, K is 1, 4, 9 or 16,
+        every tensor is float32 and every value is finite."""
+        described = {"means": "[G, 3]", "log_scales": "[G, 3]", "quats": "[G, 4]",
+                     "opacity_logits": "[G]", "sh": "[G, K, 3]"}
+        for name in described:
+            value = getattr(self, name)
+            if not isinstance(value, torch.Tensor):
+                raise InputError(name, f"must be a torch.Tensor, got {type(value).__name__}")
+            if value.dtype != torch.float32:
+                raise InputError(name, f"must be float32, got {value.dtype}")
+        num = self.means.shape[0] if self.means.dim() > 0 else -1
+        k = self.sh.shape[1] if self.sh.dim() == 3 else -1
+        expected = {"means": (num, 3), "log_scales": (num, 3), "quats": (num, 4),
+                    "opacity_logits": (num,), "sh": (num, k, 3)}
+        for name, shape in expected.items():
+            if tuple(getattr(self, name).shape) != shape:
+                detail = "" if name == "means" else f" with G = {num} (the rows of means)"
+                raise InputError(name, f"must have shape {described[name]}{detail}, "
+                                       f"got {list(getattr(self, name).shape)}")
+        if k not in SH_COEFFS:
+            raise InputError("sh", f"must have K = 1, 4, 9 or 16 coefficients (SH degree 0-3), got {k}")
+        for name in expected:
+            if not torch.isfinite(getattr(self, name)).all():
+                raise InputError(name, "contains NaN or infinite values")
+
+    def subset(self, index: torch.Tensor) -> "GaussianModel":
+        """The splats selected by `index`: [M] integer indices or a [G] bool mask."""
+        return GaussianModel(self.means[index], self.log_scales[index], self.quats[index],
+                             self.opacity_logits[index], self.sh[index])
+
+    def bounds(self, quantile: float = 0.0) -> tuple[list[float], list[float]]:
+        """Per-axis (low, high) of the splat centres: the min/max for quantile 0, else the
+        `quantile` and `1 - quantile` quantiles, which ignore stray floaters.
+        An empty model has no bounds: ([], [])."""
+        if not 0.0 <= quantile < 0.5:
+            raise InputError("quantile", f"must lie in [0, 0.5), got {quantile}")
+        if self.num_splats == 0:
+            return [], []
+        means = self.means.detach().cpu().double().numpy()  # [G, 3]
+        low, high = np.quantile(means, [quantile, 1.0 - quantile], axis=0)  # [3] each
+        return low.tolist(), high.tolist()
