@@ -21,7 +21,7 @@ import torch
 
 from phd_core.data import load_blender
 from phd_core.io import write_json_atomic
-from phd_core.gaussian_train import train_gaussians
+from phd_core.train.gs3d import train_gaussians
 from phd_core.eval import psnr, ssim
 from phd_core.renderers import load_model
 

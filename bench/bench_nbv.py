@@ -44,7 +44,7 @@ from bench_phdropout import fmt, save, svg_plot, write_doc  # noqa: E402
 from phd_core import uq as phd  # noqa: E402
 from phd_core.data import Dataset, load_blender  # noqa: E402
 from phd_core.renderers.gs3d import GaussianRenderer  # noqa: E402
-from phd_core.gaussian_train import TrainConfig, fit  # noqa: E402
+from phd_core.train.gs3d import TrainConfig, fit  # noqa: E402
 from phd_core.eval import psnr, rmse, spearman  # noqa: E402
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy  # noqa: E402
 

@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 from phd_core.data import load_blender  # noqa: E402
 from phd_core.eval import psnr, ssim  # noqa: E402
-from phd_core.nerf_train import DEFAULT_ITERATIONS, train_nerf  # noqa: E402
+from phd_core.train.nerf import DEFAULT_ITERATIONS, train_nerf  # noqa: E402
 
 VARIANTS = {
     "pe": dict(encoding="pe", freenerf=False),

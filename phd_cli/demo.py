@@ -65,7 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _train(data: Path, views: list[int], iterations: int | None, out: Path, retrain: bool, name: str) -> Path:
     """Train a 3DGS model on `views` of the train split, or reuse a cached one whose
     sidecar (written by the trainer) records the same scene, views and settings."""
-    from phd_core.gaussian_train import TrainConfig, train_gaussians
+    from phd_core.train.gs3d import TrainConfig, train_gaussians
     from phd_core.renderers.gs3d import read_sidecar
 
     model = out / "models" / f"{name}.ply"

@@ -13,7 +13,7 @@ import torch
 from phd_cli import main as phd
 from phd_core.data import load_blender
 from phd_core.errors import InputError
-from phd_core.gaussian_train import (Splats, TrainConfig, carve_points, densify, fit, initial_model, scene_bounds,
+from phd_core.train.gs3d import (Splats, TrainConfig, carve_points, densify, fit, initial_model, scene_bounds,
                                      train_gaussians)
 from phd_core.renderers.gs3d import rasterize, read_ply, read_sidecar
 from phd_core.eval import psnr

@@ -1,4 +1,4 @@
-"""NeRF training on a tiny version of the lego scene (phd_core.nerf_train)."""
+"""NeRF training on a tiny version of the lego scene (phd_core.train.nerf)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from phd_core.data import load_blender
 from phd_core.errors import InputError
 from phd_core.eval import psnr
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, camera_rays, load_nerf
-from phd_core.nerf_train import TrainSettings, fit, frustum_bounds, train_nerf, visual_hull
+from phd_core.train.nerf import TrainSettings, fit, frustum_bounds, train_nerf, visual_hull
 
 LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"
 pytestmark = pytest.mark.skipif(not LEGO.is_dir(), reason="lego_200 data not available")

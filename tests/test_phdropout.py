@@ -460,7 +460,7 @@ def test_gaussian_bisection_agrees_with_linear(splats) -> None:
 def lego(tmp_path_factory):
     """A trained 3DGS model: 200 steps on 8 lego views at 25 x 25 (about 10 s), and test poses."""
     from phd_core.data import load_dataset
-    from phd_core.gaussian_train import train_gaussians
+    from phd_core.train.gs3d import train_gaussians
 
     out = tmp_path_factory.mktemp("lego") / "model.ply"
     renderer = train_gaussians(LEGO, views=8, downscale=8, iterations=200, out=out, progress=False)

@@ -23,4 +23,4 @@ def _beside(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
                             cameras_from_json(sidecar["training_cameras"]))
 
 
-GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_ply, _load, _beside, trainer="phd_core.gaussian_train:train_gaussians")
+GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_ply, _load, _beside, trainer="phd_core.train.gs3d:train_gaussians")

@@ -17,4 +17,4 @@ def _load(data: bytes, name: str, cameras: list[Camera] | None) -> NeRFRenderer:
 
 
 NERF = Family("nerf", "a phd NeRF checkpoint", ".nerf", is_nerf_checkpoint, _load,
-              trainer="phd_core.nerf_train:train_nerf", train_options=("encoding", "freenerf"))
+              trainer="phd_core.train.nerf:train_nerf", train_options=("encoding", "freenerf"))

@@ -30,11 +30,11 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from .scene import Camera
-from .data import Dataset, load_dataset
-from .errors import InputError, check_color
-from .renderers.nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays,
-                   render_rays, save_nerf)
+from ..data import Dataset, load_dataset
+from ..errors import InputError, check_color
+from ..renderers.nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays, render_rays,
+                              save_nerf)
+from ..scene import Camera
 
 # 100x100 images, 16 views, 2 shared CPU cores: about 0.1 s per iteration, 4 minutes (docs/nerf.md).
 DEFAULT_ITERATIONS = 2000

@@ -26,13 +26,14 @@ from typing import Any, Sequence
 import torch
 from tqdm import tqdm
 
-from .scene import Camera
-from .data import Dataset, load_blender
-from .errors import InputError
-from .io import write_json_atomic
-from .renderers.gs3d.render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
-from .renderers.gs3d import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
-from .eval import ssim
+from ..data import Dataset, load_blender
+from ..errors import InputError
+from ..eval import ssim
+from ..io import write_json_atomic
+from ..renderers.gs3d import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
+from ..renderers.gs3d.render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
+from ..scene import Camera
+
 
 @dataclass
 class TrainConfig:
