@@ -13,11 +13,11 @@ import torch
 from phd_cli import main as phd
 from phd_core.data import load_blender
 from phd_core.errors import InputError
-from phd_core.train.gs3d import (Splats, TrainConfig, carve_points, densify, fit, initial_model, scene_bounds,
-                                     train_gaussians)
-from phd_core.renderers.gs3d import rasterize, read_ply, read_sidecar
 from phd_core.eval import psnr
 from phd_core.renderers import UnknownModelError, load_model, load_model_bytes
+from phd_core.renderers.gs3d import rasterize, read_ply, read_sidecar
+from phd_core.scene import scene_bounds
+from phd_core.train.gs3d import Splats, TrainConfig, carve_points, densify, fit, initial_model, train_gaussians
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"
 

@@ -12,7 +12,8 @@ from phd_core.data import load_blender
 from phd_core.errors import InputError
 from phd_core.eval import psnr
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, camera_rays, load_nerf
-from phd_core.train.nerf import TrainSettings, fit, frustum_bounds, train_nerf, visual_hull
+from phd_core.scene import frustum_bounds
+from phd_core.train.nerf import TrainSettings, fit, grid_hull, train_nerf
 
 LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"
 pytestmark = pytest.mark.skipif(not LEGO.is_dir(), reason="lego_200 data not available")
@@ -97,7 +98,7 @@ def test_visual_hull_never_carves_the_object():
         hits = b ** 2 - ((oc * oc).sum(-1) - radius ** 2) >= 0
         alphas.append(hits.float().view(camera.height, camera.width))
     model = RadianceField(NeRFConfig(bounds=[[-1, -1, -1], [1, 1, 1]], grid_resolution=10))
-    hull = visual_hull(model, cameras, torch.stack(alphas))
+    hull = grid_hull(model, cameras, torch.stack(alphas))
     grid = model.grid
     lo = grid.cell_points(torch.zeros(1, 3)).double()
     hi = lo + grid.size.double() / grid.resolution

@@ -1,7 +1,11 @@
 """The scene's geometry: pinhole cameras and their one world-to-pixel projection (`camera`),
-cameras from Blender / nerfstudio frames (`frames`)."""
+cameras from Blender / nerfstudio frames (`frames`), where the scene is (`bounds`) and
+what the training views' masks leave of it (`hull`)."""
 
+from .bounds import frustum_bounds, scene_bounds
 from .camera import DEFAULT_MAX_SIZE, Camera, look_at, validate_pose
 from .frames import camera_from_frame, cameras_from_json
+from .hull import Footprint, footprint, visual_hull
 
-__all__ = ["DEFAULT_MAX_SIZE", "Camera", "camera_from_frame", "cameras_from_json", "look_at", "validate_pose"]
+__all__ = ["DEFAULT_MAX_SIZE", "Camera", "Footprint", "camera_from_frame", "cameras_from_json", "footprint",
+           "frustum_bounds", "look_at", "scene_bounds", "validate_pose", "visual_hull"]

@@ -32,7 +32,7 @@ from ..eval import ssim
 from ..io import write_json_atomic
 from ..renderers.gs3d import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
 from ..renderers.gs3d.render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
-from ..scene import Camera
+from ..scene import footprint, scene_bounds, visual_hull
 
 
 @dataclass
@@ -70,33 +70,14 @@ class TrainConfig:
 
 # ----------------------------------------------------------------------------- scene
 
-def scene_bounds(cameras: Sequence[Camera]) -> tuple[torch.Tensor, float]:
-    """Centre [3] and half-extent of the region the cameras look at.
-
-    The centre is the least-squares point closest to every optical axis; the half-extent
-    is the largest radius around it that every camera sees in full.
-    """
-    eye = torch.stack([c.center for c in cameras])                      # [V, 3]
-    axis = -torch.stack([c.c2w[:3, 2] for c in cameras])                # [V, 3] viewing directions
-    proj = torch.eye(3, dtype=torch.float64) - axis[:, :, None] * axis[:, None, :]  # [V, 3, 3]
-    if len(cameras) == 1 or torch.linalg.matrix_rank(proj.sum(0)) < 3:
-        centre = eye[0] + axis[0] * 4.0
-    else:
-        centre = torch.linalg.solve(proj.sum(0), (proj @ eye[:, :, None]).sum(0)).squeeze(1)
-    dist = (eye - centre).norm(dim=-1)
-    half_fov = torch.tensor([min(math.atan(c.width / (2 * c.fx)), math.atan(c.height / (2 * c.fy)))
-                             for c in cameras], dtype=torch.float64)
-    extent = float((dist * torch.sin(half_fov)).min())
-    return centre, extent
-
-
 def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
                  gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Initial points [P, 3] and colours [P, 3].
 
     With alpha masks: a grid over the bounds, keeping points that every view which sees
-    them sees as foreground (alpha > 0.5): the visual hull. Colours are the mean of the
-    pixels the points project to. Without masks: uniform in the bounds, grey.
+    them sees as foreground (alpha > 0.5): the visual hull (`phd_core.scene.visual_hull`).
+    Colours are the mean of the pixels the points project to. Without masks: uniform in
+    the bounds, grey.
     """
     if data.alphas is None:
         pts = centre + (torch.rand(count, 3, generator=gen, dtype=torch.float64) * 2 - 1) * extent
@@ -104,18 +85,13 @@ def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
     res = 64
     axis = torch.linspace(-extent, extent, res, dtype=torch.float64)
     grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + centre
-    inside = torch.ones(len(grid), dtype=torch.bool)
+    inside = visual_hull(grid, data.cameras, data.alphas, threshold=0.5)
     colour_sum = torch.zeros(len(grid), 3, dtype=torch.float64)
     seen = torch.zeros(len(grid))
-    for cam, image, alpha in zip(data.cameras, data.images, data.alphas):
-        uv, depth = cam.project(grid, min_depth=1e-6)
-        u, v = uv.floor().long().unbind(-1)
-        in_view = (depth > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        uu, vv = u.clamp(0, cam.width - 1), v.clamp(0, cam.height - 1)
-        foreground = alpha[vv, uu] > 0.5
-        inside &= ~in_view | foreground
-        colour_sum += torch.where(in_view[:, None], image[vv, uu].double(), 0.0)
-        seen += in_view.float()
+    for cam, image in zip(data.cameras, data.images):
+        pixel = footprint(cam, grid)
+        colour_sum += torch.where(pixel.inside[:, None], image[pixel.v0, pixel.u0].double(), 0.0)
+        seen += pixel.inside.float()
     hull = inside.nonzero().squeeze(1)
     if len(hull) == 0:
         raise InputError("data", "the training alpha masks leave no foreground: nothing to fit")

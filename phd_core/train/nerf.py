@@ -34,11 +34,10 @@ from ..data import Dataset, load_dataset
 from ..errors import InputError, check_color
 from ..renderers.nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays, render_rays,
                               save_nerf)
-from ..scene import Camera
+from ..scene import Camera, frustum_bounds, visual_hull
 
 # 100x100 images, 16 views, 2 shared CPU cores: about 0.1 s per iteration, 4 minutes (docs/nerf.md).
 DEFAULT_ITERATIONS = 2000
-BOUNDS_PROBE = 64          # points per axis of the frustum-intersection probe
 
 
 @dataclass
@@ -131,7 +130,7 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
     config = NeRFConfig(**config_values).validate()
     model = RadianceField(config, seed=seed)
     if settings.hull and dataset.alphas is not None:
-        hull = visual_hull(model, dataset.cameras, dataset.alphas)
+        hull = grid_hull(model, dataset.cameras, dataset.alphas)
         model.grid.set_density(torch.full((config.grid_resolution ** 3,), math.inf), allowed=hull)
     else:
         hull = None
@@ -222,61 +221,10 @@ def scene_near_far(dataset: Dataset) -> tuple[float, float]:
     return near, far
 
 
-def frustum_bounds(cameras: list[Camera], near: float, far: float) -> list[list[float]]:
-    """The box around every point that all cameras see between near and far.
-
-    For the Blender scenes (cameras at radius 4, near 2, far 6) this is about
-    [-1.45, 1.45]^3, the box the scenes are known to fit in.
-    """
-    centers = torch.stack([c.center for c in cameras])                      # [V, 3]
-    lo, hi = centers.max(0).values - far, centers.min(0).values + far       # within `far` of every camera
-    if not (hi > lo).all():
-        raise InputError("bounds", "the training cameras share no common view volume: pass bounds explicitly")
-    axis = [torch.linspace(float(lo[k]), float(hi[k]), BOUNDS_PROBE, dtype=torch.float64) for k in range(3)]
-    points = torch.cartesian_prod(*axis)                                    # [P, 3]
-    seen = torch.ones(points.shape[0], dtype=torch.bool)
-    for camera in cameras:
-        seen &= _in_frustum(camera, points, near, far)
-    if not seen.any():
-        raise InputError("bounds", "the training cameras share no common view volume: pass bounds explicitly")
-    step = (hi - lo) / (BOUNDS_PROBE - 1)
-    box_lo = torch.maximum(points[seen].min(0).values - step, lo)
-    box_hi = torch.minimum(points[seen].max(0).values + step, hi)
-    return [box_lo.tolist(), box_hi.tolist()]
-
-
-def _in_frustum(camera: Camera, points: torch.Tensor, near: float, far: float) -> torch.Tensor:
-    """[P] bool: the point projects into the image at a distance in [near, far]."""
-    uv, depth = camera.project(points)
-    u, v = uv.unbind(-1)
-    dist = (points - camera.center).norm(dim=1)
-    return (depth > 0) & (u >= 0) & (u <= camera.width) & (v >= 0) & (v <= camera.height) \
-        & (dist >= near) & (dist <= far)
-
-
-def visual_hull(model: RadianceField, cameras: list[Camera], alphas: torch.Tensor) -> torch.Tensor:
-    """[res^3] bool: grid cells not carved by any view's alpha mask.
-
-    A cell is carved when the square of pixels around its centre's projection, wide enough
-    to cover the whole cell, lies inside the image and holds no pixel with alpha > 0.
-    The pixel counts come from an integral image, so the test is exact for that square.
-    """
+def grid_hull(model: RadianceField, cameras: list[Camera], alphas: torch.Tensor) -> torch.Tensor:
+    """[res^3] bool: the occupancy-grid cells no view's alpha mask carves (any alpha > 0 is
+    foreground): `phd_core.scene.visual_hull` of the cells, each a ball around its centre."""
     grid = model.grid
     centers = grid.cell_points(torch.full((1, 3), 0.5)).double()            # [C, 3]
     half_diagonal = float((grid.size.double() / grid.resolution).norm() / 2)
-    inside = torch.ones(centers.shape[0], dtype=torch.bool)
-    for camera, alpha in zip(cameras, alphas):
-        uv, depth = camera.project(centers, min_depth=half_diagonal)
-        u, v = uv.unbind(-1)
-        front = depth > half_diagonal
-        z = depth.clamp_min(half_diagonal)
-        radius = half_diagonal * max(camera.fx, camera.fy) / (z - half_diagonal).clamp_min(1e-6) + 1
-        u0, u1 = (u - radius).floor(), (u + radius).ceil()
-        v0, v1 = (v - radius).floor(), (v + radius).ceil()
-        in_image = front & (u0 >= 0) & (v0 >= 0) & (u1 <= camera.width) & (v1 <= camera.height)
-        counts = F.pad((alpha > 0).double().cumsum(0).cumsum(1), (1, 0, 1, 0))   # [H+1, W+1] integral image
-        a, b = v0.clamp(0, camera.height).long(), v1.clamp(0, camera.height).long()
-        c, d = u0.clamp(0, camera.width).long(), u1.clamp(0, camera.width).long()
-        foreground = counts[b, d] - counts[a, d] - counts[b, c] + counts[a, c]
-        inside &= ~(in_image & (foreground == 0))
-    return inside
+    return visual_hull(centers, cameras, alphas, radius=half_diagonal)
