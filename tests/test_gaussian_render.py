@@ -202,7 +202,7 @@ def test_renderer_protocol() -> None:
 
 
 def test_pixel_sums_backward_matches_finite_differences() -> None:
-    from phd_core.renderers.gs3d.render import PixelSums
+    from phd_core.renderers.composite.reference import PixelSums
     gen = torch.Generator().manual_seed(0)
     row = torch.tensor([0, 0, 0, 1, 2, 2, 3, 3, 3, 3])                  # 10 entries in 4 pixels
     row_ptr = torch.tensor([0, 3, 4, 6, 10])

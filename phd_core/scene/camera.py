@@ -70,14 +70,22 @@ class Camera:
         w2c[:3, 3] = -rot.T @ trans
         return w2c
 
+    def to_camera(self, points: torch.Tensor) -> torch.Tensor:
+        """World points [P, 3] -> the OpenCV camera frame [P, 3] (z is the depth)."""
+        w2c = self.world_to_camera().to(points.dtype)
+        return points @ w2c[:3, :3].T + w2c[:3, 3]
+
+    def to_pixels(self, p_cam: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Camera-frame points [P, 3] over depths z [P] -> pixel coordinates [P, 2] (centres at
+        +0.5): the one perspective division. Callers choose z (clamped, or 1 for culled rows)."""
+        return torch.stack([self.fx * p_cam[:, 0] / z + self.cx, self.fy * p_cam[:, 1] / z + self.cy], dim=-1)
+
     def project(self, points: torch.Tensor, min_depth: float = 1e-9) -> tuple[torch.Tensor, torch.Tensor]:
         """World points [P, 3] -> pixel coordinates [P, 2] (pixel centres at +0.5) and camera
         depth [P] (OpenCV z). The division uses the depth clamped to `min_depth`, so points
         behind the camera stay finite: callers keep those with depth > 0 (or their own margin)."""
-        w2c = self.world_to_camera().to(points.dtype)
-        p = points @ w2c[:3, :3].T + w2c[:3, 3]                          # [P, 3] OpenCV camera frame
-        z = p[:, 2].clamp_min(min_depth)
-        return torch.stack([self.fx * p[:, 0] / z + self.cx, self.fy * p[:, 1] / z + self.cy], dim=-1), p[:, 2]
+        p = self.to_camera(points)                                       # [P, 3] OpenCV camera frame
+        return self.to_pixels(p, p[:, 2].clamp_min(min_depth)), p[:, 2]
 
     def scaled(self, factor: float) -> "Camera":
         """The same view at 1/factor of the resolution (factor 2 halves width and height)."""

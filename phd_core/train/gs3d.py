@@ -30,8 +30,8 @@ from ..data import Dataset, load_blender
 from ..errors import InputError
 from ..eval import ssim
 from ..io import write_json_atomic
-from ..renderers.gs3d import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
-from ..renderers.gs3d.render import SH_C0, GaussianRenderer, quaternion_to_rotation, rasterize
+from ..renderers.gs3d import SIDECAR_FORMAT, GaussianModel, GaussianRenderer, rasterize, sidecar_path, write_ply
+from ..renderers.splats import SH_C0, quaternion_to_rotation
 from ..scene import footprint, scene_bounds, visual_hull
 
 
