@@ -23,6 +23,7 @@ from phd_core.scene import Camera, look_at
 from phd_core.renderers.gs3d import GaussianModel, write_ply
 
 SVC_SIZE = 24  # test render size in pixels: small enough for 2 cores
+LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"  # ../shared beside the checkout
 
 
 def svc_cameras(count: int, *, radius: float = 3.0, size: int = SVC_SIZE, phase: float = 0.0) -> list[Camera]:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 import pickle
-from pathlib import Path
 
 import pytest
 import torch
@@ -18,13 +17,13 @@ from phd_core.renderers import UnknownModelError, load_model, load_model_bytes
 from phd_core.renderers.gs3d import rasterize, read_ply, read_sidecar
 from phd_core.scene import scene_bounds
 from phd_core.train.gs3d import Splats, TrainConfig, carve_points, densify, fit, initial_model, train_gaussians
+from conftest import LEGO
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"
 
 
 @pytest.fixture(scope="module")
 def tiny() -> object:
-    return load_blender(DATA, "train", downscale=8, views=8)
+    return load_blender(LEGO, "train", downscale=8, views=8)
 
 
 def test_scene_bounds_match_the_blender_convention(tiny) -> None:
@@ -109,7 +108,7 @@ def test_training_reduces_loss_and_is_deterministic(tiny) -> None:
 
 def test_train_writes_ply_and_sidecar_then_loads_with_cameras(tmp_path) -> None:
     out = tmp_path / "m.ply"
-    renderer = train_gaussians(DATA, views=[0, 10, 20, 30], downscale=8, iterations=20, out=out,
+    renderer = train_gaussians(LEGO, views=[0, 10, 20, 30], downscale=8, iterations=20, out=out,
                                progress=False, init_points=300)
     sidecar = read_sidecar(out)
     assert sidecar["view_indices"] == [0, 10, 20, 30]
@@ -135,9 +134,9 @@ def test_loader_refuses_pickles_and_unknown_content(tmp_path) -> None:
 
 def test_cli_train_then_render_reports_metrics(tmp_path, capsys) -> None:
     model = tmp_path / "cli.ply"
-    assert phd(["train", "--data", str(DATA), "--views", "4", "--downscale", "8", "--iterations", "15",
+    assert phd(["train", "--data", str(LEGO), "--views", "4", "--downscale", "8", "--iterations", "15",
                 "--out", str(model), "--quiet"]) == 0
-    assert phd(["render", "--model", str(model), "--data", str(DATA), "--split", "test", "--views", "3",
+    assert phd(["render", "--model", str(model), "--data", str(LEGO), "--split", "test", "--views", "3",
                 "--out", str(tmp_path / "renders")]) == 0
     metrics = json.loads((tmp_path / "renders" / "metrics.json").read_text())
     assert metrics["downscale"] == 8.0 and len(metrics["views"]) == 3
@@ -151,5 +150,5 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys) -> None:
     assert phd(["train", "--data", str(tmp_path), "--out", str(tmp_path / "x.ply"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "error" in err and "Traceback" not in err
-    assert phd(["train", "--data", str(DATA), "--views", "a,b", "--out", str(tmp_path / "x.ply")]) == 2
+    assert phd(["train", "--data", str(LEGO), "--views", "a,b", "--out", str(tmp_path / "x.ply")]) == 2
     assert "views" in capsys.readouterr().err

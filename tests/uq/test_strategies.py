@@ -12,7 +12,7 @@ from phd_core.scene import look_at
 from phd_core.errors import InputError
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, Strategy, get_strategy, register
 from phd_core.uq.strategies.base import by_score
-from toy_renderers import BlobRenderer, ring_cameras
+from support.toy_renderers import BlobRenderer, ring_cameras
 
 BATCH_DIVERSE = ("fvs", "fvs_sigma", "fvs_sigma_floor")
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import pytest
 import torch
@@ -14,8 +13,8 @@ from phd_core.eval import psnr
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, camera_rays, load_nerf
 from phd_core.scene import frustum_bounds
 from phd_core.train.nerf import TrainSettings, fit, grid_hull, train_nerf
+from conftest import LEGO
 
-LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"
 pytestmark = pytest.mark.skipif(not LEGO.is_dir(), reason="lego_200 data not available")
 # Small enough for a few seconds of training on 2 busy cores.
 TINY = dict(width=32, color_width=16, pos_freqs=6, samples=32, batch_rays=256, grid_resolution=16)

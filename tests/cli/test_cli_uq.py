@@ -18,7 +18,7 @@ from phd_core.data import load_dataset
 from phd_core.renderers.gs3d import GaussianModel, write_ply
 from phd_core.renderers import load_model
 from phd_core.eval import image_uq_metrics
-from toy_renderers import away_camera, ring_cameras
+from support.toy_renderers import away_camera, ring_cameras
 
 SIZE, FOV, STEP = 16, 0.7, 0.25
 

@@ -10,7 +10,7 @@ import torch
 
 from phd_core.scene import Camera, look_at
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, rasterize
-from gs_reference import render_reference
+from reference.gaussians import render_reference
 
 WHITE = torch.ones(3)
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import base64
 import json
 import time
-from pathlib import Path
 
 import httpx
 import imageio.v3 as iio
@@ -17,7 +16,7 @@ import torch
 
 import phd_core
 from client import ConflictError, InvalidInputError, JobCancelledError, NotFoundError, PHDClient, camera_frames
-from conftest import svc_cameras
+from conftest import LEGO, svc_cameras
 from phd_core import uq
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 from phd_core.io import colorize
@@ -186,7 +185,7 @@ def test_cancel_queued_and_running_jobs(svc_start, svc_model_files):
 def test_client_reads_cameras_from_transforms_and_sidecars(svc_start, svc_model_files, tmp_path):
     from phd_core.renderers.gs3d import SIDECAR_FORMAT
 
-    transforms = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lego_200" / "transforms_val.json"
+    transforms = LEGO / "transforms_val.json"
     frames = camera_frames(transforms)  # Blender style: no w/h in the JSON, taken from the PNGs
     assert len(frames) == 100 and all(f["w"] == 200 and f["h"] == 200 for f in frames)
     assert all(f["camera_angle_x"] == pytest.approx(0.6911112070083618) for f in frames)

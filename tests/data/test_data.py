@@ -12,8 +12,8 @@ import torch
 
 from phd_core.data import load_blender, load_dataset, load_nerfstudio, select_views, split_size
 from phd_core.errors import InputError
+from conftest import LEGO
 
-LEGO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lego_200"
 POSE = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]
 
 

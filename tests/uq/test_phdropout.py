@@ -1,6 +1,6 @@
 """PH-Dropout engine: masks, calibration (Algorithm 1), zeta, ranking, selection, extremes.
 
-Toy renderers (tests/toy_renderers.py) make every case cheap; the GS tests use a small
+Toy renderers (tests/support/toy_renderers.py) make every case cheap; the GS tests use a small
 random GaussianModel through the real rasteriser, and a model trained on lego for the
 checks asked of a real model (float32 accumulation, bisection = linear scan). Expected
 values come from independent computations: one render per mask, numpy float64 std,
@@ -10,7 +10,6 @@ explicit loops.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,10 +18,10 @@ import torch
 from phd_core import uq as phd
 from phd_core.errors import InputError
 from phd_core.eval import psnr, ssim
-from toy_renderers import BlobRenderer, ConstantRenderer, EmptyRenderer, away_camera, ring_cameras
+from support.toy_renderers import BlobRenderer, ConstantRenderer, EmptyRenderer, away_camera, ring_cameras
+from conftest import LEGO
 
 CAMERAS = ring_cameras(6)
-LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego_200"
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ from client import PHDClient, UnsupportedModelError
 from conftest import svc_cameras
 from phd_core import uq
 from phd_core.renderers import FAMILIES, Family, load_model, load_model_bytes, model_kind, register_family
-from toy_renderers import BlobRenderer
+from support.toy_renderers import BlobRenderer
 
 MAGIC = b"PHD-TOY-BLOBS\n"
 
