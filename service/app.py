@@ -33,6 +33,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 import phd_core
 from phd_core.errors import InputError
 
+from .budget import MemoryLedger
 from .deps import ServiceState
 from .errors import ServiceError, from_exception
 from .guard import Guard
@@ -109,7 +110,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     swept = store.sweep()
     if swept:
         log.warning("removed %d unfinished upload(s) from %s", len(swept), settings.data_dir)
-    state = ServiceState(settings=settings, store=store, cache=RendererCache(store, settings.cache_size))
+    state = ServiceState(settings=settings, store=store, cache=RendererCache(store, settings.cache_size),
+                         ledger=MemoryLedger(settings.memory_budget_bytes))
 
     @asynccontextmanager
     async def lifespan(_: FastAPI):

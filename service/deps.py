@@ -10,8 +10,9 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from fastapi.responses import JSONResponse
 
-from phd_core.renderers import FAMILIES, load_model
+from phd_core.renderers import FAMILIES, load_model_bytes
 
+from .budget import PARSE_BYTES_PER_FILE_BYTE, MemoryLedger
 from .errors import ServiceError, not_found
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .schemas import ErrorResponse, Job, RenderSize
@@ -27,7 +28,6 @@ ERRORS: dict[int | str, dict[str, Any]] = {
         (429, "Work queue full: retry after Retry-After seconds"))
 }
 ACCEPTED = {202: {"model": Job, "description": "Queued as a job: poll GET /v1/jobs/{id}"}}
-ACCEPTED = {202: {"model": Job, "description": "Queued as a job: poll GET /v1/jobs/{id}"}}
 
 
 @dataclass
@@ -35,6 +35,7 @@ class ServiceState:
     settings: Settings
     store: ModelStore
     cache: RendererCache
+    ledger: MemoryLedger
     jobs: JobManager | None = None
 
     def model(self, model_id: str, field: str | None = None) -> ModelRecord:
@@ -72,7 +73,14 @@ class ServiceState:
         if upload.cameras is not None:  # the cheap check first
             cameras = parse_cameras(parse_camera_json(upload.cameras), RenderSize(), self.settings,
                                     field="cameras", cap=self.settings.max_training_cameras)
-        renderer = load_model(upload.path)
+        # Parsed under the shared memory budget; by content and the client's file name, so no
+        # message ever names the server's temp file.
+        try:
+            with self.ledger.reserve(PARSE_BYTES_PER_FILE_BYTE * upload.size, timeout=self.settings.upload_wait):
+                renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
+        except TimeoutError:
+            raise ServiceError(429, "busy", "the service's memory budget is taken by other work; retry later",
+                               "file", {"Retry-After": str(self.settings.retry_after)}) from None
         cameras = cameras if cameras is not None else renderer.training_cameras
         frames = None if not cameras else [c.to_frame() for c in cameras]
         name = upload.name or upload.filename or f"model{FAMILIES[kind].extension}"
@@ -83,13 +91,6 @@ class ServiceState:
                                 training_frames=frames)
         self.cache.put(record.id, renderer)
         return record
-
-
-def service_state(request: Request) -> ServiceState:
-    return request.app.state.service
-
-
-Service = Annotated[ServiceState, Depends(service_state)]
 
 
 def service_state(request: Request) -> ServiceState:

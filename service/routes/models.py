@@ -7,6 +7,7 @@ import asyncio
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
+from ..budget import PARSE_BYTES_PER_FILE_BYTE
 from ..deps import ERRORS, Service
 from ..errors import not_found
 from ..schemas import Calibration, ModelInfo, ModelList
@@ -45,7 +46,8 @@ async def upload_model(request: Request, svc: Service) -> JSONResponse:
     """Upload a model (3DGS PLY or NeRF checkpoint) with optional training cameras."""
     temp = svc.store.new_temp_path()
     try:
-        upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes)
+        upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes,
+                                      svc.settings.memory_budget_bytes // PARSE_BYTES_PER_FILE_BYTE)
         kind = sniff_kind(upload.head)
         record = await asyncio.to_thread(svc.ingest, upload, kind)
     finally:
