@@ -30,6 +30,7 @@ def run(args: argparse.Namespace) -> int:
     from phd_core.errors import InputError
     from service.app import create_app
     from service.settings import Settings
+    from service.timeouts import uvicorn_options
 
     if args.workers is not None and args.workers < 1:
         raise InputError("workers", f"must be at least 1, got {args.workers}")
@@ -46,5 +47,5 @@ def run(args: argparse.Namespace) -> int:
     app = create_app(settings)
     print(f"phd serve: data in {settings.data_dir}, {settings.workers} worker(s), queue {settings.queue_size}, "
           f"API key {'required' if settings.api_key else 'off'}; http://{args.host}:{args.port}/docs", flush=True)
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, **uvicorn_options(settings))
     return 0

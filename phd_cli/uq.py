@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from phd_core import uq as phd
-from phd_core.scene import Camera, cameras_from_json
+from phd_core.scene import Camera, read_cameras
 from phd_core.errors import InputError
 from phd_core.io import write_heatmap, write_json_atomic
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
@@ -174,7 +174,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale, with_images=False)
         cameras = dataset.cameras
     elif args.cameras is not None:
-        cameras = _scaled(cameras_from_json(args.cameras, width=args.width, height=args.height), args.downscale)
+        cameras = _scaled(read_cameras(args.cameras, width=args.width, height=args.height), args.downscale)
     else:
         cameras = _training_cameras(renderer, args.downscale)
     try:
@@ -255,12 +255,12 @@ def run_uq(args: argparse.Namespace) -> int:
 
 def run_rank(args: argparse.Namespace) -> int:
     renderer = _load(args.model)
-    candidates = _scaled(cameras_from_json(args.candidates, width=args.width, height=args.height), args.downscale)
+    candidates = _scaled(read_cameras(args.candidates, width=args.width, height=args.height), args.downscale)
     ratio, calibration = _ratio(args, renderer)
     captured = None
     if args.captured is not None:
         # Only the poses matter here: frames without w/h get a placeholder size.
-        captured = cameras_from_json(args.captured, width=args.width or 1, height=args.height or 1)
+        captured = read_cameras(args.captured, width=args.width or 1, height=args.height or 1)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
                             top_k=args.top_k, strategy=args.strategy, captured=captured)
     result = {"strategy": args.strategy, "dropout_ratio": ratio, "calibration": calibration,

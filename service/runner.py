@@ -15,6 +15,7 @@ import uvicorn
 
 from .app import create_app
 from .settings import Settings
+from .timeouts import uvicorn_options
 
 
 class BackgroundServer:
@@ -22,7 +23,8 @@ class BackgroundServer:
                  start_timeout: float = 30.0):
         self.settings = settings
         self.app = create_app(settings)
-        config = uvicorn.Config(self.app, host=host, port=port, log_level=log_level, lifespan="on")
+        config = uvicorn.Config(self.app, host=host, port=port, log_level=log_level, lifespan="on",
+                                **uvicorn_options(settings))
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="phd-service", daemon=True)
         self.thread.start()

@@ -50,6 +50,13 @@ class Settings(BaseSettings):
     max_samples: PositiveInt = 256             # dropout samples N per request
     async_threshold: PositiveFloat = 2e7       # estimated rendered pixels (views * N * H * W) above which
                                                # a request becomes a 202 job
+    memory_budget_bytes: PositiveInt = 4 << 30  # estimated memory of all running work and upload parses
+                                               # together (service.budget); a single request above it: 413
+    upload_wait: PositiveFloat = 30.0          # seconds an upload parse waits for budget before 429
+    keys_file: Path | None = None              # JSON {"name": "key", ...}: per-key model ownership (docs/service.md)
+    cors_origins: list[str] = []               # origins a browser page may call the API from (none by default)
+    header_timeout: PositiveFloat = 10.0       # seconds a client may take to send its request headers
+    body_timeout: PositiveFloat = 30.0         # seconds a client may pause between body chunks
 
     @field_validator("data_dir")
     @classmethod

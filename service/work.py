@@ -22,6 +22,7 @@ from phd_core.errors import InputError
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import Renderer, load_model
 
+from .budget import MemoryLedger, MemoryPlan, plan_work
 from .errors import ServiceError, invalid, not_found
 from .jobs import Work
 from .schemas import (Calibration, CalibrateRequest, RankedCandidate, RankRequest, RankResult, SelectedView,
@@ -130,19 +131,29 @@ def pixels(cameras: list[Camera]) -> int:
 
 
 
+def memory_plan(records: list[ModelRecord], cameras: list[Camera], samples: int, settings: Settings, *,
+                kept_bytes: int = 0, kept_field: str = "cameras") -> MemoryPlan:
+    """The job's memory plan (service.budget), or a 413 naming the field to lower."""
+    return plan_work([(r.kind, r.num_units, r.size_bytes) for r in records], max(c.width * c.height for c in cameras),
+                     samples, kept_bytes, settings.memory_budget_bytes, size_field="downscale", kept_field=kept_field)
+
+
+def bounded(work: Work, plan: MemoryPlan, ledger: MemoryLedger) -> Work:
+    """The work run with its memory reserved and its renders batched to fit it."""
+    def run(progress: Progress) -> tuple[Any, dict[str, bytes]]:
+        with ledger.reserve(plan.bytes), uq.limit_mask_batch(plan.mask_batch):
+            return work(progress)
+    return run
+
+
 def b64(data: bytes) -> str:
     return base64.b64encode(data).decode("ascii")
-
-
-def _span(progress: Progress, start: float, end: float) -> Progress:
-    """Progress of one phase mapped onto [start, end] of the job."""
-    return lambda fraction: progress(start + (end - start) * fraction)
 
 
 # ----------------------------------------------------------------------------- calibrate
 
 def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Settings, store: ModelStore,
-                  cache: RendererCache) -> tuple[Work, float]:
+                  cache: RendererCache, ledger: MemoryLedger) -> tuple[Work, float]:
     if body.training_cameras is not None:
         source, field = body.training_cameras, "training_cameras"
     elif record.training_frames:
@@ -156,6 +167,8 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
     options = {k: v for k, v in options.items() if v is not None}
     step = body.step or uq.DEFAULT_STEP
     estimate = pixels(cameras) * (1 + samples * int(1 / step))
+    plan = memory_plan([record], cameras, samples, settings, kept_bytes=12 * pixels(cameras),  # float32 references
+                       kept_field="training_cameras")
 
     def work(progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
         renderer = cache.get(record.id)
@@ -166,13 +179,13 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
             raise not_found("model", record.id)
         return calibration, {}
 
-    return work, float(estimate)
+    return bounded(work, plan, ledger), float(estimate)
 
 
 # ----------------------------------------------------------------------------- rank
 
 def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: RendererCache,
-             job_url: Callable[[str], str]) -> tuple[Work, float]:
+             job_url: Callable[[str], str], ledger: MemoryLedger) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
@@ -180,6 +193,9 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
                 parse_cameras(body.captured, body, settings, field="captured", cap=settings.max_training_cameras))
     heatmaps = body.heatmaps != "none"
     estimate = pixels(cameras) * samples
+    # With heat maps, every candidate's zeta channel max ([H, W] float32) is kept until the order is known.
+    plan = memory_plan([record], cameras, samples, settings, kept_bytes=4 * pixels(cameras) if heatmaps else 0,
+                       kept_field="heatmaps")
 
     def work(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
         renderer = cache.get(record.id)
@@ -203,7 +219,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
                             num_candidates=len(cameras), heatmap_vmax=vmax, views=views)
         return result, artifacts
 
-    return work, float(estimate)
+    return bounded(work, plan, ledger), float(estimate)
 
 
 def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
@@ -218,12 +234,13 @@ def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
 # ----------------------------------------------------------------------------- select
 
 def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest, settings: Settings,
-               cache: RendererCache, job_url: Callable[[str], str]) -> tuple[Work, float]:
+               cache: RendererCache, job_url: Callable[[str], str], ledger: MemoryLedger) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
     estimate = pixels(cameras) * (2 * samples + (body.images != "none"))
+    plan = memory_plan([record_a, record_b], cameras, samples, settings)
     if body.rule == "distance_sigma":
         for name, record in (("model_a", record_a), ("model_b", record_b)):
             if not record.training_frames:
@@ -250,4 +267,4 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
         return SelectResult(model_a=record_a.id, model_b=record_b.id, ratio_a=ratio_a, ratio_b=ratio_b,
                             rule=body.rule, samples=samples, seed=body.seed, counts=counts, views=views), artifacts
 
-    return work, float(estimate)
+    return bounded(work, plan, ledger), float(estimate)

@@ -20,7 +20,7 @@ from ..errors import InputError, check_float, check_int
 from ..eval import ssim
 from ..renderers import Renderer
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_seed, check_step,
-                       dropout_uniforms, keep_masks, render_masks)
+                       dropout_uniforms, keep_masks, masked_renders, render_masks)
 
 # Defaults measured on the 16-view lego 3DGS model (docs/uq.md, bench/bench_phdropout.py).
 DEFAULT_EPSILON = 0.0175           # mean |full - dropped| per pixel and channel on [0, 1]: on lego16 the
@@ -145,7 +145,7 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
     ticker = ProgressTicker(progress, len(cameras) * (1 + _expected_probes(grid, method)))
     references = []                                   # [1, H, W, 3] full renders
     for camera in cameras:
-        references.append(render_masks(renderer, camera, None).double())
+        references.append(render_masks(renderer, camera, None)[0])         # [H, W, 3] float32
         ticker.tick()
     uniforms = dropout_uniforms(renderer.num_units, samples, seed)
     probes: dict[int, float] = {}
@@ -155,7 +155,9 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
             keep = keep_masks(uniforms, _grid_ratio(k, step))
             per_view = []
             for camera, reference in zip(cameras, references):
-                per_view.append((render_masks(renderer, camera, keep).double() - reference).abs().mean().item())
+                total = sum((chunk.double() - reference.double()).abs().sum().item()   # a chunk of masks at a time
+                            for chunk in masked_renders(renderer, camera, keep))
+                per_view.append(total / (keep.shape[0] * reference.numel()))
                 ticker.tick()
             probes[k] = sum(per_view) / len(per_view)
         return probes[k]

@@ -13,8 +13,8 @@ from torch import Tensor
 from ..scene import Camera
 from ..errors import InputError
 from ..renderers import Renderer
-from .sampling import (Progress, ProgressTicker, check_cameras, check_dtype, check_ratio, check_samples, check_seed,
-                       dropout_uniforms, keep_masks, render_masks, sample_std)
+from .sampling import (Progress, ProgressTicker, RunningStd, check_cameras, check_dtype, check_ratio, check_samples,
+                       check_seed, dropout_uniforms, keep_masks, masked_renders)
 
 TOP_SHARE = 0.1                    # sigma_top: the share of pixels it averages
 AREA_THRESHOLD = 0.05              # area: zeta above this (on [0, 1] colours) counts as uncertain
@@ -36,8 +36,10 @@ class ViewUncertainty:
 
 def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, keep_maps: bool,
                  dtype: torch.dtype, keep_peak: bool = False) -> ViewUncertainty:
-    images = render_masks(renderer, camera, keep)             # [N, H, W, 3]
-    zeta, mean = sample_std(images, ddof=ddof, dtype=dtype)
+    running = RunningStd(dtype)                               # never holds all N renders
+    for chunk in masked_renders(renderer, camera, keep):      # [m, H, W, 3]
+        running.add(chunk)
+    zeta, mean = running.result(ddof)
     peak = zeta.amax(dim=-1)                                  # [H, W]
     per_pixel = peak.flatten()                                # [H * W]
     top = per_pixel.topk(max(1, round(TOP_SHARE * per_pixel.numel()))).values
