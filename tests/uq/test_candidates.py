@@ -32,7 +32,7 @@ def test_the_registry_serves_hemisphere_and_refuses_unknown_names() -> None:
     expected = hemisphere_cameras(6, radius=2.0, width=8, height=8)
     assert all(torch.equal(a.c2w, b.c2w) and a.to_frame() == b.to_frame() for a, b in zip(generated, expected))
     with pytest.raises(InputError) as info:
-        get_generator("spiral")
+        get_generator("zigzag")
     assert info.value.field == "generator" and "hemisphere" in info.value.reason
 
 
@@ -41,11 +41,11 @@ def test_a_generator_is_one_registry_entry() -> None:
         return [look_at((radius * math.cos(2 * math.pi * i / count), radius * math.sin(2 * math.pi * i / count), 0),
                         (0, 0, 0), width=width, height=height, fov_x=0.7) for i in range(count)]
 
-    register(Generator("orbit", "a horizontal ring", orbit))
+    register(Generator("ring", "a horizontal ring", orbit))
     try:
-        cameras = get_generator("orbit").generate(4, radius=2.0)
+        cameras = get_generator("ring").generate(4, radius=2.0)
         assert [round(float(c.center.norm()), 9) for c in cameras] == [2.0] * 4
         with pytest.raises(ValueError):
-            register(Generator("orbit", "again", orbit))
+            register(Generator("ring", "again", orbit))
     finally:
-        del GENERATORS["orbit"]
+        del GENERATORS["ring"]
