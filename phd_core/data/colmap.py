@@ -305,46 +305,6 @@ def image_camera(model: ColmapModel, image: ColmapImage, file: str) -> Camera:
         raise InputError(f"{where}.{exc.field}", exc.reason) from None
 
 
-def to_text(model: ColmapModel, model_dir: str | Path) -> None:
-    """Write `model` as a COLMAP text model (cameras, images, points3D without tracks)."""
-    model_dir = Path(model_dir)
-    model_dir.mkdir(parents=True, exist_ok=True)
-    cams = [f"{i} {c.model} {c.width} {c.height} " + " ".join(repr(p) for p in c.params)
-            for i, c in model.cameras.items()]
-    (model_dir / "cameras.txt").write_text("# Camera list\n" + "\n".join(cams) + "\n")
-    lines = []
-    for im in model.images:
-        lines.append(" ".join(str(v) for v in (im.image_id, *im.qvec, *im.tvec, im.camera_id, im.name)))
-        lines.append(" ".join(f"{x!r} {y!r} {int(p)}" for (x, y), p in zip(im.xys.tolist(), im.point3d_ids)))
-    (model_dir / "images.txt").write_text("# Image list\n" + "\n".join(lines) + "\n")
-    if model.points is not None:
-        rows = [f"{i} {x!r} {y!r} {z!r} {r} {g} {b} 0" for i, (x, y, z), (r, g, b)
-                in zip(model.point_ids.tolist(), model.points.tolist(), model.colors.tolist())]
-        (model_dir / "points3D.txt").write_text("\n".join(rows) + "\n")
-
-
-def to_binary(model: ColmapModel, model_dir: str | Path) -> None:
-    """Write `model` as a COLMAP binary model (cameras, images, points3D without tracks)."""
-    model_dir = Path(model_dir)
-    model_dir.mkdir(parents=True, exist_ok=True)
-    out = bytearray(struct.pack("<Q", len(model.cameras)))
-    for i, c in model.cameras.items():
-        out += struct.pack(f"<iiQQ{len(c.params)}d", i, MODEL_IDS[c.model], c.width, c.height, *c.params)
-    (model_dir / "cameras.bin").write_bytes(bytes(out))
-    out = bytearray(struct.pack("<Q", len(model.images)))
-    for im in model.images:
-        out += struct.pack("<i7di", im.image_id, *im.qvec, *im.tvec, im.camera_id) + im.name.encode() + b"\0"
-        obs = np.empty(len(im.xys), _OBSERVATION)
-        obs["xy"], obs["point3d_id"] = im.xys, im.point3d_ids
-        out += struct.pack("<Q", len(obs)) + obs.tobytes()
-    (model_dir / "images.bin").write_bytes(bytes(out))
-    if model.points is not None:
-        out = bytearray(struct.pack("<Q", len(model.points)))
-        for i, p, c in zip(model.point_ids.tolist(), model.points.tolist(), model.colors.tolist()):
-            out += struct.pack("<Q3d3BdQ", i, *p, *c, 0.0, 0)
-        (model_dir / "points3D.bin").write_bytes(bytes(out))
-
-
 # ----------------------------------------------------------------------------- the format
 
 def find_model(path: Path) -> Path | None:

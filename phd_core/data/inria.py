@@ -77,17 +77,6 @@ def camera_from_entry(entry: Any, max_size: int = DEFAULT_MAX_SIZE) -> Camera:
         raise InputError("rotation" if exc.field == "transform_matrix" else exc.field, exc.reason) from None
 
 
-def to_entries(cameras: Sequence[Camera], names: Sequence[str] | None = None) -> list[dict[str, Any]]:
-    """The inverse of `cameras_from_entries` (principal points must be centred)."""
-    entries = []
-    for i, camera in enumerate(cameras):
-        c2w_cv = camera.c2w @ _GL_FLIP
-        entries.append({"id": i, "img_name": names[i] if names else f"{i:05d}", "width": camera.width,
-                        "height": camera.height, "position": c2w_cv[:3, 3].tolist(),
-                        "rotation": c2w_cv[:3, :3].tolist(), "fy": camera.fy, "fx": camera.fx})
-    return entries
-
-
 def cameras_from_entries(entries: Any, max_size: int = DEFAULT_MAX_SIZE, file: str = "cameras.json"
                          ) -> list[Camera]:
     """Every camera of a parsed cameras.json, errors naming `file[i].key` (as frames[i].key in the service)."""

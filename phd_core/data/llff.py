@@ -70,19 +70,6 @@ def cameras_from_poses_bounds(rows: np.ndarray) -> tuple[list[Camera], np.ndarra
     return cameras, bounds
 
 
-def to_poses_bounds(cameras: Sequence[Camera], bounds: np.ndarray) -> np.ndarray:
-    """The inverse of `cameras_from_poses_bounds`: [N, 17] rows (principal points must be centred)."""
-    rows = []
-    for camera in cameras:
-        c2w = camera.c2w.numpy()
-        right, up, back = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2]
-        hwf = [camera.height, camera.width, camera.fx]
-        rows.append(np.concatenate([np.stack([-up, right, back, c2w[:3, 3], hwf], axis=1).reshape(-1), [0, 0]]))
-    out = np.array(rows)
-    out[:, 15:] = bounds
-    return out
-
-
 def image_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
 
