@@ -105,6 +105,10 @@ def candidate_cameras(generator: str, count: int, *, cameras: Sequence[Camera] |
         for key, value in _derived(frame, points).items():
             if key in accepted and key not in kwargs:
                 kwargs[key] = value
+    for name, parameter in accepted.items():
+        if name != "count" and parameter.default is inspect.Parameter.empty and name not in kwargs \
+                and parameter.kind is not inspect.Parameter.VAR_KEYWORD:
+            raise InputError(name, f"generator {generator!r} needs {'the training cameras' if name == 'cameras' else name}")
     try:
         poses = entry.generate(count, **kwargs)
     except (TypeError, ValueError, RuntimeError) as exc:
