@@ -147,7 +147,7 @@ class CandidateSpec(_Request):
     generator: str = Field(description="One of the registry's generators: " + ", ".join(
         f"{name} ({g.summary})" for name, g in GENERATORS.items()) + ".")
     count: int = Field(64, ge=1, description="How many poses (at most the server's candidate cap).")
-    options: dict[str, Union[FiniteFloat, list[FiniteFloat]]] = Field(
+    options: dict[str, Union[int, FiniteFloat, list[FiniteFloat]]] = Field(
         default_factory=dict, description="The generator's options, e.g. {'rings': 3, 'elevation': 0.4} for orbit.")
 
     @field_validator("generator")
