@@ -221,8 +221,8 @@ def read_points_text(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ids.append(_numbers(words[:1], int, path, n, "POINT3D_ID")[0])
         xyz.append(_numbers(words[1:4], float, path, n, "X Y Z"))
         rgb.append(_numbers(words[4:7], int, path, n, "R G B"))
-    return (np.array(xyz, dtype=np.float64).reshape(-1, 3), np.clip(np.array(rgb), 0, 255).astype(np.uint8).reshape(-1, 3),
-            np.array(ids, dtype=np.int64))
+    colours = np.clip(np.array(rgb), 0, 255).astype(np.uint8).reshape(-1, 3)
+    return np.array(xyz, dtype=np.float64).reshape(-1, 3), colours, np.array(ids, dtype=np.int64)
 
 
 def read_points_binary(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -96,8 +96,8 @@ def candidate_cameras(generator: str, count: int, *, cameras: Sequence[Camera] |
     accepted = inspect.signature(entry.generate).parameters
     takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in accepted.values())
     for key in options:
-        if key == "count" or (key not in accepted and not takes_any):
-            takes = sorted(k for k in accepted if k != "count")
+        if key in ("count", "cameras", "points") or (key not in accepted and not takes_any):
+            takes = sorted(k for k in accepted if k not in ("count", "cameras", "points"))
             raise InputError(f"options.{key}", f"generator {generator!r} takes {', '.join(takes) or 'no options'}")
     frame = scene_frame(cameras, points) if cameras or points is not None else None
     kwargs = dict(options)
@@ -108,7 +108,8 @@ def candidate_cameras(generator: str, count: int, *, cameras: Sequence[Camera] |
     for name, parameter in accepted.items():
         if name != "count" and parameter.default is inspect.Parameter.empty and name not in kwargs \
                 and parameter.kind is not inspect.Parameter.VAR_KEYWORD:
-            raise InputError(name, f"generator {generator!r} needs {'the training cameras' if name == 'cameras' else name}")
+            what = "the training cameras" if name == "cameras" else name
+            raise InputError(name, f"generator {generator!r} needs {what}")
     try:
         poses = entry.generate(count, **kwargs)
     except (TypeError, ValueError, RuntimeError) as exc:
