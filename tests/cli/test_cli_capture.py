@@ -140,3 +140,25 @@ def test_rank_candidates_from_a_folder_without_cameras_use_the_splats(capture, c
     result = json.loads(out)
     assert result["candidates"] == 4 and sorted(result["order"]) == [0, 1, 2, 3]
     assert math.isfinite(result["ranking"][0]["sigma_max"]) and result["ranking"][0]["sigma_max"] > 0
+
+
+def test_uq_and_rank_read_colmap_and_llff_captures(capture, capsys) -> None:
+    """Candidates and evaluation views straight from COLMAP / LLFF captures (images rendered by the model)."""
+    renderer = capture["renderer"]
+    views = ring_cameras(9, size=SIZE, height=1.5)
+    images = [renderer.render(c)[0].numpy() for c in views]
+    colmap = capture["root"] / "uq-colmap"
+    write_colmap(colmap, views, binary=True, images=images)
+    llff = capture["root"] / "uq-llff"
+    write_llff(llff, [Camera(c.c2w, c.fx, c.fx, SIZE / 2, SIZE / 2, SIZE, SIZE) for c in views], images=images)
+    for data in (colmap, llff):
+        out = capture["root"] / f"report-{data.name}"
+        code, _, err = run(capsys, "uq", "--model", capture["folder"], "--data", data, "--split", "test",
+                           "--samples", 3, "--dropout-ratio", 0.3, "--no-heatmaps", "--out", out)
+        assert code == 0, err
+        report = json.loads((out / "report.json").read_text())
+        assert [v["index"] for v in report["views"]] == [0, 1]                  # frames 0 and 8 by name
+        assert all(v["rmse"] < 0.01 for v in report["views"])                   # the images are the model's renders
+        code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", data, "--samples", 3,
+                             "--dropout-ratio", 0.3)
+        assert code == 0 and json.loads(out)["candidates"] == 9, err
