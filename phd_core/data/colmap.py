@@ -350,7 +350,7 @@ def load_colmap(path: str | Path, split: str = "train", *, downscale: float = 1,
         points = torch.from_numpy(model.points)
         colors = torch.from_numpy(model.colors.astype(np.float32) / 255)
         near, far = _depth_range(cameras, points)
-    return build_dataset(cameras, paths, model_dir.parent if model_dir.name == "0" else model_dir, split,
+    return build_dataset(cameras, paths, path, split,
                          downscale=downscale, views=views, background=background, seed=seed, near=near, far=far,
                          points=points, point_colors=colors, names=[image.name for image in chosen])
 
