@@ -165,6 +165,8 @@ def _candidates(args: argparse.Namespace, renderer) -> list[Camera]:
         from phd_core.data import load_cameras
 
         return load_cameras(path, split="all", width=args.width, height=args.height)
+    if "/" in args.candidates or args.candidates.lower().endswith((".json", ".npy")):
+        raise InputError("candidates", f"no such file: {path}")
     from .candidates import make
 
     poses = make(args.candidates, renderer)
