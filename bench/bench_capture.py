@@ -7,9 +7,9 @@ the other 67. Each initialisation is one run of the same trainer:
     before      the trainer before this change (uniform random grey splats in the bounds, white
                 background), loaded with --before FILE (`git show 9061413:phd_core/train/gs3d.py`
                 with its relative imports made absolute); skipped without it
-    sfm         the SfM points (points3D), kNN-sized, no background shell
-    sfm+shell   the default for a COLMAP capture: SfM points plus a far background shell,
+    sfm         the default for a COLMAP capture: the SfM points (points3D), kNN-sized,
                 mean-colour background, camera-spread extent
+    sfm+shell   the same plus a far shell of 2000 background splats (TrainConfig.background_splats)
 
     OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/bench_capture.py --out bench/results/capture.json
 """
