@@ -267,3 +267,26 @@ def test_load_cameras_reads_every_format(tmp_path) -> None:
     for source in (tmp_path / "colmap", tmp_path / "llff" / "poses_bounds.npy", tmp_path / "frames.json",
                    tmp_path / "cameras.json"):
         assert_same_cameras(load_cameras(source, split="all"), cameras)
+
+
+def test_cameras_json_made_from_the_real_cup_model_as_the_trainer_does() -> None:
+    """The reference trainer writes cameras.json from COLMAP's pose: R = qvec2rotmat(q)^T,
+    T = t, Rt = [R^T | T], and stores inv(Rt)'s rotation and translation. Done here with numpy
+    from the raw images.bin values, it must give the COLMAP loader's cameras."""
+    model = read_model(CUP / "sparse" / "0", with_points=False)
+    entries = []
+    for image in model.images[:10]:
+        w, x, y, z = np.array(image.qvec) / np.linalg.norm(image.qvec)
+        r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]).T
+        rt = np.eye(4)
+        rt[:3, :3], rt[:3, 3] = r.T, image.tvec
+        c2w = np.linalg.inv(rt)
+        cam = model.cameras[image.camera_id]
+        entries.append({"id": len(entries), "img_name": image.name, "width": cam.width, "height": cam.height,
+                        "position": c2w[:3, 3].tolist(), "rotation": c2w[:3, :3].tolist(),
+                        "fy": cam.params[0], "fx": cam.params[0]})
+    from_json = load_cameras(entries)
+    from_colmap = load_dataset(CUP, "all", with_images=False).cameras[:10]
+    assert_same_cameras(from_json, from_colmap, atol=1e-9)

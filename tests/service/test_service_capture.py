@@ -101,3 +101,17 @@ def test_malformed_capture_input_is_a_4xx(svc_start, output_folder) -> None:
         with PHDClient(server.url) as client:
             np.save(output_folder.parent / "bad.npy", bad)
             client.upload_model(ply, cameras=output_folder.parent / "bad.npy")
+
+
+def test_generated_candidates_for_a_model_without_cameras_come_from_its_splats(svc_start, svc_model_files) -> None:
+    server = svc_start()
+    with PHDClient(server.url) as client:
+        info = client.upload_model(svc_model_files["ply"])
+        assert info.num_training_cameras == 0
+        ranking = client.rank(info.id, candidates={"generator": "hemisphere", "count": 4, "options": {}},
+                              width=16, height=16, samples=2, dropout_ratio=0.2)
+    renderer = load_model(svc_model_files["ply"])
+    poses = [c.resized(16, 16) for c in candidate_cameras("hemisphere", 4, renderer=renderer)]
+    ranked = phd.rank_views(renderer, poses, ratio=0.2, samples=2, captured=[])
+    assert [v.index for v in ranking.views] == [r.index for r in ranked]
+    assert [v.sigma_max for v in ranking.views] == pytest.approx([r.sigma_max for r in ranked], rel=1e-5)
