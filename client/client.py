@@ -163,7 +163,7 @@ def _frames_of_transforms(data: dict, base: Path | None) -> list[dict]:
 
 def camera_frames(cameras: Cameras) -> list[dict]:
     """Frames (JSON-ready dicts) from Camera objects, frame dicts, a transforms.json object or path."""
-    if isinstance(cameras, (str, Path)) and not str(cameras).lower().endswith(".json"):
+    if isinstance(cameras, (str, Path)) and (Path(cameras).is_dir() or str(cameras).lower().endswith(".npy")):
         from phd_core.data import load_cameras     # a capture of any format (COLMAP, LLFF, ...): its train split
 
         try:
