@@ -344,6 +344,9 @@ def load_colmap(path: str | Path, split: str = "train", *, downscale: float = 1,
     if with_images:
         folder = images_dir(model_dir)
         paths = [folder / image.name for image in chosen]
+        for image, file in zip(chosen, paths):
+            if not file.resolve().is_relative_to(folder.resolve()):
+                raise InputError(f"images{ext}", f"image name {image.name!r} points outside {folder}")
     points = colors = None
     near = far = None
     if model.points is not None and len(model.points):
