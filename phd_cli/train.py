@@ -1,4 +1,5 @@
-"""`phd train`: fit a 3DGS (default) or NeRF model to a Blender-format dataset."""
+"""`phd train`: fit a 3DGS (default) or NeRF model to a capture (3DGS: any format in
+`phd_core.data`, COLMAP and LLFF included)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description="Train on the train split; saves the model with its training cameras.")
     trainable = sorted(kind for kind, family in FAMILIES.items() if family.trainer)
     p.add_argument("--model", choices=trainable, default="3dgs", help="model family (default 3dgs)")
-    p.add_argument("--data", required=True, type=Path, help="dataset directory (transforms_train.json)")
+    p.add_argument("--data", required=True, type=Path, help="capture: Blender/nerfstudio transforms, a COLMAP "
+                   "scene (images/ + sparse/0), or LLFF poses_bounds.npy (3dgs reads all; its train split)")
     p.add_argument("--views", default="16",
                    help="number of evenly spaced training views, or a comma-separated index list (default 16)")
     p.add_argument("--downscale", type=float, default=2.0, help="image downscale factor (default 2)")

@@ -13,9 +13,11 @@ from pathlib import Path
 from typing import Any
 
 from phd_core import uq as phd
-from phd_core.scene import Camera, read_cameras
+from phd_core.data import load_cameras
+from phd_core.scene import Camera
 from phd_core.errors import InputError
 from phd_core.io import write_heatmap, write_json_atomic
+from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
 
@@ -29,7 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_model_args(calibrate)
     source = calibrate.add_mutually_exclusive_group()
     source.add_argument("--data", type=Path, help="dataset directory: calibrate on the poses of its --split")
-    source.add_argument("--cameras", type=Path, help="transforms-style JSON (or a list of frames) of training poses")
+    source.add_argument("--cameras", type=Path, help="training poses: transforms-style JSON (or a list of frames), "
+                        "a reference cameras.json, a COLMAP model or poses_bounds.npy")
     calibrate.add_argument("--split", default="train", help="dataset split with --data (default train)")
     calibrate.add_argument("--views", type=int, default=None, help="use this many evenly spaced frames of --data")
     _add_camera_size_args(calibrate)
@@ -63,8 +66,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "every candidate reports sigma_max, sigma_mean and the strategy's score. The ratio is "
                     "--dropout-ratio, else calibrated on the model's training cameras.")
     _add_model_args(rank)
-    rank.add_argument("--candidates", type=Path, required=True,
-                      help="transforms-style JSON or a list of frames (needs w/h, or give --width/--height)")
+    rank.add_argument("--candidates", required=True,
+                      help="a generator spec NAME[:COUNT][,key=value...] (" + ", ".join(GENERATORS) + "; e.g. "
+                      "orbit:64, see `phd candidates`), placed around the model's training cameras; or a file: "
+                      "transforms-style JSON or a list of frames (needs w/h, or give --width/--height), or any "
+                      "capture (all its frames)"),
     rank.add_argument("--strategy", choices=sorted(STRATEGIES), default=DEFAULT_STRATEGY,
                       help="; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items())))
     rank.add_argument("--captured", type=Path, default=None,
@@ -81,7 +87,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # ---------------------------------------------------------------------------------------- arguments
 
 def _add_model_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS .ply or NeRF checkpoint")
+    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS .ply, NeRF checkpoint, or "
+                        "the reference 3DGS trainer's output folder as is (cameras.json + point_cloud/iteration_*)")
 
 
 def _add_camera_size_args(parser: argparse.ArgumentParser, sizes: bool = True) -> None:
@@ -152,6 +159,23 @@ def _ratio(args: argparse.Namespace, renderer, cameras: list[Camera] | None = No
     return result.r_drop, result.to_dict()
 
 
+def _candidates(args: argparse.Namespace, renderer) -> list[Camera]:
+    """--candidates: a file or capture when the path exists, else a generator spec."""
+    path = Path(args.candidates)
+    if path.exists():
+        return load_cameras(path, split="all", width=args.width, height=args.height)
+    if "/" in args.candidates or args.candidates.lower().endswith((".json", ".npy")):
+        raise InputError("candidates", f"no such file: {path}")
+    from .candidates import make
+
+    poses = make(args.candidates, renderer)
+    if args.width is not None or args.height is not None:
+        if args.width is None or args.height is None:
+            raise InputError("width", "give --width and --height together")
+        poses = [c.resized(args.width, args.height) for c in poses]
+    return poses
+
+
 def _write_json(path: Path, data: Any) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(path, data)
@@ -174,7 +198,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale, with_images=False)
         cameras = dataset.cameras
     elif args.cameras is not None:
-        cameras = _scaled(read_cameras(args.cameras, width=args.width, height=args.height), args.downscale)
+        cameras = _scaled(load_cameras(args.cameras, width=args.width, height=args.height), args.downscale)
     else:
         cameras = _training_cameras(renderer, args.downscale)
     try:
@@ -255,12 +279,12 @@ def run_uq(args: argparse.Namespace) -> int:
 
 def run_rank(args: argparse.Namespace) -> int:
     renderer = _load(args.model)
-    candidates = _scaled(read_cameras(args.candidates, width=args.width, height=args.height), args.downscale)
+    candidates = _scaled(_candidates(args, renderer), args.downscale)
     ratio, calibration = _ratio(args, renderer)
     captured = None
     if args.captured is not None:
         # Only the poses matter here: frames without w/h get a placeholder size.
-        captured = read_cameras(args.captured, width=args.width or 1, height=args.height or 1)
+        captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
                             top_k=args.top_k, strategy=args.strategy, captured=captured)
     result = {"strategy": args.strategy, "dropout_ratio": ratio, "calibration": calibration,

@@ -17,7 +17,9 @@ from typing import Any, Callable
 
 from phd_core import uq
 from phd_core.uq import Progress
+from phd_core.data.inria import cameras_from_entries, is_inria_cameras
 from phd_core.scene import Camera, cameras_from_json
+from phd_core.uq.candidates import candidate_cameras
 from phd_core.errors import InputError
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import Renderer, load_model
@@ -88,7 +90,11 @@ def parse_cameras(source: Any, size: RenderSize, settings: Settings, *, field: s
     if (size.width is None) != (size.height is None):
         raise invalid("width" if size.width is None else "height", "give width and height together")
     try:
-        cameras = cameras_from_json(source, width=size.width, height=size.height, max_size=settings.max_frame_size)
+        if is_inria_cameras(source):     # the reference 3DGS trainer's cameras.json, as is
+            cameras = cameras_from_entries(source, settings.max_frame_size, file="frames")
+        else:
+            cameras = cameras_from_json(source, width=size.width, height=size.height,
+                                        max_size=settings.max_frame_size)
         if size.width is not None:
             cameras = [c.resized(size.width, size.height) for c in cameras]
         elif size.downscale is not None:
@@ -184,9 +190,29 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
 
 # ----------------------------------------------------------------------------- rank
 
+def generated_candidates(record: ModelRecord, body: RankRequest, settings: Settings,
+                         cache: RendererCache) -> list[Camera]:
+    """The poses of a rank request's generator spec, placed around the model's training cameras
+    (else its splats: the model is loaded), checked like explicit cameras."""
+    spec = body.candidates
+    if spec.count > settings.max_candidates:
+        raise invalid("candidates.count", f"{spec.count} poses exceed the cap of {settings.max_candidates} per request")
+    training = stored_cameras(record)
+    try:
+        poses = candidate_cameras(spec.generator, spec.count, cameras=training or None,
+                                  renderer=None if training else cache.get(record.id), **spec.options)
+    except InputError as exc:
+        raise invalid(f"candidates.{exc.field}", exc.reason) from None
+    return parse_cameras([c.to_frame() for c in poses], body, settings, field="candidates",
+                         cap=settings.max_candidates)
+
+
 def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: RendererCache,
              job_url: Callable[[str], str], ledger: MemoryLedger) -> tuple[Work, float]:
-    cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
+    if body.candidates is not None:
+        cameras = generated_candidates(record, body, settings, cache)
+    else:
+        cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
     captured = (stored_cameras(record) if body.captured is None else

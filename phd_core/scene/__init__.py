@@ -4,8 +4,8 @@ what the training views' masks leave of it (`hull`)."""
 
 from .bounds import frustum_bounds, scene_bounds
 from .camera import DEFAULT_MAX_SIZE, Camera, look_at, validate_pose
-from .frames import camera_from_frame, cameras_from_json, read_cameras
+from .frames import camera_from_frame, cameras_from_json
 from .hull import Footprint, footprint, visual_hull
 
-__all__ = ["DEFAULT_MAX_SIZE", "Camera", "Footprint", "camera_from_frame", "cameras_from_json", "read_cameras", "footprint",
+__all__ = ["DEFAULT_MAX_SIZE", "Camera", "Footprint", "camera_from_frame", "cameras_from_json", "footprint",
            "frustum_bounds", "look_at", "scene_bounds", "validate_pose", "visual_hull"]

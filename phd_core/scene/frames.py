@@ -3,9 +3,7 @@ frames. The inverse is `Camera.to_frame()`."""
 
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -88,22 +86,11 @@ def camera_from_frame(frame: dict, defaults: dict | None = None, *, width: int |
     return Camera(c2w, fx, fy, cx, cy, w, h, max_size)
 
 
-def read_cameras(path: str | Path, *, width: int | None = None, height: int | None = None,
-                 max_size: int = DEFAULT_MAX_SIZE) -> list[Camera]:
-    """Cameras from a transforms.json FILE. Only the CLI calls this: a path never comes from a
-    request (the service hands `cameras_from_json` parsed JSON)."""
-    try:
-        source = json.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError("cameras", f"cannot read camera JSON {path}: {exc}") from None
-    return cameras_from_json(source, width=width, height=height, max_size=max_size)
-
-
 def cameras_from_json(source: dict | list, *, width: int | None = None,
                       height: int | None = None, max_size: int = DEFAULT_MAX_SIZE) -> list[Camera]:
     """Cameras from parsed JSON: a transforms.json object or a plain list of frames.
 
-    A string is refused, never opened: files are read by `read_cameras` (the CLI's)."""
+    A string is refused, never opened: files are read by `phd_core.data.load_cameras` (the CLI's)."""
     if isinstance(source, list):
         frames, defaults = source, {}
     elif isinstance(source, dict) and isinstance(source.get("frames"), list):

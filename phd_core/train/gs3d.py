@@ -1,4 +1,4 @@
-"""Fit a 3D Gaussian Splatting model to a Blender-format dataset on the CPU.
+"""Fit a 3D Gaussian Splatting model to a capture (any `phd_core.data` format) on the CPU.
 
 The recipe is the reference one (Kerbl et al. 2023) scaled to short CPU runs:
 L1 + 0.2 D-SSIM, Adam with per-parameter learning rates and an exponentially decaying
@@ -11,7 +11,15 @@ What the scene needs is derived from the data, not configured:
   extent every camera sees);
 - initial splats: carved from the training alpha masks where the data has them (a point
   is kept when every training view that sees it sees foreground there), coloured by the
-  pixels it projects to; uniform in the bounds otherwise;
+  pixels it projects to; else the SfM points where the format has them (COLMAP), each
+  splat as wide as the mean distance to its 3 nearest neighbours, as the reference trainer
+  starts; uniform in the bounds otherwise;
+- real captures (no alpha masks): the background is real and unbounded. The SfM points
+  reach into it; the renderer's background colour is the training images' mean colour;
+  the extent that scales the position rate and the split size is the cameras' spread, as
+  the reference uses. Optionally (`background_splats`) a shell of splats far outside the
+  cameras, coloured by the pixels behind it: on cup_colmap it cost 0.7-1.7 dB at 4 and 8
+  views and gained 0.3-1.0 dB at 12 and 16 (docs/formats.md), so it is off by default;
 - splat budget: a multiple of the pixels in one training view.
 """
 
@@ -26,7 +34,7 @@ from typing import Any, Sequence
 import torch
 from tqdm import tqdm
 
-from ..data import Dataset, load_blender
+from ..data import Dataset, load_dataset
 from ..errors import InputError
 from ..eval import ssim
 from ..io import write_json_atomic
@@ -47,6 +55,8 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     init_points: int = 6000
+    background_splats: int = 0        # a far shell of this many splats for captures without alpha masks
+    shell_radius: float = 3.0         # times the largest camera distance from the scene centre
     splats_per_pixel: float = 4.0     # budget: this many splats per pixel of one view
     densify_from: float = 0.05        # fractions of the run
     densify_until: float = 0.6
@@ -103,21 +113,96 @@ def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
 
 
 def initial_model(points: torch.Tensor, colours: torch.Tensor, sh_degree: int, extent: float,
-                  gen: torch.Generator) -> GaussianModel:
-    """Small isotropic splats at `points` with 10% opacity and DC colour from `colours`."""
+                  gen: torch.Generator, spacing: torch.Tensor | None = None) -> GaussianModel:
+    """Small isotropic splats at `points` with 10% opacity and DC colour from `colours`; their
+    size is half of `spacing` [P] (default the mean distance between points in the bounds)."""
     n = len(points)
-    spacing = extent * 2 / max(1.0, n ** (1 / 3))    # mean distance between points
+    if spacing is None:      # the mean distance between n points spread over the bounds
+        log_scales = torch.full((n, 3), math.log(extent * 2 / max(1.0, n ** (1 / 3)) * 0.5))
+    else:
+        log_scales = (spacing.double() * 0.5).clamp_min(1e-7).log().float()[:, None].expand(n, 3).contiguous()
     sh = torch.zeros(n, (sh_degree + 1) ** 2, 3)
     sh[:, 0] = (colours - 0.5) / SH_C0
     quats = torch.zeros(n, 4)
     quats[:, 0] = 1.0
     return GaussianModel(
         means=points.clone(),
-        log_scales=torch.full((n, 3), math.log(spacing * 0.5)),
+        log_scales=log_scales,
         quats=quats,
         opacity_logits=torch.full((n,), math.log(0.1 / 0.9)),
         sh=sh,
     )
+
+
+def neighbour_spacing(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
+    """[P] mean distance of each point to its k nearest other points (chunked: no P x P matrix)."""
+    out = torch.empty(len(points), dtype=points.dtype)
+    k = min(k, len(points) - 1)
+    if k < 1:
+        return torch.ones(len(points), dtype=points.dtype)
+    for start in range(0, len(points), chunk):
+        d = torch.cdist(points[start:start + chunk], points)                     # [c, P]
+        out[start:start + chunk] = d.topk(k + 1, largest=False).values[:, 1:].mean(1)
+    return out
+
+
+def background_shell(data: Dataset, centre: torch.Tensor, radius: float, count: int
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Points [B, 3], colours [B, 3] and spacing [B] on a sphere of `radius` around `centre`:
+    the directions some training view sees, coloured by the mean pixel behind them."""
+    total = 4 * count
+    i = torch.arange(total, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / total
+    azimuth = math.pi * (3 - math.sqrt(5)) * i
+    ring = (1 - z * z).sqrt()
+    sphere = centre + radius * torch.stack([ring * azimuth.cos(), ring * azimuth.sin(), z], dim=1)   # [4B, 3]
+    colour_sum = torch.zeros(total, 3, dtype=torch.float64)
+    seen = torch.zeros(total, dtype=torch.float64)
+    for cam, image in zip(data.cameras, data.images):
+        pixel = footprint(cam, sphere)
+        colour_sum += torch.where(pixel.inside[:, None], image[pixel.v0, pixel.u0].double(), 0.0)
+        seen += pixel.inside.double()
+    visible = (seen > 0).nonzero().squeeze(1)[:count]
+    spacing = torch.full((len(visible),), radius * math.sqrt(4 * math.pi / total) * 2, dtype=torch.float64)
+    return sphere[visible], (colour_sum[visible] / seen[visible, None]), spacing
+
+
+def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: TrainConfig,
+               gen: torch.Generator) -> GaussianModel:
+    """The first splats: from the alpha masks' hull, else the SfM points, else uniform (module docstring)."""
+    if data.alphas is not None or data.points is None or len(data.points) == 0:
+        points, colours = carve_points(data, centre, extent, config.init_points, gen)
+        spacing = None
+    else:
+        points, colours = data.points.to(torch.float64), data.point_colors.to(torch.float64)
+        spacing = neighbour_spacing(points)
+    if data.alphas is None and config.background_splats > 0:
+        eyes = torch.stack([c.center for c in data.cameras])
+        radius = config.shell_radius * float((eyes - centre).norm(dim=1).max())
+        if spacing is None:
+            spacing = torch.full((len(points),), extent * 2 / max(1.0, len(points) ** (1 / 3)), dtype=torch.float64)
+        shell, shell_colours, shell_spacing = background_shell(data, centre, radius, config.background_splats)
+        points = torch.cat([points.double(), shell])
+        colours = torch.cat([colours.double(), shell_colours])
+        spacing = torch.cat([spacing.double(), shell_spacing])
+    return initial_model(points.float(), colours.float(), config.sh_degree, extent, gen, spacing)
+
+
+def training_background(data: Dataset) -> tuple[float, float, float]:
+    """The colour behind the splats: the dataset's where alpha masks define it, else the
+    training images' mean colour (a real capture has no empty background)."""
+    if data.alphas is not None or data.images is None:
+        return data.background
+    return tuple(float(v) for v in data.images.mean(dim=(0, 1, 2)))
+
+
+def training_extent(data: Dataset, extent: float) -> float:
+    """The scale of position steps and splits: the bounds' extent for object captures, the
+    cameras' spread (1.1 x the largest distance from their mean, as the reference) for real ones."""
+    if data.alphas is not None:
+        return extent
+    eyes = torch.stack([c.center for c in data.cameras])
+    return max(extent, 1.1 * float((eyes - eyes.mean(0)).norm(dim=1).max()))
 
 
 # ----------------------------------------------------------------------------- optimiser
@@ -207,13 +292,13 @@ def densify(splats: Splats, grad_norm: torch.Tensor, config: TrainConfig, extent
 def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downscale: float = 2,
                     iterations: int | None = None, seed: int = 0, out: str | Path,
                     progress: bool = True, **overrides: Any) -> GaussianRenderer:
-    """Train on the `train` split of a Blender dataset and write `out` (PLY) plus the
-    sidecar `<stem>.json` with the training cameras, the views and the settings."""
+    """Train on the `train` split of a capture (Blender, nerfstudio, COLMAP, LLFF) and write `out`
+    (PLY) plus the sidecar `<stem>.json` with the training cameras, the views and the settings."""
     config = TrainConfig(seed=seed, **overrides)
     if iterations is not None:
         config.iterations = iterations
     config.validate()
-    dataset = load_blender(data, "train", downscale=downscale, views=views)
+    dataset = load_dataset(data, "train", downscale=downscale, views=views)
     started = time.perf_counter()
     model, history = fit(dataset, config, progress=progress)
     seconds = time.perf_counter() - started
@@ -226,7 +311,7 @@ def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downsc
         "split": "train",
         "view_indices": dataset.indices,
         "downscale": downscale,
-        "background": list(dataset.background),
+        "background": list(training_background(dataset)),
         "training_cameras": [c.to_frame() for c in dataset.cameras],
         "settings": asdict(config),
         "num_splats": model.num_splats,
@@ -234,7 +319,7 @@ def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downsc
         "final_loss": history[-1] if history else None,
     }
     write_json_atomic(sidecar_path(out), sidecar)
-    return GaussianRenderer(model, dataset.background, dataset.cameras, tile=config.tile)
+    return GaussianRenderer(model, training_background(dataset), dataset.cameras, tile=config.tile)
 
 
 def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True) -> tuple[GaussianModel, list[float]]:
@@ -248,9 +333,10 @@ def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True) -> tupl
     gen = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)
     centre, extent = scene_bounds(dataset.cameras)
-    points, colours = carve_points(dataset, centre, extent, config.init_points, gen)
-    splats = Splats(initial_model(points, colours, config.sh_degree, extent, gen), config, extent)
-    background = torch.tensor(dataset.background)
+    model = seed_model(dataset, centre, extent, config, gen)
+    extent = training_extent(dataset, extent)
+    splats = Splats(model, config, extent)
+    background = torch.tensor(training_background(dataset))
     cam0 = dataset.cameras[0]
     budget = int(config.splats_per_pixel * cam0.width * cam0.height)
     n_iter = config.iterations
