@@ -81,7 +81,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # ---------------------------------------------------------------------------------------- arguments
 
 def _add_model_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS .ply or NeRF checkpoint")
+    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS or 2DGS .ply, or NeRF checkpoint")
 
 
 def _add_camera_size_args(parser: argparse.ArgumentParser, sizes: bool = True) -> None:
