@@ -64,8 +64,8 @@ def test_normal_consistency_is_zero_for_an_opaque_surfel_facing_the_camera_and_p
 def test_the_regularisers_start_at_their_fraction_of_the_run() -> None:
     cam = look_at((0.3, -3, 1), (0, 0, 0), width=12, height=10, fov_x=0.7)
     g = torch.Generator().manual_seed(0)
-    model = SurfelModel((torch.rand(20, 3, generator=g) - 0.5), torch.full((20, 2), -1.5), torch.randn(20, 4, generator=g),
-                        torch.full((20,), 1.0), torch.zeros(20, 1, 3))
+    model = SurfelModel((torch.rand(20, 3, generator=g) - 0.5), torch.full((20, 2), -1.5),
+                        torch.randn(20, 4, generator=g), torch.full((20,), 1.0), torch.zeros(20, 1, 3))
     out = rasterize_surfels(model, cam, torch.ones(3), geometry=True)
     assert out.distortion.sum() > 0
     early = gs2d.regulariser(out, cam, 0.05, 1.0, distortion_weight=1.0, normal_weight=1.0)

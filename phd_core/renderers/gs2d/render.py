@@ -39,7 +39,8 @@ from ...scene import Camera
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR
 from ..gs3d.render import CHUNK_ELEMENTS, NEAR_PLANE, GaussianRenderer, RenderOutput
 from ..protocol import check_keep
-from ..splats import ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, eval_sh, fragments, intersect, quaternion_to_rotation, untile
+from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, eval_sh, fragments, intersect, quaternion_to_rotation,
+                      untile)
 from .model import SurfelModel
 
 LOWPASS_INV_VAR = 2.0   # 1 / sigma^2 of the screen-space low-pass, sigma = sqrt(2)/2 px
@@ -94,7 +95,8 @@ def screen_boxes(transforms: torch.Tensor, means2d: torch.Tensor, level: torch.T
     return (lo + hi) / 2, (hi - lo) / 2
 
 
-def project(model: SurfelModel, camera: Camera, near: float = NEAR_PLANE) -> tuple[Projected, torch.Tensor, torch.Tensor]:
+def project(model: SurfelModel, camera: Camera,
+            near: float = NEAR_PLANE) -> tuple[Projected, torch.Tensor, torch.Tensor]:
     """Stage 1. Returns the visible surfels, the screen means of ALL surfels [G, 2] (for
     densification gradients) and the visibility mask [G]."""
     rot_wc = camera.world_to_camera()[:3, :3]            # [3, 3] float64
@@ -134,7 +136,8 @@ def project(model: SurfelModel, camera: Camera, near: float = NEAR_PLANE) -> tup
     return projected, means2d, visible
 
 
-def splat_alpha(proj: Projected, pairs: Pairs, tile: int, near: float = NEAR_PLANE) -> tuple[torch.Tensor, torch.Tensor]:
+def splat_alpha(proj: Projected, pairs: Pairs, tile: int,
+                near: float = NEAR_PLANE) -> tuple[torch.Tensor, torch.Tensor]:
     """Stage 3: alpha [M, P] and depth [M, P] of each pair at each of the P = tile^2 pixels
     of its tile (alpha zero below 1/255)."""
     offsets = torch.arange(tile * tile)
