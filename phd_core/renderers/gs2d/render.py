@@ -12,7 +12,8 @@ surfel is differs:
 3. `splat_alpha`: per pair and pixel, the ray-surfel intersection in (u, v): a pixel x
                 defines the planes h_x = T_1 - x T_3 and h_y = T_2 - y T_3 (rows of T) in
                 (u, v, 1) space; the ray meets the surfel at q ~ h_x cross h_y, so
-                (u, v) = (q_1, q_2) / q_3 and the intersection's depth is T_3 . (u, v, 1).
+                (u, v) = (q_1, q_2) / q_3 and the intersection's depth is T_3 . (u, v, 1)
+                (= det T / q_3; q is affine in the pixel position).
                 The surfel's Gaussian there is exp(-(u^2 + v^2) / 2). Seen edge-on that
                 Gaussian degenerates to a line, so the screen-space low-pass
                 exp(-|x - c|^2 / (2 sigma^2)) with sigma = sqrt(2) / 2 px around the projected
@@ -139,28 +140,35 @@ def project(model: SurfelModel, camera: Camera,
 def splat_alpha(proj: Projected, pairs: Pairs, tile: int,
                 near: float = NEAR_PLANE) -> tuple[torch.Tensor, torch.Tensor]:
     """Stage 3: alpha [M, P] and depth [M, P] of each pair at each of the P = tile^2 pixels
-    of its tile (alpha zero below 1/255)."""
+    of its tile (alpha zero below 1/255).
+
+    With T's rows a, b, c the intersection q = (a - x c) x (b - y c) = a x b + x (b x c) +
+    y (c x a) is affine in the pixel (x, y), so over a tile it is one [M, 3, 3] x [3, P]
+    product; and c . q = det T for every pixel, so the depth is det T / q_3.
+    """
     offsets = torch.arange(tile * tile)
-    x = ((pairs.tile % pairs.tiles_x) * tile + 0.5).double()[:, None] + (offsets % tile).double()   # [M, P]
-    y = ((pairs.tile // pairs.tiles_x) * tile + 0.5).double()[:, None] + (offsets // tile).double()
-    t = proj.transforms[pairs.splat]                                    # [M, 3, 3]
-    h_x = t[:, None, 0, :] - x[..., None] * t[:, None, 2, :]            # [M, P, 3]
-    h_y = t[:, None, 1, :] - y[..., None] * t[:, None, 2, :]
-    q = torch.linalg.cross(h_x, h_y)                                    # [M, P, 3] ~ (u, v, 1)
-    det = q[..., 2]
-    numer = q[..., 0].square() + q[..., 1].square()
-    w_times_det = (t[:, None, 2, :] * q).sum(-1)                        # depth * det
-    hit = (numer < RHO_MAX * det.square()) & ((w_times_det - near * det) * det > 0)
+    ox, oy = (offsets % tile).double(), (offsets // tile).double()
+    monomials = torch.stack([torch.ones_like(ox), ox, oy])                              # [3, P]
+    corner = torch.stack([(pairs.tile % pairs.tiles_x) * tile + 0.5,
+                          (pairs.tile // pairs.tiles_x) * tile + 0.5], dim=-1).double()  # [M, 2] first pixel
+    a, b, c = proj.transforms[pairs.splat].unbind(1)                                     # [M, 3] each
+    along_x, along_y = torch.linalg.cross(b, c), torch.linalg.cross(c, a)
+    at_corner = torch.linalg.cross(a, b) + corner[:, :1] * along_x + corner[:, 1:] * along_y
+    q = torch.stack([at_corner, along_x, along_y], dim=-1) @ monomials                  # [M, 3, P] ~ (u, v, 1)
+    det = q[:, 2]
+    numer = q[:, 0].square() + q[:, 1].square()
+    det_t = (c * torch.linalg.cross(a, b)).sum(-1)[:, None]                             # depth * det, [M, 1]
+    hit = (numer < RHO_MAX * det.square()) & ((det_t - near * det) * det > 0)
     safe_det = torch.where(hit, det, torch.ones_like(det))
     rho_surfel = torch.where(hit, numer / safe_det.square(), torch.full_like(det, RHO_MAX))
-    centre = proj.means2d[pairs.splat]                                  # [M, 2]
-    rho_lowpass = LOWPASS_INV_VAR * ((x - centre[:, None, 0]).square() + (y - centre[:, None, 1]).square())
+    d = corner - proj.means2d[pairs.splat]                                              # [M, 2]
+    rho_lowpass = LOWPASS_INV_VAR * ((d[:, :1] + ox).square() + (d[:, 1:] + oy).square())
     surfel_wins = rho_surfel <= rho_lowpass
     rho = torch.where(surfel_wins, rho_surfel, rho_lowpass)
     log_alpha = (torch.log(proj.opacities[pairs.splat])[:, None] - 0.5 * rho).clamp_max(math.log(ALPHA_MAX))
     alpha = log_alpha.float().exp()
     alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
-    depth = torch.where(surfel_wins, w_times_det / safe_det, proj.depths[pairs.splat][:, None])
+    depth = torch.where(surfel_wins, det_t / safe_det, proj.depths[pairs.splat][:, None])
     return alpha, depth.float()
 
 
