@@ -87,8 +87,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # ---------------------------------------------------------------------------------------- arguments
 
 def _add_model_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS .ply, NeRF checkpoint, or "
-                        "the reference 3DGS trainer's output folder as is (cameras.json + point_cloud/iteration_*)")
+    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS or 2DGS .ply, NeRF checkpoint, "
+                        "or the reference 3DGS trainer's output folder as is (cameras.json + point_cloud/iteration_*)")
 
 
 def _add_camera_size_args(parser: argparse.ArgumentParser, sizes: bool = True) -> None:

@@ -96,8 +96,8 @@ class ModelInfo(_Response):
     id: str
     name: str
     kind: str = Field(description="Model family, one of the registry's kinds (phd_core.renderers.FAMILIES).")
-    num_units: int = Field(description="Dropout units: splats (3DGS) or first-layer hidden units (NeRF).")
-    sh_degree: int | None = Field(None, description="Spherical-harmonic degree (3DGS).")
+    num_units: int = Field(description="Dropout units: splats (3DGS, 2DGS) or first-layer hidden units (NeRF).")
+    sh_degree: int | None = Field(None, description="Spherical-harmonic degree (3DGS, 2DGS).")
     network: dict[str, Any] | None = Field(None, description="Network size facts (NeRF).")
     bounds: dict[str, list[float]] | None = Field(None, description="Scene bounds {'min': [x,y,z], 'max': [x,y,z]}.")
     size_bytes: int

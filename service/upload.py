@@ -1,7 +1,7 @@
 """Model uploads: stream a multipart body to a temp file, then check it fully.
 
 Form fields of `POST /v1/models`:
-- `file` (required): the model, a 3DGS PLY or one of our NeRF checkpoints. The kind comes
+- `file` (required): the model, a 3DGS or 2DGS PLY or one of our NeRF checkpoints. The kind comes
   from the first bytes, never from the file name; anything else (a pickle named .pt, a
   zip, text) is refused with 415 before any parser sees more than its head.
 - `cameras` (optional): training cameras as JSON, a transforms.json object or a list of

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ...scene import Camera, cameras_from_json
 from ..families import Family
-from .ply import is_ply, parse_ply, read_ply, read_sidecar
+from .ply import is_3dgs_ply, parse_ply, read_ply, read_sidecar
 from .render import GaussianRenderer
 
 
@@ -24,12 +24,15 @@ def load_output_folder(folder: Path) -> GaussianRenderer:
     return GaussianRenderer(read_ply(found.ply), found.background, found.cameras)
 
 
-def _beside(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
+def with_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
+    """The renderer rebuilt with the training cameras and background of the sidecar beside
+    `path` (any splat renderer class built like `GaussianRenderer`)."""
     sidecar = read_sidecar(path)
     if sidecar is None:
         return renderer
-    return GaussianRenderer(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
-                            cameras_from_json(sidecar["training_cameras"]))
+    return type(renderer)(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
+                          cameras_from_json(sidecar["training_cameras"]))
 
 
-GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_ply, _load, _beside, trainer="phd_core.train.gs3d:train_gaussians")
+GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_3dgs_ply, _load, with_sidecar,
+              trainer="phd_core.train.gs3d:train_gaussians")
