@@ -32,6 +32,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import phd_core
 from phd_core.errors import InputError
+from phd_core.executors import make_executor
 
 from .deps import ServiceState
 from .errors import ServiceError, from_exception
@@ -109,10 +110,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     swept = store.sweep()
     if swept:
         log.warning("removed %d unfinished upload(s) from %s", len(swept), settings.data_dir)
-    state = ServiceState(settings=settings, store=store, cache=RendererCache(store, settings.cache_size))
+    state = ServiceState(settings=settings, store=store, cache=RendererCache(store, settings.cache_size),
+                         executor=make_executor(settings.executor, settings.executor_address))
 
     @asynccontextmanager
     async def lifespan(_: FastAPI):
+        if hasattr(state.executor, "connect"):   # a cluster executor: fail at start-up, not at the first job
+            await asyncio.to_thread(state.executor.connect)
         state.jobs = JobManager(settings.workers, settings.queue_size, settings.job_retention)
         try:
             yield

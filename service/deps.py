@@ -10,6 +10,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from fastapi.responses import JSONResponse
 
+from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import FAMILIES, load_model
 
 from .errors import ServiceError, not_found
@@ -36,6 +37,7 @@ class ServiceState:
     store: ModelStore
     cache: RendererCache
     jobs: JobManager | None = None
+    executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
 
     def model(self, model_id: str, field: str | None = None) -> ModelRecord:
         record = self.store.get(model_id)

@@ -19,6 +19,7 @@ from phd_core import uq
 from phd_core.uq import Progress
 from phd_core.scene import Camera, cameras_from_json
 from phd_core.errors import InputError
+from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import Renderer, load_model
 
@@ -142,7 +143,7 @@ def _span(progress: Progress, start: float, end: float) -> Progress:
 # ----------------------------------------------------------------------------- calibrate
 
 def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Settings, store: ModelStore,
-                  cache: RendererCache) -> tuple[Work, float]:
+                  cache: RendererCache, executor: Executor = LOCAL) -> tuple[Work, float]:
     if body.training_cameras is not None:
         source, field = body.training_cameras, "training_cameras"
     elif record.training_frames:
@@ -160,7 +161,7 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
     def work(progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
         renderer = cache.get(record.id)
         result = uq.calibrate(renderer, cameras, samples=samples, method=body.method, seed=body.seed,
-                              progress=progress, **options)
+                              progress=progress, executor=executor, **options)
         calibration = Calibration(**result.to_dict(), num_cameras=len(cameras), created_at=utc_now())
         if not store.set_calibration(record.id, calibration.model_dump()):
             raise not_found("model", record.id)
@@ -171,8 +172,10 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
 
 # ----------------------------------------------------------------------------- rank
 
+HEATMAP_BATCH = 16                 # heat-mapped views measured at once (their maps are held until encoded)
+
 def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: RendererCache,
-             job_url: Callable[[str], str]) -> tuple[Work, float]:
+             job_url: Callable[[str], str], executor: Executor = LOCAL) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
@@ -186,7 +189,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
         renderer = cache.get(record.id)
         split = len(cameras) / (len(cameras) + mapped)
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
-                               strategy=body.strategy, captured=captured, progress=_span(progress, 0.0, split))
+                               strategy=body.strategy, captured=captured, progress=_span(progress, 0.0, split),
+                               executor=executor)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score) for r in ranked]
         artifacts: dict[str, bytes] = {}
@@ -194,15 +198,19 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
         if body.heatmaps != "none":
             # One colour scale for all maps (the largest sigma_max), so they compare by eye.
             vmax = max(v.sigma_max for v in views)
+            # Same seed -> the same N sub-models as the ranking: each zeta is the ranked one's.
+            # HEATMAP_BATCH views at a time on the executor, so the maps in memory stay bounded.
             done = _span(progress, split, 1.0)
-            for k, view in enumerate(views):
-                # Same seed -> the same N sub-models as the ranking: zeta is the ranked one's.
-                zeta = uq.view_uncertainty(renderer, cameras[view.index], ratio=ratio, samples=samples,
-                                           seed=body.seed, keep_maps=True).zeta
-                png = png_bytes(colorize(zeta, vmax if vmax > 0 else None)[0])
-                view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
-                                                             artifacts, job_url)
-                done((k + 1) / len(views))
+            for start in range(0, len(views), HEATMAP_BATCH):
+                batch = views[start:start + HEATMAP_BATCH]
+                end = start + len(batch)
+                measured = uq.uncertainty(renderer, [cameras[v.index] for v in batch], ratio=ratio, samples=samples,
+                                          seed=body.seed, keep_maps=True, executor=executor,
+                                          progress=_span(done, start / len(views), end / len(views)))
+                for view, m in zip(batch, measured):
+                    png = png_bytes(colorize(m.zeta, vmax if vmax > 0 else None)[0])
+                    view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
+                                                                 artifacts, job_url)
         result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, strategy=body.strategy,
                             samples=samples,
                             seed=body.seed, width=cameras[0].width, height=cameras[0].height,
@@ -224,7 +232,7 @@ def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
 # ----------------------------------------------------------------------------- select
 
 def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest, settings: Settings,
-               cache: RendererCache, job_url: Callable[[str], str]) -> tuple[Work, float]:
+               cache: RendererCache, job_url: Callable[[str], str], executor: Executor = LOCAL) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
@@ -243,7 +251,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
                                   samples=samples, seed=body.seed, rule=body.rule,
                                   training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
                                   keep_images=body.images != "none",
-                                  progress=progress)
+                                  progress=progress, executor=executor)
         views, artifacts = [], {}
         for v in result.views:
             view = SelectedView(index=v.index, choice=v.choice, score_a=v.score_a, score_b=v.score_b,

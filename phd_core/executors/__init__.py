@@ -16,7 +16,7 @@ from __future__ import annotations
 from typing import Callable
 
 from ..registry import Registry
-from .base import Executor
+from .base import Executor, ExecutorError
 from .local import LOCAL, LocalExecutor
 
 EXECUTORS: Registry[Callable[[str | None], Executor]] = Registry("executor")
@@ -37,4 +37,4 @@ def make_executor(name: str = "local", address: str | None = None, field: str = 
     return EXECUTORS.lookup(name, field)(address)
 
 
-__all__ = ["EXECUTORS", "LOCAL", "Executor", "LocalExecutor", "make_executor"]
+__all__ = ["EXECUTORS", "LOCAL", "Executor", "ExecutorError", "LocalExecutor", "make_executor"]

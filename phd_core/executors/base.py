@@ -12,6 +12,11 @@ R = TypeVar("R")
 Done = Callable[[int], None]
 
 
+class ExecutorError(RuntimeError):
+    """The executor could not run a chunk (a cluster lost, workers dying past their retries):
+    the work itself was fine, so callers may try again later."""
+
+
 @runtime_checkable
 class Executor(Protocol):
     name: str

@@ -20,7 +20,7 @@ import weakref
 from typing import Any, Callable, Sequence, TypeVar
 
 from ..errors import InputError
-from .base import Done
+from .base import Done, ExecutorError
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -137,7 +137,7 @@ class RayExecutor:
             raise
         except ray.exceptions.RayError as exc:
             name = getattr(fn, "func", fn).__name__
-            raise RuntimeError(f"Ray could not finish a chunk of {name} after {self.max_retries} retries: "
+            raise ExecutorError(f"Ray could not finish a chunk of {name} after {self.max_retries} retries: "
                                f"{type(exc).__name__}: {exc}") from None
 
     def __repr__(self) -> str:

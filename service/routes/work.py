@@ -20,7 +20,8 @@ async def calibrate(model_id: str, svc: Service, body: CalibrateRequest | None =
     body = body or CalibrateRequest()
     record = svc.model(model_id)
     job_id = svc.jobs.new_id()
-    work, estimate = await asyncio.to_thread(calibrate_job, record, body, svc.settings, svc.store, svc.cache)
+    work, estimate = await asyncio.to_thread(calibrate_job, record, body, svc.settings, svc.store, svc.cache,
+                                           svc.executor)
     return await svc.run(job_id, "calibrate", work, estimate, body.run_async)
 
 
@@ -29,7 +30,8 @@ async def rank(model_id: str, body: RankRequest, svc: Service) -> Any:
     """Candidate poses in the order to capture them (next-best view; strategy in the body, docs/nbv.md)."""
     record = svc.model(model_id)
     job_id = svc.jobs.new_id()
-    work, estimate = await asyncio.to_thread(rank_job, record, body, svc.settings, svc.cache, _artifact_url(job_id))
+    work, estimate = await asyncio.to_thread(rank_job, record, body, svc.settings, svc.cache, _artifact_url(job_id),
+                                           svc.executor)
     return await svc.run(job_id, "rank", work, estimate, body.run_async)
 
 
@@ -39,7 +41,7 @@ async def select(body: SelectRequest, svc: Service) -> Any:
     record_a, record_b = svc.model(body.model_a, "model_a"), svc.model(body.model_b, "model_b")
     job_id = svc.jobs.new_id()
     work, estimate = await asyncio.to_thread(select_job, record_a, record_b, body, svc.settings, svc.cache,
-                                             _artifact_url(job_id))
+                                             _artifact_url(job_id), svc.executor)
     return await svc.run(job_id, "select", work, estimate, body.run_async)
 
 
