@@ -137,7 +137,7 @@ class RayExecutor:
             raise
         except ray.exceptions.RayError as exc:
             name = getattr(fn, "func", fn).__name__
-            raise ExecutorError(f"Ray could not finish a chunk of {name} after {self.max_retries} retries: "
+            raise ExecutorError(f"Ray could not finish a chunk of {name} (retries: {self.max_retries}): "
                                f"{type(exc).__name__}: {exc}") from None
 
     def __repr__(self) -> str:

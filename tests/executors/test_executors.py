@@ -108,6 +108,15 @@ def test_progress_counts_views_and_a_cancel_stops_the_map(blobs) -> None:
     assert executor.chunks_run == 1
 
 
+def test_input_errors_cross_process_boundaries_as_themselves() -> None:
+    for error in (InputError("cameras[2].w", "must be positive"),
+                  uq.CalibrationError("epsilon", "r_drop = 0", [0.1], [0.5])):
+        copy = pickle.loads(pickle.dumps(error))
+        assert type(copy) is type(error) and str(copy) == str(error)
+        assert (copy.field, copy.reason) == (error.field, error.reason)
+    assert (copy.ratios, copy.errors) == ([0.1], [0.5])
+
+
 def test_unknown_executors_and_missing_ray_are_clear_errors(monkeypatch, capsys, tmp_path) -> None:
     assert set(EXECUTORS) >= {"local", "ray"}
     assert make_executor("local") is LOCAL
