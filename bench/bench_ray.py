@@ -58,15 +58,15 @@ def worker_threads(_chunk) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", type=Path, default=None)
-    parser.add_argument("--random-splats", type=int, default=10_000)
+    parser.add_argument("--random-splats", type=int, default=4_000)
     parser.add_argument("--candidates", type=int, default=16)
-    parser.add_argument("--size", type=int, default=100)
+    parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--samples", type=int, default=16)
     parser.add_argument("--small-candidates", type=int, default=4)
     parser.add_argument("--small-size", type=int, default=32)
     parser.add_argument("--ratio", type=float, default=0.2)
     parser.add_argument("--rounds", type=int, default=2, help="Ray restarts per CPU count")
-    parser.add_argument("--reps", type=int, default=3, help="timed calls per measurement (median)")
+    parser.add_argument("--reps", type=int, default=2, help="timed calls per measurement (median)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "ray.json")
     args = parser.parse_args()
 
