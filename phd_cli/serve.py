@@ -48,9 +48,7 @@ def run(args: argparse.Namespace) -> int:
         name = str(error["loc"][0]) if error["loc"] else "settings"
         raise InputError(name, f"{error['msg']} (the flag or PHD_{name.upper()}), got {error.get('input')!r}") from None
     app = create_app(settings)
-    executor = app.state.service.executor
-    if hasattr(executor, "connect"):
-        executor.connect()      # a cluster that cannot be reached is a start-up error naming the flag
+    app.state.service.executor.connect()    # a cluster that cannot be reached: a start-up error naming it
     where = settings.executor + (f" at {settings.executor_address}" if settings.executor_address else "")
     print(f"phd serve: data in {settings.data_dir}, {settings.workers} worker(s), queue {settings.queue_size}, "
           f"compute {where}, "

@@ -115,8 +115,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(_: FastAPI):
-        if hasattr(state.executor, "connect"):   # a cluster executor: fail at start-up, not at the first job
-            await asyncio.to_thread(state.executor.connect)
+        await asyncio.to_thread(state.executor.connect)   # a cluster: fail at start-up, not at the first job
         state.jobs = JobManager(settings.workers, settings.queue_size, settings.job_retention)
         try:
             yield

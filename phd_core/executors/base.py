@@ -21,6 +21,11 @@ class ExecutorError(RuntimeError):
 class Executor(Protocol):
     name: str
 
+    def connect(self) -> "Executor":
+        """Reach the workers now (a cluster executor joins its cluster; an InputError when it
+        cannot), so that a service fails at start-up rather than at its first job."""
+        ...
+
     def share(self, value: Any) -> Any:
         """A handle that `map` passes to every chunk as `value`, stored where workers read it
         (Ray's object store) once. `value` must not change afterwards."""

@@ -17,6 +17,9 @@ R = TypeVar("R")
 class LocalExecutor:
     name = "local"
 
+    def connect(self) -> "LocalExecutor":
+        return self
+
     def share(self, value: Any) -> Any:
         return value
 

@@ -150,3 +150,5 @@ def test_unknown_executors_and_missing_ray_are_clear_errors(monkeypatch, capsys,
                  "--ray", "auto"])
     err = capsys.readouterr().err
     assert code == 2 and "ray: Ray is not installed" in err
+    code = main(["serve", "--ray", "auto", "--data-dir", str(tmp_path / "data"), "--port", "0"])
+    assert code == 2 and "phd serve: error: ray: Ray is not installed" in capsys.readouterr().err
