@@ -6,8 +6,9 @@ then 2 CPUs; local runs are timed in the same rounds, so load hits both sides al
 - `rank_views` on a big job (--candidates views at --size pixels, N = --samples) locally
   (torch with 1 thread and with the process's default threads) and on Ray with 1 and 2 CPUs:
   the scaling ratio is time(1 CPU) / time(2 CPUs);
-- a small job (--small-candidates views at --small-size pixels, N = 8) locally and on a warm
-  Ray (workers started): the fixed cost of going through Ray;
+- a small job (--small-candidates views at --small-size pixels, N = 8; one view by default,
+  so one chunk and no parallelism) locally and on a warm Ray (workers started): the fixed
+  cost of going through Ray;
 - the cold first call (Ray workers start and import torch), once per Ray instance;
 - that every Ray ranking equals the local one.
 
@@ -29,7 +30,10 @@ import tempfile
 import time
 from pathlib import Path
 
-import torch
+# Before torch loads: idle OpenMP threads sleep instead of spinning (as phd_cli sets it; with
+# spinning, local torch on a busy 2-core machine runs several times slower, docs/gaussians.md).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -59,13 +63,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", type=Path, default=None)
     parser.add_argument("--random-splats", type=int, default=4_000)
-    parser.add_argument("--candidates", type=int, default=16)
+    parser.add_argument("--candidates", type=int, default=32)
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--samples", type=int, default=16)
-    parser.add_argument("--small-candidates", type=int, default=4)
-    parser.add_argument("--small-size", type=int, default=32)
+    parser.add_argument("--small-candidates", type=int, default=1)
+    parser.add_argument("--small-size", type=int, default=16)
     parser.add_argument("--ratio", type=float, default=0.2)
-    parser.add_argument("--rounds", type=int, default=2, help="Ray restarts per CPU count")
+    parser.add_argument("--rounds", type=int, default=3, help="Ray restarts per CPU count")
     parser.add_argument("--reps", type=int, default=2, help="timed calls per measurement (median)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "ray.json")
     args = parser.parse_args()
@@ -108,8 +112,8 @@ def main() -> int:
             torch.set_num_threads(default_threads)
             rows["local_default"].append(timed(lambda: rank(big, args.samples), args.reps)[0])
             rows["small_local"].append(timed(lambda: rank(small, 8), args.reps * 3)[0])
-            print(f"round {round_ + 1}, {cpus} CPU(s): ray {rows[f'ray_{cpus}cpu'][-1]:.3f} s, "
-                  f"local {rows['local_default'][-1]:.3f} s", flush=True)
+            print(f"round {round_ + 1}, {cpus} CPU(s): ray {rows[f'ray_{cpus}cpu'][-1]:.3f} s, local "
+                  f"{rows['local_1thread'][-1]:.3f} s (1 thread), {rows['local_default'][-1]:.3f} s", flush=True)
 
     med = {k: statistics.median(v) for k, v in rows.items()}
     result = {
@@ -129,6 +133,7 @@ def main() -> int:
         "ray_1cpu_vs_local_1thread": med["ray_1cpu"] / med["local_1thread"],
         "small_job_overhead_s": med["small_ray_2cpu"] - med["small_local"],
         "small_job_ratio": med["small_ray_2cpu"] / med["small_local"],
+        "load_average_after": os.getloadavg(),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
