@@ -56,6 +56,8 @@ def timed(fn, reps: int) -> tuple[float, object]:
 
 
 def worker_threads(_chunk) -> int:
+    """Torch threads of the worker that runs this chunk; the sleep makes Ray start every worker."""
+    time.sleep(1.0)
     return torch.get_num_threads()
 
 
@@ -91,7 +93,7 @@ def main() -> int:
     default_threads = torch.get_num_threads()
     rows: dict[str, list[float]] = {k: [] for k in (
         "local_1thread", "local_default", "ray_1cpu", "ray_2cpu", "small_local", "small_ray_1cpu", "small_ray_2cpu",
-        "cold_1cpu", "cold_2cpu")}
+        "cold_1cpu", "cold_2cpu", "sleep_map_1cpu", "sleep_map_2cpu")}
     expected = [r.to_dict() for r in rank(big, args.samples)]
     same, threads_in_workers = True, set()
     for round_ in range(args.rounds):
@@ -99,9 +101,15 @@ def main() -> int:
             ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False)
             executor = RayExecutor("auto")
             start = time.perf_counter()
-            rank(small, 8, executor)                      # workers start and import torch
+            rank(small, 8, executor)                      # a worker starts and imports torch and phd_core
             rows[f"cold_{cpus}cpu"].append(time.perf_counter() - start)
-            threads_in_workers |= set(executor.map(worker_threads, executor.split(range(4))))
+            # Every worker started (and warm) before timing: chunks that sleep occupy all CPUs.
+            threads_in_workers |= set(executor.map(worker_threads, executor.split(range(2 * cpus))))
+            rank(big, args.samples, executor)
+            # Concurrency without CPU contention: 4 chunks that each sleep 1 s (4 s on 1 CPU, 2 s on 2).
+            start = time.perf_counter()
+            executor.map(worker_threads, [[i] for i in range(4)])
+            rows[f"sleep_map_{cpus}cpu"].append(time.perf_counter() - start)
             seconds, ranked = timed(lambda: rank(big, args.samples, executor), args.reps)
             rows[f"ray_{cpus}cpu"].append(seconds)
             same &= [r.to_dict() for r in ranked] == expected
@@ -129,6 +137,8 @@ def main() -> int:
         "rounds": args.rounds, "reps": args.reps, "ranking_equal_to_local": same,
         "seconds": rows, "median_s": med,
         "scaling_1_to_2_cpus": med["ray_1cpu"] / med["ray_2cpu"],
+        "scaling_per_round": [a / b for a, b in zip(rows["ray_1cpu"], rows["ray_2cpu"])],
+        "sleep_map_scaling": med["sleep_map_1cpu"] / med["sleep_map_2cpu"],
         "ray_2cpu_vs_local_default": med["ray_2cpu"] / med["local_default"],
         "ray_1cpu_vs_local_1thread": med["ray_1cpu"] / med["local_1thread"],
         "small_job_overhead_s": med["small_ray_2cpu"] - med["small_local"],
@@ -144,7 +154,11 @@ def main() -> int:
     print(f"| small: {args.small_candidates} views {args.small_size}px N=8 | | {med['small_local'] * 1e3:.0f} ms | "
           f"{med['small_ray_1cpu'] * 1e3:.0f} ms | {med['small_ray_2cpu'] * 1e3:.0f} ms |")
     print(f"| cold first call (workers start) | | | {med['cold_1cpu']:.2f} s | {med['cold_2cpu']:.2f} s |")
-    print(f"\nscaling 1 -> 2 CPUs: {result['scaling_1_to_2_cpus']:.2f}x; Ray 2 CPUs / local: "
+    print(f"| 4 chunks sleeping 1 s each (no CPU use) | | | {med['sleep_map_1cpu']:.2f} s | "
+          f"{med['sleep_map_2cpu']:.2f} s |")
+    print(f"\nscaling 1 -> 2 CPUs: {result['scaling_1_to_2_cpus']:.2f}x (per round: "
+          f"{', '.join(f'{r:.2f}' for r in result['scaling_per_round'])}); load average after: "
+          f"{', '.join(f'{x:.1f}' for x in result['load_average_after'])}; Ray 2 CPUs / local: "
           f"{result['ray_2cpu_vs_local_default']:.2f}; small-job overhead {result['small_job_overhead_s'] * 1e3:.0f} ms "
           f"({result['small_job_ratio']:.1f}x); rankings equal to local: {same}")
     return 0
