@@ -164,7 +164,7 @@ def test_the_service_runs_its_jobs_on_ray(cluster, model, svc_start, monkeypatch
         # A job for a model deleted while it is queued or running fails cleanly (not found), whatever
         # moment the delete lands: before the job loads the model, or before it stores the calibration.
         # (A large epsilon makes the scan evaluate all 19 ratios: 19 rounds on Ray, far longer than a delete.)
-        job = phd.calibrate(info.id, epsilon=10.0, step=0.05, samples=3, run_async=True, wait=False)
+        job = phd.calibrate(info.id, epsilon=1.0, step=0.05, samples=3, run_async=True, wait=False)
         phd.delete_model(info.id)
         with pytest.raises(JobFailedError) as failed:
             phd.wait_job(job.id, timeout=120)
