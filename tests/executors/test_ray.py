@@ -108,6 +108,21 @@ def test_a_worker_killed_mid_job_is_retried_and_the_ranking_still_finishes(clust
     assert [r.to_dict() for r in ranked] == [r.to_dict() for r in expected]
 
 
+def test_a_cancelled_job_does_not_wait_for_its_outstanding_chunks(cluster, tmp_path) -> None:
+    class Cancelled(Exception):
+        pass
+
+    def cancel(fraction: float) -> None:
+        raise Cancelled
+
+    marker = tmp_path / "stalled.pid"
+    start = time.monotonic()
+    with pytest.raises(Cancelled):       # one chunk stalls for 120 s; the first finished one cancels
+        uq.rank_views(StallOnceRenderer(BlobRenderer.random(20, seed=1), marker), ring_cameras(6, size=12),
+                      ratio=0.2, samples=3, progress=cancel, executor=make_executor("ray"))
+    assert marker.exists() and time.monotonic() - start < 60
+
+
 def test_errors_in_the_work_come_back_as_themselves(cluster) -> None:
     from phd_core.errors import InputError
 
