@@ -158,6 +158,15 @@ def test_the_service_runs_its_jobs_on_ray(cluster, model, svc_start, monkeypatch
         return real_map(self, fn, chunks, *shared, done=done)
 
     monkeypatch.setattr(RayExecutor, "map", counted)
+    models_put = []
+    real_put = ray.put
+
+    def put(value, **kw):
+        if hasattr(value, "num_units"):
+            models_put.append(value)
+        return real_put(value, **kw)
+
+    monkeypatch.setattr(ray, "put", put)
     server = svc_start(executor="ray", executor_address="auto")
     train, candidates = svc_cameras(3), svc_cameras(6, phase=0.3)
     renderer = load_model(model)
@@ -175,6 +184,7 @@ def test_the_service_runs_its_jobs_on_ray(cluster, model, svc_start, monkeypatch
         assert all(v.heatmap_png for v in ranked.views)
         assert {name for name, _ in maps} == {"full_renders", "dropout_errors", "measure_views"}
         assert all(thread.startswith("phd-worker") for _, thread in maps)   # dispatched from the job workers
+        assert len(models_put) == 1          # the cached model went to the object store once for all jobs
 
         # A job for a model deleted while it is queued or running fails cleanly (not found), whatever
         # moment the delete lands: before the job loads the model, or before it stores the calibration.
