@@ -16,6 +16,7 @@ from phd_core import uq as phd
 from phd_core.data import load_cameras
 from phd_core.scene import Camera
 from phd_core.errors import InputError
+from phd_core.executors import LOCAL, Executor, make_executor
 from phd_core.io import write_heatmap, write_json_atomic
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
@@ -37,6 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--views", type=int, default=None, help="use this many evenly spaced frames of --data")
     _add_camera_size_args(calibrate)
     _add_calibration_args(calibrate, standalone=True)
+    _add_executor_args(calibrate)
     calibrate.add_argument("--out", type=Path, help="also write the result as JSON to this file")
     calibrate.set_defaults(func=run_calibrate)
 
@@ -52,6 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_camera_size_args(uq, sizes=False)
     _add_uncertainty_args(uq)
     _add_calibration_args(uq)
+    _add_executor_args(uq)
     uq.add_argument("--vmax", type=float, default=None,
                     help="heat-map scale: zeta at or above this is the top colour (default: the largest "
                          "sigma_max of the report, shared by every map)")
@@ -80,6 +83,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_camera_size_args(rank)
     _add_uncertainty_args(rank)
     _add_calibration_args(rank)
+    _add_executor_args(rank)
     rank.add_argument("--out", type=Path, help="write the ranking JSON here (default: print it)")
     rank.set_defaults(func=run_rank)
 
@@ -124,7 +128,18 @@ def _add_uncertainty_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="mask seed (default 0)")
 
 
+def _add_executor_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ray", metavar="auto|local|ADDRESS", default=None,
+                        help="render on a Ray cluster (pip install '.[ray]'; docs/scale-out.md): auto = the "
+                             "cluster `ray start` runs here (or RAY_ADDRESS), local = a private one on this "
+                             "machine, else its address (host:6379, ray://host:10001). Same result as without")
+
+
 # ---------------------------------------------------------------------------------------- helpers
+
+def _executor(args: argparse.Namespace) -> Executor:
+    return LOCAL if args.ray is None else make_executor("ray", args.ray)
+
 
 def _load(path: Path):
     from phd_core.renderers import load_model
@@ -146,7 +161,8 @@ def _training_cameras(renderer, downscale: float) -> list[Camera]:
 
 def _calibrate(args: argparse.Namespace, renderer, cameras: list[Camera]) -> phd.CalibrationResult:
     return phd.calibrate(renderer, cameras, epsilon=args.epsilon, step=args.step,
-                         samples=args.calibration_samples, method=args.method, seed=args.seed)
+                         samples=args.calibration_samples, method=args.method, seed=args.seed,
+                         executor=args.executor)
 
 
 def _ratio(args: argparse.Namespace, renderer, cameras: list[Camera] | None = None
@@ -191,6 +207,7 @@ def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None
 # ---------------------------------------------------------------------------------------- commands
 
 def run_calibrate(args: argparse.Namespace) -> int:
+    args.executor = _executor(args)
     renderer = _load(args.model)
     if args.data is not None:
         from phd_core.data import load_dataset
@@ -219,6 +236,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 def run_uq(args: argparse.Namespace) -> int:
     from phd_core.data import load_dataset
 
+    args.executor = _executor(args)
     renderer = _load(args.model)
     warnings: list[str] = []
     try:
@@ -240,7 +258,7 @@ def run_uq(args: argparse.Namespace) -> int:
         warnings.extend(calibration["warnings"])
 
     views = phd.uncertainty(renderer, dataset.cameras, ratio=ratio, samples=args.samples, seed=args.seed,
-                            keep_maps=True)
+                            keep_maps=True, executor=args.executor)
     vmax = args.vmax if args.vmax is not None else max(v.sigma_max for v in views)
     rows = []
     for i, (view, camera, index) in enumerate(zip(views, dataset.cameras, dataset.indices)):
@@ -278,6 +296,7 @@ def run_uq(args: argparse.Namespace) -> int:
 
 
 def run_rank(args: argparse.Namespace) -> int:
+    args.executor = _executor(args)
     renderer = _load(args.model)
     candidates = _scaled(_candidates(args, renderer), args.downscale)
     ratio, calibration = _ratio(args, renderer)
@@ -286,7 +305,7 @@ def run_rank(args: argparse.Namespace) -> int:
         # Only the poses matter here: frames without w/h get a placeholder size.
         captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
-                            top_k=args.top_k, strategy=args.strategy, captured=captured)
+                            top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor)
     result = {"strategy": args.strategy, "dropout_ratio": ratio, "calibration": calibration,
               "samples": args.samples, "seed": args.seed,
               "candidates": len(candidates), "order": [r.index for r in ranked],

@@ -33,6 +33,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import phd_core
 from phd_core.errors import InputError
+from phd_core.executors import make_executor
 
 from .budget import MemoryLedger
 from .deps import ServiceState
@@ -116,10 +117,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if interrupted:
         log.warning("%d job(s) were unfinished at the last shutdown: marked failed (interrupted)", interrupted)
     state = ServiceState(settings=settings, store=store, cache=RendererCache(store, settings.cache_size),
-                         ledger=MemoryLedger(settings.memory_budget_bytes), job_store=job_store)
+                         ledger=MemoryLedger(settings.memory_budget_bytes), job_store=job_store,
+                         executor=make_executor(settings.executor, settings.executor_address))
 
     @asynccontextmanager
     async def lifespan(_: FastAPI):
+        await asyncio.to_thread(state.executor.connect)   # a cluster: fail at start-up, not at the first job
         state.jobs = JobManager(settings.workers, settings.queue_size, settings.job_retention,
                                 on_change=state.persist_job)
         try:

@@ -10,6 +10,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from fastapi.responses import JSONResponse
 
+from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import FAMILIES, load_model_bytes
 
 from .budget import PARSE_BYTES_PER_FILE_BYTE, MemoryLedger
@@ -40,6 +41,7 @@ class ServiceState:
     ledger: MemoryLedger
     job_store: JobStore
     jobs: JobManager | None = None
+    executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
 
     def model(self, model_id: str, who: Principal, field: str | None = None) -> ModelRecord:
         """The model, or 404 when it does not exist or belongs to another key."""

@@ -21,6 +21,7 @@ from phd_core.data.inria import cameras_from_entries, is_inria_cameras
 from phd_core.scene import Camera, cameras_from_json
 from phd_core.uq.candidates import candidate_cameras
 from phd_core.errors import InputError
+from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import Renderer, load_model
 
@@ -159,7 +160,7 @@ def b64(data: bytes) -> str:
 # ----------------------------------------------------------------------------- calibrate
 
 def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Settings, store: ModelStore,
-                  cache: RendererCache, ledger: MemoryLedger) -> tuple[Work, float]:
+                  cache: RendererCache, ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
     if body.training_cameras is not None:
         source, field = body.training_cameras, "training_cameras"
     elif record.training_frames:
@@ -179,7 +180,7 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
     def work(progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
         renderer = cache.get(record.id)
         result = uq.calibrate(renderer, cameras, samples=samples, method=body.method, seed=body.seed,
-                              progress=progress, **options)
+                              progress=progress, executor=executor, **options)
         calibration = Calibration(**result.to_dict(), num_cameras=len(cameras), created_at=utc_now())
         if not store.set_calibration(record.id, calibration.model_dump()):
             raise not_found("model", record.id)
@@ -208,7 +209,7 @@ def generated_candidates(record: ModelRecord, body: RankRequest, settings: Setti
 
 
 def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: RendererCache,
-             job_url: Callable[[str], str], ledger: MemoryLedger) -> tuple[Work, float]:
+             job_url: Callable[[str], str], ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
     if body.candidates is not None:
         cameras = generated_candidates(record, body, settings, cache)
     else:
@@ -226,7 +227,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
     def work(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
         renderer = cache.get(record.id)
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
-                               strategy=body.strategy, captured=captured, keep_peak=heatmaps, progress=progress)
+                               strategy=body.strategy, captured=captured, keep_peak=heatmaps, progress=progress,
+                               executor=executor)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score) for r in ranked]
         artifacts: dict[str, bytes] = {}
@@ -260,7 +262,8 @@ def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
 # ----------------------------------------------------------------------------- select
 
 def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest, settings: Settings,
-               cache: RendererCache, job_url: Callable[[str], str], ledger: MemoryLedger) -> tuple[Work, float]:
+               cache: RendererCache, job_url: Callable[[str], str], ledger: MemoryLedger,
+               executor: Executor = LOCAL) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
@@ -280,7 +283,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
                                   samples=samples, seed=body.seed, rule=body.rule,
                                   training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
                                   keep_images=body.images != "none",
-                                  progress=progress)
+                                  progress=progress, executor=executor)
         views, artifacts = [], {}
         for v in result.views:
             view = SelectedView(index=v.index, choice=v.choice, score_a=v.score_a, score_b=v.score_b,

@@ -209,13 +209,13 @@ def sample_std(images: Tensor, *, ddof: int = 1, dtype: torch.dtype = torch.floa
 
 
 class ProgressTicker:
-    """Turns 'one more view done' into progress(fraction) calls, never beyond 0.99 until done."""
+    """Turns 'views done' into progress(fraction) calls, never beyond 0.99 until done."""
 
     def __init__(self, progress: Progress | None, total: int):
         self.progress, self.total, self.done = progress, max(total, 1), 0
 
-    def tick(self) -> None:
-        self.done += 1
+    def tick(self, views: int = 1) -> None:
+        self.done += views
         if self.progress is not None:
             self.progress(min(self.done / self.total, 0.99))
 

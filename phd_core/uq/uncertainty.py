@@ -5,6 +5,7 @@ sigma_max = max of zeta over H, W, C; sigma-max-bar = mean of sigma_max over vie
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Sequence
 
 import torch
@@ -12,6 +13,7 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError
+from ..executors import LOCAL, Executor
 from ..renderers import Renderer
 from .sampling import (Progress, ProgressTicker, RunningStd, check_cameras, check_dtype, check_ratio, check_samples,
                        check_seed, dropout_uniforms, keep_masks, masked_renders)
@@ -51,6 +53,12 @@ def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, ke
         peak=peak.to(torch.float32) if keep_peak else None)
 
 
+def measure_views(cameras: list[Camera], renderer: Renderer, keep: Tensor, *, ddof: int, keep_maps: bool,
+                  dtype: torch.dtype, keep_peak: bool = False) -> list[ViewUncertainty]:
+    """measure_view for a chunk of cameras (what an executor runs)."""
+    return [measure_view(renderer, camera, keep, ddof, keep_maps, dtype, keep_peak) for camera in cameras]
+
+
 def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, samples: int = DEFAULT_SAMPLES,
                      seed: int = 0, ddof: int = 1, keep_maps: bool = False,
                      dtype: torch.dtype = torch.float64) -> ViewUncertainty:
@@ -66,11 +74,13 @@ def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, sample
 def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
                 samples: int = DEFAULT_SAMPLES, seed: int = 0, ddof: int = 1, keep_maps: bool = False,
                 keep_peak: bool = False, progress: Progress | None = None,
-                dtype: torch.dtype = torch.float64) -> list[ViewUncertainty]:
+                dtype: torch.dtype = torch.float64, executor: Executor = LOCAL) -> list[ViewUncertainty]:
     """view_uncertainty for every camera under the SAME N sub-models (one draw from `seed`).
 
     keep_maps keeps zeta and the mean image of every view (24 bytes a pixel); keep_peak only
     zeta's max over channels (4 bytes a pixel), enough to draw heat maps after ranking.
+    `executor` (phd_core.executors) runs chunks of cameras, anywhere; the masks are drawn
+    here and shipped, so every executor gives the same numbers.
     """
     ratio = check_ratio(ratio)
     samples, ddof = check_samples(samples, ddof)
@@ -79,12 +89,11 @@ def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
     cameras = check_cameras(cameras)
     keep = keep_masks(dropout_uniforms(renderer.num_units, samples, seed), ratio)
     ticker = ProgressTicker(progress, len(cameras))
-    views = []
-    for camera in cameras:
-        views.append(measure_view(renderer, camera, keep, ddof, keep_maps, dtype, keep_peak))
-        ticker.tick()
+    chunks = executor.split(cameras)
+    parts = executor.map(partial(measure_views, ddof=ddof, keep_maps=keep_maps, dtype=dtype, keep_peak=keep_peak), chunks,
+                         executor.share(renderer), keep, done=lambda i: ticker.tick(len(chunks[i])))
     ticker.finish()
-    return views
+    return [view for part in parts for view in part]
 
 
 def sigma_max_bar(views: Sequence[ViewUncertainty]) -> float:

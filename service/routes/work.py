@@ -21,7 +21,7 @@ async def calibrate(model_id: str, svc: Service, who: Caller, body: CalibrateReq
     record = svc.model(model_id, who)
     job_id = svc.jobs.new_id()
     work, estimate = await asyncio.to_thread(calibrate_job, record, body, svc.settings, svc.store, svc.cache,
-                                             svc.ledger)
+                                             svc.ledger, svc.executor)
     return await svc.run(job_id, "calibrate", work, estimate, body.run_async, who)
 
 
@@ -31,7 +31,7 @@ async def rank(model_id: str, body: RankRequest, svc: Service, who: Caller) -> A
     record = svc.model(model_id, who)
     job_id = svc.jobs.new_id()
     work, estimate = await asyncio.to_thread(rank_job, record, body, svc.settings, svc.cache, _artifact_url(job_id),
-                                             svc.ledger)
+                                             svc.ledger, svc.executor)
     return await svc.run(job_id, "rank", work, estimate, body.run_async, who)
 
 
@@ -41,7 +41,7 @@ async def select(body: SelectRequest, svc: Service, who: Caller) -> Any:
     record_a, record_b = svc.model(body.model_a, who, "model_a"), svc.model(body.model_b, who, "model_b")
     job_id = svc.jobs.new_id()
     work, estimate = await asyncio.to_thread(select_job, record_a, record_b, body, svc.settings, svc.cache,
-                                             _artifact_url(job_id), svc.ledger)
+                                             _artifact_url(job_id), svc.ledger, svc.executor)
     return await svc.run(job_id, "select", work, estimate, body.run_async, who)
 
 
