@@ -118,6 +118,12 @@ class ModelList(_Response):
     models: list[ModelInfo]
 
 
+class TrainingCameras(_Response):
+    """A model's stored training cameras as transforms-style frames (empty when it has none)."""
+
+    frames: list[dict[str, Any]]
+
+
 # ----------------------------------------------------------------------------- work requests
 
 class RenderSize(_Request):
@@ -175,6 +181,8 @@ class SelectRequest(RenderSize):
         "cameras); sigma_mean: the paper's rule, the lower mean zeta.")
     images: HeatmapMode = Field("none", description="The selected model's render per view: inline base64 PNG "
                                 "or downloadable files.")
+    both_images: bool = Field(False, description="With images: also the other model's render per view "
+                              "(other_image_png / other_image_url), to compare the two.")
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
 
 
@@ -188,6 +196,9 @@ class RankedCandidate(_Response):
     score: float = Field(description="The strategy's score of this candidate when it was ranked.")
     heatmap_png: str | None = Field(None, description="base64 PNG of zeta (heatmaps='base64').")
     heatmap_url: str | None = Field(None, description="Path of the PNG artefact (heatmaps='files').")
+    render_png: str | None = Field(None, description="base64 PNG of the mean of the N dropout renders, drawn "
+                                   "beside the heat map (heatmaps='base64').")
+    render_url: str | None = Field(None, description="Path of the mean render's PNG artefact (heatmaps='files').")
 
 
 class RankResult(_Response):
@@ -212,6 +223,8 @@ class SelectedView(_Response):
     score_b: float
     image_png: str | None = None
     image_url: str | None = None
+    other_image_png: str | None = Field(None, description="The model not chosen: its render (both_images).")
+    other_image_url: str | None = None
 
 
 class SelectResult(_Response):

@@ -197,11 +197,13 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
             done = _span(progress, split, 1.0)
             for k, view in enumerate(views):
                 # Same seed -> the same N sub-models as the ranking: zeta is the ranked one's.
-                zeta = uq.view_uncertainty(renderer, cameras[view.index], ratio=ratio, samples=samples,
-                                           seed=body.seed, keep_maps=True).zeta
-                png = png_bytes(colorize(zeta, vmax if vmax > 0 else None)[0])
+                maps = uq.view_uncertainty(renderer, cameras[view.index], ratio=ratio, samples=samples,
+                                           seed=body.seed, keep_maps=True)
+                png = png_bytes(colorize(maps.zeta, vmax if vmax > 0 else None)[0])
                 view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
                                                              artifacts, job_url)
+                view.render_png, view.render_url = deliver(png_bytes(maps.mean), body.heatmaps,
+                                                           f"render_{view.index:04d}.png", artifacts, job_url)
                 done((k + 1) / len(views))
         result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, strategy=body.strategy,
                             samples=samples,
@@ -229,7 +231,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
-    estimate = pixels(cameras) * (2 * samples + (body.images != "none"))
+    estimate = pixels(cameras) * (2 * samples + (body.images != "none") * (1 + body.both_images))
     if body.rule == "distance_sigma":
         for name, record in (("model_a", record_a), ("model_b", record_b)):
             if not record.training_frames:
@@ -242,7 +244,8 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
         result = uq.select_models(renderer_a, renderer_b, cameras, ratio_a=ratio_a, ratio_b=ratio_b,
                                   samples=samples, seed=body.seed, rule=body.rule,
                                   training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
-                                  keep_images=body.images != "none",
+                                  keep_images=("both" if body.both_images else True) if body.images != "none"
+                                  else False,
                                   progress=progress)
         views, artifacts = [], {}
         for v in result.views:
@@ -251,6 +254,9 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
             if v.image is not None:
                 view.image_png, view.image_url = deliver(png_bytes(v.image), body.images,
                                                          f"selected_{v.index:04d}.png", artifacts, job_url)
+            if v.other_image is not None:
+                view.other_image_png, view.other_image_url = deliver(
+                    png_bytes(v.other_image), body.images, f"other_{v.index:04d}.png", artifacts, job_url)
             views.append(view)
         counts = {"a": sum(v.choice == "a" for v in views), "b": sum(v.choice == "b" for v in views)}
         return SelectResult(model_a=record_a.id, model_b=record_b.id, ratio_a=ratio_a, ratio_b=ratio_b,
