@@ -52,13 +52,14 @@ async function runJob(path, body, bar, onJob) {
   if (first.status !== 202) { bar.value = 1; return first.data; }   // answered at once
   const id = first.data.id;
   if (onJob) onJob(id);
-  for (;;) {
+  for (let polls = 0; ; polls++) {
     const job = (await apiJson("/v1/jobs/" + id)).data;
     bar.value = job.progress;
     if (job.state === "succeeded") return job.result;
     if (job.state === "failed") throw new ApiError(job.error.code + ": " + job.error.message);
     if (job.state === "cancelled") throw new ApiError("the job was cancelled");
-    await new Promise((resolve) => setTimeout(resolve, 250));
+    // Short jobs answer fast; long ones are polled four times a second.
+    await new Promise((resolve) => setTimeout(resolve, Math.min(250, 40 + 20 * polls)));
   }
 }
 
@@ -276,7 +277,9 @@ async function updateCandidates() {
       $("cand-info").textContent = "choose a JSON file of candidate poses";
     }
   }
-  state.ranking = null;
+  state.ranking = null;               // a ranking belongs to the candidates it ranked
+  $("rank-grid").replaceChildren();
+  $("rank-summary").textContent = "";
   drawPlots();
 }
 
@@ -370,6 +373,8 @@ async function rank(event) {
   if ($("rank-strategy").value) body.strategy = $("rank-strategy").value;
   if ($("rank-topk").value) body.top_k = Number($("rank-topk").value);
   say("ranking " + state.candidates.length + " candidates...");
+  $("rank-grid").replaceChildren();      // no stale cards while the new ranking runs
+  $("rank-summary").textContent = "";
   $("rank-run").disabled = true;
   $("rank-cancel").hidden = false;
   try {
@@ -429,6 +434,8 @@ async function select(event) {
   if (a.id === bId) throw new ApiError("model B must differ from model A");
   if (state.candidates.length === 0) throw new ApiError("no candidate poses: generate some or choose a file");
   say("selecting over " + state.candidates.length + " views...");
+  $("select-grid").replaceChildren();
+  $("select-summary").textContent = "";
   const body = Object.assign({ model_a: a.id, model_b: bId, cameras: state.candidates, rule: $("select-rule").value,
     samples: Number($("rank-samples").value), seed: Number($("rank-seed").value), images: "files", both_images: true },
   sizeOptions("rank"));
