@@ -110,6 +110,7 @@ class Viewer:
         self.lock = threading.Lock()   # one render at a time, whatever the clicks
         self.frustums: dict[str, Any] = {}
         scale = self._scene_scale()
+        self._place_view()
         self._add_splats(max_splats)
         for i, camera in enumerate(renderer.training_cameras or []):
             self._frustum(f"/training/{i}", camera, TRAINING_COLOUR, scale * 0.6)
@@ -119,8 +120,8 @@ class Viewer:
             handle.on_click(lambda _event, i=i: self.clicked(i))
         gui = server.gui
         self.info = gui.add_markdown(self._summary())
-        self.render_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="mean render")
-        self.heatmap_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="zeta heat map")
+        self.render_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="mean render", visible=False)
+        self.heatmap_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="zeta heat map", visible=False)
         self.shown: int | None = None
 
     def _scene_scale(self) -> float:
@@ -128,7 +129,25 @@ class Viewer:
         if len(cams) < 2:
             return 0.3
         positions = np.stack([c.c2w[:3, 3].double().numpy() for c in cams])
-        return 0.08 * float(np.linalg.norm(positions.max(0) - positions.min(0))) or 0.3
+        return 0.03 * float(np.linalg.norm(positions.max(0) - positions.min(0))) or 0.3
+
+    def _place_view(self) -> None:
+        """Up = the cameras' mean up vector; the browser's first view from beyond the cameras,
+        looking at the point they surround."""
+        cams = list(self.renderer.training_cameras or []) + list(self.candidates)
+        if not cams:
+            return
+        c2w = np.stack([c.c2w.double().numpy() for c in cams])            # [C, 4, 4]
+        up = c2w[:, :3, 1].mean(0)
+        up = up / (np.linalg.norm(up) or 1.0)
+        centre = c2w[:, :3, 3].mean(0)
+        radius = float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).max()) or 1.0
+        self.server.scene.set_up_direction(tuple(up))
+        side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+        camera = self.server.initial_camera
+        camera.look_at = tuple(centre)
+        camera.position = tuple(centre + radius * (1.1 * side / np.linalg.norm(side) + 0.5 * up))
+        camera.up = tuple(up)
 
     def _add_splats(self, max_splats: int) -> None:
         model = getattr(self.renderer, "model", None)
@@ -181,6 +200,7 @@ class Viewer:
             render = (view.mean.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
             heatmap = colorize(view.zeta)[0]
             self.render_image.image, self.heatmap_image.image = render, heatmap
+            self.render_image.visible = self.heatmap_image.visible = True
             rank = self.ranking["ranks"].get(index)
             score = self.ranking["scores"].get(index)
             self.info.content = (f"**candidate {index}**" + (f", rank {rank + 1}, score {score:.4g}" if rank is not None
