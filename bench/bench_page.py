@@ -65,7 +65,7 @@ def main() -> int:
     args = parser.parse_args()
 
     server = BackgroundServer(Settings(data_dir=Path(tempfile.mkdtemp()) / "data", api_key=KEY))
-    driver = browser(1280, 1700)
+    driver = browser(1280, 4400)   # tall enough that element screenshots hold whole sections
     try:
         with PHDClient(server.url, api_key=KEY) as phd:
             a = phd.upload_model(args.model_a, name=args.model_a.stem)
