@@ -136,8 +136,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     base_psnr, base_rmse = test_errors(base, test)
     captured = [train_data.cameras[i] for i in init]
     ratio = calibrated_ratio(base, captured)
-    test_evidence = phd.candidate_evidence(base, test.cameras, ratio=ratio, samples=args.samples, seed=seed,
-                                           captured=captured)
+    test_evidence, _ = phd.candidate_evidence(base, test.cameras, ratio=ratio, samples=args.samples, seed=seed,
+                                              captured=captured)
     result["initial_seconds"] = round(time.perf_counter() - started, 1)
     for name in todo:
         strategy = get_strategy(name)

@@ -196,9 +196,9 @@ class RankedCandidate(_Response):
     score: float = Field(description="The strategy's score of this candidate when it was ranked.")
     heatmap_png: str | None = Field(None, description="base64 PNG of zeta (heatmaps='base64').")
     heatmap_url: str | None = Field(None, description="Path of the PNG artefact (heatmaps='files').")
-    render_png: str | None = Field(None, description="base64 PNG of the mean of the N dropout renders, drawn "
-                                   "beside the heat map (heatmaps='base64').")
-    render_url: str | None = Field(None, description="Path of the mean render's PNG artefact (heatmaps='files').")
+    render_png: str | None = Field(None, description="base64 PNG of the model's render of the view (no dropout), "
+                                   "to show beside the heat map (heatmaps='base64').")
+    render_url: str | None = Field(None, description="Path of the render's PNG artefact (heatmaps='files').")
 
 
 class RankResult(_Response):

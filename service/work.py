@@ -178,31 +178,33 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
     ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
     captured = (stored_cameras(record) if body.captured is None else
                 parse_cameras(body.captured, body, settings, field="captured", cap=settings.max_training_cameras))
+    heatmaps = body.heatmaps != "none"
     returned = len(cameras) if body.top_k is None else min(body.top_k, len(cameras))
-    mapped = 0 if body.heatmaps == "none" else returned  # heat-mapped views are rendered twice
-    estimate = (pixels(cameras) + pixels(cameras[:mapped])) * samples
+    rendered = pixels(cameras[:returned]) if heatmaps else 0   # one plain render per returned view
+    estimate = pixels(cameras) * samples + rendered
+    split = 1.0 - rendered / estimate if estimate else 1.0
 
     def work(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
         renderer = cache.get(record.id)
-        split = len(cameras) / (len(cameras) + mapped)
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
-                               strategy=body.strategy, captured=captured, progress=_span(progress, 0.0, split))
+                               strategy=body.strategy, captured=captured, keep_peak=heatmaps,
+                               progress=_span(progress, 0.0, split))
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score) for r in ranked]
         artifacts: dict[str, bytes] = {}
         vmax = None
-        if body.heatmaps != "none":
-            # One colour scale for all maps (the largest sigma_max), so they compare by eye.
+        if heatmaps:
+            # One colour scale for all maps (the largest sigma_max), so they compare by eye. The
+            # maps are the ranking's own zeta (kept as its channel max): nothing is rendered twice.
             vmax = max(v.sigma_max for v in views)
             done = _span(progress, split, 1.0)
-            for k, view in enumerate(views):
-                # Same seed -> the same N sub-models as the ranking: zeta is the ranked one's.
-                maps = uq.view_uncertainty(renderer, cameras[view.index], ratio=ratio, samples=samples,
-                                           seed=body.seed, keep_maps=True)
-                png = png_bytes(colorize(maps.zeta, vmax if vmax > 0 else None)[0])
+            for k, (view, r) in enumerate(zip(views, ranked)):
+                png = png_bytes(colorize(r.peak, vmax if vmax > 0 else None)[0])
                 view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
                                                              artifacts, job_url)
-                view.render_png, view.render_url = deliver(png_bytes(maps.mean), body.heatmaps,
+                # Beside the map, the model's own render of the view (one render, no dropout).
+                image = renderer.render(cameras[view.index])[0]
+                view.render_png, view.render_url = deliver(png_bytes(image), body.heatmaps,
                                                            f"render_{view.index:04d}.png", artifacts, job_url)
                 done((k + 1) / len(views))
         result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, strategy=body.strategy,

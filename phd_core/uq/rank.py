@@ -3,7 +3,7 @@ paper's sigma_max is one; the default won the active-learning benchmark, docs/nb
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Sequence
 
 import torch
@@ -13,7 +13,8 @@ from ..errors import check_int
 from ..renderers import Renderer
 from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
-from .uncertainty import DEFAULT_SAMPLES, uncertainty
+from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, uncertainty
+
 
 @dataclass
 class RankedView:
@@ -22,42 +23,49 @@ class RankedView:
     sigma_mean: float
     score: float        # the strategy's score when the candidate was ranked
     rank: int           # 0 = capture first; ranks 0..k-1 are a batch to capture together
+    peak: torch.Tensor | None = field(default=None, repr=False)  # [H, W] zeta max over channels (keep_peak=True)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return {k: v for k, v in asdict(self).items() if k != "peak"}
 
 
 def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
                        samples: int = DEFAULT_SAMPLES, seed: int = 0, captured: Sequence[Camera] | None = None,
-                       progress: Progress | None = None) -> Evidence:
+                       keep_peak: bool = False, progress: Progress | None = None) -> tuple[Evidence, list[ViewUncertainty]]:
     """What a strategy sees: the candidates' PH-Dropout statistics under one draw of N
-    sub-models, and the captured poses (default: the model's training cameras)."""
-    views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, progress=progress)
+    sub-models, and the captured poses (default: the model's training cameras); with the
+    per-view measurements (keeping zeta's channel max when keep_peak)."""
+    views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, keep_peak=keep_peak,
+                        progress=progress)
     if captured is None:
         captured = renderer.training_cameras or []
     captured = check_cameras(captured, "captured") if captured else []
 
     def stat(name: str) -> torch.Tensor:
         return torch.tensor([getattr(v, name) for v in views], dtype=torch.float64)
-    return Evidence(list(cameras), captured, stat("sigma_max"), stat("sigma_mean"), stat("sigma_top"), stat("area"))
+    evidence = Evidence(list(cameras), captured, stat("sigma_max"), stat("sigma_mean"), stat("sigma_top"), stat("area"))
+    return evidence, views
 
 
 def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,
                seed: int = 0, top_k: int | None = None, strategy: str = DEFAULT_STRATEGY,
-               captured: Sequence[Camera] | None = None, progress: Progress | None = None) -> list[RankedView]:
+               captured: Sequence[Camera] | None = None, keep_peak: bool = False,
+               progress: Progress | None = None) -> list[RankedView]:
     """Candidates in the order the strategy would capture them; ties go to the lower index.
 
     top_k keeps the first k, a batch meant to be captured together (all when k exceeds the
     number of candidates). Every candidate carries sigma_max and sigma_mean whatever the
     strategy. `captured` are the poses already taken (default: the model's training cameras).
+    keep_peak keeps each returned view's zeta channel max, so heat maps need no second render
+    (4 bytes a pixel for every candidate until the ranking is known).
     """
     chosen = get_strategy(strategy)
     if top_k is not None:
         top_k = check_int(top_k, "top_k", 1)
-    evidence = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed, captured=captured,
-                                  progress=progress)
+    evidence, views = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed,
+                                         captured=captured, keep_peak=keep_peak, progress=progress)
     count = len(evidence.candidates)
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]
     return [RankedView(index=i, sigma_max=float(evidence.sigma_max[i]), sigma_mean=float(evidence.sigma_mean[i]),
-                       score=selection.scores[i], rank=rank) for rank, i in enumerate(order)]
+                       score=selection.scores[i], rank=rank, peak=views[i].peak) for rank, i in enumerate(order)]

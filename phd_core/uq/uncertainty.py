@@ -31,19 +31,22 @@ class ViewUncertainty:
     area: float = 0.0               # share of pixels whose zeta (max over C) exceeds AREA_THRESHOLD
     mean: Tensor | None = None      # [H, W, 3] float32 mean image over the N samples (keep_maps=True)
     zeta: Tensor | None = None      # [H, W, 3] float32 per-pixel per-channel std (keep_maps=True)
+    peak: Tensor | None = None      # [H, W] float32 zeta's max over channels, what a heat map draws (keep_peak=True)
 
 
 def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, keep_maps: bool,
-                 dtype: torch.dtype) -> ViewUncertainty:
+                 dtype: torch.dtype, keep_peak: bool = False) -> ViewUncertainty:
     images = render_masks(renderer, camera, keep)             # [N, H, W, 3]
     zeta, mean = sample_std(images, ddof=ddof, dtype=dtype)
-    per_pixel = zeta.amax(dim=-1).flatten()                   # [H * W]
+    peak = zeta.amax(dim=-1)                                  # [H, W]
+    per_pixel = peak.flatten()                                # [H * W]
     top = per_pixel.topk(max(1, round(TOP_SHARE * per_pixel.numel()))).values
     return ViewUncertainty(
         sigma_max=float(zeta.max()), sigma_mean=float(zeta.mean()), sigma_top=float(top.mean()),
         area=float((per_pixel > AREA_THRESHOLD).double().mean()),
         mean=mean.to(torch.float32) if keep_maps else None,
-        zeta=zeta.to(torch.float32) if keep_maps else None)
+        zeta=zeta.to(torch.float32) if keep_maps else None,
+        peak=peak.to(torch.float32) if keep_peak else None)
 
 
 def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, samples: int = DEFAULT_SAMPLES,
@@ -60,8 +63,13 @@ def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, sample
 
 def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
                 samples: int = DEFAULT_SAMPLES, seed: int = 0, ddof: int = 1, keep_maps: bool = False,
-                progress: Progress | None = None, dtype: torch.dtype = torch.float64) -> list[ViewUncertainty]:
-    """view_uncertainty for every camera under the SAME N sub-models (one draw from `seed`)."""
+                keep_peak: bool = False, progress: Progress | None = None,
+                dtype: torch.dtype = torch.float64) -> list[ViewUncertainty]:
+    """view_uncertainty for every camera under the SAME N sub-models (one draw from `seed`).
+
+    keep_maps keeps zeta and the mean image of every view (24 bytes a pixel); keep_peak only
+    zeta's max over channels (4 bytes a pixel), enough to draw heat maps after ranking.
+    """
     ratio = check_ratio(ratio)
     samples, ddof = check_samples(samples, ddof)
     seed = check_seed(seed)
@@ -71,7 +79,7 @@ def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
     ticker = ProgressTicker(progress, len(cameras))
     views = []
     for camera in cameras:
-        views.append(measure_view(renderer, camera, keep, ddof, keep_maps, dtype))
+        views.append(measure_view(renderer, camera, keep, ddof, keep_maps, dtype, keep_peak))
         ticker.tick()
     ticker.finish()
     return views

@@ -399,13 +399,13 @@ async function drawRankGrid(result) {
   const grid = $("rank-grid");
   const loads = [];
   grid.replaceChildren(...result.views.map((v) => {
-    const render = el("img", { class: "render", alt: "mean render of candidate " + v.index });
+    const render = el("img", { class: "render", alt: "render of candidate " + v.index });
     const heat = el("img", { class: "heatmap", alt: "zeta heat map of candidate " + v.index });
     if (v.render_url) loads.push(loadImage(render, v.render_url));
     if (v.heatmap_url) loads.push(loadImage(heat, v.heatmap_url));
     return el("li", { class: "card", "data-index": v.index, "data-rank": v.rank },
       el("div", { class: "pair" },
-        el("figure", {}, render, el("figcaption", { text: "mean render" })),
+        el("figure", {}, render, el("figcaption", { text: "render" })),
         el("figure", {}, heat, el("figcaption", { text: "zeta" }))),
       el("p", { class: "title", text: `#${v.rank + 1}  candidate ${v.index}` }),
       el("dl", {},

@@ -134,7 +134,7 @@ def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_pa
         assert [int(c.get_attribute("data-rank")) for c in cards] == list(range(7))
         scores = [float(c.find_element(By.CSS_SELECTOR, "dd.score").text) for c in cards]
         assert scores == pytest.approx([v.score for v in expected.views], rel=1e-3)
-        # Every heat map and mean render loaded, at the rendered size, and shows the artefact's pixels.
+        # Every heat map and render loaded, at the rendered size, and shows the artefact's pixels.
         sizes = browser.execute_script("return [...document.querySelectorAll('#rank-grid img')].map("
                                        "i => [i.className, i.naturalWidth, i.naturalHeight, i.src.slice(0, 5)])")
         assert len(sizes) == 14 and {s[0] for s in sizes} == {"render", "heatmap"}

@@ -1,6 +1,6 @@
 """What the web page needs from the service, through a real server and the real client: the
 page's files served without the key (the API still needs it), the stored training cameras,
-the mean render beside each heat map, and both models' renders in a selection."""
+the model's render beside each heat map, and both models' renders in a selection."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 from client import AuthenticationError, NotFoundError, PHDClient
 from conftest import svc_cameras
 from phd_core import uq
-from phd_core.io import png_bytes
+from phd_core.io import colorize, png_bytes
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 
 
@@ -71,7 +71,7 @@ def test_training_cameras_are_returned_as_stored(svc_start, svc_model_files):
         anonymous.training_cameras(info.id)
 
 
-def test_ranking_returns_the_mean_render_beside_each_heat_map(svc_start, svc_model_files):
+def test_ranking_returns_the_render_beside_each_heat_map(svc_start, svc_model_files):
     server = svc_start()
     path = svc_model_files["ply"]
     candidates = svc_cameras(4, phase=0.2)
@@ -84,11 +84,12 @@ def test_ranking_returns_the_mean_render_beside_each_heat_map(svc_start, svc_mod
         assert all(v.render_png is None and v.render_url is None for v in plain.views)
         for a, b in zip(inline.views, files.views):
             assert a.index == b.index and b.render_png is None and a.render_url is None
-            # The mean of the same N sub-models the heat map's zeta came from.
-            expected = uq.view_uncertainty(renderer, candidates[a.index], ratio=0.3, samples=5, seed=4,
-                                           keep_maps=True)
-            assert np.array_equal(_png(a.render_png), _pixels(expected.mean))
-            assert np.array_equal(_png(phd.download(b.render_url)), _pixels(expected.mean))
+            # The model's own render of the view, no dropout; the heat map is the ranked view's zeta.
+            expected = renderer.render(candidates[a.index])[0]
+            assert np.array_equal(_png(a.render_png), _pixels(expected))
+            assert np.array_equal(_png(phd.download(b.render_url)), _pixels(expected))
+            zeta = uq.view_uncertainty(renderer, candidates[a.index], ratio=0.3, samples=5, seed=4, keep_maps=True)
+            assert np.array_equal(_png(a.heatmap_png), colorize(zeta.zeta, inline.heatmap_vmax)[0])
             assert b.render_url.endswith(f"/render_{b.index:04d}.png")
 
 

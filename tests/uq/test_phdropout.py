@@ -358,6 +358,19 @@ def test_sigma_max_ranking_orders_by_sigma_max_with_index_ties(blobs: BlobRender
     assert info.value.field == "top_k"
 
 
+
+def test_ranking_keeps_each_views_zeta_peak_from_one_render_per_candidate() -> None:
+    blobs = BlobRenderer.random(40, seed=0)
+    cameras = [CAMERAS[0], away_camera(), CAMERAS[2], CAMERAS[4]]
+    ranked = phd.rank_views(blobs, cameras, ratio=0.4, samples=6, seed=3, top_k=3, keep_peak=True)
+    assert blobs.calls == len(cameras)             # one batched render per candidate, none again for the maps
+    for r in ranked:
+        zeta = phd.view_uncertainty(blobs, cameras[r.index], ratio=0.4, samples=6, seed=3, keep_maps=True).zeta
+        assert torch.equal(r.peak, zeta.amax(dim=-1))
+        assert float(r.peak.max()) == pytest.approx(r.sigma_max, rel=1e-6)
+        assert "peak" not in r.to_dict()
+    assert all(r.peak is None for r in phd.rank_views(blobs, cameras, ratio=0.4, samples=6, seed=3))
+
 # ---------------------------------------------------------------------------------------- selection
 
 def test_paper_selection_picks_the_lower_mean_zeta(blobs: BlobRenderer) -> None:
