@@ -82,6 +82,7 @@ function say(text, isError = false) {
 }
 
 async function guarded(action) {
+  say("");                             // an old error does not outlive the next action
   try {
     await action();
   } catch (err) {

@@ -5,6 +5,7 @@ written for (no inline scripts or styles; images from blob: URLs)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -101,7 +102,8 @@ def _open(driver, server) -> None:
     assert driver.current_url.endswith("/ui/")
     _set(driver, "api-key", KEY)
     driver.find_element(By.CSS_SELECTOR, "#key-form button").click()
-    _wait(driver, lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2, what="the model list")
+    _wait(driver, lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2
+          and d_text(d, "message") == "key saved in this browser", what="the model list")
 
 
 def _csp_violations(driver) -> list[str]:
@@ -210,3 +212,43 @@ def test_page_files_hold_no_inline_code():
     assert html.count("<script") == html.count('<script src="app.js"') == 1
     script = (PAGE_DIR / "app.js").read_text()
     assert "innerHTML" not in script and "eval(" not in script and '"style"' not in script
+
+
+def test_page_uploads_calibrates_and_deletes_a_model(browser, svc_model_files, tmp_path):
+    """The whole path a person takes on an empty server: upload with cameras, calibrate, delete."""
+    from service.runner import BackgroundServer
+    from service.settings import Settings
+
+    cameras = tmp_path / "transforms_train.json"
+    cameras.write_text(json.dumps({"frames": [c.to_frame() for c in svc_cameras(3)]}))
+    server = BackgroundServer(Settings(data_dir=tmp_path / "data", api_key=KEY), wrap=with_csp)
+    try:
+        browser.get(server.url + "/ui/")
+        _set(browser, "api-key", KEY)
+        browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
+        _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
+        browser.find_element(By.CSS_SELECTOR, "#model-section summary").click()
+        browser.find_element(By.ID, "upload-file").send_keys(str(svc_model_files["ply"]))
+        browser.find_element(By.ID, "upload-cameras").send_keys(str(cameras))
+        _set(browser, "upload-name", "uploaded")
+        browser.find_element(By.CSS_SELECTOR, "#upload-form button").click()
+        _wait(browser, lambda d: "not calibrated" in d_text(d, "model-info"), what="the uploaded model")
+        assert "3 training cameras" in d_text(browser, "model-info")
+        assert Select(browser.find_element(By.ID, "model-select")).first_selected_option.text == \
+            "uploaded (3dgs, 300 units)"
+        _set(browser, "cal-samples", 3)
+        _set(browser, "cal-downscale", 1)
+        browser.find_element(By.ID, "calibrate").click()
+        _wait(browser, lambda d: "calibrated: r_drop" in d_text(d, "model-info"), what="the calibration")
+        with PHDClient(server.url, api_key=KEY) as phd:
+            (model,) = phd.list_models()
+            assert (model.name, model.num_training_cameras) == ("uploaded", 3)
+            assert (model.calibration.samples, model.calibration.num_cameras) == (3, 3)
+            assert f"r_drop = {model.calibration.r_drop}" in d_text(browser, "model-info")
+            browser.find_element(By.ID, "delete-model").click()
+            browser.switch_to.alert.accept()
+            _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the deletion")
+            assert phd.list_models() == []
+        assert _csp_violations(browser) == []
+    finally:
+        server.stop()
