@@ -154,7 +154,8 @@ class RankRequest(RenderSize):
                               "captured together (diverse for the default strategy).")
     strategy: str = Field(DEFAULT_STRATEGY, description="Next-best-view strategy, one of the names in the "
                           "registry: " + ", ".join(f"{name} ({s.summary})" for name, s in STRATEGIES.items())
-                          + ". The default won the active-learning benchmark (docs/nbv.md).")
+                          + ". The default won the active-learning benchmark (docs/nbv.md).",
+                          examples=list(STRATEGIES))   # the web page offers these names
     captured: CameraList | None = Field(None, description="Poses already captured; default the model's stored "
                                         "training cameras. " + _CAMERAS_DOC)
     heatmaps: HeatmapMode = Field("none", description="zeta heat maps of the returned views: inline base64 PNG, "

@@ -467,8 +467,7 @@ async function readStrategies() {
     const schema = (await (await fetch("/openapi.json")).json()).components.schemas.RankRequest.properties.strategy;
     $("rank-strategy").value = schema.default || "";
     $("rank-strategy").title = schema.description || "";
-    const names = [...(schema.description || "").matchAll(/([a-z][a-z0-9_]+) \(/g)].map((m) => m[1]);
-    $("strategies").replaceChildren(...[...new Set(names)].map((n) => el("option", { value: n })));
+    $("strategies").replaceChildren(...(schema.examples || []).map((n) => el("option", { value: n })));
   } catch (_) { /* the field stays free text; the server names the known strategies on a typo */ }
 }
 

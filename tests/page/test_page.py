@@ -15,6 +15,7 @@ import pytest
 
 from client import PHDClient
 from conftest import svc_cameras
+from phd_core import uq
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
@@ -116,6 +117,10 @@ def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_pa
     _open(browser, server)
     Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
     _wait(browser, lambda d: "r_drop" in d.find_element(By.ID, "model-info").text, what="the model's facts")
+    # The strategy field starts at the service's default and offers the registry's names.
+    assert browser.find_element(By.ID, "rank-strategy").get_attribute("value") == uq.DEFAULT_STRATEGY
+    offered = browser.execute_script("return [...document.querySelectorAll('#strategies option')].map(o => o.value)")
+    assert offered == list(uq.STRATEGIES)
     _set(browser, "gen-count", 7)
     browser.find_element(By.ID, "gen-elevation").click()          # the change event regenerates candidates
     _set(browser, "rank-samples", 4)
