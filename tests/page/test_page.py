@@ -193,6 +193,26 @@ def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_p
     assert _csp_violations(browser) == []
 
 
+def test_page_takes_the_users_own_candidate_list(browser, models, tmp_path):
+    server, model_a, _ = models
+    own = svc_cameras(5, phase=0.9, radius=2.5)
+    path = tmp_path / "candidates.json"   # a transforms.json: top-level keys are every frame's defaults
+    frames = [c.to_frame() for c in own]
+    path.write_text(json.dumps({"w": 24, "h": 24, "frames": [{k: v for k, v in f.items() if k not in ("w", "h")}
+                                                             for f in frames]}))
+    _open(browser, server)
+    Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
+    browser.find_element(By.CSS_SELECTOR, "input[name=cand-mode][value=file]").click()
+    assert browser.find_element(By.ID, "generate-options").get_attribute("hidden") is not None
+    browser.find_element(By.ID, "cand-file").send_keys(str(path))
+    _wait(browser, lambda d: d.execute_script("return state.candidates.length") == 5, what="the file's 5 poses")
+    sent = browser.execute_script("return state.candidates")
+    assert [f["transform_matrix"] for f in sent] == [f["transform_matrix"] for f in frames]
+    assert all((f["w"], f["h"]) == (24, 24) for f in sent)       # the defaults reached every frame
+    assert "5 poses from candidates.json" in d_text(browser, "cand-info")
+    assert len(browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand.none")) == 5   # not ranked yet
+
+
 def test_page_fits_a_phone_and_names_a_wrong_key(browser, models, tmp_path):
     server, _, _ = models
     browser.set_window_size(390, 844)
