@@ -29,7 +29,8 @@ from typing import Any, Callable, Iterable, Union
 
 import httpx
 
-from service.schemas import (Calibration, Health, Job, ModelInfo, ModelList, RankResult, SelectResult)
+from service.schemas import (Calibration, Health, Job, ModelInfo, ModelList, RankResult, SelectResult,
+                             TrainingCameras)
 
 ProgressCallback = Callable[[float], None]
 Cameras = Union[str, Path, dict, Iterable[Any]]
@@ -263,6 +264,10 @@ class PHDClient:
     def get_model(self, model_id: str) -> ModelInfo:
         return ModelInfo.model_validate(self._request("GET", f"/v1/models/{model_id}").json())
 
+    def training_cameras(self, model_id: str) -> list[dict]:
+        """The model's stored training cameras as transforms-style frames ([] when it has none)."""
+        return TrainingCameras.model_validate(self._request("GET", f"/v1/models/{model_id}/cameras").json()).frames
+
     def delete_model(self, model_id: str) -> None:
         self._request("DELETE", f"/v1/models/{model_id}")
 
@@ -304,7 +309,7 @@ class PHDClient:
 
     def select(self, model_a: str, model_b: str, cameras: Cameras, *, samples: int | None = None, seed: int = 0,
                ratio_a: float | None = None, ratio_b: float | None = None, rule: str | None = None,
-               images: str = "none",
+               images: str = "none", both_images: bool = False,
                downscale: float | None = None, width: int | None = None, height: int | None = None,
                run_async: bool = False, wait: bool = True, progress: ProgressCallback | None = None,
                poll_interval: float = 0.2, timeout: float | None = None) -> SelectResult | Job:
@@ -312,7 +317,7 @@ class PHDClient:
         paper's 'sigma_mean')."""
         body = {"model_a": model_a, "model_b": model_b, "cameras": camera_frames(cameras), "samples": samples,
                 "seed": seed, "ratio_a": ratio_a, "ratio_b": ratio_b, "rule": rule, "images": images,
-                "downscale": downscale,
+                "both_images": both_images or None, "downscale": downscale,
                 "width": width, "height": height, "async": run_async}
         return self._work("/v1/select", body, SelectResult, wait, progress, poll_interval, timeout)
 

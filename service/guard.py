@@ -31,6 +31,7 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 DRAIN_LIMIT = 64 << 20
 OPEN_PATHS = ("/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
+OPEN_PATHS += ("/", "/ui", "/ui/", "/ui/app.js", "/ui/app.css")   # the page's static files; its API calls send the key
 UPLOAD_PATH = "/v1/models"
 DOC_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")   # FastAPI's pages load their scripts from a CDN
 # Same-origin files only (the web page: HTML, one JS and one CSS file, images from the API or

@@ -119,6 +119,12 @@ class ModelList(_Response):
     models: list[ModelInfo]
 
 
+class TrainingCameras(_Response):
+    """A model's stored training cameras as transforms-style frames (empty when it has none)."""
+
+    frames: list[dict[str, Any]]
+
+
 # ----------------------------------------------------------------------------- work requests
 
 class RenderSize(_Request):
@@ -166,7 +172,8 @@ class RankRequest(RenderSize):
                               "captured together (diverse for the default strategy).")
     strategy: str = Field(DEFAULT_STRATEGY, description="Next-best-view strategy, one of the names in the "
                           "registry: " + ", ".join(f"{name} ({s.summary})" for name, s in STRATEGIES.items())
-                          + ". The default won the active-learning benchmark (docs/nbv.md).")
+                          + ". The default won the active-learning benchmark (docs/nbv.md).",
+                          examples=list(STRATEGIES))   # the web page offers these names
     captured: CameraList | None = Field(None, description="Poses already captured; default the model's stored "
                                         "training cameras. " + _CAMERAS_DOC)
     heatmaps: HeatmapMode = Field("none", description="zeta heat maps of the returned views: inline base64 PNG, "
@@ -199,6 +206,8 @@ class SelectRequest(RenderSize):
         "cameras); sigma_mean: the paper's rule, the lower mean zeta.")
     images: HeatmapMode = Field("none", description="The selected model's render per view: inline base64 PNG "
                                 "or downloadable files.")
+    both_images: bool = Field(False, description="With images: also the other model's render per view "
+                              "(other_image_png / other_image_url), to compare the two.")
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
 
 
@@ -212,6 +221,9 @@ class RankedCandidate(_Response):
     score: float = Field(description="The strategy's score of this candidate when it was ranked.")
     heatmap_png: str | None = Field(None, description="base64 PNG of zeta (heatmaps='base64').")
     heatmap_url: str | None = Field(None, description="Path of the PNG artefact (heatmaps='files').")
+    render_png: str | None = Field(None, description="base64 PNG of the model's render of the view (no dropout), "
+                                   "to show beside the heat map (heatmaps='base64').")
+    render_url: str | None = Field(None, description="Path of the render's PNG artefact (heatmaps='files').")
 
 
 class RankResult(_Response):
@@ -236,6 +248,8 @@ class SelectedView(_Response):
     score_b: float
     image_png: str | None = None
     image_url: str | None = None
+    other_image_png: str | None = Field(None, description="The model not chosen: its render (both_images).")
+    other_image_url: str | None = None
 
 
 class SelectResult(_Response):

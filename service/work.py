@@ -157,6 +157,11 @@ def b64(data: bytes) -> str:
     return base64.b64encode(data).decode("ascii")
 
 
+def _span(progress: Progress, start: float, end: float) -> Progress:
+    """Progress of one phase mapped onto [start, end] of the job."""
+    return lambda fraction: progress(start + (end - start) * fraction)
+
+
 # ----------------------------------------------------------------------------- calibrate
 
 def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Settings, store: ModelStore,
@@ -219,7 +224,10 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
     captured = (stored_cameras(record) if body.captured is None else
                 parse_cameras(body.captured, body, settings, field="captured", cap=settings.max_training_cameras))
     heatmaps = body.heatmaps != "none"
-    estimate = pixels(cameras) * samples
+    returned = len(cameras) if body.top_k is None else min(body.top_k, len(cameras))
+    rendered = pixels(cameras[:returned]) if heatmaps else 0   # one plain render per returned view
+    estimate = pixels(cameras) * samples + rendered
+    split = 1.0 - rendered / estimate if estimate else 1.0
     # With heat maps, every candidate's zeta channel max ([H, W] float32) is kept until the order is known.
     plan = memory_plan([record], cameras, samples, settings, kept_bytes=4 * pixels(cameras) if heatmaps else 0,
                        kept_field="heatmaps")
@@ -227,8 +235,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
     def work(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
         renderer = cache.get(record.id)
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
-                               strategy=body.strategy, captured=captured, keep_peak=heatmaps, progress=progress,
-                               executor=executor)
+                               strategy=body.strategy, captured=captured, keep_peak=heatmaps,
+                               progress=_span(progress, 0.0, split), executor=executor)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score) for r in ranked]
         artifacts: dict[str, bytes] = {}
@@ -237,10 +245,16 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
             # One colour scale for all maps (the largest sigma_max), so they compare by eye. The
             # maps are the ranking's own zeta (kept as its channel max): nothing is rendered twice.
             vmax = max(v.sigma_max for v in views)
-            for view, r in zip(views, ranked):
+            done = _span(progress, split, 1.0)
+            for k, (view, r) in enumerate(zip(views, ranked)):
                 png = png_bytes(colorize(r.peak, vmax if vmax > 0 else None)[0])
                 view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
                                                              artifacts, job_url)
+                # Beside the map, the model's own render of the view (one render, no dropout).
+                image = renderer.render(cameras[view.index])[0]
+                view.render_png, view.render_url = deliver(png_bytes(image), body.heatmaps,
+                                                           f"render_{view.index:04d}.png", artifacts, job_url)
+                done((k + 1) / len(views))
         result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, strategy=body.strategy,
                             samples=samples,
                             seed=body.seed, width=cameras[0].width, height=cameras[0].height,
@@ -268,7 +282,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
-    estimate = pixels(cameras) * (2 * samples + (body.images != "none"))
+    estimate = pixels(cameras) * (2 * samples + (body.images != "none") * (1 + body.both_images))
     plan = memory_plan([record_a, record_b], cameras, samples, settings)
     if body.rule == "distance_sigma":
         for name, record in (("model_a", record_a), ("model_b", record_b)):
@@ -282,7 +296,8 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
         result = uq.select_models(renderer_a, renderer_b, cameras, ratio_a=ratio_a, ratio_b=ratio_b,
                                   samples=samples, seed=body.seed, rule=body.rule,
                                   training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
-                                  keep_images=body.images != "none",
+                                  keep_images=("both" if body.both_images else True) if body.images != "none"
+                                  else False,
                                   progress=progress, executor=executor)
         views, artifacts = [], {}
         for v in result.views:
@@ -291,6 +306,9 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
             if v.image is not None:
                 view.image_png, view.image_url = deliver(png_bytes(v.image), body.images,
                                                          f"selected_{v.index:04d}.png", artifacts, job_url)
+            if v.other_image is not None:
+                view.other_image_png, view.other_image_url = deliver(
+                    png_bytes(v.other_image), body.images, f"other_{v.index:04d}.png", artifacts, job_url)
             views.append(view)
         counts = {"a": sum(v.choice == "a" for v in views), "b": sum(v.choice == "b" for v in views)}
         return SelectResult(model_a=record_a.id, model_b=record_b.id, ratio_a=ratio_a, ratio_b=ratio_b,

@@ -27,6 +27,7 @@ class ViewSelection:
     score_a: float                  # model a's score of this view under the rule (lower wins)
     score_b: float
     image: Tensor | None = None     # [H, W, 3] the chosen model's full render (keep_images=True)
+    other_image: Tensor | None = None   # [H, W, 3] the other model's full render (keep_images="both")
 
     def to_dict(self) -> dict:
         return {"index": self.index, "choice": self.choice, "score_a": self.score_a, "score_b": self.score_b}
@@ -68,7 +69,7 @@ def _level_views(training: list[Camera]) -> list[Camera]:
 def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[Camera], *, ratio_a: float,
                   ratio_b: float, samples: int = DEFAULT_SAMPLES, seed: int = 0, images: Tensor | None = None,
                   rule: str = DEFAULT_SELECTION_RULE, training_a: Sequence[Camera] | None = None,
-                  training_b: Sequence[Camera] | None = None, keep_images: bool = False,
+                  training_b: Sequence[Camera] | None = None, keep_images: bool | str = False,
                   progress: Progress | None = None, executor: Executor = LOCAL) -> SelectionResult:
     """Per view, pick the model with the lower score (each at its own dropout ratio).
 
@@ -80,8 +81,10 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     Ties go to model a. With ground-truth `images` [V, H, W, 3], `metrics` holds the
     mean PSNR and SSIM of a, b and the selection, E_ME (mean over views of
     SSIM(selected) / max(SSIM(a), SSIM(b))) and how often the choice was the model
-    with the higher SSIM. `executor` (phd_core.executors) runs the masked renders in chunks,
-    anywhere; the full renders of the chosen models stay in this process.
+    with the higher SSIM. keep_images: True keeps the chosen model's full render per view,
+    "both" also the other model's (to show the two side by side). `executor`
+    (phd_core.executors) runs the masked renders in chunks, anywhere; the full renders of
+    the chosen models stay in this process.
     """
     ratio_a, ratio_b = check_ratio(ratio_a, "ratio_a"), check_ratio(ratio_b, "ratio_b")
     samples, _ = check_samples(samples, 1)
@@ -126,13 +129,15 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         score_a, score_b = score("a", i), score("b", i)
         choice = "a" if score_a <= score_b else "b"
         # Full renders: both models when scoring against ground truth, else only the chosen one.
-        needed = ("a", "b") if images is not None else (choice,) if keep_images else ()
+        both = images is not None or keep_images == "both"
+        needed = ("a", "b") if both else (choice,) if keep_images else ()
         full = {key: render_masks(renderers[key], camera, None)[0] for key in needed}
-        image = full.get(choice)
+        image, other = full.get(choice), full.get("b" if choice == "a" else "a")
         if images is not None:
             _score_images(scores, full["a"], full["b"], image, images[i])
         views.append(ViewSelection(index=i, choice=choice, score_a=score_a, score_b=score_b,
-                                   image=image if keep_images else None))
+                                   image=image if keep_images else None,
+                                   other_image=other if keep_images == "both" else None))
         ticker.tick()
     metrics = _selection_metrics(views, scores) if images is not None else None
     ticker.finish()

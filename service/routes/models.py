@@ -10,7 +10,7 @@ from fastapi.responses import JSONResponse
 from ..budget import PARSE_BYTES_PER_FILE_BYTE
 from ..deps import ERRORS, Caller, Service
 from ..errors import not_found
-from ..schemas import Calibration, ModelInfo, ModelList
+from ..schemas import Calibration, ModelInfo, ModelList, TrainingCameras
 from ..store import ModelRecord
 from ..upload import receive_upload, sniff_kind
 
@@ -65,6 +65,12 @@ async def list_models(svc: Service, who: Caller) -> ModelList:
 @router.get("/models/{model_id}", response_model=ModelInfo)
 async def get_model(model_id: str, svc: Service, who: Caller) -> ModelInfo:
     return model_info(svc.model(model_id, who))
+
+
+@router.get("/models/{model_id}/cameras", response_model=TrainingCameras)
+async def get_training_cameras(model_id: str, svc: Service, who: Caller) -> TrainingCameras:
+    """The stored training cameras as frames (the page plots them and places candidates around them)."""
+    return TrainingCameras(frames=svc.model(model_id, who).training_frames or [])
 
 
 @router.delete("/models/{model_id}", status_code=204)

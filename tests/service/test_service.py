@@ -149,8 +149,10 @@ def test_big_work_becomes_a_job_with_progress_and_artifacts(svc_start, svc_model
         result = phd.wait_job(job_id, progress=seen.append, poll_interval=0.01, timeout=60)
         assert seen == sorted(seen) and seen[-1] == 1.0
         job = phd.get_job(job_id)
-        assert job.state == "succeeded" and job.progress == 1.0 and job.estimated_pixels == 27648  # heat maps: no second render
-        assert sorted(job.artifacts) == sorted(v.heatmap_url.rsplit("/", 1)[1] for v in result.views)
+        # Heat maps: no second dropout pass, only one plain render per returned view (6 x 24 x 24).
+        assert job.state == "succeeded" and job.progress == 1.0 and job.estimated_pixels == 27648 + 3456
+        assert sorted(job.artifacts) == sorted(url.rsplit("/", 1)[1] for v in result.views
+                                               for url in (v.heatmap_url, v.render_url))
         for view in result.views:
             assert view.heatmap_png is None
             assert _png(phd.download(view.heatmap_url)).shape == (24, 24, 3)

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from ...errors import InputError
+from ..splats import SH_C0, quaternion_to_rotation
 
 SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
 
@@ -79,3 +80,12 @@ class GaussianModel:
         means = self.means.detach().cpu().double().numpy()  # [G, 3]
         low, high = np.quantile(means, [quantile, 1.0 - quantile], axis=0)  # [3] each
         return low.tolist(), high.tolist()
+
+    def covariances(self) -> torch.Tensor:
+        """[G, 3, 3] float64 world-space covariances R S S^T R^T (for viewers and exports)."""
+        m = quaternion_to_rotation(self.quats.double()) * self.log_scales.double().clamp(-30.0, 30.0).exp()[:, None, :]
+        return m @ m.transpose(1, 2)
+
+    def base_colours(self) -> torch.Tensor:
+        """[G, 3] the view-independent (SH degree 0) colour in [0, 1]."""
+        return (0.5 + SH_C0 * self.sh[:, 0].double()).clamp(0.0, 1.0)

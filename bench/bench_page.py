@@ -1,0 +1,128 @@
+"""The web page on a real model: time from the Rank click to a grid whose images have all
+loaded, against the same request through the Python client, interleaved in one run; and the
+screenshots that docs/service.md shows.
+
+    .venv/bin/python bench/bench_page.py --model-a A.ply --model-b B.ply --out docs --repeats 3
+
+Both PLYs need their training cameras (the sidecar JSON `phd train` writes). Starts `phd
+serve` in-process on a free 127.0.0.1 port with an API key, headless Chromium through the
+distribution's chromedriver (as tests/page does).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from selenium import webdriver  # noqa: E402
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
+
+from client import PHDClient  # noqa: E402
+from service.runner import BackgroundServer  # noqa: E402
+from service.settings import Settings  # noqa: E402
+
+KEY = "bench-key"
+
+
+def browser(width: int, height: int) -> webdriver.Chrome:
+    options = webdriver.ChromeOptions()
+    options.binary_location = "/usr/bin/chromium"
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 f"--window-size={width},{height}", f"--user-data-dir={tempfile.mkdtemp()}"):
+        options.add_argument(flag)
+    return webdriver.Chrome(service=webdriver.ChromeService(executable_path="/usr/bin/chromedriver"), options=options)
+
+
+def set_field(driver, element_id: str, value) -> None:
+    field = driver.find_element(By.ID, element_id)
+    field.clear()
+    field.send_keys(str(value))
+
+
+def grid_ready(grid: str, count: int):
+    return lambda d: (len(d.find_elements(By.CSS_SELECTOR, f"#{grid} li.card")) == count and d.execute_script(
+        f"return [...document.querySelectorAll('#{grid} img')].every(i => i.complete && i.naturalWidth > 0)"))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model-a", type=Path, required=True)
+    parser.add_argument("--model-b", type=Path, required=True)
+    parser.add_argument("--out", type=Path, default=Path("docs"))
+    parser.add_argument("--candidates", type=int, default=12)
+    parser.add_argument("--samples", type=int, default=8)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+
+    server = BackgroundServer(Settings(data_dir=Path(tempfile.mkdtemp()) / "data", api_key=KEY))
+    driver = browser(1280, 4400)   # tall enough that element screenshots hold whole sections
+    try:
+        with PHDClient(server.url, api_key=KEY) as phd:
+            a = phd.upload_model(args.model_a, name=args.model_a.stem)
+            b = phd.upload_model(args.model_b, name=args.model_b.stem)
+            for model in (a, b):
+                phd.calibrate(model.id, samples=4, downscale=2)
+            driver.get(server.url + "/")
+            set_field(driver, "api-key", KEY)
+            driver.find_element(By.CSS_SELECTOR, "#key-form button").click()
+            WebDriverWait(driver, 60).until(lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2)
+            Select(driver.find_element(By.ID, "model-select")).select_by_value(a.id)
+            Select(driver.find_element(By.ID, "model-b-select")).select_by_value(b.id)
+            WebDriverWait(driver, 60).until(lambda d: "r_drop" in d.find_element(By.ID, "model-info").text)
+            set_field(driver, "gen-count", args.candidates)
+            set_field(driver, "rank-samples", args.samples)
+            set_field(driver, "rank-downscale", 1)
+            set_field(driver, "rank-topk", "")
+            driver.find_element(By.ID, "gen-elevation").click()
+            WebDriverWait(driver, 60).until(
+                lambda d: d.execute_script("return state.candidates.length") == args.candidates)
+            candidates = driver.execute_script("return state.candidates")
+            page_times, client_times = [], []
+            for _ in range(args.repeats):
+                start = time.perf_counter()
+                result = phd.rank(a.id, candidates, samples=args.samples, downscale=1, heatmaps="files")
+                client_times.append(time.perf_counter() - start)
+                start = time.perf_counter()
+                driver.find_element(By.ID, "rank-run").click()
+                WebDriverWait(driver, 600, poll_frequency=0.05).until(grid_ready("rank-grid", args.candidates))
+                page_times.append(time.perf_counter() - start)
+            driver.execute_script("document.querySelector('#rank-grid li.card').click()")
+            args.out.mkdir(parents=True, exist_ok=True)
+            driver.find_element(By.ID, "rank-section").screenshot(str(args.out / "page_rank.png"))
+            driver.find_element(By.ID, "select-run").click()
+            WebDriverWait(driver, 600).until(grid_ready("select-grid", args.candidates))
+            driver.find_element(By.ID, "select-section").screenshot(str(args.out / "page_select.png"))
+            phone = browser(390, 2400)
+            try:
+                phone.get(server.url + "/ui/")
+                set_field(phone, "api-key", KEY)
+                phone.find_element(By.CSS_SELECTOR, "#key-form button").click()
+                WebDriverWait(phone, 60).until(lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2)
+                overflow = phone.execute_script("return document.documentElement.scrollWidth - window.innerWidth")
+            finally:
+                phone.quit()
+        report = {
+            "candidates": args.candidates, "samples": args.samples, "size": f"{result.width}x{result.height}", "repeats": args.repeats,
+            "client_rank_s": [round(t, 2) for t in client_times], "page_rank_s": [round(t, 2) for t in page_times],
+            "page_over_client_median": round(statistics.median(p / c for p, c in zip(page_times, client_times)), 3),
+            "phone_horizontal_overflow_px": overflow,
+        }
+        print(json.dumps(report, indent=2))
+        return 0
+    finally:
+        driver.quit()
+        server.stop()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
