@@ -19,7 +19,7 @@ from ..scene import Camera
 from ..errors import InputError, check_float, check_int
 from ..eval import ssim
 from ..renderers import Renderer
-from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_seed, check_step,
+from .sampling import (PreparedViews, Progress, ProgressTicker, check_cameras, check_images, check_seed, check_step,
                        dropout_uniforms, keep_masks, render_masks)
 
 # Defaults measured on the 16-view lego 3DGS model (docs/uq.md, bench/bench_phdropout.py).
@@ -143,9 +143,10 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
 
     grid = _grid_size(step)
     ticker = ProgressTicker(progress, len(cameras) * (1 + _expected_probes(grid, method)))
+    views = PreparedViews(renderer, cameras)           # projected and sorted once, re-used by every ratio
     references = []                                   # [1, H, W, 3] full renders
-    for camera in cameras:
-        references.append(render_masks(renderer, camera, None).double())
+    for i in range(len(views)):
+        references.append(render_masks(views[i], None).double())
         ticker.tick()
     uniforms = dropout_uniforms(renderer.num_units, samples, seed)
     probes: dict[int, float] = {}
@@ -154,8 +155,8 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
         if k not in probes:
             keep = keep_masks(uniforms, _grid_ratio(k, step))
             per_view = []
-            for camera, reference in zip(cameras, references):
-                per_view.append((render_masks(renderer, camera, keep).double() - reference).abs().mean().item())
+            for i, reference in enumerate(references):
+                per_view.append((render_masks(views[i], keep).double() - reference).abs().mean().item())
                 ticker.tick()
             probes[k] = sum(per_view) / len(per_view)
         return probes[k]
@@ -188,9 +189,10 @@ def calibrate_ssim(renderer: Renderer, cameras: Sequence[Camera], images: Tensor
 
     grid = _grid_size(step)
     ticker = ProgressTicker(progress, len(cameras) * (1 + grid))
+    views = PreparedViews(renderer, cameras)
     full = []
-    for camera, image in zip(cameras, images):
-        full.append(float(ssim(render_masks(renderer, camera, None), image[None]).mean()))
+    for i, image in enumerate(images):
+        full.append(float(ssim(render_masks(views[i], None), image[None]).mean()))
         ticker.tick()
     baseline = sum(full) / len(full)
     if baseline <= 0:
@@ -202,8 +204,8 @@ def calibrate_ssim(renderer: Renderer, cameras: Sequence[Camera], images: Tensor
     def drop(k: int) -> float:
         keep = keep_masks(uniforms, _grid_ratio(k, step))
         scores = []
-        for camera, image in zip(cameras, images):
-            masked = render_masks(renderer, camera, keep)
+        for i, image in enumerate(images):
+            masked = render_masks(views[i], keep)
             scores.append(float(ssim(masked, image[None].expand_as(masked)).mean()))
             ticker.tick()
         probes[k] = (baseline - sum(scores) / len(scores)) / baseline

@@ -15,9 +15,10 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError, check_float, check_int
-from ..renderers import Renderer
+from ..renderers import Renderer, View
 
 MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds renderer memory)
+VIEW_CACHE_BYTES = 256 << 20       # prepared views a computation keeps for re-use (PreparedViews)
 
 Progress = Callable[[float], None]
 
@@ -107,16 +108,18 @@ def keep_masks(uniforms: Tensor, ratio: float) -> Tensor:
     return uniforms >= check_ratio(ratio)
 
 
-def render_masks(renderer: Renderer, camera: Camera, keep: Tensor | None) -> Tensor:
-    """Render with a batch of keep-masks (None = full model), MAX_MASKS_PER_RENDER at a time.
+def render_masks(view: View, keep: Tensor | None) -> Tensor:
+    """Render a prepared view (`Renderer.prepare`) with a batch of keep-masks (None = full
+    model), MAX_MASKS_PER_RENDER at a time.
 
     Returns [N, H, W, 3] float32, checked for shape and finiteness.
     """
+    camera = view.camera
     if keep is None:
-        images = renderer.render(camera)
+        images = view.render()
         expected = 1
     else:
-        parts = [renderer.render(camera, chunk) for chunk in keep.split(MAX_MASKS_PER_RENDER)]
+        parts = [view.render(chunk) for chunk in keep.split(MAX_MASKS_PER_RENDER)]
         images = torch.cat(parts) if len(parts) > 1 else parts[0]
         expected = keep.shape[0]
     shape = (expected, camera.height, camera.width, 3)
@@ -125,6 +128,29 @@ def render_masks(renderer: Renderer, camera: Camera, keep: Tensor | None) -> Ten
     if not torch.isfinite(images).all():
         raise RuntimeError("renderer returned NaN or infinite pixel values")
     return images.to(torch.float32)
+
+
+class PreparedViews:
+    """`renderer.prepare` of each camera, kept for re-use while their total stays within
+    `budget` bytes; a view beyond it is prepared again on every use (same result, slower).
+    Calibration renders every training view once per ratio it tries: this is what it re-uses."""
+
+    def __init__(self, renderer: Renderer, cameras: Sequence[Camera], budget: int = VIEW_CACHE_BYTES):
+        self.renderer, self.cameras, self.budget = renderer, list(cameras), budget
+        self.kept: dict[int, View] = {}
+        self.used = 0
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __getitem__(self, i: int) -> View:
+        if i in self.kept:
+            return self.kept[i]
+        view = self.renderer.prepare(self.cameras[i])
+        if self.used + view.nbytes <= self.budget:
+            self.kept[i] = view
+            self.used += view.nbytes
+        return view
 
 
 def sample_std(images: Tensor, *, ddof: int = 1, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:

@@ -13,7 +13,7 @@ from torch import Tensor
 from ..scene import Camera
 from ..errors import InputError
 from ..eval import ensemble_efficiency, psnr, ssim
-from ..renderers import Renderer
+from ..renderers import Renderer, View
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_ratio, check_samples, check_seed,
                        dropout_uniforms, keep_masks, render_masks)
 from .uncertainty import DEFAULT_SAMPLES, measure_view
@@ -57,7 +57,7 @@ def _own_level(renderer: Renderer, training: Sequence[Camera] | None, keep: Tens
         raise InputError(name, "the model carries no training cameras, which rule 'distance_sigma' needs: "
                                "give them with the model, or use rule 'sigma_mean'")
     step = max(1, len(training) // SELECTION_TRAINING_VIEWS)
-    levels = [measure_view(renderer, c, keep, 1, False, torch.float64).sigma_mean
+    levels = [measure_view(renderer.prepare(c), keep, 1, False, torch.float64).sigma_mean
               for c in training[::step][:SELECTION_TRAINING_VIEWS]]
     return training, max(sum(levels) / len(levels), 1e-12)
 
@@ -94,21 +94,22 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         training = {"a": training_a, "b": training_b}
         own = {key: _own_level(renderers[key], training[key], keeps[key], f"model_{key}") for key in renderers}
 
-    def score(key: str, camera: Camera) -> float:
-        sigma = measure_view(renderers[key], camera, keeps[key], 1, False, torch.float64).sigma_mean
+    def score(key: str, view: View) -> float:
+        sigma = measure_view(view, keeps[key], 1, False, torch.float64).sigma_mean
         if rule == "sigma_mean":
             return sigma
         training, level = own[key]
-        return _nearest_distance(camera, training) * sigma / level
+        return _nearest_distance(view.camera, training) * sigma / level
 
     ticker = ProgressTicker(progress, len(cameras))
     views, scores = [], {"a": [], "b": [], "selected": []}
     for i, camera in enumerate(cameras):
-        score_a, score_b = score("a", camera), score("b", camera)
+        prepared = {key: renderers[key].prepare(camera) for key in renderers}
+        score_a, score_b = score("a", prepared["a"]), score("b", prepared["b"])
         choice = "a" if score_a <= score_b else "b"
         # Full renders: both models when scoring against ground truth, else only the chosen one.
         needed = ("a", "b") if images is not None else (choice,) if keep_images else ()
-        full = {key: render_masks(renderers[key], camera, None)[0] for key in needed}
+        full = {key: render_masks(prepared[key], None)[0] for key in needed}
         image = full.get(choice)
         if images is not None:
             _score_images(scores, full["a"], full["b"], image, images[i])

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError
-from ..renderers import Renderer
+from ..renderers import Renderer, View
 from .sampling import (Progress, ProgressTicker, check_cameras, check_dtype, check_ratio, check_samples, check_seed,
                        dropout_uniforms, keep_masks, render_masks, sample_std)
 
@@ -33,9 +33,8 @@ class ViewUncertainty:
     zeta: Tensor | None = None      # [H, W, 3] float32 per-pixel per-channel std (keep_maps=True)
 
 
-def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, keep_maps: bool,
-                 dtype: torch.dtype) -> ViewUncertainty:
-    images = render_masks(renderer, camera, keep)             # [N, H, W, 3]
+def measure_view(view: View, keep: Tensor, ddof: int, keep_maps: bool, dtype: torch.dtype) -> ViewUncertainty:
+    images = render_masks(view, keep)                         # [N, H, W, 3]
     zeta, mean = sample_std(images, ddof=ddof, dtype=dtype)
     per_pixel = zeta.amax(dim=-1).flatten()                   # [H * W]
     top = per_pixel.topk(max(1, round(TOP_SHARE * per_pixel.numel()))).values
@@ -71,7 +70,7 @@ def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
     ticker = ProgressTicker(progress, len(cameras))
     views = []
     for camera in cameras:
-        views.append(measure_view(renderer, camera, keep, ddof, keep_maps, dtype))
+        views.append(measure_view(renderer.prepare(camera), keep, ddof, keep_maps, dtype))
         ticker.tick()
     ticker.finish()
     return views

@@ -43,7 +43,7 @@ from ..composite.fused import composite_indexed
 from ..protocol import CameraView, View, check_keep
 from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, eval_sh, fragments, intersect, quaternion_to_rotation,
                       untile)
-from .kernels import splat_fragments
+from .kernels import project_splats, splat_fragments
 from .model import GaussianModel
 
 NEAR_PLANE = 0.2
@@ -72,6 +72,19 @@ class RenderOutput:
     depth: torch.Tensor     # [N, H, W] alpha-weighted camera depth (divide by alpha for the mean)
     means2d: torch.Tensor   # [G, 2] screen positions (autograd leaf for densification stats)
     visible: torch.Tensor   # [G] bool, survived culling in this view
+
+
+def front_to_back(visible: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+    """Indices of the visible splats ([G] bool) ordered by depth [G], ties by index."""
+    ids = visible.nonzero().squeeze(1)
+    return ids[torch.argsort(depth[ids], stable=True)]
+
+
+def splat_colors(model: GaussianModel, ids: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """SH colour [V, 3] of the splats `ids` seen from the camera centre."""
+    dirs = model.means[ids].double() - camera.center
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return eval_sh(model.sh[ids], dirs.to(model.sh.dtype))
 
 
 def project(model: GaussianModel, camera: Camera, near: float = NEAR_PLANE) -> tuple[Projected, torch.Tensor, torch.Tensor]:
@@ -115,12 +128,8 @@ def project(model: GaussianModel, camera: Camera, near: float = NEAR_PLANE) -> t
         [camera.width, camera.height], dtype=torch.float64))).all(dim=-1)
     visible = in_front & (opacities * 255.0 > 1.0) & on_screen & torch.isfinite(conics).all(-1)
 
-    ids = visible.nonzero().squeeze(1)
-    order = torch.argsort(depth[ids], stable=True)     # front to back, ties by index
-    ids = ids[order]
-    dirs = means[ids] - camera.center
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    colors = eval_sh(model.sh[ids], dirs.to(model.sh.dtype))
+    ids = front_to_back(visible, depth)
+    colors = splat_colors(model, ids, camera)
     projected = Projected(ids=ids, means2d=means2d[ids], conics=conics[ids], opacities=opacities[ids],
                           colors=colors, depths=depth[ids], extents=extents[ids].detach())
     return projected, means2d, visible
@@ -226,14 +235,16 @@ class SplatView:
 @torch.no_grad()
 def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor, *, tile: int = DEFAULT_TILE,
                  near: float = NEAR_PLANE) -> SplatView:
-    """Stages 1-3 for `camera`: the torch projection, then the compiled tile lists and fragments."""
-    proj, means2d, visible = project(model, camera, near)
-    row_ptr, alpha, index, tiles_x, tiles_y = splat_fragments(proj.means2d, proj.conics, proj.opacities,
-                                                              proj.extents, camera.width, camera.height, tile)
+    """Stages 1-3 for `camera`, compiled (`kernels.py`); the SH colours in torch."""
+    means2d, conics, opacities, extents, depths, visible = project_splats(
+        model.means, model.quats, model.log_scales, model.opacity_logits, camera, near, DILATION)
+    ids = front_to_back(visible, depths)
+    row_ptr, alpha, index, tiles_x, tiles_y = splat_fragments(means2d[ids], conics[ids], opacities[ids],
+                                                              extents[ids], camera.width, camera.height, tile)
     empty = torch.empty(0, dtype=torch.long)
     grid = Pairs(tile=empty, splat=empty, tile_start=empty, tiles_x=tiles_x, tiles_y=tiles_y)
-    values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)
-    return SplatView(camera=camera, background=background.float(), num_units=model.num_splats, units=proj.ids,
+    values = torch.cat([splat_colors(model, ids, camera).float(), depths[ids].float()[:, None]], dim=-1)
+    return SplatView(camera=camera, background=background.float(), num_units=model.num_splats, units=ids,
                      values=values.contiguous(), row_ptr=row_ptr, alpha=alpha, index=index, pairs=grid, tile=tile,
                      means2d=means2d.float(), visible=visible)
 
