@@ -135,8 +135,9 @@ class PreparedViews:
     `budget` bytes; a view beyond it is prepared again on every use (same result, slower).
     Calibration renders every training view once per ratio it tries: this is what it re-uses."""
 
-    def __init__(self, renderer: Renderer, cameras: Sequence[Camera], budget: int = VIEW_CACHE_BYTES):
-        self.renderer, self.cameras, self.budget = renderer, list(cameras), budget
+    def __init__(self, renderer: Renderer, cameras: Sequence[Camera], budget: int | None = None):
+        self.renderer, self.cameras = renderer, list(cameras)
+        self.budget = VIEW_CACHE_BYTES if budget is None else budget
         self.kept: dict[int, View] = {}
         self.used = 0
 
