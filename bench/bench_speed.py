@@ -44,7 +44,10 @@ DONUT = ROOT.parent / "shared" / "data" / "donut_200"
 LEGO = ROOT.parent / "shared" / "data" / "lego_200"
 SPLATS = 45_624
 MASKS = 16
-PHD = [sys.executable, "-c", "import sys; from phd_cli import main; sys.exit(main())"]
+# `phd` in a child that reports its own peak RSS: VmHWM starts afresh at exec, whereas the
+# child's ru_maxrss would inherit this (larger) process's high-water mark at fork.
+PHD = [sys.executable, "-c", "import sys; from phd_cli import main; code = main(); "
+       "print(*[l for l in open('/proc/self/status') if l.startswith('VmHWM')], file=sys.stderr); sys.exit(code)"]
 
 
 def donut_model(splats: int = SPLATS, seed: int = 0) -> GaussianModel:
@@ -83,16 +86,20 @@ def best_of(fn, repeats: int = 3) -> float:
 
 
 def child(args: list[str], env: dict[str, str] | None = None) -> dict:
-    """Run a command; its wall, user and system seconds and peak RSS (os.wait4)."""
-    start = time.perf_counter()
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=ROOT,
-                            env={**os.environ, **(env or {})})
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - start
+    """Run `phd`; its wall, user and system seconds (os.wait4) and peak RSS (its VmHWM)."""
+    with tempfile.TemporaryFile() as err:
+        start = time.perf_counter()
+        proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT,
+                                env={**os.environ, **(env or {})})
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - start
+        err.seek(0)
+        log = err.read().decode(errors="replace")
     if status != 0:
-        raise RuntimeError(f"{' '.join(args)} failed: {proc.stderr.read().decode()[-2000:]}")
+        raise RuntimeError(f"{' '.join(args)} failed: {log[-2000:]}")
+    peak_kb = int(next(line for line in log.splitlines() if line.startswith("VmHWM")).split()[1])
     return {"wall_s": round(wall, 2), "user_s": round(usage.ru_utime, 2), "system_s": round(usage.ru_stime, 2),
-            "system_share": round(usage.ru_stime / wall, 3), "peak_rss_mb": round(usage.ru_maxrss / 1024)}
+            "system_share": round(usage.ru_stime / wall, 3), "peak_rss_mb": round(peak_kb / 1024)}
 
 
 def render_speed(model: GaussianModel, camera, keep: torch.Tensor) -> dict:

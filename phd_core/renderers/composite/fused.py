@@ -34,21 +34,25 @@ LAUNCH_LOCK = threading.Lock()
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _composite_kernel(row_ptr, alpha, index, unit, keep, values, out_values, out_alpha):  # pragma: no cover
+def _composite_kernel(row_ptr, alpha, index, unit, keep_t, values, out_values, out_alpha):  # pragma: no cover
     """row_ptr [S + 1] int64: fragments of pixel s are row_ptr[s]:row_ptr[s + 1], front to back;
     alpha [E] float32; index [E] int32 (value row of each fragment); unit [V] int64 (keep
-    column of each value row); keep [N, U] bool; values [V, C] float32.
-    Writes out_values [N, S, C] and out_alpha [N, S] (float32, every element)."""
+    row of each value row); keep_t [U, N] bool (one unit's N flags share a cache line);
+    values [V, C] float32. Writes out_values [N, S, C] and out_alpha [N, S] (float32, all).
+    The stop rule reads the log transmittance; the weight uses the same transmittance kept
+    as a float64 product (one exp fewer per fragment and mask)."""
     num_pixels = row_ptr.shape[0] - 1
-    masks = keep.shape[0]
+    masks = keep_t.shape[1]
     channels = values.shape[1]
     blocks = (num_pixels + PIXEL_BLOCK - 1) // PIXEL_BLOCK
     for block in numba.prange(blocks):
         log_t = np.empty(masks)                     # log transmittance per mask
+        trans = np.empty(masks)                     # the same, exp'd
         active = np.empty(masks, dtype=np.bool_)
         acc = np.empty((masks, channels + 1))       # colour/depth sums, then accumulated alpha
         for s in range(block * PIXEL_BLOCK, min(num_pixels, (block + 1) * PIXEL_BLOCK)):
             log_t[:] = 0.0
+            trans[:] = 1.0
             active[:] = True
             acc[:] = 0.0
             alive = masks
@@ -58,18 +62,19 @@ def _composite_kernel(row_ptr, alpha, index, unit, keep, values, out_values, out
                 v = index[e]
                 u = unit[v]
                 for n in range(masks):
-                    if not active[n] or not keep[n, u]:
+                    if not active[n] or not keep_t[u, n]:
                         continue
                     after = log_t[n] + step
                     if after < LOG_T_MIN:               # this fragment would spend the pixel: stop
                         active[n] = False
                         alive -= 1
                         continue
-                    weight = a * math.exp(log_t[n])
+                    weight = a * trans[n]
                     for c in range(channels):
                         acc[n, c] += weight * values[v, c]
                     acc[n, channels] += weight
                     log_t[n] = after
+                    trans[n] *= 1.0 - a
                 if alive == 0:
                     break
             for n in range(masks):
@@ -92,7 +97,7 @@ def composite_indexed(row_ptr: torch.Tensor, alpha: torch.Tensor, index: torch.T
     out_values = torch.empty(masks, pixels, channels, dtype=torch.float32)
     out_alpha = torch.empty(masks, pixels, dtype=torch.float32)
     arrays = [t.detach().contiguous().numpy() for t in (row_ptr.long(), alpha.float(), index.int(), unit.long(),
-                                                         keep.bool(), values.float())]
+                                                         keep.bool().T, values.float())]
     with LAUNCH_LOCK:
         _composite_kernel(*arrays, out_values.numpy(), out_alpha.numpy())
     return out_values, out_alpha
