@@ -139,7 +139,7 @@ def training_steps(size: int, iterations: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--candidates", type=int, default=100)
-    parser.add_argument("--train-iterations", type=int, default=200)
+    parser.add_argument("--train-iterations", type=int, default=100)
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "performance.md")
     parser.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "speed.json")
     args = parser.parse_args()
