@@ -17,7 +17,6 @@ Two entry points share the kernel:
 
 from __future__ import annotations
 
-import math
 import threading
 
 import numba
@@ -34,9 +33,10 @@ LAUNCH_LOCK = threading.Lock()
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _composite_kernel(row_ptr, alpha, index, unit, keep_t, values, out_values, out_alpha):  # pragma: no cover
+def _composite_kernel(row_ptr, alpha, log_1ma, index, unit, keep_t, values, out_values,
+                      out_alpha):  # pragma: no cover
     """row_ptr [S + 1] int64: fragments of pixel s are row_ptr[s]:row_ptr[s + 1], front to back;
-    alpha [E] float32; index [E] int32 (value row of each fragment); unit [V] int64 (keep
+    alpha [E] float32 and log_1ma = log1p(-alpha) [E] float32 (as the reference takes it); index [E] int32 (value row of each fragment); unit [V] int64 (keep
     row of each value row); keep_t [U, N] bool (one unit's N flags share a cache line);
     values [V, C] float32. Writes out_values [N, S, C] and out_alpha [N, S] (float32, all).
     The stop rule reads the log transmittance; the weight uses the same transmittance kept
@@ -58,7 +58,7 @@ def _composite_kernel(row_ptr, alpha, index, unit, keep_t, values, out_values, o
             alive = masks
             for e in range(row_ptr[s], row_ptr[s + 1]):
                 a = np.float64(alpha[e])
-                step = math.log1p(-a)
+                step = np.float64(log_1ma[e])
                 v = index[e]
                 u = unit[v]
                 for n in range(masks):
@@ -84,20 +84,24 @@ def _composite_kernel(row_ptr, alpha, index, unit, keep_t, values, out_values, o
 
 
 def composite_indexed(row_ptr: torch.Tensor, alpha: torch.Tensor, index: torch.Tensor, unit: torch.Tensor,
-                      keep: torch.Tensor | None, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                      keep: torch.Tensor | None, values: torch.Tensor,
+                      log_1ma: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite S pixels once per keep-mask (see the module docstring for the layout).
 
-    keep: [N, U] bool or None (every unit kept, N = 1). Returns (accumulated values
-    [N, S, C], accumulated alpha [N, S]) float32, pixel s of row_ptr.
+    keep: [N, U] bool or None (every unit kept, N = 1); log_1ma: log1p(-alpha) [E] float32
+    when the caller keeps it (a prepared view), else computed here. Returns (accumulated
+    values [N, S, C], accumulated alpha [N, S]) float32, pixel s of row_ptr.
     """
+    if log_1ma is None:
+        log_1ma = torch.log1p(-alpha.float())
     if keep is None:
         keep = torch.ones(1, 1, dtype=torch.bool)
         unit = torch.zeros_like(unit)
     masks, pixels, channels = keep.shape[0], len(row_ptr) - 1, values.shape[1]
     out_values = torch.empty(masks, pixels, channels, dtype=torch.float32)
     out_alpha = torch.empty(masks, pixels, dtype=torch.float32)
-    arrays = [t.detach().contiguous().numpy() for t in (row_ptr.long(), alpha.float(), index.int(), unit.long(),
-                                                         keep.bool().T, values.float())]
+    arrays = [t.detach().contiguous().numpy() for t in (row_ptr.long(), alpha.float(), log_1ma.float(), index.int(),
+                                                         unit.long(), keep.bool().T, values.float())]
     with LAUNCH_LOCK:
         _composite_kernel(*arrays, out_values.numpy(), out_alpha.numpy())
     return out_values, out_alpha

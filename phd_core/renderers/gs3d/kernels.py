@@ -132,10 +132,14 @@ def _tile_lists(means2d, extents, tiles_x, tiles_y, tile):  # pragma: no cover
 
 
 @numba.njit(inline="always")
-def _alpha(means2d, conics, opacities, v, px, py):  # pragma: no cover
+def _alpha(means2d, conics, opacities, v, px, py, cutoff):  # pragma: no cover
+    """alpha of splat v at pixel (px, py); 0 without an exp where the exponent is below
+    `cutoff` (a bound under which alpha < ALPHA_MIN for sure)."""
     dx = px + 0.5 - means2d[v, 0]
     dy = py + 0.5 - means2d[v, 1]
     power = -0.5 * (conics[v, 0] * dx * dx + conics[v, 2] * dy * dy) - conics[v, 1] * dx * dy
+    if power < cutoff:
+        return 0.0
     return min(ALPHA_MAX, opacities[v] * math.exp(power))
 
 
@@ -155,9 +159,10 @@ def _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, 
         for k in range(start[t], start[t + 1]):
             v = splat[k]
             pair_alpha[k, :] = 0.0
+            cutoff = math.log(ALPHA_MIN / opacities[v]) - 1e-6     # alpha >= ALPHA_MIN needs power above it
             for oy in range(rows):
                 for ox in range(cols):
-                    a = _alpha(means2d, conics, opacities, v, x0 + ox, y0 + oy)
+                    a = _alpha(means2d, conics, opacities, v, x0 + ox, y0 + oy, cutoff)
                     if a >= ALPHA_MIN:
                         pair_alpha[k, oy * tile + ox] = a
                         row_ptr[1 + t * pixels + oy * tile + ox] += 1

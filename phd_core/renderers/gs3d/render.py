@@ -208,6 +208,7 @@ class SplatView:
     values: torch.Tensor    # [V, 4] float32 colour and camera depth of each visible splat
     row_ptr: torch.Tensor   # [T * P + 1] long, fragments of pixel q (tile layout): row_ptr[q]:row_ptr[q + 1]
     alpha: torch.Tensor     # [E] float32
+    log_1ma: torch.Tensor   # [E] float32, log1p(-alpha): mask-independent, so computed once
     index: torch.Tensor     # [E] int32, the visible splat of each fragment
     pairs: Pairs            # grid only (tiles_x, tiles_y), for untile
     tile: int
@@ -217,11 +218,12 @@ class SplatView:
     @property
     def nbytes(self) -> int:
         return sum(t.numel() * t.element_size() for t in (self.units, self.values, self.row_ptr, self.alpha,
-                                                         self.index, self.means2d, self.visible))
+                                                         self.log_1ma, self.index, self.means2d, self.visible))
 
     def render_full(self, keep: torch.Tensor | None = None) -> RenderOutput:
         keep = check_keep(keep, self.num_units)
-        acc_v, acc_a = composite_indexed(self.row_ptr, self.alpha, self.index, self.units, keep, self.values)
+        acc_v, acc_a = composite_indexed(self.row_ptr, self.alpha, self.index, self.units, keep, self.values,
+                                         self.log_1ma)
         cam = self.camera
         acc_v = untile(acc_v, self.pairs, self.tile, cam.width, cam.height)                     # [N, H, W, 4]
         acc_a = untile(acc_a[..., None], self.pairs, self.tile, cam.width, cam.height)[..., 0]  # [N, H, W]
@@ -245,7 +247,8 @@ def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor,
     grid = Pairs(tile=empty, splat=empty, tile_start=empty, tiles_x=tiles_x, tiles_y=tiles_y)
     values = torch.cat([splat_colors(model, ids, camera).float(), depths[ids].float()[:, None]], dim=-1)
     return SplatView(camera=camera, background=background.float(), num_units=model.num_splats, units=ids,
-                     values=values.contiguous(), row_ptr=row_ptr, alpha=alpha, index=index, pairs=grid, tile=tile,
+                     values=values.contiguous(), row_ptr=row_ptr, alpha=alpha, log_1ma=torch.log1p(-alpha),
+                     index=index, pairs=grid, tile=tile,
                      means2d=means2d.float(), visible=visible)
 
 
