@@ -1,7 +1,7 @@
 """Renderers: every model family behind one protocol, and the registry that recognises them.
 
-    protocol   the Renderer protocol PH-Dropout sees (render with keep-masks, num_units,
-               training_cameras, describe)
+    protocol   the Renderer protocol PH-Dropout sees (render with keep-masks, prepare a View,
+               num_units, training_cameras, describe)
     families   FAMILIES: sniff, load, store and train each model family; load_model
     gs3d/      3D Gaussian Splatting (model, PLY, rasteriser)
     gs2d/      2D Gaussian Splatting, surfels (model, PLY layout, rasteriser)
@@ -15,10 +15,10 @@ from .families import (FAMILIES, SNIFF_BYTES, Family, UnknownModelError, family_
 from .gs2d.family import GS2D
 from .gs3d.family import GS3D
 from .nerf.family import NERF
-from .protocol import Renderer, check_keep
+from .protocol import CameraView, Renderer, View, check_keep
 
 for _family in (GS3D, NERF, GS2D):
     register_family(_family)
 
-__all__ = ["FAMILIES", "SNIFF_BYTES", "Family", "Renderer", "UnknownModelError", "check_keep", "family_of",
+__all__ = ["FAMILIES", "SNIFF_BYTES", "CameraView", "Family", "Renderer", "View", "UnknownModelError", "check_keep", "family_of",
            "load_model", "load_model_bytes", "model_kind", "register_family"]

@@ -5,7 +5,9 @@ A renderer holds a trained model whose dropout units are numbered 0..num_units-1
 camera and an optional batch of keep-masks and returns one image per mask. Everything
 that does not depend on the mask (projection, culling, intersection lists and depth
 order; ray sampling and the first layer) is computed once per call and shared by all
-masks: that is where batched PH-Dropout gets its speed.
+masks: that is where batched PH-Dropout gets its speed. `prepare` goes one step further:
+it does that work once for a camera and returns a `View` that renders any number of mask
+batches from it (calibration renders the same training views for every ratio it tries).
 """
 
 from __future__ import annotations
@@ -15,6 +17,35 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 
 from ..scene import Camera
+
+
+@runtime_checkable
+class View(Protocol):
+    """One camera prepared for rendering many batches of keep-masks."""
+
+    camera: Camera
+
+    @property
+    def nbytes(self) -> int:
+        """Memory the prepared state holds (callers bound how many views they keep)."""
+        ...
+
+    def render(self, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """Same as `Renderer.render(self.camera, keep)`."""
+        ...
+
+
+class CameraView:
+    """The View of a renderer with no mask-independent state to keep: it renders anew."""
+
+    nbytes = 0
+
+    def __init__(self, renderer: "Renderer", camera: Camera):
+        self.renderer = renderer
+        self.camera = camera
+
+    def render(self, keep: torch.Tensor | None = None) -> torch.Tensor:
+        return self.renderer.render(self.camera, keep)
 
 
 @runtime_checkable
@@ -37,6 +68,10 @@ class Renderer(Protocol):
         Dropped units are zeroed; survivors are not rescaled (unless the renderer was
         built with an explicit rescale option).
         """
+        ...
+
+    def prepare(self, camera: Camera) -> View:
+        """The mask-independent work for `camera`, done once (`CameraView` when there is none)."""
         ...
 
     def describe(self) -> dict[str, Any]:

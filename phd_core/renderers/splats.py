@@ -2,6 +2,7 @@
 rasteriser's constants and compositing rules, SH colour, quaternion rotations, and the
 mask-independent stages that turn projected splats into per-pixel fragments.
 
+    tile_boxes  the tiles each splat's screen box overlaps
     intersect   tile/splat pairs ordered by (tile, depth)
     fragments   the (pair, pixel) entries with alpha >= 1/255, grouped by pixel
     untile      tile layout -> image
@@ -74,15 +75,23 @@ class Pairs:
     tiles_y: int
 
 
-def intersect(means2d: torch.Tensor, extents: torch.Tensor, width: int, height: int, tile: int) -> Pairs:
-    """Stage 2: list every tile each splat's box overlaps (means2d [V, 2], half-sizes extents
-    [V, 2] in pixels; the splats in front-to-back order)."""
+def tile_boxes(means2d: torch.Tensor, extents: torch.Tensor, width: int, height: int,
+               tile: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """The tiles each splat's box overlaps: (first [V, 2], last [V, 2]) tile column and row,
+    inclusive (last < first: none), and the grid size (tiles_x, tiles_y)."""
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
     centre = means2d.detach() - 0.5                    # pixel centres sit at integer + 0.5
     lo = ((centre - extents) / tile).floor().long()
     hi = ((centre + extents) / tile).floor().long()
     lo = torch.maximum(lo, torch.zeros_like(lo))
     hi = torch.minimum(hi, torch.tensor([tiles_x - 1, tiles_y - 1]))
+    return lo, hi, tiles_x, tiles_y
+
+
+def intersect(means2d: torch.Tensor, extents: torch.Tensor, width: int, height: int, tile: int) -> Pairs:
+    """Stage 2: list every tile each splat's box overlaps (means2d [V, 2], half-sizes extents
+    [V, 2] in pixels; the splats in front-to-back order)."""
+    lo, hi, tiles_x, tiles_y = tile_boxes(means2d, extents, width, height, tile)
     span = (hi - lo + 1).clamp_min(0)                  # [V, 2] tiles in x and y
     counts = span[:, 0] * span[:, 1]
     splat = torch.repeat_interleave(torch.arange(len(counts)), counts)

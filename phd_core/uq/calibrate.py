@@ -10,6 +10,7 @@ searches only return ratios they have evaluated as passing.
 from __future__ import annotations
 
 import math
+from functools import partial
 from dataclasses import asdict, dataclass, field
 from typing import Callable, Sequence
 
@@ -20,8 +21,8 @@ from ..errors import InputError, check_float, check_int
 from ..eval import ssim
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
-from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_seed, check_step,
-                       dropout_uniforms, keep_masks, masked_renders, render_masks)
+from .sampling import (PreparedViews, Progress, ProgressTicker, check_cameras, check_images,
+                       check_seed, check_step, dropout_uniforms, keep_masks, masked_renders, render_masks)
 
 # Defaults measured on the 16-view lego 3DGS model (docs/uq.md, bench/bench_phdropout.py).
 DEFAULT_EPSILON = 0.0175           # mean |full - dropped| per pixel and channel on [0, 1]: on lego16 the
@@ -122,18 +123,41 @@ def _finish_calibration(k: int, grid: int, step: float, probes: dict[int, float]
                              samples=samples, seed=seed, method=method, capped=capped, warnings=warnings)
 
 
-def full_renders(cameras: list[Camera], renderer: Renderer) -> list[Tensor]:
-    """The full model's [1, H, W, 3] render of each camera of a chunk (what an executor runs)."""
-    return [render_masks(renderer, camera, None) for camera in cameras]
+@dataclass
+class CalibrationChunk:
+    """Training views of one executor chunk: cameras and full renders, plus their prepared
+    views (`Renderer.prepare`), kept where the chunk lives so that every ratio tried re-uses
+    the projection, sort and fragments. Pickling drops them (a worker prepares its own)."""
+
+    cameras: list[Camera]
+    share: float                                  # of VIEW_CACHE_BYTES, for this chunk's prepared views
+    references: list[Tensor] = field(default_factory=list)   # [1, H, W, 3] full renders
+    prepared: PreparedViews | None = None
+
+    def views(self, renderer: Renderer) -> PreparedViews:
+        if self.prepared is None:
+            self.prepared = PreparedViews(renderer, self.cameras, self.share)
+        return self.prepared
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "prepared": None}
 
 
-def dropout_errors(views: tuple[list[Camera], list[Tensor]], renderer: Renderer, keep: Tensor) -> list[float]:
-    """Per view of a chunk (cameras, full renders): mean |full - dropped| over masks, pixels and channels."""
-    cameras, references = views
+def reference_renders(cameras: list[Camera], renderer: Renderer, share: float) -> CalibrationChunk:
+    """A chunk with the full model's render of each camera (what an executor runs first)."""
+    chunk = CalibrationChunk(cameras, share)
+    views = chunk.views(renderer)
+    chunk.references = [render_masks(views[i], None) for i in range(len(views))]
+    return chunk
+
+
+def dropout_errors(chunk: CalibrationChunk, renderer: Renderer, keep: Tensor) -> list[float]:
+    """Per view of a chunk: mean |full - dropped| over masks, pixels and channels."""
+    views = chunk.views(renderer)
     errors = []
-    for camera, reference in zip(cameras, references):
-        total = sum((chunk.double() - reference.double()).abs().sum().item()   # a chunk of masks at a time
-                    for chunk in masked_renders(renderer, camera, keep))
+    for i, reference in enumerate(chunk.references):
+        total = sum((part.double() - reference.double()).abs().sum().item()   # a chunk of masks at a time
+                    for part in masked_renders(views[i], keep))
         errors.append(total / (keep.shape[0] * reference.numel()))
     return errors
 
@@ -168,8 +192,9 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
     def tick(i: int) -> None:
         ticker.tick(len(chunks[i]))
 
-    references = executor.map(full_renders, chunks, model, done=tick)
-    views = [executor.share((chunk, refs)) for chunk, refs in zip(chunks, references)]
+    # Prepared views are kept across ratios within VIEW_CACHE_BYTES in all (split among chunks).
+    prepared = executor.map(partial(reference_renders, share=1 / len(chunks)), chunks, model, done=tick)
+    views = [executor.share(chunk) for chunk in prepared]
     uniforms = dropout_uniforms(renderer.num_units, samples, seed)
     probes: dict[int, float] = {}
 
@@ -208,9 +233,10 @@ def calibrate_ssim(renderer: Renderer, cameras: Sequence[Camera], images: Tensor
 
     grid = _grid_size(step)
     ticker = ProgressTicker(progress, len(cameras) * (1 + grid))
+    views = PreparedViews(renderer, cameras)
     full = []
-    for camera, image in zip(cameras, images):
-        full.append(float(ssim(render_masks(renderer, camera, None), image[None]).mean()))
+    for i, image in enumerate(images):
+        full.append(float(ssim(render_masks(views[i], None), image[None]).mean()))
         ticker.tick()
     baseline = sum(full) / len(full)
     if baseline <= 0:
@@ -222,8 +248,8 @@ def calibrate_ssim(renderer: Renderer, cameras: Sequence[Camera], images: Tensor
     def drop(k: int) -> float:
         keep = keep_masks(uniforms, _grid_ratio(k, step))
         scores = []
-        for camera, image in zip(cameras, images):
-            masked = render_masks(renderer, camera, keep)
+        for i, image in enumerate(images):
+            masked = render_masks(views[i], keep)
             scores.append(float(ssim(masked, image[None].expand_as(masked)).mean()))
             ticker.tick()
         probes[k] = (baseline - sum(scores) / len(scores)) / baseline

@@ -17,10 +17,11 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError, check_float, check_int
-from ..renderers import Renderer
+from ..renderers import Renderer, View
 
 MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds renderer memory)
 _MASK_BATCH: ContextVar[int] = ContextVar("mask_batch", default=MAX_MASKS_PER_RENDER)
+VIEW_CACHE_BYTES = 256 << 20       # prepared views a computation keeps for re-use (PreparedViews)
 
 Progress = Callable[[float], None]
 
@@ -127,21 +128,20 @@ def limit_mask_batch(masks: int) -> Iterator[None]:
         _MASK_BATCH.reset(token)
 
 
-def masked_renders(renderer: Renderer, camera: Camera, keep: Tensor) -> Iterator[Tensor]:
-    """The renders of keep [N, U], `mask_batch()` masks at a time: [m, H, W, 3] float32 chunks,
-    checked for shape and finiteness."""
+def masked_renders(view: View, keep: Tensor) -> Iterator[Tensor]:
+    """The renders of a prepared view (`Renderer.prepare`) under keep [N, U], `mask_batch()`
+    masks at a time: [m, H, W, 3] float32 chunks, checked for shape and finiteness."""
     for chunk in keep.split(mask_batch()):
-        yield _checked(renderer.render(camera, chunk), chunk.shape[0], camera)
+        yield _checked(view.render(chunk), chunk.shape[0], view.camera)
 
 
-def render_masks(renderer: Renderer, camera: Camera, keep: Tensor | None) -> Tensor:
-    """Render with a batch of keep-masks (None = full model), all N at once in memory.
-
-    Returns [N, H, W, 3] float32. Statistics over many masks use `masked_renders` instead.
+def render_masks(view: View, keep: Tensor | None) -> Tensor:
+    """Render a prepared view with a batch of keep-masks (None = full model), all N at once
+    in memory. Returns [N, H, W, 3] float32. Statistics over many masks use `masked_renders`.
     """
     if keep is None:
-        return _checked(renderer.render(camera), 1, camera)
-    parts = list(masked_renders(renderer, camera, keep))
+        return _checked(view.render(), 1, view.camera)
+    parts = list(masked_renders(view, keep))
     return torch.cat(parts) if len(parts) > 1 else parts[0]
 
 
@@ -194,14 +194,34 @@ class RunningStd:
         return (self.m2 / (self.count - ddof)).sqrt(), self.shift + self.mean
 
 
-def sample_std(images: Tensor, *, ddof: int = 1, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
-    """Per-element standard deviation and mean over the first axis, accumulated in `dtype`.
+class PreparedViews:
+    """`renderer.prepare` of each camera, kept for re-use while their total stays within
+    `share` of VIEW_CACHE_BYTES; a view beyond it is prepared again on every use (same result,
+    slower). Calibration renders every training view once per ratio it tries: this is what it
+    re-uses (each executor chunk holds its share of the budget)."""
 
-    images: [N, ...], reduced MAX_MASKS_PER_RENDER samples at a time by `RunningStd`
-    (identical samples give exactly 0). Divides by N - ddof.
-    Returns (std [...], mean [...]), both in `dtype`.
-    """
-    check_samples(images.shape[0], ddof)
+    def __init__(self, renderer: Renderer, cameras: Sequence[Camera], share: float = 1.0):
+        self.renderer, self.cameras = renderer, list(cameras)
+        self.budget = int(VIEW_CACHE_BYTES * share)
+        self.kept: dict[int, View] = {}
+        self.used = 0
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __getitem__(self, i: int) -> View:
+        if i in self.kept:
+            return self.kept[i]
+        view = self.renderer.prepare(self.cameras[i])
+        if self.used + view.nbytes <= self.budget:
+            self.kept[i] = view
+            self.used += view.nbytes
+        return view
+
+
+def sample_std(images: Tensor, *, ddof: int = 1, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
+    """Per-element standard deviation and mean over the first axis of images [N, ...],
+    accumulated in `dtype` by `RunningStd`. Returns (std [...], mean [...]), both in `dtype`."""
     running = RunningStd(dtype)
     for chunk in images.split(MAX_MASKS_PER_RENDER):
         running.add(chunk)

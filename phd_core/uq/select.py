@@ -20,6 +20,7 @@ from .sampling import (Progress, ProgressTicker, check_cameras, check_images, ch
                        dropout_uniforms, keep_masks, render_masks)
 from .uncertainty import DEFAULT_SAMPLES, measure_views
 
+
 @dataclass
 class ViewSelection:
     index: int
@@ -131,7 +132,7 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         # Full renders: both models when scoring against ground truth, else only the chosen one.
         both = images is not None or keep_images == "both"
         needed = ("a", "b") if both else (choice,) if keep_images else ()
-        full = {key: render_masks(renderers[key], camera, None)[0] for key in needed}
+        full = {key: render_masks(renderers[key].prepare(camera), None)[0] for key in needed}
         image, other = full.get(choice), full.get("b" if choice == "a" else "a")
         if images is not None:
             _score_images(scores, full["a"], full["b"], image, images[i])

@@ -14,7 +14,7 @@ from torch import Tensor
 from ..scene import Camera
 from ..errors import InputError
 from ..executors import LOCAL, Executor
-from ..renderers import Renderer
+from ..renderers import Renderer, View
 from .sampling import (Progress, ProgressTicker, RunningStd, check_cameras, check_dtype, check_ratio, check_samples,
                        check_seed, dropout_uniforms, keep_masks, masked_renders)
 
@@ -36,10 +36,10 @@ class ViewUncertainty:
     peak: Tensor | None = None      # [H, W] float32 zeta's max over channels, what a heat map draws (keep_peak=True)
 
 
-def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, keep_maps: bool,
-                 dtype: torch.dtype, keep_peak: bool = False) -> ViewUncertainty:
+def measure_view(view: View, keep: Tensor, ddof: int, keep_maps: bool, dtype: torch.dtype,
+                 keep_peak: bool = False) -> ViewUncertainty:
     running = RunningStd(dtype)                               # never holds all N renders
-    for chunk in masked_renders(renderer, camera, keep):      # [m, H, W, 3]
+    for chunk in masked_renders(view, keep):                  # [m, H, W, 3]
         running.add(chunk)
     zeta, mean = running.result(ddof)
     peak = zeta.amax(dim=-1)                                  # [H, W]
@@ -56,7 +56,7 @@ def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, ke
 def measure_views(cameras: list[Camera], renderer: Renderer, keep: Tensor, *, ddof: int, keep_maps: bool,
                   dtype: torch.dtype, keep_peak: bool = False) -> list[ViewUncertainty]:
     """measure_view for a chunk of cameras (what an executor runs)."""
-    return [measure_view(renderer, camera, keep, ddof, keep_maps, dtype, keep_peak) for camera in cameras]
+    return [measure_view(renderer.prepare(camera), keep, ddof, keep_maps, dtype, keep_peak) for camera in cameras]
 
 
 def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, samples: int = DEFAULT_SAMPLES,

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 
+from phd_core.renderers import CameraView
 from phd_core.scene import Camera
 
 STALL_SECONDS = 120.0
@@ -32,6 +33,9 @@ class StallOnceRenderer:
 
     def describe(self) -> dict:
         return self.inner.describe()
+
+    def prepare(self, camera: Camera) -> CameraView:
+        return CameraView(self, camera)
 
     def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
         try:

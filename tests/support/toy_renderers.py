@@ -16,7 +16,7 @@ import math
 import torch
 
 from phd_core.scene import Camera, look_at
-from phd_core.renderers import check_keep
+from phd_core.renderers import CameraView, check_keep
 
 
 class BlobRenderer:
@@ -65,6 +65,9 @@ class BlobRenderer:
         alpha = self.opacities[:, None, None] * torch.exp(-0.5 * d2 / radius[:, None, None] ** 2)
         return torch.where(visible[:, None, None], alpha, torch.zeros_like(alpha)).clamp(max=0.99)
 
+    def prepare(self, camera: Camera) -> CameraView:
+        return CameraView(self, camera)
+
     def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
         self.calls += 1
         keep = check_keep(keep, self.num_units)
@@ -98,6 +101,9 @@ class ConstantRenderer:
 
     def describe(self) -> dict:
         return {"kind": self.kind, "num_units": self.num_units}
+
+    def prepare(self, camera: Camera) -> CameraView:
+        return CameraView(self, camera)
 
     def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
         keep = check_keep(keep, self.num_units)

@@ -37,9 +37,9 @@ from dataclasses import dataclass
 import torch
 
 from ...scene import Camera
-from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR
+from ..composite import pick_compositor
 from ..gs3d.render import CHUNK_ELEMENTS, NEAR_PLANE, GaussianRenderer, RenderOutput
-from ..protocol import check_keep
+from ..protocol import CameraView, View, check_keep
 from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, eval_sh, fragments, intersect, quaternion_to_rotation,
                       untile)
 from .model import SurfelModel
@@ -174,14 +174,15 @@ def splat_alpha(proj: Projected, pairs: Pairs, tile: int,
 
 def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tensor,
                       keep: torch.Tensor | None = None, *, tile: int = DEFAULT_TILE, near: float = NEAR_PLANE,
-                      compositor: str = DEFAULT_COMPOSITOR, geometry: bool = False) -> SurfelOutput:
+                      compositor: str | None = None, geometry: bool = False) -> SurfelOutput:
     """Render `camera` once per keep-mask (keep: [N, G] bool, None = all surfels).
 
-    Differentiable with respect to the model's tensors (with the reference compositor).
+    Differentiable with respect to the model's tensors with the reference compositor, the
+    choice (compositor=None) whenever a model tensor requires a gradient (`pick_compositor`).
     geometry: also composite normals and the depth distortion (for training and normal maps).
     """
     keep = check_keep(keep, model.num_splats)
-    composite = COMPOSITORS.lookup(compositor, "compositor")
+    composite = pick_compositor(compositor, model.tensors())
     proj, means2d_all, visible = project(model, camera, near)
     pairs = intersect(proj.box_centres, proj.extents, camera.width, camera.height, tile)
     alpha, depth = splat_alpha(proj, pairs, tile, near)
@@ -219,6 +220,10 @@ class SurfelRenderer(GaussianRenderer):
 
     kind = "2dgs"
     model_type = SurfelModel
+
+    def prepare(self, camera: Camera) -> View:
+        # The compiled SplatView projects 3D Gaussians; surfels render anew through their own stages.
+        return CameraView(self, camera)
 
     @torch.no_grad()
     def render_full(self, camera: Camera, keep: torch.Tensor | None = None, *,

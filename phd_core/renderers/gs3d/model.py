@@ -64,6 +64,10 @@ class GaussianModel:
             if not torch.isfinite(getattr(self, name)).all():
                 raise InputError(name, "contains NaN or infinite values")
 
+    def tensors(self) -> tuple[torch.Tensor, ...]:
+        """The model's tensors, in field order."""
+        return self.means, self.log_scales, self.quats, self.opacity_logits, self.sh
+
     def subset(self, index: torch.Tensor) -> "GaussianModel":
         """The splats selected by `index`: [M] integer indices or a [G] bool mask."""
         return type(self)(self.means[index], self.log_scales[index], self.quats[index],

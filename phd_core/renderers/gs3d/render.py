@@ -11,7 +11,11 @@ One entry point, `rasterize`, over four named stages:
                  backend from `phd_core.renderers.composite` (`reference`: pure torch).
 
 Stages 1-3 do not depend on the keep-mask, so N masks cost one projection, one sort and
-one alpha evaluation plus N cheap compositing passes. A dropped splat has opacity 0:
+one alpha evaluation plus N cheap compositing passes. `rasterize` runs them in torch
+(differentiable: training); `GaussianRenderer.prepare` runs stages 2-3 compiled
+(`kernels.py`) and keeps the result as a `SplatView`, which composites any number of mask
+batches with the fused kernel: calibration re-uses one view for every ratio it tries,
+PH-Dropout for every chunk of masks. A dropped splat has opacity 0:
 it contributes nothing and leaves the transmittance unchanged; survivors are untouched.
 
 Compositing follows the reference rasteriser: alpha = min(0.99, opacity * G(x)), pairs
@@ -35,10 +39,12 @@ import torch
 
 from ...errors import InputError
 from ...scene import Camera
-from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR
-from ..protocol import check_keep
+from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR, pick_compositor
+from ..composite.fused import composite_indexed
+from ..protocol import CameraView, View, check_keep
 from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, eval_sh, fragments, intersect, quaternion_to_rotation,
                       untile)
+from .kernels import project_splats, splat_fragments
 from .model import GaussianModel
 
 NEAR_PLANE = 0.2
@@ -67,6 +73,19 @@ class RenderOutput:
     depth: torch.Tensor     # [N, H, W] alpha-weighted camera depth (divide by alpha for the mean)
     means2d: torch.Tensor   # [G, 2] screen positions (autograd leaf for densification stats)
     visible: torch.Tensor   # [G] bool, survived culling in this view
+
+
+def front_to_back(visible: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+    """Indices of the visible splats ([G] bool) ordered by depth [G], ties by index."""
+    ids = visible.nonzero().squeeze(1)
+    return ids[torch.argsort(depth[ids], stable=True)]
+
+
+def splat_colors(model: GaussianModel, ids: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """SH colour [V, 3] of the splats `ids` seen from the camera centre."""
+    dirs = model.means[ids].double() - camera.center
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return eval_sh(model.sh[ids], dirs.to(model.sh.dtype))
 
 
 def project(model: GaussianModel, camera: Camera, near: float = NEAR_PLANE) -> tuple[Projected, torch.Tensor, torch.Tensor]:
@@ -110,12 +129,8 @@ def project(model: GaussianModel, camera: Camera, near: float = NEAR_PLANE) -> t
         [camera.width, camera.height], dtype=torch.float64))).all(dim=-1)
     visible = in_front & (opacities * 255.0 > 1.0) & on_screen & torch.isfinite(conics).all(-1)
 
-    ids = visible.nonzero().squeeze(1)
-    order = torch.argsort(depth[ids], stable=True)     # front to back, ties by index
-    ids = ids[order]
-    dirs = means[ids] - camera.center
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    colors = eval_sh(model.sh[ids], dirs.to(model.sh.dtype))
+    ids = front_to_back(visible, depth)
+    colors = splat_colors(model, ids, camera)
     projected = Projected(ids=ids, means2d=means2d[ids], conics=conics[ids], opacities=opacities[ids],
                           colors=colors, depths=depth[ids], extents=extents[ids].detach())
     return projected, means2d, visible
@@ -147,14 +162,16 @@ def splat_alpha(proj: Projected, pairs: Pairs, tile: int) -> torch.Tensor:
 
 def rasterize(model: GaussianModel, camera: Camera, background: torch.Tensor,
               keep: torch.Tensor | None = None, *, tile: int = DEFAULT_TILE,
-              near: float = NEAR_PLANE, compositor: str = DEFAULT_COMPOSITOR) -> RenderOutput:
+              near: float = NEAR_PLANE, compositor: str | None = None) -> RenderOutput:
     """Render `camera` once per keep-mask (keep: [N, G] bool, None = all splats).
 
-    Differentiable with respect to the model's tensors (with the reference compositor).
-    background: [3]; compositor: a name in `phd_core.renderers.composite.COMPOSITORS`.
+    Differentiable with respect to the model's tensors with the reference compositor, which
+    is the choice (compositor=None) whenever a model tensor requires a gradient; otherwise
+    None means DEFAULT_COMPOSITOR. background: [3]; compositor: a name in
+    `phd_core.renderers.composite.COMPOSITORS`.
     """
     keep = check_keep(keep, model.num_splats)
-    composite = COMPOSITORS.lookup(compositor, "compositor")
+    composite = pick_compositor(compositor, model.tensors())
     proj, means2d_all, visible = project(model, camera, near)
     pairs = intersect(proj.means2d, proj.extents, camera.width, camera.height, tile)
     frags = fragments(splat_alpha(proj, pairs, tile), pairs)
@@ -176,10 +193,68 @@ def rasterize(model: GaussianModel, camera: Camera, background: torch.Tensor,
     return RenderOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all, visible=visible)
 
 
+@dataclass
+class SplatView:
+    """One camera's mask-independent state (stages 1-3), composited per batch of keep-masks
+    by the fused kernel. Built by `GaussianRenderer.prepare`; a `phd_core.renderers.View`."""
+
+    camera: Camera
+    background: torch.Tensor  # [3]
+    num_units: int          # G, the width of a keep-mask
+    units: torch.Tensor     # [V] long, the model splat of each visible splat (front to back)
+    values: torch.Tensor    # [V, 4] float32 colour and camera depth of each visible splat
+    row_ptr: torch.Tensor   # [T * P + 1] long, fragments of pixel q (tile layout): row_ptr[q]:row_ptr[q + 1]
+    alpha: torch.Tensor     # [E] float32
+    log_1ma: torch.Tensor   # [E] float32, log1p(-alpha): mask-independent, so computed once
+    index: torch.Tensor     # [E] int32, the visible splat of each fragment
+    pairs: Pairs            # grid only (tiles_x, tiles_y), for untile
+    tile: int
+    means2d: torch.Tensor   # [G, 2] screen positions of all splats
+    visible: torch.Tensor   # [G] bool, survived culling
+
+    @property
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.units, self.values, self.row_ptr, self.alpha,
+                                                         self.log_1ma, self.index, self.means2d, self.visible))
+
+    def render_full(self, keep: torch.Tensor | None = None) -> RenderOutput:
+        keep = check_keep(keep, self.num_units)
+        acc_v, acc_a = composite_indexed(self.row_ptr, self.alpha, self.index, self.units, keep, self.values,
+                                         self.log_1ma)
+        cam = self.camera
+        acc_v = untile(acc_v, self.pairs, self.tile, cam.width, cam.height)                     # [N, H, W, 4]
+        acc_a = untile(acc_a[..., None], self.pairs, self.tile, cam.width, cam.height)[..., 0]  # [N, H, W]
+        rgb = acc_v[..., :3] + (1.0 - acc_a)[..., None].clamp_min(0.0) * self.background
+        return RenderOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=self.means2d, visible=self.visible)
+
+    def render(self, keep: torch.Tensor | None = None) -> torch.Tensor:
+        return self.render_full(keep).rgb.clamp(0.0, 1.0)
+
+
+@torch.no_grad()
+def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor, *, tile: int = DEFAULT_TILE,
+                 near: float = NEAR_PLANE) -> SplatView:
+    """Stages 1-3 for `camera`, compiled (`kernels.py`); the SH colours in torch."""
+    means2d, conics, opacities, extents, depths, visible = project_splats(
+        model.means, model.quats, model.log_scales, model.opacity_logits, camera, near, DILATION)
+    ids = front_to_back(visible, depths)
+    row_ptr, alpha, index, tiles_x, tiles_y = splat_fragments(means2d[ids], conics[ids], opacities[ids],
+                                                              extents[ids], camera.width, camera.height, tile)
+    empty = torch.empty(0, dtype=torch.long)
+    grid = Pairs(tile=empty, splat=empty, tile_start=empty, tiles_x=tiles_x, tiles_y=tiles_y)
+    values = torch.cat([splat_colors(model, ids, camera).float(), depths[ids].float()[:, None]], dim=-1)
+    return SplatView(camera=camera, background=background.float(), num_units=model.num_splats, units=ids,
+                     values=values.contiguous(), row_ptr=row_ptr, alpha=alpha, log_1ma=torch.log1p(-alpha),
+                     index=index, pairs=grid, tile=tile,
+                     means2d=means2d.float(), visible=visible)
+
+
 class GaussianRenderer:
     """A trained 3DGS model behind the renderer protocol (`phd_core.renderers.Renderer`).
 
-    Dropout units are the splats: keep [N, G].
+    Dropout units are the splats: keep [N, G]. With the fused compositor (the default)
+    `prepare` returns a `SplatView` that renders many mask batches from one projection;
+    any other compositor renders through `rasterize` (pure torch for `reference`).
     """
 
     kind = "3dgs"
@@ -204,8 +279,15 @@ class GaussianRenderer:
     def num_units(self) -> int:
         return self.model.num_splats
 
+    def prepare(self, camera: Camera) -> View:
+        if self.compositor == "fused":
+            return prepare_view(self.model, camera, self.background, tile=self.tile, near=self.near)
+        return CameraView(self, camera)
+
     @torch.no_grad()
     def render_full(self, camera: Camera, keep: torch.Tensor | None = None) -> RenderOutput:
+        if self.compositor == "fused":
+            return prepare_view(self.model, camera, self.background, tile=self.tile, near=self.near).render_full(keep)
         return rasterize(self.model, camera, self.background, keep, tile=self.tile, near=self.near,
                          compositor=self.compositor)
 

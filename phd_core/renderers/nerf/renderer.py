@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from ...scene import Camera
-from ..protocol import check_keep
+from ..protocol import CameraView, check_keep
 from .config import CHUNK_SAMPLES, NeRFConfig
 from .field import RadianceField
 from .volume import camera_rays, render_rays
@@ -64,6 +64,11 @@ class NeRFRenderer:
 
     def render(self, camera: Camera, keep: Tensor | None = None) -> Tensor:
         return self.render_full(camera, keep).rgb.clamp(0.0, 1.0)
+
+    def prepare(self, camera: Camera) -> CameraView:
+        """Every NeRF sample goes through the masked trunk, so there is no mask-independent
+        state worth keeping beyond the rays (cheap to recompute): renders run anew."""
+        return CameraView(self, camera)
 
     def describe(self) -> dict[str, Any]:
         c = self.config

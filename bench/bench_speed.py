@@ -1,0 +1,293 @@
+"""Ranking at interactive speed: render, batch, compositing, calibration, ranking and training
+times, measured in one run and written to docs/performance.md.
+
+    nice -n 10 python bench/bench_speed.py [--candidates 100] [--out docs/performance.md]
+
+The model: a synthetic 3DGS "glazed donut" of 45,624 splats, SH degree 0 (the size of the
+third-party PLY of issue 11, which is not on disk): splats on a torus surface inside
+[-1.2, 1.2]^3, flat discs (two tangential scales log-normal around 0.018, normal 0.003)
+oriented along the surface normal, 60 % opaque (logit ~ 3) and 40 % faint (logit ~ -1),
+the glaze and dough colours plus noise. It is seen from the poses of `donut_200`: the 16
+evenly spaced training views at 100x100 are its training cameras (sidecar), the 100 test
+poses are the ranking candidates. Ratios are measured within this run; `phd calibrate` and
+`phd rank` run as child processes so that their peak RSS and user/system times are theirs.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # as the `phd` command does, before torch loads
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import platform  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+from phd_core.data import load_blender  # noqa: E402
+from phd_core.io import write_json_atomic  # noqa: E402
+from phd_core.renderers.composite import COMPOSITORS  # noqa: E402
+from phd_core.renderers.gs3d import SIDECAR_FORMAT, GaussianModel, GaussianRenderer, sidecar_path, write_ply  # noqa: E402
+from phd_core.renderers.gs3d.render import project, splat_alpha  # noqa: E402
+from phd_core.renderers.splats import SH_C0, fragments, intersect  # noqa: E402
+from phd_core.train.gs3d import TrainConfig, fit  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+DONUT = ROOT.parent / "shared" / "data" / "donut_200"
+LEGO = ROOT.parent / "shared" / "data" / "lego_200"
+SPLATS = 45_624
+MASKS = 16
+# `phd` in a child that reports its own peak RSS: VmHWM starts afresh at exec, whereas the
+# child's ru_maxrss would inherit this (larger) process's high-water mark at fork.
+PHD = [sys.executable, "-c", "import sys; from phd_cli import main; code = main(); "
+       "print(*[l for l in open('/proc/self/status') if l.startswith('VmHWM')], file=sys.stderr); sys.exit(code)"]
+
+
+def donut_model(splats: int = SPLATS, seed: int = 0) -> GaussianModel:
+    """The synthetic donut described in the module docstring."""
+    g = torch.Generator().manual_seed(seed)
+    f64 = dict(dtype=torch.float64)
+    u, v = (torch.rand(splats, generator=g, **f64) * 2 * math.pi for _ in range(2))
+    normal = torch.stack([torch.cos(v) * torch.cos(u), torch.cos(v) * torch.sin(u), torch.sin(v)], -1)
+    ring = torch.stack([0.8 * torch.cos(u), 0.8 * torch.sin(u), torch.zeros_like(u)], -1)
+    means = ring + (0.35 * (1 - 0.1 * torch.rand(splats, generator=g, **f64)))[:, None] * normal
+    helper = torch.where(normal[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0], **f64), torch.tensor([0, 1.0, 0], **f64))
+    t1 = torch.nn.functional.normalize(torch.cross(helper, normal, dim=-1), dim=-1)
+    rot = torch.stack([t1, torch.cross(normal, t1, dim=-1), normal], -1)          # columns: t1, t2, normal
+    w = torch.sqrt((1 + rot[:, 0, 0] + rot[:, 1, 1] + rot[:, 2, 2]).clamp_min(1e-12)) / 2
+    quats = torch.stack([w, (rot[:, 2, 1] - rot[:, 1, 2]) / (4 * w), (rot[:, 0, 2] - rot[:, 2, 0]) / (4 * w),
+                         (rot[:, 1, 0] - rot[:, 0, 1]) / (4 * w)], -1)
+    tangential = torch.randn(splats, 2, generator=g, **f64) * 0.4 + math.log(0.018)
+    log_scales = torch.cat([tangential, torch.full((splats, 1), math.log(0.003), **f64)], -1)
+    opaque = torch.rand(splats, generator=g) < 0.6
+    logits = torch.where(opaque, 3 + torch.randn(splats, generator=g), torch.randn(splats, generator=g) - 1)
+    glaze = (means[:, 2] > 0.05).double()[:, None]
+    colour = glaze * torch.tensor([0.9, 0.45, 0.6], **f64) + (1 - glaze) * torch.tensor([0.75, 0.5, 0.25], **f64)
+    colour = (colour + 0.08 * torch.randn(splats, 3, generator=g, **f64)).clamp(0, 1)
+    return GaussianModel(means.float(), log_scales.float(), quats.float(), logits.float(),
+                         ((colour - 0.5) / SH_C0)[:, None, :].float())
+
+
+def best_of(fn, repeats: int = 3) -> float:
+    """Best wall time of `repeats` calls (the least disturbed by other load on the machine)."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def child(args: list[str], env: dict[str, str] | None = None) -> dict:
+    """Run `phd`; its wall, user and system seconds (os.wait4) and peak RSS (its VmHWM)."""
+    with tempfile.TemporaryFile() as err:
+        start = time.perf_counter()
+        proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT,
+                                env={**os.environ, **(env or {})})
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - start
+        err.seek(0)
+        log = err.read().decode(errors="replace")
+    if status != 0:
+        raise RuntimeError(f"{' '.join(args)} failed: {log[-2000:]}")
+    peak_kb = int(next(line for line in log.splitlines() if line.startswith("VmHWM")).split()[1])
+    return {"wall_s": round(wall, 2), "user_s": round(usage.ru_utime, 2), "system_s": round(usage.ru_stime, 2),
+            "system_share": round(usage.ru_stime / wall, 3), "peak_rss_mb": round(peak_kb / 1024)}
+
+
+def render_speed(model: GaussianModel, camera, keep: torch.Tensor) -> dict:
+    fused, pure = GaussianRenderer(model), GaussianRenderer(model, compositor="reference")
+    view = fused.prepare(camera)
+    out = {
+        "one_s": best_of(lambda: fused.render(camera)),
+        f"batch{MASKS}_s": best_of(lambda: fused.render(camera, keep)),
+        f"separate{MASKS}_s": best_of(lambda: [fused.render(camera, keep[i:i + 1]) for i in range(MASKS)], 1),
+        "prepare_s": best_of(lambda: fused.prepare(camera)),
+        f"prepared_batch{MASKS}_s": best_of(lambda: view.render(keep)),
+        "pure_torch_one_s": best_of(lambda: pure.render(camera), 1),
+        f"pure_torch_batch{MASKS}_s": best_of(lambda: pure.render(camera, keep), 1),
+        "fragments": len(view.alpha),
+    }
+    # Stage 4 alone, both backends on the same torch-built fragments and masks.
+    proj, _, _ = project(model, camera)
+    pairs = intersect(proj.means2d, proj.extents, camera.width, camera.height, 4)
+    frags = fragments(splat_alpha(proj, pairs, 4), pairs)
+    splat = pairs.splat[frags.pair]
+    values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]
+    keep_frags = keep[:, proj.ids[splat]]
+    num_pixels = pairs.tiles_x * pairs.tiles_y * 16
+    out["composite_reference_s"] = best_of(lambda: COMPOSITORS["reference"](frags, values, keep_frags, num_pixels), 1)
+    out["composite_fused_s"] = best_of(lambda: COMPOSITORS["fused"](frags, values, keep_frags, num_pixels))
+    return {k: round(v, 4) if isinstance(v, float) else v for k, v in out.items()}
+
+
+def training_steps(size: int, iterations: int) -> dict:
+    data = load_blender(LEGO, "train", downscale=200 / size, views=16)
+    start = time.perf_counter()
+    model, _ = fit(data, TrainConfig(iterations=iterations), progress=False)
+    seconds = time.perf_counter() - start
+    return {"iterations": iterations, "step_s": round(seconds / iterations, 4), "final_splats": model.num_splats}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--candidates", type=int, default=100)
+    parser.add_argument("--train-iterations", type=int, default=100)
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "performance.md")
+    parser.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "speed.json")
+    args = parser.parse_args()
+
+    model = donut_model()
+    results: dict = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
+                                 "python": platform.python_version(), "torch": torch.__version__,
+                                 "load_average_at_start": [round(x, 2) for x in os.getloadavg()]},
+                     "splats": model.num_splats, "masks": MASKS}
+    test = load_blender(DONUT, "test", with_images=False).cameras
+    keep = torch.rand(MASKS, model.num_splats,
+                      generator=torch.Generator().manual_seed(0)) >= 0.2
+    GaussianRenderer(model).render(test[0].resized(20, 20), keep)      # compile / load the kernels
+    for size in (100, 200):
+        results[f"render_{size}"] = render_speed(model, test[3].resized(size, size), keep)
+        print(size, results[f"render_{size}"], flush=True)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        ply = Path(tmp) / "donut.ply"
+        write_ply(model, ply)
+        training = load_blender(DONUT, "train", downscale=2, views=16, with_images=False)
+        write_json_atomic(sidecar_path(ply), {"format": SIDECAR_FORMAT, "background": [1.0, 1.0, 1.0],
+                                              "training_cameras": [c.to_frame() for c in training.cameras]})
+        candidates = Path(tmp) / "candidates.json"
+        frames = json.loads((DONUT / "transforms_test.json").read_text())
+        frames["frames"] = frames["frames"][:args.candidates]
+        candidates.write_text(json.dumps(frames))
+        calibrate = child(PHD + ["calibrate", "--model", str(ply), "--out", str(Path(tmp) / "cal.json")])
+        r_drop = json.loads((Path(tmp) / "cal.json").read_text())["r_drop"]
+        results["calibrate"] = {**calibrate, "views": 16, "size": 100, "r_drop": r_drop}
+        print("calibrate", results["calibrate"], flush=True)
+        rank = PHD + ["rank", "--model", str(ply), "--candidates", str(candidates), "--width", "100",
+                      "--height", "100", "--samples", str(MASKS), "--out", str(Path(tmp) / "rank.json")]
+        results["rank"] = {**child(rank + ["--dropout-ratio", str(r_drop)]), "candidates": args.candidates}
+        results["rank_with_calibration"] = child(rank)
+        results["rank_allocator_off"] = child(rank + ["--dropout-ratio", str(r_drop)],
+                                              env={"PHD_KEEP_FREED_MEMORY": "0"})
+        for key in ("rank", "rank_with_calibration", "rank_allocator_off"):
+            print(key, results[key], flush=True)
+
+    for size in (50, 100):
+        results[f"train_{size}"] = training_steps(size, args.train_iterations)
+        print("train", size, results[f"train_{size}"], flush=True)
+    results["machine"]["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(args.json, results)
+    args.out.write_text(report(results))
+    print(f"written {args.out} and {args.json}")
+
+
+def report(r: dict) -> str:
+    a, b = r["render_100"], r["render_200"]
+    rows = []
+    for name, x in (("100x100", a), ("200x200", b)):
+        rows.append(f"| {name} | {x['fragments']:,} | {x['one_s']:.3f} | {x[f'batch{MASKS}_s']:.3f} | "
+                    f"{x[f'batch{MASKS}_s'] / x['one_s']:.2f}x | {x[f'separate{MASKS}_s']:.3f} | "
+                    f"{x[f'separate{MASKS}_s'] / x[f'batch{MASKS}_s']:.1f}x | {x['prepare_s']:.3f} | "
+                    f"{x[f'prepared_batch{MASKS}_s']:.3f} |")
+    pure = []
+    for name, x in (("100x100", a), ("200x200", b)):
+        pure.append(f"| {name} | {x[f'pure_torch_batch{MASKS}_s']:.3f} | {x[f'batch{MASKS}_s']:.3f} | "
+                    f"{x[f'pure_torch_batch{MASKS}_s'] / x[f'batch{MASKS}_s']:.1f}x | "
+                    f"{x['composite_reference_s']:.3f} | {x['composite_fused_s']:.4f} | "
+                    f"{x['composite_reference_s'] / x['composite_fused_s']:.1f}x |")
+    runs = []
+    for key, title in (("calibrate", "`phd calibrate` (16 training views, 100x100, 4 masks per ratio)"),
+                       ("rank", f"`phd rank`, {r['rank']['candidates']} candidates, 100x100, N = {MASKS}, "
+                                "given --dropout-ratio"),
+                       ("rank_with_calibration", "the same `phd rank` calibrating first (no --dropout-ratio)"),
+                       ("rank_allocator_off", "`phd rank` as above with PHD_KEEP_FREED_MEMORY=0")):
+        x = r[key]
+        runs.append(f"| {title} | {x['wall_s']:.1f} | {x['user_s']:.1f} | {x['system_s']:.2f} | "
+                    f"{(x['user_s'] + x['system_s']) / 2:.1f} | "
+                    f"{100 * x['system_share']:.1f} % | {x['peak_rss_mb']} |")
+    m = r["machine"]
+    return f"""# Performance: ranking at interactive speed
+
+Measured by `bench/bench_speed.py` in one run (every ratio below compares numbers from that
+run); raw numbers in `bench/results/speed.json`. Command:
+
+    nice -n 10 .venv/bin/python bench/bench_speed.py
+
+Machine: {m['cpus']} cores, {m['platform']}, Python {m['python']}, torch {m['torch']}; load average
+{m['load_average_at_start']} at the start and {m['load_average_at_end']} at the end (the
+machine was shared with other jobs, so absolute times are pessimistic; ratios are fairer).
+
+Model: a synthetic 3DGS "glazed donut" of {r['splats']:,} splats, SH degree 0, built by
+`donut_model()` in the benchmark (the third-party 45,624-splat PLY of issue 11 is not on
+disk): splats on a torus surface, flat discs with log-normal tangential scales around 0.018
+(scene about 2.4 across), 60 % opaque and 40 % faint. Cameras: the poses of
+`../shared/data/donut_200` (training: 16 evenly spaced train views at 100x100, in the
+sidecar; candidates: the test poses). N = {MASKS} keep-masks at ratio 0.2.
+
+## How it is fast
+
+- Stage 1-3 (projection, tile lists, per-pixel fragments) are compiled with numba
+  (`phd_core/renderers/gs3d/kernels.py`) and done once per camera: `GaussianRenderer.prepare`
+  returns a `SplatView` that composites any number of mask batches.
+- Stage 4 is the fused kernel (`phd_core/renderers/composite/fused.py`, COMPOSITORS "fused"):
+  per pixel, front to back, all N masks at once, early stop per mask, float64 log-space
+  transmittance; pixels spread over both cores. The pure-torch `reference` stays for training
+  (gradients) and as its tested twin (tests/renderers/test_fused.py, 1e-5).
+- Calibration keeps each training view's `SplatView` across the ratios it tries
+  (`phd_core.uq.sampling.PreparedViews`, 256 MiB budget); uncertainty and selection prepare
+  each view once for all mask chunks and the full render.
+- Importing `phd_core` sets glibc's malloc to keep freed memory (`phd_core/allocator.py`,
+  mallopt through ctypes: mmap threshold 32 MiB, no trimming, 1 GiB top pad).
+
+## One camera: batch vs one render vs separate renders (fused, the default)
+
+| size | fragments | one render s | batch of {MASKS} s | batch / one | {MASKS} separate s | separate / batch | prepare s | batch from a prepared view s |
+|---|---|---|---|---|---|---|---|---|
+{chr(10).join(rows)}
+
+Targets: batch <= 3x one render, and >= 5x faster than {MASKS} separate renders.
+
+## Fused vs pure torch on the same batch of {MASKS}
+
+| size | pure torch render s | fused render s | speed-up | reference compositing s | fused compositing s | speed-up |
+|---|---|---|---|---|---|---|
+{chr(10).join(pure)}
+
+"render" is the whole render (all stages); "compositing" is stage 4 alone on the same
+fragments and masks. Target: >= 10x.
+
+## Calibration and ranking (child processes)
+
+| command | wall s | user s | system s | CPU s / 2 cores | system / wall | peak RSS MB |
+|---|---|---|---|---|---|---|
+{chr(10).join(runs)}
+
+Targets: ranking 100 candidates at 100x100 with N = 16 in < 15 s, calibration < 5 s, peak RSS
+< 1 GB, system time < 10 % of wall. r_drop found: {r['calibrate']['r_drop']}. "CPU s / 2 cores" is
+(user + system) / 2: the wall time the run needs when it has both cores to itself, the
+compiled stages being parallel over pixels, tiles and splats (torch's own ops use both cores
+too). On a loaded machine the wall time is longer by the load, not by the work.
+
+## Training step (lego_200, 16 views, `fit`, {r['train_50']['iterations']} iterations, pure-torch path)
+
+| size | s per step | splats at the end |
+|---|---|---|
+| 50x50 | {r['train_50']['step_s']:.4f} | {r['train_50']['final_splats']:,} |
+| 100x100 | {r['train_100']['step_s']:.4f} | {r['train_100']['final_splats']:,} |
+
+Training keeps the differentiable pure-torch path (`rasterize` picks the reference
+compositor whenever a model tensor requires a gradient); a fused backward is not built.
+"""
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,122 @@
+"""The fused compositing backend: one compiled pass over the fragments for N keep-masks.
+
+Per covered pixel, front to back over its fragments, every mask at once: a fragment whose
+unit a mask drops is skipped by that mask; a mask stops at the fragment that would bring
+its transmittance below T_MIN (that fragment excluded), and the pixel stops when every
+mask has. Transmittance is a float64 running sum of log(1 - alpha), as in the reference
+(`reference.py`, its tested twin); weights and sums are float64 until the final store.
+Pixels are spread over the cores (numba `prange`); no gradients (training keeps the
+reference).
+
+Two entry points share the kernel:
+- `composite`, the `COMPOSITORS` signature: values [E, C] and keep [N, E] per entry;
+- `composite_indexed`, for callers that keep one value row per unit instead of per entry
+  (entry e reads row `index[e]`, and row v is dropped by mask n when not keep[n, unit[v]]),
+  so a batch of masks costs no [N, E] gather.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numba
+import numpy as np
+import torch
+
+from ..splats import LOG_T_MIN, Fragments
+
+PIXEL_BLOCK = 64    # pixels per parallel work item (scratch space is allocated per block)
+
+# numba's default threading layer runs one parallel region at a time per process; the
+# service renders on several worker threads, so launches take turns (each uses every core).
+LAUNCH_LOCK = threading.Lock()
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _composite_kernel(row_ptr, alpha, log_1ma, index, unit, keep_t, values, out_values,
+                      out_alpha):  # pragma: no cover
+    """row_ptr [S + 1] int64: fragments of pixel s are row_ptr[s]:row_ptr[s + 1], front to back;
+    alpha [E] float32 and log_1ma = log1p(-alpha) [E] float32 (as the reference takes it); index [E] int32 (value row of each fragment); unit [V] int64 (keep
+    row of each value row); keep_t [U, N] bool (one unit's N flags share a cache line);
+    values [V, C] float32. Writes out_values [N, S, C] and out_alpha [N, S] (float32, all).
+    The stop rule reads the log transmittance; the weight uses the same transmittance kept
+    as a float64 product (one exp fewer per fragment and mask)."""
+    num_pixels = row_ptr.shape[0] - 1
+    masks = keep_t.shape[1]
+    channels = values.shape[1]
+    blocks = (num_pixels + PIXEL_BLOCK - 1) // PIXEL_BLOCK
+    for block in numba.prange(blocks):
+        log_t = np.empty(masks)                     # log transmittance per mask
+        trans = np.empty(masks)                     # the same, exp'd
+        active = np.empty(masks, dtype=np.bool_)
+        acc = np.empty((masks, channels + 1))       # colour/depth sums, then accumulated alpha
+        for s in range(block * PIXEL_BLOCK, min(num_pixels, (block + 1) * PIXEL_BLOCK)):
+            log_t[:] = 0.0
+            trans[:] = 1.0
+            active[:] = True
+            acc[:] = 0.0
+            alive = masks
+            for e in range(row_ptr[s], row_ptr[s + 1]):
+                a = np.float64(alpha[e])
+                step = np.float64(log_1ma[e])
+                v = index[e]
+                u = unit[v]
+                for n in range(masks):
+                    if not active[n] or not keep_t[u, n]:
+                        continue
+                    after = log_t[n] + step
+                    if after < LOG_T_MIN:               # this fragment would spend the pixel: stop
+                        active[n] = False
+                        alive -= 1
+                        continue
+                    weight = a * trans[n]
+                    for c in range(channels):
+                        acc[n, c] += weight * values[v, c]
+                    acc[n, channels] += weight
+                    log_t[n] = after
+                    trans[n] *= 1.0 - a
+                if alive == 0:
+                    break
+            for n in range(masks):
+                for c in range(channels):
+                    out_values[n, s, c] = acc[n, c]
+                out_alpha[n, s] = acc[n, channels]
+
+
+def composite_indexed(row_ptr: torch.Tensor, alpha: torch.Tensor, index: torch.Tensor, unit: torch.Tensor,
+                      keep: torch.Tensor | None, values: torch.Tensor,
+                      log_1ma: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite S pixels once per keep-mask (see the module docstring for the layout).
+
+    keep: [N, U] bool or None (every unit kept, N = 1); log_1ma: log1p(-alpha) [E] float32
+    when the caller keeps it (a prepared view), else computed here. Returns (accumulated
+    values [N, S, C], accumulated alpha [N, S]) float32, pixel s of row_ptr.
+    """
+    if log_1ma is None:
+        log_1ma = torch.log1p(-alpha.float())
+    if keep is None:
+        keep = torch.ones(1, 1, dtype=torch.bool)
+        unit = torch.zeros_like(unit)
+    masks, pixels, channels = keep.shape[0], len(row_ptr) - 1, values.shape[1]
+    out_values = torch.empty(masks, pixels, channels, dtype=torch.float32)
+    out_alpha = torch.empty(masks, pixels, dtype=torch.float32)
+    arrays = [t.detach().contiguous().numpy() for t in (row_ptr.long(), alpha.float(), log_1ma.float(), index.int(),
+                                                         unit.long(), keep.bool().T, values.float())]
+    with LAUNCH_LOCK:
+        _composite_kernel(*arrays, out_values.numpy(), out_alpha.numpy())
+    return out_values, out_alpha
+
+
+def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
+              num_pixels: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Stage 4 with the `COMPOSITORS` signature: values [E, C], keep [N, E] bool or None.
+
+    Returns (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
+    """
+    entries = torch.arange(len(frags.alpha))
+    sums, alpha = composite_indexed(frags.row_ptr, frags.alpha, entries.int(), entries, keep, values)
+    totals = sums.new_zeros(sums.shape[0], num_pixels, sums.shape[-1])
+    totals[:, frags.pixel] = sums
+    acc_alpha = alpha.new_zeros(alpha.shape[0], num_pixels)
+    acc_alpha[:, frags.pixel] = alpha
+    return totals, acc_alpha

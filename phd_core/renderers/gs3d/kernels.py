@@ -1,0 +1,205 @@
+"""Stages 1-3 of the 3DGS rasteriser compiled with numba, for renders without gradients.
+
+Stage 1 (`project_splats`) is the EWA projection of `render.project`, one splat per loop
+step in float64 instead of a dozen [G, 3, 3] torch temporaries. Stages 2-3 follow the same
+rules as the torch stages (`phd_core.renderers.splats.intersect`, `render.splat_alpha`,
+`splats.fragments`): a splat is listed in every tile its alpha >= 1/255 box overlaps, in
+depth order; at every pixel of the tile alpha = min(ALPHA_MAX, opacity * exp(-d^T conic d / 2))
+is evaluated (in float64) and kept when >= ALPHA_MIN. The output is the fused compositor's
+layout: fragments grouped by pixel over ALL T * P pixels of the tile grid (pixels outside
+the image have none), front to back within a pixel, each naming its projected splat.
+Tiles are spread over the cores.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+
+from ..composite.fused import LAUNCH_LOCK
+from ...scene import Camera
+from ..splats import ALPHA_MAX, ALPHA_MIN
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _ewa(p_cam, quats, log_scales, opacity_logits, rot_wc, fx, fy, cx, cy, width, height, near, dilation,
+         means2d, conics, opacities, extents, visible):  # pragma: no cover
+    """Per splat: screen centre, inverse 2D covariance, opacity, alpha >= 1/255 box, culling."""
+    lim_x_pos = (width - cx) / fx + 0.3 * width / (2 * fx)
+    lim_x_neg = cx / fx + 0.3 * width / (2 * fx)
+    lim_y_pos = (height - cy) / fy + 0.3 * height / (2 * fy)
+    lim_y_neg = cy / fy + 0.3 * height / (2 * fy)
+    for g in numba.prange(p_cam.shape[0]):
+        x, y, depth = p_cam[g, 0], p_cam[g, 1], p_cam[g, 2]
+        in_front = depth > near
+        z = depth if in_front else 1.0
+        means2d[g, 0] = fx * x / z + cx
+        means2d[g, 1] = fy * y / z + cy
+        tx = min(max(x / z, -lim_x_neg), lim_x_pos) * z
+        ty = min(max(y / z, -lim_y_neg), lim_y_pos) * z
+        j00, j02 = fx / z, -fx * tx / (z * z)
+        j11, j12 = fy / z, -fy * ty / (z * z)
+        # T = J W: [2, 3] (W the world-to-camera rotation)
+        t00 = j00 * rot_wc[0, 0] + j02 * rot_wc[2, 0]
+        t01 = j00 * rot_wc[0, 1] + j02 * rot_wc[2, 1]
+        t02 = j00 * rot_wc[0, 2] + j02 * rot_wc[2, 2]
+        t10 = j11 * rot_wc[1, 0] + j12 * rot_wc[2, 0]
+        t11 = j11 * rot_wc[1, 1] + j12 * rot_wc[2, 1]
+        t12 = j11 * rot_wc[1, 2] + j12 * rot_wc[2, 2]
+        qw, qx, qy, qz = (np.float64(quats[g, 0]), np.float64(quats[g, 1]), np.float64(quats[g, 2]),
+                          np.float64(quats[g, 3]))
+        norm = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
+        qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+        r00, r01, r02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
+        r10, r11, r12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
+        r20, r21, r22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
+        s0 = math.exp(min(max(np.float64(log_scales[g, 0]), -30.0), 30.0))
+        s1 = math.exp(min(max(np.float64(log_scales[g, 1]), -30.0), 30.0))
+        s2 = math.exp(min(max(np.float64(log_scales[g, 2]), -30.0), 30.0))
+        # U = T R S: [2, 3]; cov2d = U U^T
+        u00 = (t00 * r00 + t01 * r10 + t02 * r20) * s0
+        u01 = (t00 * r01 + t01 * r11 + t02 * r21) * s1
+        u02 = (t00 * r02 + t01 * r12 + t02 * r22) * s2
+        u10 = (t10 * r00 + t11 * r10 + t12 * r20) * s0
+        u11 = (t10 * r01 + t11 * r11 + t12 * r21) * s1
+        u12 = (t10 * r02 + t11 * r12 + t12 * r22) * s2
+        a = u00 * u00 + u01 * u01 + u02 * u02 + dilation
+        b = u00 * u10 + u01 * u11 + u02 * u12
+        c = u10 * u10 + u11 * u11 + u12 * u12 + dilation
+        det = max(a * c - b * b, 1e-30)
+        conics[g, 0], conics[g, 1], conics[g, 2] = c / det, -b / det, a / det
+        opacity = 1.0 / (1.0 + math.exp(-np.float64(opacity_logits[g])))
+        opacities[g] = opacity
+        level = 2.0 * math.log(max(opacity * 255.0, 1.0))
+        ex, ey = math.sqrt(level * a), math.sqrt(level * c)
+        extents[g, 0], extents[g, 1] = ex, ey
+        on_screen = (means2d[g, 0] + ex > 0 and means2d[g, 1] + ey > 0 and means2d[g, 0] - ex < width
+                     and means2d[g, 1] - ey < height)
+        finite = np.isfinite(conics[g, 0]) and np.isfinite(conics[g, 1]) and np.isfinite(conics[g, 2])
+        visible[g] = in_front and opacity * 255.0 > 1.0 and on_screen and finite
+
+
+def project_splats(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor,
+                   opacity_logits: torch.Tensor, camera: Camera, near: float, dilation: float
+                   ) -> tuple[torch.Tensor, ...]:
+    """Stage 1 for all G splats: (means2d [G, 2], conics [G, 3], opacities [G], extents [G, 2],
+    depths [G], visible [G] bool), float64, the same quantities as `render.project`."""
+    p_cam = camera.to_camera(means.detach().double()).contiguous()
+    g = p_cam.shape[0]
+    means2d, conics, extents = torch.empty(g, 2, dtype=torch.float64), torch.empty(g, 3, dtype=torch.float64), \
+        torch.empty(g, 2, dtype=torch.float64)
+    opacities, visible = torch.empty(g, dtype=torch.float64), torch.empty(g, dtype=torch.bool)
+    rot_wc = camera.world_to_camera()[:3, :3].contiguous()
+    with LAUNCH_LOCK:
+        _ewa(p_cam.numpy(), *(t.detach().float().contiguous().numpy() for t in (quats, log_scales, opacity_logits)),
+             rot_wc.numpy(), camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, near, dilation,
+             means2d.numpy(), conics.numpy(), opacities.numpy(), extents.numpy(), visible.numpy())
+    return means2d, conics, opacities, extents, p_cam[:, 2], visible
+
+
+@numba.njit(cache=True, nogil=True)
+def _tile_lists(means2d, extents, tiles_x, tiles_y, tile):  # pragma: no cover
+    """Pairs ordered by (tile, depth): (start [T + 1] int64, splat [M] int32). Each splat's
+    tile box is `splats.intersect`'s; the splats arrive front to back, so appending them
+    tile by tile keeps depth order."""
+    count = means2d.shape[0]
+    lo = np.empty((count, 2), np.int64)
+    hi = np.empty((count, 2), np.int64)
+    limit = (tiles_x - 1, tiles_y - 1)
+    for v in range(count):
+        for k in range(2):
+            centre = means2d[v, k] - 0.5                 # pixel centres sit at integer + 0.5
+            lo[v, k] = max(0, math.floor((centre - extents[v, k]) / tile))
+            hi[v, k] = min(limit[k], math.floor((centre + extents[v, k]) / tile))
+    start = np.zeros(tiles_x * tiles_y + 1, np.int64)
+    for v in range(count):
+        for ty in range(lo[v, 1], hi[v, 1] + 1):
+            for tx in range(lo[v, 0], hi[v, 0] + 1):
+                start[ty * tiles_x + tx + 1] += 1
+    start = np.cumsum(start)
+    fill = start[:-1].copy()
+    splat = np.empty(start[-1], np.int32)
+    for v in range(count):
+        for ty in range(lo[v, 1], hi[v, 1] + 1):
+            for tx in range(lo[v, 0], hi[v, 0] + 1):
+                t = ty * tiles_x + tx
+                splat[fill[t]] = v
+                fill[t] += 1
+    return start, splat
+
+
+@numba.njit(inline="always")
+def _alpha(means2d, conics, opacities, v, px, py, cutoff):  # pragma: no cover
+    """alpha of splat v at pixel (px, py); 0 without an exp where the exponent is below
+    `cutoff` (a bound under which alpha < ALPHA_MIN for sure)."""
+    dx = px + 0.5 - means2d[v, 0]
+    dy = py + 0.5 - means2d[v, 1]
+    power = -0.5 * (conics[v, 0] * dx * dx + conics[v, 2] * dy * dy) - conics[v, 1] * dx * dy
+    if power < cutoff:
+        return 0.0
+    return min(ALPHA_MAX, opacities[v] * math.exp(power))
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha,
+                row_ptr):  # pragma: no cover
+    """pair_alpha[k, p]: alpha of pair k at pixel p of its tile (0 below ALPHA_MIN or outside
+    the image); row_ptr[1 + q]: number of fragments of pixel q (tile layout)."""
+    pixels = tile * tile
+    for t in numba.prange(start.shape[0] - 1):
+        x0 = (t % tiles_x) * tile
+        y0 = (t // tiles_x) * tile
+        cols = min(tile, width - x0)
+        rows = min(tile, height - y0)
+        for p in range(pixels):
+            row_ptr[1 + t * pixels + p] = 0
+        for k in range(start[t], start[t + 1]):
+            v = splat[k]
+            pair_alpha[k, :] = 0.0
+            cutoff = math.log(ALPHA_MIN / opacities[v]) - 1e-6     # alpha >= ALPHA_MIN needs power above it
+            for oy in range(rows):
+                for ox in range(cols):
+                    a = _alpha(means2d, conics, opacities, v, x0 + ox, y0 + oy, cutoff)
+                    if a >= ALPHA_MIN:
+                        pair_alpha[k, oy * tile + ox] = a
+                        row_ptr[1 + t * pixels + oy * tile + ox] += 1
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _gather(start, splat, pair_alpha, row_ptr, alpha, index):  # pragma: no cover
+    """The nonzero pair_alpha entries, pixel by pixel, front to back."""
+    pixels = pair_alpha.shape[1]
+    for t in numba.prange(start.shape[0] - 1):
+        for p in range(pixels):
+            e = row_ptr[t * pixels + p]
+            for k in range(start[t], start[t + 1]):
+                if pair_alpha[k, p] > 0.0:
+                    alpha[e] = pair_alpha[k, p]
+                    index[e] = splat[k]
+                    e += 1
+
+
+def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, extents: torch.Tensor,
+                    width: int, height: int, tile: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, int]:
+    """Stages 2 and 3 for V projected splats in front-to-back order (means2d [V, 2], conics
+    [V, 3], opacities [V], extents [V, 2], float64).
+
+    Returns (row_ptr [T * P + 1] int64, alpha [E] float32, index [E] int32 into the V splats,
+    tiles_x, tiles_y); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1].
+    """
+    tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
+    means2d, conics, opacities, extents = (t.detach().double().contiguous().numpy()
+                                           for t in (means2d, conics, opacities, extents))
+    row_ptr = np.zeros(tiles_x * tiles_y * tile * tile + 1, np.int64)
+    with LAUNCH_LOCK:
+        start, splat = _tile_lists(means2d, extents, tiles_x, tiles_y, tile)
+        pair_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P]
+        _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha, row_ptr)
+        np.cumsum(row_ptr, out=row_ptr)
+        alpha = np.empty(row_ptr[-1], np.float32)
+        index = np.empty(row_ptr[-1], np.int32)
+        _gather(start, splat, pair_alpha, row_ptr, alpha, index)
+    return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index), tiles_x, tiles_y

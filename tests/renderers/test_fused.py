@@ -1,0 +1,169 @@
+"""The fused (compiled) 3DGS path against its pure-torch twin and the float64 brute force.
+
+Three levels: the fused compositor on the SAME fragments as the reference compositor; the
+compiled projection against the torch projection; whole renders of `GaussianRenderer`
+(prepared `SplatView`, fused) against the pure-torch renderer, extremes included.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import pytest
+import torch
+
+from phd_core.renderers.composite import COMPOSITORS
+from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
+from phd_core.renderers.gs3d.kernels import project_splats
+from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, project, splat_alpha
+from phd_core.renderers.splats import fragments, intersect
+from renderers.test_gaussian_render import assert_close, camera, random_scene, reference
+
+TOL = 1e-5
+
+
+def masks(n: int, g: int, drop: float, seed: int) -> torch.Tensor:
+    return torch.rand(n, g, generator=torch.Generator().manual_seed(seed)) >= drop
+
+
+def renderers(model: GaussianModel, background=(1.0, 1.0, 1.0)):
+    return (GaussianRenderer(model, background, compositor="fused"),
+            GaussianRenderer(model, background, compositor="reference"))
+
+
+def assert_twins(model: GaussianModel, cam, keep) -> torch.Tensor:
+    fused, pure = renderers(model)
+    a, b = fused.render_full(cam, keep), pure.render_full(cam, keep)
+    for name in ("rgb", "alpha", "depth"):
+        diff = (getattr(a, name) - getattr(b, name)).abs().max().item()
+        assert diff <= TOL, f"{name}: fused and pure torch differ by {diff:.3g}"
+    return a.rgb
+
+
+@pytest.mark.parametrize("tile", [1, 4, 16])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fused_compositor_matches_reference_on_the_same_fragments(tile: int, seed: int) -> None:
+    model = random_scene(120, 1, seed=seed)
+    cam = camera(37, 23)
+    proj, _, _ = project(model, cam)
+    pairs = intersect(proj.means2d, proj.extents, cam.width, cam.height, tile)
+    frags = fragments(splat_alpha(proj, pairs, tile), pairs)
+    splat = pairs.splat[frags.pair]
+    values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]
+    num_pixels = pairs.tiles_x * pairs.tiles_y * tile * tile
+    for keep in (None, masks(7, len(splat), 0.4, seed), torch.zeros(2, len(splat), dtype=torch.bool)):
+        ref_v, ref_a = COMPOSITORS["reference"](frags, values, keep, num_pixels)
+        fus_v, fus_a = COMPOSITORS["fused"](frags, values, keep, num_pixels)
+        assert fus_v.shape == ref_v.shape and fus_a.shape == ref_a.shape
+        assert (fus_v - ref_v).abs().max() <= TOL and (fus_a - ref_a).abs().max() <= TOL
+    assert ref_a.max() == 0 and fus_a.max() == 0                # the all-dropped batch
+    full_a = COMPOSITORS["fused"](frags, values, None, num_pixels)[1]
+    assert full_a.max() > 0.9, "the scene must cover pixels for the comparison to mean anything"
+
+
+def test_fused_stops_each_mask_when_transmittance_is_spent() -> None:
+    """Opaque splats stacked on one pixel: the full model stops early, a mask that drops the
+    front ones reaches the back ones; both as the reference does."""
+    g = 12
+    model = GaussianModel(means=torch.stack([torch.zeros(g), torch.linspace(-0.5, 0.5, g), torch.zeros(g)], -1),
+                          log_scales=torch.full((g, 3), -1.0), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(g, 1),
+                          opacity_logits=torch.full((g,), 30.0), sh=torch.rand(g, 1, 3) * 2 - 1)
+    keep = torch.ones(3, g, dtype=torch.bool)
+    keep[1, :6] = False                                          # the front half dropped (camera at y = -3)
+    keep[2, ::2] = False
+    rgb = assert_twins(model, camera(), keep)
+    assert (rgb[0] - rgb[1]).abs().max() > 0.05
+
+
+def test_compiled_projection_matches_torch() -> None:
+    model = random_scene(200, 0, seed=3, spread=2.5)
+    model.log_scales[:5] = math.log(1e-6)
+    model.log_scales[5:10] = math.log(1e3)
+    model.opacity_logits[10:15] = -30.0
+    cam = camera(40, 30)
+    proj, means2d_t, visible_t = project(model, cam, NEAR_PLANE)
+    means2d, conics, opacities, extents, depths, visible = project_splats(
+        model.means, model.quats, model.log_scales, model.opacity_logits, cam, NEAR_PLANE, DILATION)
+    assert torch.equal(visible, visible_t) and 0 < int(visible.sum()) < 200
+    assert torch.allclose(means2d, means2d_t, rtol=1e-12, atol=1e-9)
+    ids = proj.ids
+    for ours, theirs in ((conics[ids], proj.conics), (opacities[ids], proj.opacities),
+                         (extents[ids], proj.extents), (depths[ids], proj.depths)):
+        assert torch.allclose(ours, theirs, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_fused_render_matches_pure_torch_and_brute_force(degree: int) -> None:
+    model = random_scene(60, degree, seed=10 + degree)
+    cam = camera()
+    keep = masks(6, 60, 0.3, degree)
+    rgb = assert_twins(model, cam, keep)
+    for n in (0, 3):
+        assert_close(rgb[n], reference(model, cam, keep[n].numpy())[0])
+
+
+@pytest.mark.parametrize("case", ["tiny", "huge", "transparent", "opaque", "one_splat", "mixed"])
+def test_fused_render_extremes(case: str) -> None:
+    model = random_scene(1 if case == "one_splat" else 50, 1, seed=20)
+    if case == "tiny":
+        model.log_scales[:] = math.log(1e-6)
+    elif case == "huge":
+        model.log_scales[:] = math.log(1e3)
+    elif case == "transparent":
+        model.opacity_logits[:] = torch.linspace(-8.0, -5.0, 50)    # opacity ~ 1/255 and below
+    elif case == "opaque":
+        model.opacity_logits[:] = 30.0
+    elif case == "mixed":
+        model.log_scales[::3] = math.log(1e-4)
+        model.log_scales[1::3] = math.log(5.0)
+        model.opacity_logits[::2] = 12.0
+    if case == "one_splat":
+        model.means[:] = 0.0
+        model.log_scales[:] = -1.5
+    keep = masks(5, model.num_splats, 0.5, 1)
+    rgb = assert_twins(model, camera(), keep)
+    assert torch.isfinite(rgb).all()
+
+
+def test_all_masks_dropping_everything_and_empty_views_give_the_background() -> None:
+    model = random_scene(40, 1, seed=4)
+    background = (0.2, 0.5, 0.9)
+    fused, _ = renderers(model, background)
+    bg = torch.tensor(background)
+    out = fused.render_full(camera(), torch.zeros(3, 40, dtype=torch.bool))
+    assert torch.allclose(out.rgb, bg.expand_as(out.rgb)) and torch.equal(out.alpha, torch.zeros_like(out.alpha))
+    away = camera(eye=(0.0, 3.0, 0.0))
+    away = type(away)(c2w=away.c2w.clone(), fx=away.fx, fy=away.fy, cx=away.cx + 1e4, cy=away.cy,
+                      width=away.width, height=away.height)              # principal point far off: nothing on screen
+    empty = fused.render_full(away, masks(2, 40, 0.2, 0))
+    assert torch.allclose(empty.rgb, bg.expand_as(empty.rgb)) and not empty.visible.any()
+    none = GaussianRenderer(random_scene(0, 0, seed=0), background).render(camera())
+    assert torch.allclose(none, bg.expand_as(none))
+
+
+def test_a_prepared_view_renders_like_the_renderer_for_any_batch() -> None:
+    model = random_scene(50, 2, seed=6)
+    fused, _ = renderers(model)
+    cam = camera()
+    view = fused.prepare(cam)
+    assert view.camera is cam and view.nbytes > 0
+    for keep in (None, masks(1, 50, 0.5, 2), masks(9, 50, 0.2, 3)):
+        assert torch.equal(view.render(keep), fused.render(cam, keep))
+
+
+def test_threads_rendering_at_once_get_the_serial_results() -> None:
+    """The service renders on several worker threads; compiled launches take turns."""
+    model = random_scene(80, 1, seed=7)
+    fused, _ = renderers(model)
+    cams = [camera(eye=(0.3 * i, -3.0, 1.0)) for i in range(4)]
+    keep = masks(8, 80, 0.3, 4)
+    serial = [fused.render(c, keep) for c in cams]
+    results: dict[int, torch.Tensor] = {}
+    threads = [threading.Thread(target=lambda i=i: results.__setitem__(i, fused.render(cams[i], keep)))
+               for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(torch.equal(results[i], serial[i]) for i in range(4))

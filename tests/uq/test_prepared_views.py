@@ -1,0 +1,59 @@
+"""Mask-independent work once per camera: calibration prepares each training view once and
+re-uses it for every ratio it tries (within the byte budget), with unchanged results."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+import phd_core.uq.sampling as sampling
+from phd_core import uq as phd
+from phd_core.renderers.gs3d import GaussianRenderer
+from renderers.test_gaussian_render import camera, random_scene
+
+
+def counting_renderer() -> tuple[GaussianRenderer, list]:
+    renderer = GaussianRenderer(random_scene(60, 0, seed=1))
+    prepared = []
+    original = renderer.prepare
+
+    def prepare(cam):
+        prepared.append(cam)
+        return original(cam)
+    renderer.prepare = prepare
+    return renderer, prepared
+
+
+CAMERAS = [camera(24, 18, eye=(0.5 * i - 1.0, -3.0, 1.0)) for i in range(4)]
+
+
+def test_calibration_prepares_each_training_view_once(monkeypatch) -> None:
+    renderer, prepared = counting_renderer()
+    kept = phd.calibrate(renderer, CAMERAS, epsilon=0.02, step=0.05, samples=3)
+    assert len(kept.ratios) >= 3, "several ratios must be tried for re-use to matter"
+    assert len(prepared) == len(CAMERAS)
+
+    monkeypatch.setattr(sampling, "VIEW_CACHE_BYTES", 0)           # nothing fits: prepared on every use
+    renderer, prepared = counting_renderer()
+    again = phd.calibrate(renderer, CAMERAS, epsilon=0.02, step=0.05, samples=3)
+    assert len(prepared) == len(CAMERAS) * (1 + len(again.ratios))
+    assert (again.r_drop, again.errors) == (kept.r_drop, kept.errors)
+
+
+def test_uncertainty_prepares_once_per_view_for_all_mask_chunks(monkeypatch) -> None:
+    monkeypatch.setattr(sampling, "MAX_MASKS_PER_RENDER", 3)       # 10 masks = 4 chunks
+    renderer, prepared = counting_renderer()
+    views = phd.uncertainty(renderer, CAMERAS[:2], ratio=0.3, samples=10)
+    assert len(prepared) == 2 and all(v.sigma_max > 0 for v in views)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt")
+def test_importing_phd_core_sets_the_allocator_and_can_be_turned_off() -> None:
+    code = "import phd_core.allocator as a, phd_core; print(a.keep_freed_memory())"
+    on = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PHD_KEEP_FREED_MEMORY": "0"})
+    assert on.stdout.strip() == "True" and off.stdout.strip() == "False"
