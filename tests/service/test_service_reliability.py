@@ -146,6 +146,10 @@ def test_non_finite_and_overflowing_numbers_are_422_naming_the_field_on_one_conn
                 json.dumps(_frame()).encode(), downscale.encode())
             _error(client.post(f"/v1/models/{model_id}/rank", content=body, headers=headers), 422,
                    field="downscale")
+        blender = {"camera_angle_x": 5e-324, "w": 16, "h": 16, "frames": [{"transform_matrix":
+                                                                        _frame()["transform_matrix"]}]}
+        tiny_angle = client.post(f"/v1/models/{model_id}/rank", json={"cameras": blender, "dropout_ratio": 0.1})
+        _error(tiny_angle, 422, field="cameras[0].camera_angle_x")          # found by the 10k fuzz run
         assert client.get("/health").status_code == 200       # still the same live connection
     assert not list((server.settings.data_dir / "tmp").iterdir())
 
