@@ -319,3 +319,17 @@ def test_each_key_sees_and_deletes_only_its_models_and_jobs(svc_start, svc_model
     assert httpx.delete(f"{server.url}/v1/models/{mine.id}", headers=admin_headers).status_code == 204
     with PHDClient(server.url, api_key="alice-key-123") as alice:
         assert alice.list_models() == []
+
+
+@pytest.mark.parametrize("content", ['{"alice": "short"}', '{"a": "same-key-1", "b": "same-key-1"}', "[1]", "{",
+                                     '{"admin": "admin-key-1"}'])
+def test_a_bad_keys_file_stops_the_service_from_starting(tmp_path, content):
+    from phd_core.errors import InputError
+    from service.app import create_app
+    from service.settings import Settings
+
+    keys = tmp_path / "keys.json"
+    keys.write_text(content)
+    with pytest.raises(InputError) as exc:
+        create_app(Settings(data_dir=tmp_path / "data", keys_file=keys))
+    assert exc.value.field == "keys_file"
