@@ -17,6 +17,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from phd_core.errors import InputError
+
 ADMIN = "admin"
 
 
@@ -66,12 +68,12 @@ def read_keys(path: Path) -> dict[str, str]:
     try:
         keys = json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"PHD_KEYS_FILE {path}: cannot read it as JSON ({exc})") from None
+        raise InputError("keys_file", f"cannot read {path} as JSON ({exc})") from None
     if not isinstance(keys, dict) or not keys or not all(
             isinstance(k, str) and k and isinstance(v, str) and len(v) >= 8 for k, v in keys.items()):
-        raise ValueError(f"PHD_KEYS_FILE {path}: expected a JSON object of name -> key (keys of 8 or more characters)")
+        raise InputError("keys_file", f"{path}: expected a JSON object of name -> key (keys of 8 or more characters)")
     if len(set(keys.values())) != len(keys):
-        raise ValueError(f"PHD_KEYS_FILE {path}: two names share a key")
+        raise InputError("keys_file", f"{path}: two names share a key")
     if ADMIN in keys:
-        raise ValueError(f"PHD_KEYS_FILE {path}: the name '{ADMIN}' is reserved for PHD_API_KEY")
+        raise InputError("keys_file", f"{path}: the name '{ADMIN}' is reserved for PHD_API_KEY")
     return keys

@@ -11,6 +11,8 @@ import torch
 from ..errors import InputError
 from .camera import DEFAULT_MAX_SIZE, Camera, validate_pose
 
+MIN_FIELD_OF_VIEW = 1e-6   # radians; smaller angles give focal lengths past any float
+
 
 def _number(frame: dict, key: str) -> float:
     """A finite number (NaN, +-inf and 1e309, which JSON parses as inf, are refused)."""
@@ -24,6 +26,14 @@ def _number(frame: dict, key: str) -> float:
     if not math.isfinite(value):
         raise InputError(key, f"must be a finite number, got {value}")
     return value
+
+
+def _focal_from_angle(frame: dict, key: str, size: int) -> float:
+    """The focal length in pixels of a field of view in radians (a tiny angle is refused, not divided by)."""
+    angle = _number(frame, key)
+    if not MIN_FIELD_OF_VIEW <= angle < math.pi:
+        raise InputError(key, f"field of view must lie in [{MIN_FIELD_OF_VIEW:g}, pi) radians, got {angle}")
+    return 0.5 * size / math.tan(0.5 * angle)
 
 
 def _size(value: float, key: str, max_size: int) -> int:
@@ -68,17 +78,8 @@ def camera_from_frame(frame: dict, defaults: dict | None = None, *, width: int |
         fx = _number(merged, "fl_x")
         fy = _number(merged, "fl_y") if "fl_y" in merged else fx
     elif "camera_angle_x" in merged:
-        angle = _number(merged, "camera_angle_x")
-        if not 0 < angle < math.pi:
-            raise InputError("camera_angle_x", f"field of view must lie in (0, pi) radians, got {angle}")
-        fx = 0.5 * w / math.tan(0.5 * angle)
-        if "camera_angle_y" in merged:
-            angle_y = _number(merged, "camera_angle_y")
-            if not 0 < angle_y < math.pi:
-                raise InputError("camera_angle_y", f"field of view must lie in (0, pi) radians, got {angle_y}")
-            fy = 0.5 * h / math.tan(0.5 * angle_y)
-        else:
-            fy = fx
+        fx = _focal_from_angle(merged, "camera_angle_x", w)
+        fy = _focal_from_angle(merged, "camera_angle_y", h) if "camera_angle_y" in merged else fx
     else:
         raise InputError("fl_x", "no focal length: give fl_x (nerfstudio) or camera_angle_x (Blender)")
     cx = _number(merged, "cx") if "cx" in merged else w / 2

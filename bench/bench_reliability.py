@@ -1,0 +1,177 @@
+"""Reliability figures of the service (issue 17, docs/reliability.md), against `phd serve` run
+as a separate process, as users run it:
+
+- fuzz: `--requests` mutated requests (tests/support/fuzz.py) over one keep-alive
+  connection: how many got a 5xx, how many connections were dropped (a transport error or
+  `Connection: close`), and whether any accepted job failed with internal_error;
+- memory: the attack's request (1 candidate at 800x800, samples=256, a 300-splat model)
+  against a `--budget` memory budget: the answer, and the server's peak RSS (VmHWM) over
+  its RSS before the request, next to the budget and the service's own estimate;
+- ASCII PLY: peak RSS of parsing a `--splats`-splat ASCII PLY held in memory, over the
+  RSS once the file is read, next to the file size.
+
+    nice -n 10 .venv/bin/python bench/bench_reliability.py [--requests 10000] [--budget 4294967296]
+
+Writes bench/results/reliability.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import random
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+
+from client import PHDClient  # noqa: E402
+from conftest import SvcProcess, svc_cameras, svc_random_gaussians  # noqa: E402
+from phd_core.renderers.gs3d import write_ply  # noqa: E402
+from support.fuzz import mutated_request, send  # noqa: E402
+
+
+def vm(pid: int, key: str) -> int:
+    """A /proc/<pid>/status memory figure in bytes (VmRSS, VmHWM)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+    raise KeyError(key)
+
+
+def fuzz(requests: int, root: Path, ply: Path, ply_b: Path) -> dict:
+    env = {"PHD_MAX_SAMPLES": "8", "PHD_MAX_IMAGE_SIZE": "32", "PHD_MAX_CANDIDATES": "4",
+           "PHD_MAX_TRAINING_CAMERAS": "4", "PHD_MAX_JSON_BYTES": "100000", "PHD_MEMORY_BUDGET_BYTES": str(256 << 20)}
+    server = SvcProcess(root / "fuzz", **env)
+    try:
+        with PHDClient(server.url) as phd:
+            a = phd.upload_model(ply, cameras=svc_cameras(2, size=16))
+            b = phd.upload_model(ply_b, cameras=svc_cameras(2, size=16))
+            job = phd.rank(a.id, svc_cameras(1, size=16), samples=2, dropout_ratio=0.1, heatmaps="files",
+                           run_async=True, wait=False)
+            phd.wait_job(job.id, timeout=60)
+        ids = {"model": a.id, "model_b": b.id, "job": job.id}
+        data = ply.read_bytes()
+        rng = random.Random(17)
+        statuses: dict[int, int] = {}
+        server_errors, dropped, failures = 0, 0, []
+        client = httpx.Client(base_url=server.url, timeout=60)
+        start = time.perf_counter()
+        for i in range(requests):
+            request = mutated_request(rng, ids, data)
+            try:
+                response = send(client, request)
+            except httpx.TransportError as exc:
+                dropped += 1
+                failures.append(f"{request.method} {request.path}: {type(exc).__name__}")
+                continue
+            statuses[response.status_code] = statuses.get(response.status_code, 0) + 1
+            if response.status_code >= 500:
+                server_errors += 1
+                failures.append(f"{request.method} {request.path}: {response.status_code} {response.text[:200]}")
+            if response.headers.get("connection") == "close":
+                dropped += 1
+        seconds = time.perf_counter() - start
+        connections = len(client._transport._pool.connections)
+        client.close()
+        alive = server.proc.poll() is None
+    finally:
+        server.kill()
+    return {"requests": requests, "seconds": round(seconds, 1), "server_errors": server_errors,
+            "dropped_connections": dropped, "connections_used": connections, "server_alive_after": alive,
+            "statuses": dict(sorted(statuses.items())), "failures": failures[:20]}
+
+
+def memory(root: Path, ply: Path, budget: int) -> dict:
+    server = SvcProcess(root / "memory", PHD_MEMORY_BUDGET_BYTES=str(budget))
+    try:
+        with PHDClient(server.url, timeout=3600) as phd:
+            model = phd.upload_model(ply)
+            phd.rank(model.id, svc_cameras(1, size=16), samples=2, dropout_ratio=0.1)    # warm up
+            frame = svc_cameras(1, size=800)[0].to_frame()
+            before = vm(server.proc.pid, "VmRSS")
+            start = time.perf_counter()
+            response = httpx.post(f"{server.url}/v1/models/{model.id}/rank", timeout=3600,
+                                  json={"cameras": [frame], "samples": 256, "dropout_ratio": 0.1})
+            state = "succeeded" if response.status_code == 200 else response.json().get("state")
+            if response.status_code == 202:                      # big work becomes a job: wait for it
+                phd.wait_job(response.json()["id"], poll_interval=1.0)
+                state = phd.get_job(response.json()["id"]).state
+            seconds = time.perf_counter() - start
+            peak = vm(server.proc.pid, "VmHWM")
+    finally:
+        server.kill()
+    from service.budget import plan_work
+    plan = plan_work([("3dgs", 300, ply.stat().st_size)], 800 * 800, 256, 0, budget, size_field="downscale",
+                     kept_field="cameras")
+    return {"request": "rank, 1 candidate at 800x800, samples=256, 300 splats", "budget_bytes": budget,
+            "status": response.status_code, "job_state": state, "seconds": round(seconds, 1), "rss_before_bytes": before,
+            "peak_rss_bytes": peak, "peak_over_before_bytes": peak - before,
+            "estimate_bytes": plan.bytes, "mask_batch": plan.mask_batch,
+            "within_budget": peak - before <= budget}
+
+
+def ascii_ply(root: Path, splats: int) -> dict:
+    # The peak is reset (clear_refs 5) after the file is read, so VmHWM - VmRSS is the parse alone.
+    code = ("import sys; from pathlib import Path; from phd_core.renderers.gs3d import parse_ply; "
+            "data = open(sys.argv[1], 'rb').read(); "
+            "vm = lambda k: int(next(l for l in Path('/proc/self/status').read_text().splitlines() "
+            "if l.startswith(k)).split()[1]) * 1024; "
+            "Path('/proc/self/clear_refs').write_text('5'); b = vm('VmRSS'); parse_ply(data); print(vm('VmHWM') - b)")
+    path = root / "ascii.ply"
+    binary = root / "binary.ply"
+    write_ply(svc_random_gaussians(splats, seed=3), binary)
+    data = binary.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    import numpy as np
+    names = [line.split()[-1] for line in data[:end].decode().splitlines() if line.startswith("property")]
+    records = np.frombuffer(data[end:], dtype=[(n, "<f4") for n in names])
+    with open(path, "wb") as f:
+        f.write(data[:end].replace(b"binary_little_endian", b"ascii"))
+        np.savetxt(f, np.stack([records[n] for n in names], 1), fmt="%.9g")
+    extra = int(subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
+                               check=True).stdout)
+    size = path.stat().st_size
+    return {"splats": splats, "file_bytes": size, "parse_peak_over_file_read_bytes": extra,
+            "ratio_to_file": round(extra / size, 2)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--requests", type=int, default=10_000)
+    parser.add_argument("--budget", type=int, default=4 << 30)
+    parser.add_argument("--splats", type=int, default=200_000)
+    parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "memory", "ascii"])
+    args = parser.parse_args()
+    results = {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                           "python": platform.python_version()}}
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        ply, ply_b = root / "a.ply", root / "b.ply"
+        write_ply(svc_random_gaussians(300, seed=0), ply)
+        write_ply(svc_random_gaussians(200, seed=1), ply_b)
+        if "ascii" not in args.skip:
+            results["ascii_ply"] = ascii_ply(root, args.splats)
+            print(json.dumps(results["ascii_ply"]), flush=True)
+        if "memory" not in args.skip:
+            results["memory"] = memory(root, ply, args.budget)
+            print(json.dumps(results["memory"]), flush=True)
+        if "fuzz" not in args.skip:
+            results["fuzz"] = fuzz(args.requests, root, ply, ply_b)
+            print(json.dumps(results["fuzz"]), flush=True)
+    out = ROOT / "bench" / "results" / "reliability.json"
+    out.write_text(json.dumps(results, indent=2) + "\n")
+    print(f"wrote {out}; peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss} KiB")
+
+
+if __name__ == "__main__":
+    main()

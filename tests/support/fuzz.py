@@ -1,0 +1,118 @@
+"""Mutated requests for every route, for the fuzz property test and bench/bench_reliability.py.
+
+`mutated_request(rng, ids)` takes a valid request of a random route and damages it the way
+the issue-17 attack did: a value anywhere in the JSON tree replaced by NaN / +-Infinity /
+1e309 (raw tokens, which JSON has not but Python's parser reads), huge or negative numbers,
+subnormals, wrong types, server paths, a deleted or an unknown key. The server must answer
+every one with a status below 500, on a connection it keeps open.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+from dataclasses import dataclass
+from typing import Any
+
+from conftest import svc_cameras
+
+TOKENS = ["NaN", "Infinity", "-Infinity", "1e309", "-1e309", "5e-324", "1e-320", "1e308", "-0.0",
+          "123456789012345678901234567890", "-1", "0", "1", "2.5", "true", "null", '""', '"/etc/passwd"',
+          '"/dev/zero"', "[]", "{}", "[[1,2],[3,4]]", '"\\u0000"', '"' + "a" * 300 + '"']
+PLACEHOLDER = "@@fuzz@@"
+
+
+@dataclass
+class FuzzRequest:
+    method: str
+    path: str
+    body: bytes | None = None            # JSON (may hold raw NaN tokens)
+    files: dict | None = None            # multipart upload
+
+
+def _frames(count: int) -> list[dict]:
+    return [c.to_frame() for c in svc_cameras(count, size=16)]
+
+
+def valid_bodies(ids: dict[str, str]) -> list[tuple[str, str, dict]]:
+    """(method, path, body) of one valid request per work route."""
+    model = ids["model"]
+    return [
+        ("POST", f"/v1/models/{model}/rank", {"cameras": _frames(2), "samples": 2, "dropout_ratio": 0.1,
+                                             "top_k": 1, "heatmaps": "base64", "downscale": 2}),
+        ("POST", f"/v1/models/{model}/rank", {"cameras": {"camera_angle_x": 0.7, "w": 16, "h": 16,
+                                                          "frames": [{"transform_matrix": _frames(1)[0]
+                                                                      ["transform_matrix"]}]},
+                                             "dropout_ratio": 0.2, "samples": 3, "captured": _frames(1)}),
+        ("POST", "/v1/select", {"model_a": model, "model_b": ids["model_b"], "cameras": _frames(2), "samples": 2,
+                                "ratio_a": 0.1, "ratio_b": 0.2, "rule": "sigma_mean", "images": "files"}),
+        ("POST", f"/v1/models/{model}/calibrate", {"training_cameras": _frames(2), "epsilon": 0.5, "step": 0.5,
+                                                  "samples": 2, "width": 12, "height": 12}),
+    ]
+
+
+def _paths(value: Any, prefix: tuple = ()) -> list[tuple]:
+    """Every path into a JSON tree (keys and list indices), the root excluded."""
+    found = []
+    if isinstance(value, dict):
+        for key, child in value.items():
+            found.append(prefix + (key,))
+            found += _paths(child, prefix + (key,))
+    elif isinstance(value, list):
+        for i, child in enumerate(value):
+            found.append(prefix + (i,))
+            found += _paths(child, prefix + (i,))
+    return found
+
+
+def _mutate(rng: random.Random, body: Any) -> bytes:
+    """One to three damaged places in `body`, serialised with raw tokens."""
+    body = json.loads(json.dumps(body))
+    tokens = []
+    for _ in range(rng.randint(1, 3)):
+        paths = _paths(body)
+        if not paths:
+            break
+        path = rng.choice(paths)
+        parent = body
+        for step in path[:-1]:
+            parent = parent[step]
+        action = rng.random()
+        if action < 0.1 and isinstance(parent, dict):
+            del parent[path[-1]]
+        elif action < 0.15 and isinstance(parent, dict):
+            parent[rng.choice(["unknown", "file", "path", "__proto__"])] = 1
+        else:
+            tokens.append(rng.choice(TOKENS))
+            parent[path[-1]] = PLACEHOLDER
+    text = json.dumps(body)
+    for token in tokens:
+        text = text.replace(f'"{PLACEHOLDER}"', token, 1)
+    return text.encode()
+
+
+def mutated_request(rng: random.Random, ids: dict[str, str], ply: bytes) -> FuzzRequest:
+    """A random route's valid request, damaged."""
+    kind = rng.random()
+    if kind < 0.15:                                        # an upload whose cameras part is damaged
+        cameras = _mutate(rng, {"frames": _frames(2)})
+        return FuzzRequest("POST", "/v1/models", files={"file": ("m.ply", ply), "cameras": (None, cameras)})
+    if kind < 0.25:                                        # ids and names from nowhere
+        odd = rng.choice(["nope", "..%2F..%2Fetc%2Fpasswd", "%00", "a" * 300, ids["model"] + "x", "0" * 16])
+        method, path = rng.choice([("GET", f"/v1/models/{odd}"), ("DELETE", f"/v1/models/{odd}"),
+                                   ("GET", f"/v1/jobs/{odd}"), ("DELETE", f"/v1/jobs/{odd}"),
+                                   ("GET", f"/v1/jobs/{odd}/artifacts/{odd}"),
+                                   ("GET", f"/v1/jobs/{ids['job']}/artifacts/{odd}")])
+        return FuzzRequest(method, path)
+    method, path, body = rng.choice(valid_bodies(ids))
+    if rng.random() < 0.05:
+        return FuzzRequest(method, path, _mutate(rng, body)[:rng.randint(0, 200)])   # truncated JSON
+    return FuzzRequest(method, path, _mutate(rng, body))
+
+
+def send(client, request: FuzzRequest):
+    """Send one fuzz request on an httpx.Client (its base_url the server)."""
+    if request.files is not None:
+        return client.request(request.method, request.path, files=request.files)
+    headers = {"content-type": "application/json"} if request.body is not None else {}
+    return client.request(request.method, request.path, content=request.body, headers=headers)
