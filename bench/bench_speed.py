@@ -142,7 +142,11 @@ def main() -> None:
     parser.add_argument("--train-iterations", type=int, default=100)
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "performance.md")
     parser.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "speed.json")
+    parser.add_argument("--report-only", action="store_true", help="rewrite --out from the numbers in --json")
     args = parser.parse_args()
+    if args.report_only:
+        args.out.write_text(report(json.loads(args.json.read_text())))
+        return
 
     model = donut_model()
     results: dict = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
@@ -190,6 +194,34 @@ def main() -> None:
     print(f"written {args.out} and {args.json}")
 
 
+def verdicts(r: dict) -> str:
+    """One row per target of issue 11: the measured value and whether it is met."""
+    a, b = r["render_100"], r["render_200"]
+    cpu = {key: (r[key]["user_s"] + r[key]["system_s"]) / 2 for key in ("calibrate", "rank")}
+    rows = [
+        ("batch of 16 <= 3x one render", max(x[f"batch{MASKS}_s"] / x["one_s"] for x in (a, b)), "x", lambda v: v <= 3),
+        ("batch >= 5x faster than 16 separate renders",
+         min(x[f"separate{MASKS}_s"] / x[f"batch{MASKS}_s"] for x in (a, b)), "x", lambda v: v >= 5),
+        ("fused vs pure torch, whole render of the batch, >= 10x",
+         min(x[f"pure_torch_batch{MASKS}_s"] / x[f"batch{MASKS}_s"] for x in (a, b)), "x", lambda v: v >= 10),
+        ("fused vs pure torch, compositing stage alone, >= 10x",
+         min(x["composite_reference_s"] / x["composite_fused_s"] for x in (a, b)), "x", lambda v: v >= 10),
+        ("ranking 100 candidates < 15 s, wall on this (shared) machine", r["rank"]["wall_s"], " s", lambda v: v < 15),
+        ("ranking 100 candidates < 15 s, CPU s / 2 cores", cpu["rank"], " s", lambda v: v < 15),
+        ("calibration < 5 s, wall on this (shared) machine", r["calibrate"]["wall_s"], " s", lambda v: v < 5),
+        ("calibration < 5 s, CPU s / 2 cores", cpu["calibrate"], " s", lambda v: v < 5),
+        ("peak RSS < 1 GB (largest of the phd runs)",
+         max(r[k]["peak_rss_mb"] for k in ("calibrate", "rank", "rank_with_calibration")), " MB", lambda v: v < 1024),
+        ("system time < 10 % of wall (largest of the phd runs)",
+         100 * max(r[k]["system_share"] for k in ("calibrate", "rank", "rank_with_calibration")), " %",
+         lambda v: v < 10),
+    ]
+    lines = ["| target | measured (worst of 100x100 and 200x200 where both) | met |", "|---|---|---|"]
+    for title, value, unit, ok in rows:
+        lines.append(f"| {title} | {value:.1f}{unit} | {'yes' if ok(value) else 'no'} |")
+    return "\n".join(lines)
+
+
 def report(r: dict) -> str:
     a, b = r["render_100"], r["render_200"]
     rows = []
@@ -232,6 +264,19 @@ disk): splats on a torus surface, flat discs with log-normal tangential scales a
 (scene about 2.4 across), 60 % opaque and 40 % faint. Cameras: the poses of
 `../shared/data/donut_200` (training: 16 evenly spaced train views at 100x100, in the
 sidecar; candidates: the test poses). N = {MASKS} keep-masks at ratio 0.2.
+
+## The targets of issue 11
+
+{verdicts(r)}
+
+"CPU s / 2 cores" is what a run needs with both cores to itself; on this shared machine the
+wall clock also counts the other jobs. The compositing ratio is lowest at 100x100, where the
+fused backend's fixed costs (the `COMPOSITORS` adapter transposes the [N, E] masks and
+scatters the pixels) weigh most; the product path (`SplatView`) skips that adapter.
+
+Not done: nothing is shared between different candidate cameras beyond the model's tensors
+(each camera gets one projection, one depth sort and one fragment pass, compiled); training
+keeps the pure-torch forward and backward (no fused backward).
 
 ## How it is fast
 
