@@ -123,7 +123,7 @@ def render_speed(model: GaussianModel, camera, keep: torch.Tensor) -> dict:
     values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]
     keep_frags = keep[:, proj.ids[splat]]
     num_pixels = pairs.tiles_x * pairs.tiles_y * 16
-    out["composite_reference_s"] = best_of(lambda: COMPOSITORS["reference"](frags, values, keep_frags, num_pixels), 1)
+    out["composite_reference_s"] = best_of(lambda: COMPOSITORS["reference"](frags, values, keep_frags, num_pixels), 2)
     out["composite_fused_s"] = best_of(lambda: COMPOSITORS["fused"](frags, values, keep_frags, num_pixels))
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in out.items()}
 
@@ -271,8 +271,8 @@ sidecar; candidates: the test poses). N = {MASKS} keep-masks at ratio 0.2.
 
 "CPU s / 2 cores" is what a run needs with both cores to itself; on this shared machine the
 wall clock also counts the other jobs. The compositing ratio is lowest at 100x100, where the
-fused backend's fixed costs (the `COMPOSITORS` adapter transposes the [N, E] masks and
-scatters the pixels) weigh most; the product path (`SplatView`) skips that adapter.
+fused backend's fixed costs (the `COMPOSITORS` adapter's index arrays and pixel scatter)
+weigh most; the product path (`SplatView`) skips that adapter.
 
 Not done: nothing is shared between different candidate cameras beyond the model's tensors
 (each camera gets one projection, one depth sort and one fragment pass, compiled); training
