@@ -83,6 +83,20 @@ def _composite_kernel(row_ptr, alpha, log_1ma, index, unit, keep_t, values, out_
                 out_alpha[n, s] = acc[n, channels]
 
 
+def _launch(row_ptr: torch.Tensor, alpha: torch.Tensor, log_1ma: torch.Tensor, index: torch.Tensor,
+            unit: torch.Tensor, keep_t: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Run the kernel; keep_t [U, N] may be a strided view (it is read, never copied)."""
+    masks, pixels, channels = keep_t.shape[1], len(row_ptr) - 1, values.shape[1]
+    out_values = torch.empty(masks, pixels, channels, dtype=torch.float32)
+    out_alpha = torch.empty(masks, pixels, dtype=torch.float32)
+    arrays = [t.detach().contiguous().numpy() for t in (row_ptr.long(), alpha.float(), log_1ma.float(), index.int(),
+                                                         unit.long())]
+    with LAUNCH_LOCK:
+        _composite_kernel(*arrays, keep_t.bool().numpy(), values.detach().float().contiguous().numpy(),
+                          out_values.numpy(), out_alpha.numpy())
+    return out_values, out_alpha
+
+
 def composite_indexed(row_ptr: torch.Tensor, alpha: torch.Tensor, index: torch.Tensor, unit: torch.Tensor,
                       keep: torch.Tensor | None, values: torch.Tensor,
                       log_1ma: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -97,14 +111,8 @@ def composite_indexed(row_ptr: torch.Tensor, alpha: torch.Tensor, index: torch.T
     if keep is None:
         keep = torch.ones(1, 1, dtype=torch.bool)
         unit = torch.zeros_like(unit)
-    masks, pixels, channels = keep.shape[0], len(row_ptr) - 1, values.shape[1]
-    out_values = torch.empty(masks, pixels, channels, dtype=torch.float32)
-    out_alpha = torch.empty(masks, pixels, dtype=torch.float32)
-    arrays = [t.detach().contiguous().numpy() for t in (row_ptr.long(), alpha.float(), log_1ma.float(), index.int(),
-                                                         unit.long(), keep.bool().T, values.float())]
-    with LAUNCH_LOCK:
-        _composite_kernel(*arrays, out_values.numpy(), out_alpha.numpy())
-    return out_values, out_alpha
+    # Units are looked up in any order: one unit's N flags in one cache line ([U, N] copy, small).
+    return _launch(row_ptr, alpha, log_1ma, index, unit, keep.T.contiguous(), values)
 
 
 def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
@@ -114,7 +122,12 @@ def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
     Returns (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
     """
     entries = torch.arange(len(frags.alpha))
-    sums, alpha = composite_indexed(frags.row_ptr, frags.alpha, entries.int(), entries, keep, values)
+    if keep is None:
+        sums, alpha = composite_indexed(frags.row_ptr, frags.alpha, entries.int(), entries, None, values)
+    else:
+        # Entries are read in order, so the [N, E] masks are read in place (a strided [E, N] view).
+        sums, alpha = _launch(frags.row_ptr, frags.alpha, torch.log1p(-frags.alpha.float()), entries.int(), entries,
+                              keep.T, values)
     totals = sums.new_zeros(sums.shape[0], num_pixels, sums.shape[-1])
     totals[:, frags.pixel] = sums
     acc_alpha = alpha.new_zeros(alpha.shape[0], num_pixels)
