@@ -18,8 +18,8 @@ What the scene needs is derived from the data, not configured:
   reach into it; the renderer's background colour is the training images' mean colour;
   the extent that scales the position rate and the split size is the cameras' spread, as
   the reference uses. Optionally (`background_splats`) a shell of splats far outside the
-  cameras, coloured by the pixels behind it: on cup_colmap it cost 0.7-1.7 dB at 4 and 8
-  views and gained 0.3-1.0 dB at 12 and 16 (docs/formats.md), so it is off by default;
+  cameras, coloured by the pixels behind it: on cup_colmap it cost 1.9 dB at 4 views and
+  0.9 dB at 8, and gained 0.5-0.9 dB at 12 and 16 (docs/formats.md), so it is off by default;
 - splat budget: a multiple of the pixels in one training view.
 
 The loop is shared by the splat families: a `Recipe` names what differs (the model and
