@@ -3,6 +3,7 @@
 #   docker build -t ph-dropout-service .
 #   docker run -p 8000:8000 -v phd-data:/data ph-dropout-service
 #   docker run -p 8000:8000 -v phd-data:/data -e PHD_API_KEY=secret ph-dropout-service --workers 2
+#   docker build --build-arg EXTRAS='[ray]' -t ph-dropout-service:ray .    # jobs on Ray: docs/scale-out.md
 #
 # It installs what the README's set-up installs: torch==2.13.0 (here the CPU build from
 # PyTorch's CPU wheel index, so no CUDA libraries), then the project itself.
@@ -21,7 +22,8 @@ COPY phd_core ./phd_core
 COPY phd_cli ./phd_cli
 COPY service ./service
 COPY client ./client
-RUN pip install . \
+ARG EXTRAS=""
+RUN pip install ".${EXTRAS}" \
     && useradd --create-home --uid 10001 phd \
     && mkdir -p /data \
     && chown phd:phd /data

@@ -1,16 +1,18 @@
-"""3DGS on lego_200 at 100x100: training quality and time, render time, batched keep-masks.
+"""3DGS and 2DGS on lego_200 at 100x100: training quality and time, render time, batched keep-masks.
 
-    python bench/bench_gaussians.py [--iterations 5000] [--skip-train]
+    python bench/bench_gaussians.py [--iterations 5000] [--skip-train] [--model 2dgs] [--views 16]
 
 Trains with 100 and with 16 training views, scores 25 evenly spaced test views (PSNR,
 SSIM), times single renders at 100x100 and 200x200, and compares one batched render of
 N keep-masks with N separate renders (same process, same model, so the ratio is fair).
-Models go to runs/lego{100,16}/model.ply; numbers to bench/results/gaussians.json.
+Models go to runs/lego{100,16}/model.ply (2DGS: runs/lego{100,16}_2dgs/model.ply); numbers to
+bench/results/gaussians.json (or --out).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import platform
@@ -21,9 +23,8 @@ import torch
 
 from phd_core.data import load_blender
 from phd_core.io import write_json_atomic
-from phd_core.train.gs3d import train_gaussians
 from phd_core.eval import psnr, ssim
-from phd_core.renderers import load_model
+from phd_core.renderers import FAMILIES, load_model
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "lego_200"
@@ -67,17 +68,23 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=None, help="training steps (default: the trainer's)")
     parser.add_argument("--skip-train", action="store_true", help="reuse runs/lego{100,16}/model.ply")
     parser.add_argument("--masks", type=int, default=16)
+    parser.add_argument("--model", choices=("3dgs", "2dgs"), default="3dgs", help="splat family (default 3dgs)")
+    parser.add_argument("--views", default="16,100", help="training view counts (default 16,100)")
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "gaussians.json")
     args = parser.parse_args()
+    module, function = FAMILIES[args.model].trainer.split(":")
+    train = getattr(importlib.import_module(module), function)
     test = load_blender(DATA, "test", downscale=2, views=25)
     results = {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                            "torch": torch.__version__, "threads": torch.get_num_threads()},
-               "settings": {"downscale": 2, "test_views": 25, "masks": args.masks}, "models": {}}
-    for views in (16, 100):
-        path = ROOT / "runs" / f"lego{views}" / "model.ply"
+               "settings": {"downscale": 2, "test_views": 25, "masks": args.masks, "model": args.model,
+                            "iterations": args.iterations}, "models": {}}
+    for views in (int(v) for v in args.views.split(",")):
+        path = ROOT / "runs" / f"lego{views}{'' if args.model == '3dgs' else '_' + args.model}" / "model.ply"
         entry: dict = {}
         if not args.skip_train:
             start = time.perf_counter()
-            train_gaussians(DATA, views=views, downscale=2, iterations=args.iterations, out=path, progress=False)
+            train(DATA, views=views, downscale=2, iterations=args.iterations, out=path, progress=False)
             entry["train_s"] = round(time.perf_counter() - start, 1)
         else:
             entry["train_s"] = json.loads(path.with_suffix(".json").read_text())["train_seconds"]
@@ -85,7 +92,7 @@ def main() -> None:
         entry["speed"] = speed(path, args.masks)
         results["models"][f"{views}_views"] = entry
         print(views, "views:", json.dumps(entry), flush=True)
-    out = ROOT / "bench" / "results" / "gaussians.json"
+    out = args.out
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out, results)
     print("wrote", out)

@@ -164,6 +164,13 @@ def _frames_of_transforms(data: dict, base: Path | None) -> list[dict]:
 
 def camera_frames(cameras: Cameras) -> list[dict]:
     """Frames (JSON-ready dicts) from Camera objects, frame dicts, a transforms.json object or path."""
+    if isinstance(cameras, (str, Path)) and (Path(cameras).is_dir() or str(cameras).lower().endswith(".npy")):
+        from phd_core.data import load_cameras     # a capture of any format (COLMAP, LLFF, ...): its train split
+
+        try:
+            return [c.to_frame() for c in load_cameras(cameras)]
+        except ValueError as exc:
+            raise InvalidInputError(str(exc), field="cameras") from None
     if isinstance(cameras, (str, Path)):
         path = Path(cameras)
         try:
@@ -225,8 +232,15 @@ class PHDClient:
     def upload_model(self, path: str | Path, cameras: Cameras | None = None, name: str | None = None) -> ModelInfo:
         """Upload a 3DGS PLY or NeRF checkpoint with its training cameras: `cameras`, else
         the trainer's sidecar `<stem>.json` next to a PLY when there is one (NeRF
-        checkpoints carry theirs inside)."""
+        checkpoints carry theirs inside). `path` may be the reference 3DGS trainer's output
+        folder as is: its latest point_cloud.ply goes up with its cameras.json."""
         path = Path(path)
+        if path.is_dir():
+            from phd_core.data.inria import read_output_folder
+
+            folder = read_output_folder(path)
+            cameras = folder.cameras if cameras is None else cameras     # test views (eval runs) left out
+            path = folder.ply
         sidecar = path.with_name(path.stem + ".json")
         if cameras is None and path.suffix.lower() == ".ply" and sidecar.is_file():
             cameras = sidecar
@@ -270,7 +284,8 @@ class PHDClient:
                 "training_cameras": None if cameras is None else camera_frames(cameras)}
         return self._work(f"/v1/models/{model_id}/calibrate", body, Calibration, wait, progress, poll_interval, timeout)
 
-    def rank(self, model_id: str, cameras: Cameras, *, samples: int | None = None, seed: int = 0,
+    def rank(self, model_id: str, cameras: Cameras | None = None, *, candidates: str | dict | None = None,
+             samples: int | None = None, seed: int = 0,
              dropout_ratio: float | None = None, top_k: int | None = None, strategy: str | None = None,
              captured: Cameras | None = None, heatmaps: str = "none", downscale: float | None = None,
              width: int | None = None, height: int | None = None, run_async: bool = False, wait: bool = True,
@@ -278,8 +293,15 @@ class PHDClient:
              timeout: float | None = None) -> RankResult | Job:
         """Candidate poses in the order to capture them (the service's default strategy unless `strategy`
         names another). The first `top_k` are a batch meant to be captured together. `captured`: poses
-        already taken, default the model's training cameras."""
-        body = {"cameras": camera_frames(cameras), "samples": samples, "seed": seed, "dropout_ratio": dropout_ratio,
+        already taken, default the model's training cameras. Instead of `cameras`, `candidates` lets the
+        service make the poses: a spec "orbit:64,rings=2" or {"generator": ..., "count": ..., "options": ...}."""
+        if isinstance(candidates, str):
+            from phd_core.uq.candidates import parse_spec
+
+            name, count, options = parse_spec(candidates)
+            candidates = {"generator": name, "count": count, "options": options}
+        body = {"cameras": None if cameras is None else camera_frames(cameras), "candidates": candidates,
+                "samples": samples, "seed": seed, "dropout_ratio": dropout_ratio,
                 "top_k": top_k, "strategy": strategy, "heatmaps": heatmaps, "downscale": downscale,
                 "width": width, "height": height, "async": run_async,
                 "captured": None if captured is None else camera_frames(captured)}

@@ -14,7 +14,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from phd_core.errors import InputError
 
 # Each module defines register(subparsers) and sets `func` on its parsers.
-COMMAND_MODULES = ("train", "render", "serve", "demo", "uq", "view")
+COMMAND_MODULES = ("train", "render", "serve", "demo", "uq", "candidates", "view")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("render", help="render a split and score it against the ground truth")
-    p.add_argument("--model", required=True, type=Path, help="3DGS PLY or NeRF checkpoint")
+    p.add_argument("--model", required=True, type=Path, help="3DGS or 2DGS PLY, or NeRF checkpoint")
     p.add_argument("--data", required=True, type=Path, help="dataset directory")
     p.add_argument("--split", default="test")
     p.add_argument("--views", default=None, help="count or comma-separated indices (default: all)")

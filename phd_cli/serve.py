@@ -19,6 +19,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="threads running PH-Dropout work at once (default: PHD_WORKERS, else 1)")
     parser.add_argument("--queue-size", type=int, default=None,
                         help="jobs that may wait for a worker before requests get 429 (default 8)")
+    parser.add_argument("--ray", metavar="auto|local|ADDRESS", default=None,
+                        help="run the jobs' rendering on this Ray cluster (default: PHD_EXECUTOR, else in the "
+                             "service's own worker threads; docs/scale-out.md)")
     parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"))
     parser.set_defaults(func=run)
 
@@ -30,6 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from phd_core.errors import InputError
     from service.app import create_app
     from service.settings import Settings
+    from service.timeouts import uvicorn_options
 
     if args.workers is not None and args.workers < 1:
         raise InputError("workers", f"must be at least 1, got {args.workers}")
@@ -38,13 +42,17 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise InputError("port", f"must lie in [0, 65535], got {args.port}")
     try:
-        settings = Settings.from_env(data_dir=args.data_dir, workers=args.workers, queue_size=args.queue_size)
+        settings = Settings.from_env(data_dir=args.data_dir, workers=args.workers, queue_size=args.queue_size,
+                                     executor=args.ray and "ray", executor_address=args.ray)
     except ValidationError as exc:
         error = exc.errors()[0]
         name = str(error["loc"][0]) if error["loc"] else "settings"
         raise InputError(name, f"{error['msg']} (the flag or PHD_{name.upper()}), got {error.get('input')!r}") from None
     app = create_app(settings)
+    app.state.service.executor.connect()    # a cluster that cannot be reached: a start-up error naming it
+    where = settings.executor + (f" at {settings.executor_address}" if settings.executor_address else "")
     print(f"phd serve: data in {settings.data_dir}, {settings.workers} worker(s), queue {settings.queue_size}, "
+          f"compute {where}, "
           f"API key {'required' if settings.api_key else 'off'}; http://{args.host}:{args.port}/docs", flush=True)
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, **uvicorn_options(settings))
     return 0

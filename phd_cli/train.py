@@ -1,4 +1,5 @@
-"""`phd train`: fit a 3DGS (default) or NeRF model to a Blender-format dataset."""
+"""`phd train`: fit a 3DGS (default), 2DGS or NeRF model to a capture (splats: any format
+in `phd_core.data`, COLMAP and LLFF included)."""
 
 from __future__ import annotations
 
@@ -11,11 +12,12 @@ from phd_core.renderers import FAMILIES
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("train", help="train a 3DGS or NeRF model on a Blender dataset",
+    p = subparsers.add_parser("train", help="train a 3DGS, 2DGS or NeRF model on a Blender dataset",
                               description="Train on the train split; saves the model with its training cameras.")
     trainable = sorted(kind for kind, family in FAMILIES.items() if family.trainer)
     p.add_argument("--model", choices=trainable, default="3dgs", help="model family (default 3dgs)")
-    p.add_argument("--data", required=True, type=Path, help="dataset directory (transforms_train.json)")
+    p.add_argument("--data", required=True, type=Path, help="capture: Blender/nerfstudio transforms, a COLMAP "
+                   "scene (images/ + sparse/0), or LLFF poses_bounds.npy (3dgs reads all; its train split)")
     p.add_argument("--views", default="16",
                    help="number of evenly spaced training views, or a comma-separated index list (default 16)")
     p.add_argument("--downscale", type=float, default=2.0, help="image downscale factor (default 2)")
@@ -25,6 +27,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         f"{FAMILIES[kind].extension} for {kind}" for kind in trainable) + ")")
     p.add_argument("--encoding", choices=("pe", "spe", "hash"), default="pe", help="NeRF input encoding")
     p.add_argument("--freenerf", action="store_true", help="NeRF: FreeNeRF frequency and occlusion regularisation")
+    p.add_argument("--depth-distortion", type=float, default=0.0, help="2DGS: depth distortion weight (default 0, off)")
+    p.add_argument("--normal-consistency", type=float, default=0.0,
+                   help="2DGS: normal consistency weight (default 0, off)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

@@ -13,9 +13,12 @@ from pathlib import Path
 from typing import Any
 
 from phd_core import uq as phd
-from phd_core.scene import Camera, cameras_from_json
+from phd_core.data import load_cameras
+from phd_core.scene import Camera
 from phd_core.errors import InputError
+from phd_core.executors import LOCAL, Executor, make_executor
 from phd_core.io import write_heatmap, write_json_atomic
+from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
 
@@ -29,11 +32,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_model_args(calibrate)
     source = calibrate.add_mutually_exclusive_group()
     source.add_argument("--data", type=Path, help="dataset directory: calibrate on the poses of its --split")
-    source.add_argument("--cameras", type=Path, help="transforms-style JSON (or a list of frames) of training poses")
+    source.add_argument("--cameras", type=Path, help="training poses: transforms-style JSON (or a list of frames), "
+                        "a reference cameras.json, a COLMAP model or poses_bounds.npy")
     calibrate.add_argument("--split", default="train", help="dataset split with --data (default train)")
     calibrate.add_argument("--views", type=int, default=None, help="use this many evenly spaced frames of --data")
     _add_camera_size_args(calibrate)
     _add_calibration_args(calibrate, standalone=True)
+    _add_executor_args(calibrate)
     calibrate.add_argument("--out", type=Path, help="also write the result as JSON to this file")
     calibrate.set_defaults(func=run_calibrate)
 
@@ -49,6 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_camera_size_args(uq, sizes=False)
     _add_uncertainty_args(uq)
     _add_calibration_args(uq)
+    _add_executor_args(uq)
     uq.add_argument("--vmax", type=float, default=None,
                     help="heat-map scale: zeta at or above this is the top colour (default: the largest "
                          "sigma_max of the report, shared by every map)")
@@ -63,8 +69,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "every candidate reports sigma_max, sigma_mean and the strategy's score. The ratio is "
                     "--dropout-ratio, else calibrated on the model's training cameras.")
     _add_model_args(rank)
-    rank.add_argument("--candidates", type=Path, required=True,
-                      help="transforms-style JSON or a list of frames (needs w/h, or give --width/--height)")
+    rank.add_argument("--candidates", required=True,
+                      help="a generator spec NAME[:COUNT][,key=value...] (" + ", ".join(GENERATORS) + "; e.g. "
+                      "orbit:64, see `phd candidates`), placed around the model's training cameras; or a file: "
+                      "transforms-style JSON or a list of frames (needs w/h, or give --width/--height), or any "
+                      "capture (all its frames)"),
     rank.add_argument("--strategy", choices=sorted(STRATEGIES), default=DEFAULT_STRATEGY,
                       help="; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items())))
     rank.add_argument("--captured", type=Path, default=None,
@@ -74,6 +83,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_camera_size_args(rank)
     _add_uncertainty_args(rank)
     _add_calibration_args(rank)
+    _add_executor_args(rank)
     rank.add_argument("--out", type=Path, help="write the ranking JSON here (default: print it)")
     rank.set_defaults(func=run_rank)
 
@@ -81,7 +91,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # ---------------------------------------------------------------------------------------- arguments
 
 def _add_model_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS .ply or NeRF checkpoint")
+    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS or 2DGS .ply, NeRF checkpoint, "
+                        "or the reference 3DGS trainer's output folder as is (cameras.json + point_cloud/iteration_*)")
 
 
 def _add_camera_size_args(parser: argparse.ArgumentParser, sizes: bool = True) -> None:
@@ -117,7 +128,18 @@ def _add_uncertainty_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="mask seed (default 0)")
 
 
+def _add_executor_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ray", metavar="auto|local|ADDRESS", default=None,
+                        help="render on a Ray cluster (pip install '.[ray]'; docs/scale-out.md): auto = the "
+                             "cluster `ray start` runs here (or RAY_ADDRESS), local = a private one on this "
+                             "machine, else its address (host:6379, ray://host:10001). Same result as without")
+
+
 # ---------------------------------------------------------------------------------------- helpers
+
+def _executor(args: argparse.Namespace) -> Executor:
+    return LOCAL if args.ray is None else make_executor("ray", args.ray)
+
 
 def _load(path: Path):
     from phd_core.renderers import load_model
@@ -139,7 +161,8 @@ def _training_cameras(renderer, downscale: float) -> list[Camera]:
 
 def _calibrate(args: argparse.Namespace, renderer, cameras: list[Camera]) -> phd.CalibrationResult:
     return phd.calibrate(renderer, cameras, epsilon=args.epsilon, step=args.step,
-                         samples=args.calibration_samples, method=args.method, seed=args.seed)
+                         samples=args.calibration_samples, method=args.method, seed=args.seed,
+                         executor=args.executor)
 
 
 def _ratio(args: argparse.Namespace, renderer, cameras: list[Camera] | None = None
@@ -150,6 +173,23 @@ def _ratio(args: argparse.Namespace, renderer, cameras: list[Camera] | None = No
         return args.dropout_ratio, None
     result = _calibrate(args, renderer, cameras or _training_cameras(renderer, args.downscale))
     return result.r_drop, result.to_dict()
+
+
+def _candidates(args: argparse.Namespace, renderer) -> list[Camera]:
+    """--candidates: a file or capture when the path exists, else a generator spec."""
+    path = Path(args.candidates)
+    if path.exists():
+        return load_cameras(path, split="all", width=args.width, height=args.height)
+    if "/" in args.candidates or args.candidates.lower().endswith((".json", ".npy")):
+        raise InputError("candidates", f"no such file: {path}")
+    from .candidates import make
+
+    poses = make(args.candidates, renderer)
+    if args.width is not None or args.height is not None:
+        if args.width is None or args.height is None:
+            raise InputError("width", "give --width and --height together")
+        poses = [c.resized(args.width, args.height) for c in poses]
+    return poses
 
 
 def _write_json(path: Path, data: Any) -> None:
@@ -167,6 +207,7 @@ def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None
 # ---------------------------------------------------------------------------------------- commands
 
 def run_calibrate(args: argparse.Namespace) -> int:
+    args.executor = _executor(args)
     renderer = _load(args.model)
     if args.data is not None:
         from phd_core.data import load_dataset
@@ -174,7 +215,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale, with_images=False)
         cameras = dataset.cameras
     elif args.cameras is not None:
-        cameras = _scaled(cameras_from_json(args.cameras, width=args.width, height=args.height), args.downscale)
+        cameras = _scaled(load_cameras(args.cameras, width=args.width, height=args.height), args.downscale)
     else:
         cameras = _training_cameras(renderer, args.downscale)
     try:
@@ -195,6 +236,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 def run_uq(args: argparse.Namespace) -> int:
     from phd_core.data import load_dataset
 
+    args.executor = _executor(args)
     renderer = _load(args.model)
     warnings: list[str] = []
     try:
@@ -216,7 +258,7 @@ def run_uq(args: argparse.Namespace) -> int:
         warnings.extend(calibration["warnings"])
 
     views = phd.uncertainty(renderer, dataset.cameras, ratio=ratio, samples=args.samples, seed=args.seed,
-                            keep_maps=True)
+                            keep_maps=True, executor=args.executor)
     vmax = args.vmax if args.vmax is not None else max(v.sigma_max for v in views)
     rows = []
     for i, (view, camera, index) in enumerate(zip(views, dataset.cameras, dataset.indices)):
@@ -254,15 +296,16 @@ def run_uq(args: argparse.Namespace) -> int:
 
 
 def run_rank(args: argparse.Namespace) -> int:
+    args.executor = _executor(args)
     renderer = _load(args.model)
-    candidates = _scaled(cameras_from_json(args.candidates, width=args.width, height=args.height), args.downscale)
+    candidates = _scaled(_candidates(args, renderer), args.downscale)
     ratio, calibration = _ratio(args, renderer)
     captured = None
     if args.captured is not None:
         # Only the poses matter here: frames without w/h get a placeholder size.
-        captured = cameras_from_json(args.captured, width=args.width or 1, height=args.height or 1)
+        captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
-                            top_k=args.top_k, strategy=args.strategy, captured=captured)
+                            top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor)
     result = {"strategy": args.strategy, "dropout_ratio": ratio, "calibration": calibration,
               "samples": args.samples, "seed": args.seed,
               "candidates": len(candidates), "order": [r.index for r in ranked],

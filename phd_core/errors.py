@@ -20,6 +20,19 @@ class InputError(ValueError):
         self.field = field
         self.reason = reason
 
+    def __reduce__(self):
+        # Pickle rebuilds an exception by calling its class with `args`, which this __init__
+        # (and a subclass's) does not take: rebuild from the state instead, so an InputError
+        # raised in another process (a Ray worker) arrives as itself.
+        return _rebuild_error, (type(self), self.args, self.__dict__)
+
+
+def _rebuild_error(cls: type, args: tuple, state: dict) -> InputError:
+    error = cls.__new__(cls)
+    error.args = args
+    error.__dict__.update(state)
+    return error
+
 
 def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | None = None) -> int:
     """`value` as an int (bools refused) within [minimum, maximum], else an InputError naming `name`."""

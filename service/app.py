@@ -27,16 +27,21 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import phd_core
 from phd_core.errors import InputError
+from phd_core.executors import make_executor
 
+from .budget import MemoryLedger
 from .deps import ServiceState
 from .errors import ServiceError, from_exception
 from .guard import Guard
 from .jobs import JobManager
+from .jobstore import JobStore
+from .keys import KeyRing
 from .routes import ROUTERS
 from .settings import Settings
 from .store import ModelStore
@@ -94,10 +99,7 @@ def install_error_handlers(app: FastAPI) -> None:
         return _error(exc.status_code, codes.get(exc.status_code, "http_error"), str(exc.detail),
                       headers=getattr(exc, "headers", None))
 
-    @app.exception_handler(Exception)
-    async def unexpected(_: Request, exc: Exception) -> JSONResponse:
-        # Starlette logs the traceback; the user gets the shape, not the stack.
-        return _error(500, "internal_error", f"unexpected {type(exc).__name__}; see the server log")
+    # Exceptions no handler answers become a JSON 500 in service.guard, which keeps the connection.
 
 
 # ----------------------------------------------------------------------------- the app
@@ -109,11 +111,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     swept = store.sweep()
     if swept:
         log.warning("removed %d unfinished upload(s) from %s", len(swept), settings.data_dir)
-    state = ServiceState(settings=settings, store=store, cache=RendererCache(store, settings.cache_size))
+    keys = KeyRing(settings.api_key, settings.keys_file)
+    job_store = JobStore(store, settings.job_retention)
+    interrupted = job_store.recover()
+    if interrupted:
+        log.warning("%d job(s) were unfinished at the last shutdown: marked failed (interrupted)", interrupted)
+    state = ServiceState(settings=settings, store=store, cache=RendererCache(store, settings.cache_size),
+                         ledger=MemoryLedger(settings.memory_budget_bytes), job_store=job_store,
+                         executor=make_executor(settings.executor, settings.executor_address))
 
     @asynccontextmanager
     async def lifespan(_: FastAPI):
-        state.jobs = JobManager(settings.workers, settings.queue_size, settings.job_retention)
+        await asyncio.to_thread(state.executor.connect)   # a cluster: fail at start-up, not at the first job
+        state.jobs = JobManager(settings.workers, settings.queue_size, settings.job_retention,
+                                on_change=state.persist_job)
         try:
             yield
         finally:
@@ -126,5 +137,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     for router in ROUTERS:
         app.include_router(router)
-    app.add_middleware(Guard, settings=settings)
+    app.add_middleware(Guard, settings=settings, keys=keys)
+    if settings.cors_origins:  # outermost: preflights are answered before the key check
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST", "DELETE"],
+                           allow_headers=["Authorization", "Content-Type"], expose_headers=["Location", "Retry-After"],
+                           max_age=600)
     return app

@@ -10,10 +10,14 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from fastapi.responses import JSONResponse
 
-from phd_core.renderers import FAMILIES, load_model
+from phd_core.executors import LOCAL, Executor
+from phd_core.renderers import FAMILIES, load_model_bytes
 
+from .budget import PARSE_BYTES_PER_FILE_BYTE, MemoryLedger
 from .errors import ServiceError, not_found
 from .jobs import JobManager, JobRecord, QueueFull, Work
+from .jobstore import JobStore
+from .keys import OPEN, Principal
 from .schemas import ErrorResponse, Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore
@@ -27,7 +31,6 @@ ERRORS: dict[int | str, dict[str, Any]] = {
         (429, "Work queue full: retry after Retry-After seconds"))
 }
 ACCEPTED = {202: {"model": Job, "description": "Queued as a job: poll GET /v1/jobs/{id}"}}
-ACCEPTED = {202: {"model": Job, "description": "Queued as a job: poll GET /v1/jobs/{id}"}}
 
 
 @dataclass
@@ -35,24 +38,45 @@ class ServiceState:
     settings: Settings
     store: ModelStore
     cache: RendererCache
+    ledger: MemoryLedger
+    job_store: JobStore
     jobs: JobManager | None = None
+    executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
 
-    def model(self, model_id: str, field: str | None = None) -> ModelRecord:
+    def model(self, model_id: str, who: Principal, field: str | None = None) -> ModelRecord:
+        """The model, or 404 when it does not exist or belongs to another key."""
         record = self.store.get(model_id)
-        if record is None:
+        if record is None or not who.may_see(record.owner):
             raise not_found("model", model_id, field)
         return record
 
-    def job(self, job_id: str) -> JobRecord:
-        job = self.jobs.get(job_id)
-        if job is None:
+    def job(self, job_id: str, who: Principal) -> Job:
+        """The job as the API shows it: live from memory, else as persisted (also after a restart)."""
+        live = self.jobs.get(job_id)
+        if live is not None:
+            found = (live.to_schema(), live.owner)
+        else:
+            found = self.job_store.get(job_id)
+        if found is None or not who.may_see(found[1]):
             raise not_found("job", job_id)
-        return job
+        return found[0]
 
-    async def run(self, job_id: str, kind: str, work: Work, estimate: float, run_async: bool) -> Any:
+    def artifact(self, job_id: str, name: str, who: Principal) -> bytes | None:
+        self.job(job_id, who)
+        live = self.jobs.get(job_id)
+        if live is not None and name in live.artifacts:
+            return live.artifacts[name]
+        return self.job_store.artifact(job_id, name)
+
+    def persist_job(self, job: JobRecord) -> None:
+        """JobManager's on_change: the job's state, and once final its artefacts, to disk."""
+        self.job_store.save(job.to_schema(), job.owner, job.artifacts if job.state == "succeeded" else None)
+
+    async def run(self, job_id: str, kind: str, work: Work, estimate: float, run_async: bool,
+                  who: Principal) -> Any:
         """Queue the work; answer 202 with the job when asked or when it is big, else wait for it."""
         try:
-            job = self.jobs.submit(job_id, kind, work, estimate)
+            job = self.jobs.submit(job_id, kind, work, estimate, owner=who.name)
         except QueueFull as exc:
             raise ServiceError(429, "queue_full", f"the work queue is full ({exc}); retry later", None,
                                {"Retry-After": str(self.settings.retry_after)}) from None
@@ -66,13 +90,20 @@ class ServiceState:
             raise ServiceError(409, "job_cancelled", f"job '{job.id}' was cancelled before it finished")
         raise job.error
 
-    def ingest(self, upload: Upload, kind: str) -> ModelRecord:
+    def ingest(self, upload: Upload, kind: str, who: Principal) -> ModelRecord:
         """Load the uploaded file fully (worker thread), then move it into the store."""
         cameras = None
         if upload.cameras is not None:  # the cheap check first
             cameras = parse_cameras(parse_camera_json(upload.cameras), RenderSize(), self.settings,
                                     field="cameras", cap=self.settings.max_training_cameras)
-        renderer = load_model(upload.path)
+        # Parsed under the shared memory budget; by content and the client's file name, so no
+        # message ever names the server's temp file.
+        try:
+            with self.ledger.reserve(PARSE_BYTES_PER_FILE_BYTE * upload.size, timeout=self.settings.upload_wait):
+                renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
+        except TimeoutError:
+            raise ServiceError(429, "busy", "the service's memory budget is taken by other work; retry later",
+                               "file", {"Retry-After": str(self.settings.retry_after)}) from None
         cameras = cameras if cameras is not None else renderer.training_cameras
         frames = None if not cameras else [c.to_frame() for c in cameras]
         name = upload.name or upload.filename or f"model{FAMILIES[kind].extension}"
@@ -80,7 +111,7 @@ class ServiceState:
         facts = {k: v for k, v in renderer.describe().items() if k != "has_training_cameras"}
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
-                                training_frames=frames)
+                                training_frames=frames, owner=who.name)
         self.cache.put(record.id, renderer)
         return record
 
@@ -89,11 +120,10 @@ def service_state(request: Request) -> ServiceState:
     return request.app.state.service
 
 
-Service = Annotated[ServiceState, Depends(service_state)]
-
-
-def service_state(request: Request) -> ServiceState:
-    return request.app.state.service
+def caller(request: Request) -> Principal:
+    """Who is calling (set by service.guard from the Authorization header)."""
+    return request.scope.get("state", {}).get("principal") or OPEN
 
 
 Service = Annotated[ServiceState, Depends(service_state)]
+Caller = Annotated[Principal, Depends(caller)]

@@ -8,6 +8,7 @@ Every error answer has the body `{"error": {"code", "message", "field"}}`
 from __future__ import annotations
 
 from phd_core.errors import InputError
+from phd_core.executors import ExecutorError
 from phd_core.uq import CalibrationError
 
 from .schemas import ErrorDetail
@@ -48,4 +49,6 @@ def from_exception(exc: BaseException) -> ServiceError | None:
             return ServiceError(415, "unsupported_model", exc.reason, exc.field)
         code = "calibration_failed" if isinstance(exc, CalibrationError) else "invalid_input"
         return ServiceError(422, code, exc.reason, exc.field)
+    if isinstance(exc, ExecutorError):     # the compute cluster failed, not the request
+        return ServiceError(503, "executor_failed", str(exc))
     return None

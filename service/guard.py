@@ -1,19 +1,27 @@
-"""ASGI middleware in front of every route: API-key check and request-body size caps.
+"""ASGI middleware in front of every route: API keys, body size caps and timeouts, security
+headers, and the last word on unexpected errors.
 
 It sits below FastAPI so that it sees the raw byte stream: an oversized body is refused
 with 413 as soon as its Content-Length (or, without one, its running byte count) passes
-the cap, before the route buffers or parses anything. After answering early it reads and
-discards up to `DRAIN_LIMIT` more bytes, so that an ordinary HTTP/1.1 client that is still
-sending gets to read the answer instead of a reset connection.
+the cap, before the route buffers or parses anything; a body that pauses longer than
+`body_timeout` gets 408. After answering early it reads and discards up to `DRAIN_LIMIT`
+more bytes, so that an ordinary HTTP/1.1 client that is still sending gets to read the
+answer instead of a reset connection. The caller's `Principal` (service.keys) goes into
+`scope["state"]["principal"]`. An exception no handler turned into an answer becomes a
+JSON 500 here, so the connection stays alive (uvicorn closes it when an exception reaches it).
 """
 
 from __future__ import annotations
 
-import hmac
+import asyncio
 import json
+import logging
 from typing import Any, Awaitable, Callable
 
+from .keys import KeyRing
 from .settings import Settings
+
+log = logging.getLogger("phd.service")
 
 Scope = dict[str, Any]
 Message = dict[str, Any]
@@ -25,6 +33,14 @@ DRAIN_LIMIT = 64 << 20
 OPEN_PATHS = ("/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
 OPEN_PATHS += ("/", "/ui", "/ui/", "/ui/app.js", "/ui/app.css")   # the page's static files; its API calls send the key
 UPLOAD_PATH = "/v1/models"
+DOC_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")   # FastAPI's pages load their scripts from a CDN
+# Same-origin files only (the web page: HTML, one JS and one CSS file, images from the API or
+# blob:/data: URLs), no inline script or style, no frames, no plugins.
+CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; connect-src 'self'; "
+       "font-src 'self'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'")
+SECURITY_HEADERS = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"DENY"),
+                    (b"referrer-policy", b"no-referrer"), (b"cross-origin-opener-policy", b"same-origin"),
+                    (b"permissions-policy", b"camera=(), microphone=(), geolocation=()")]
 
 
 def error_body(code: str, message: str, field: str | None = None) -> bytes:
@@ -32,21 +48,42 @@ def error_body(code: str, message: str, field: str | None = None) -> bytes:
 
 
 class Guard:
-    def __init__(self, app: ASGIApp, settings: Settings):
+    def __init__(self, app: ASGIApp, settings: Settings, keys: KeyRing):
         self.app = app
         self.settings = settings
+        self.keys = keys
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        started = False
+
+        async def secured_send(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+                extra = SECURITY_HEADERS if scope["path"] in DOC_PATHS else \
+                    SECURITY_HEADERS + [(b"content-security-policy", CSP.encode())]
+                message = {**message, "headers": [*message.get("headers", []), *extra]}
+            await send(message)
+
+        try:
+            await self.guard(scope, receive, secured_send)
+        except Exception:  # a bug: answer 500 as JSON and keep the connection (uvicorn would drop it)
+            log.exception("unexpected error in %s %s", scope["method"], scope["path"])
+            if not started:
+                await _answer(secured_send, 500, error_body("internal_error", "unexpected error; see the server log"))
+
+    async def guard(self, scope: Scope, receive: Receive, send: Send) -> None:
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
-        if self.settings.api_key is not None and scope["path"] not in OPEN_PATHS:
-            if not _authorized(headers.get("authorization"), self.settings.api_key):
-                await _answer(send, 401, error_body("unauthorized", "missing or wrong API key: send "
-                              "'Authorization: Bearer <key>'", "Authorization"), {"www-authenticate": "Bearer"})
-                await _drain(receive, DRAIN_LIMIT)
-                return
+        principal = self.keys.identify(headers.get("authorization"))
+        if principal is None and scope["path"] not in OPEN_PATHS and scope["method"] != "OPTIONS":
+            await _answer(send, 401, error_body("unauthorized", "missing or wrong API key: send "
+                          "'Authorization: Bearer <key>'", "Authorization"), {"www-authenticate": "Bearer"})
+            await _drain(receive, DRAIN_LIMIT)
+            return
+        scope.setdefault("state", {})["principal"] = principal
         is_upload = scope["method"] == "POST" and scope["path"].rstrip("/") == UPLOAD_PATH
         cap = self.settings.max_upload_bytes if is_upload else self.settings.max_json_bytes
         what = "model upload" if is_upload else "request body"
@@ -60,32 +97,38 @@ class Guard:
 
         received = 0
         answered = False
+        body_done = False
 
         async def limited_receive() -> Message:
-            nonlocal received, answered
-            message = await receive()
+            nonlocal received, answered, body_done
+            if body_done:
+                return await receive()       # after the body only a disconnect can come: no deadline
+            try:
+                message = await asyncio.wait_for(receive(), self.settings.body_timeout)
+            except asyncio.TimeoutError:
+                if not answered:
+                    answered = True
+                    await _answer(send, 408, error_body("request_timeout", "the request body paused for more "
+                                  f"than {self.settings.body_timeout:g} seconds", field), {"connection": "close"})
+                return {"type": "http.disconnect"}
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
+                body_done = not message.get("more_body", False)
                 if received > cap and not answered:
                     answered = True
                     await _answer(send, 413, too_large)
                     if message.get("more_body", False):
                         await _drain(receive, DRAIN_LIMIT)
                     return {"type": "http.disconnect"}  # the route stops reading and cleans up
+            else:
+                body_done = True
             return message
 
         async def guarded_send(message: Message) -> None:
-            if not answered:  # once the 413 went out, the route's own answer is dropped
+            if not answered:  # once the 413 or 408 went out, the route's own answer is dropped
                 await send(message)
 
         await self.app(scope, limited_receive, guarded_send)
-
-
-def _authorized(header: str | None, key: str) -> bool:
-    if header is None:
-        return False
-    scheme, _, token = header.partition(" ")
-    return scheme.lower() == "bearer" and hmac.compare_digest(token.strip().encode(), key.encode())
 
 
 async def _answer(send: Send, status: int, body: bytes, headers: dict[str, str] | None = None) -> None:

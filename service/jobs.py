@@ -5,8 +5,10 @@ awaits its job's future. `workers` threads take jobs from a waiting line of at m
 `queue_size` jobs; a submission past that raises `QueueFull` (the API answers 429 with
 Retry-After) instead of waiting. Cancelling a waiting job removes it from the line;
 cancelling a running job sets a flag that the engine's progress callback checks between
-views, raising `JobCancelled` inside the engine. Jobs live in memory only: the last
-`retention` finished jobs (and their artefacts) are kept, older ones are forgotten.
+views, raising `JobCancelled` inside the engine. The last `retention` finished jobs (and
+their artefacts) are kept in memory; every state change is also handed to `on_change`
+(the service persists it, `service.jobstore`). A shutdown fails unfinished jobs with the
+code `interrupted`.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ class JobRecord:
     kind: str
     work: Work
     estimated_pixels: float
+    owner: str | None = None                 # the API key name that submitted it (None: no keys)
     state: str = "queued"
     progress: float = 0.0
     created_at: str = field(default_factory=utc_now)
@@ -54,6 +57,7 @@ class JobRecord:
     error: ServiceError | None = None
     artifacts: dict[str, bytes] = field(default_factory=dict)
     cancel_requested: threading.Event = field(default_factory=threading.Event)
+    cancelled_by_user: bool = False
     done: Future = field(default_factory=Future)   # resolves to the record itself when final
 
     def to_schema(self) -> Job:
@@ -64,10 +68,15 @@ class JobRecord:
                    artifacts=sorted(self.artifacts))
 
 
+INTERRUPTED = ("interrupted", "the job was interrupted by a restart of the service; submit it again")
+
+
 class JobManager:
-    def __init__(self, workers: int, queue_size: int, retention: int):
+    def __init__(self, workers: int, queue_size: int, retention: int,
+                 on_change: Callable[[JobRecord], None] | None = None):
         self.queue_size = queue_size
         self.retention = retention
+        self.on_change = on_change or (lambda job: None)
         self._waiting: deque[JobRecord] = deque()
         self._jobs: OrderedDict[str, JobRecord] = OrderedDict()
         self._cond = threading.Condition()
@@ -83,14 +92,16 @@ class JobManager:
     def new_id() -> str:
         return uuid.uuid4().hex[:16]
 
-    def submit(self, job_id: str, kind: str, work: Work, estimated_pixels: float) -> JobRecord:
+    def submit(self, job_id: str, kind: str, work: Work, estimated_pixels: float,
+               owner: str | None = None) -> JobRecord:
         """Queue a job; raises QueueFull when `queue_size` jobs are already waiting."""
-        job = JobRecord(id=job_id, kind=kind, work=work, estimated_pixels=estimated_pixels)
+        job = JobRecord(id=job_id, kind=kind, work=work, estimated_pixels=estimated_pixels, owner=owner)
         with self._cond:
             if self._stopping:
                 raise QueueFull("the service is shutting down")
             if len(self._waiting) >= self.queue_size:
                 raise QueueFull(f"{len(self._waiting)} jobs are already waiting")
+            self.on_change(job)      # on disk before anyone can see its id
             self._waiting.append(job)
             self._jobs[job.id] = job
             self._cond.notify()
@@ -107,6 +118,7 @@ class JobManager:
             if job is None or job.state in FINAL_STATES:
                 return job
             job.cancel_requested.set()
+            job.cancelled_by_user = True
             if job.state == "queued":
                 self._waiting.remove(job)
                 self._finish(job, "cancelled")
@@ -124,7 +136,9 @@ class JobManager:
                 if job.state not in FINAL_STATES:
                     job.cancel_requested.set()
             while self._waiting:
-                self._finish(self._waiting.popleft(), "cancelled")
+                job = self._waiting.popleft()
+                job.error = ServiceError(503, *INTERRUPTED)
+                self._finish(job, "failed")
             self._cond.notify_all()
         for thread in self._threads:
             thread.join(timeout=30)
@@ -140,6 +154,7 @@ class JobManager:
                     return
                 job = self._waiting.popleft()
                 job.state, job.started_at = "running", utc_now()
+            self.on_change(job)
             self._run(job)
 
     def _run(self, job: JobRecord) -> None:
@@ -152,6 +167,8 @@ class JobManager:
             result, artifacts = job.work(progress)
         except JobCancelled:
             state, result, artifacts, error = "cancelled", None, {}, None
+            if not job.cancelled_by_user:   # stopped by a shutdown
+                state, error = "failed", ServiceError(503, *INTERRUPTED)
         except BaseException as exc:  # a job never takes its worker thread down
             error = from_exception(exc)
             if error is None:
@@ -171,6 +188,10 @@ class JobManager:
         """Mark a job final and forget the oldest finished jobs past `retention` (lock held)."""
         job.state, job.finished_at = state, utc_now()
         job.work = None  # type: ignore[assignment]  # drop references to renderers and inputs
+        try:
+            self.on_change(job)          # artefacts and result on disk before anyone is told
+        except Exception:  # a full disk must not leave a job unfinished in memory
+            log.error("job %s: could not persist its final state:\n%s", job.id, traceback.format_exc())
         job.done.set_result(job)
         finished = [j for j in self._jobs.values() if j.state in FINAL_STATES]
         for old in finished[:max(0, len(finished) - self.retention)]:

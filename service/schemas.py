@@ -15,11 +15,12 @@ from __future__ import annotations
 
 from typing import Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
 from phd_core.renderers import FAMILIES
 from phd_core.registry import Registry
 from phd_core.uq import DEFAULT_SELECTION_RULE
+from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 
 API_VERSION = "v1"
@@ -95,8 +96,8 @@ class ModelInfo(_Response):
     id: str
     name: str
     kind: str = Field(description="Model family, one of the registry's kinds (phd_core.renderers.FAMILIES).")
-    num_units: int = Field(description="Dropout units: splats (3DGS) or first-layer hidden units (NeRF).")
-    sh_degree: int | None = Field(None, description="Spherical-harmonic degree (3DGS).")
+    num_units: int = Field(description="Dropout units: splats (3DGS, 2DGS) or first-layer hidden units (NeRF).")
+    sh_degree: int | None = Field(None, description="Spherical-harmonic degree (3DGS, 2DGS).")
     network: dict[str, Any] | None = Field(None, description="Network size facts (NeRF).")
     bounds: dict[str, list[float]] | None = Field(None, description="Scene bounds {'min': [x,y,z], 'max': [x,y,z]}.")
     size_bytes: int
@@ -145,8 +146,25 @@ class CalibrateRequest(RenderSize):
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
 
 
+class CandidateSpec(_Request):
+    """Candidate poses made by the service: a generator placed around the model's training
+    cameras (else its splats), with their intrinsics."""
+
+    generator: str = Field(description="One of the registry's generators: " + ", ".join(
+        f"{name} ({g.summary})" for name, g in GENERATORS.items()) + ".")
+    count: int = Field(64, ge=1, description="How many poses (at most the server's candidate cap).")
+    options: dict[str, Union[int, FiniteFloat, list[FiniteFloat]]] = Field(
+        default_factory=dict, description="The generator's options, e.g. {'rings': 3, 'elevation': 0.4} for orbit.")
+
+    @field_validator("generator")
+    @classmethod
+    def _known_generator(cls, name: str) -> str:
+        return _registered(GENERATORS, name)
+
+
 class RankRequest(RenderSize):
-    cameras: CameraList = Field(description="Candidate poses. " + _CAMERAS_DOC)
+    cameras: CameraList | None = Field(None, description="Candidate poses (or give candidates). " + _CAMERAS_DOC)
+    candidates: CandidateSpec | None = Field(None, description="Instead of cameras: poses made by a generator.")
     samples: int | None = Field(None, ge=2, description="Dropout samples N per view; default the engine's.")
     seed: int = Field(0, ge=0, le=2**63 - 1)
     dropout_ratio: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: the stored calibration's r_drop.")
@@ -166,6 +184,12 @@ class RankRequest(RenderSize):
     @classmethod
     def _known_strategy(cls, name: str) -> str:
         return _registered(STRATEGIES, name)
+
+    @model_validator(mode="after")
+    def _one_candidate_source(self) -> "RankRequest":
+        if (self.cameras is None) == (self.candidates is None):
+            raise ValueError("give either cameras (explicit candidate poses) or candidates (a generator spec)")
+        return self
 
 
 class SelectRequest(RenderSize):

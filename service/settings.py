@@ -15,6 +15,8 @@ from pathlib import Path
 from pydantic import Field, PositiveFloat, PositiveInt, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from phd_core.executors import EXECUTORS
+
 APP_NAME = "ph-dropout-service"
 
 
@@ -50,6 +52,16 @@ class Settings(BaseSettings):
     max_samples: PositiveInt = 256             # dropout samples N per request
     async_threshold: PositiveFloat = 2e7       # estimated rendered pixels (views * N * H * W) above which
                                                # a request becomes a 202 job
+    memory_budget_bytes: PositiveInt = 4 << 30  # estimated memory of all running work and upload parses
+                                               # together (service.budget); a single request above it: 413
+    upload_wait: PositiveFloat = 30.0          # seconds an upload parse waits for budget before 429
+    keys_file: Path | None = None              # JSON {"name": "key", ...}: per-key model ownership (docs/service.md)
+    cors_origins: list[str] = []               # origins a browser page may call the API from (none by default)
+    header_timeout: PositiveFloat = 10.0       # seconds a client may take to send its request headers
+    body_timeout: PositiveFloat = 30.0         # seconds a client may pause between body chunks
+    executor: str = "local"                    # where jobs' rendering runs: a name in phd_core.executors
+                                               # (local: the worker threads; ray: a Ray cluster, docs/scale-out.md)
+    executor_address: str | None = None        # the cluster for it (ray: auto, local, host:6379, ray://host:10001)
 
     @field_validator("data_dir")
     @classmethod
@@ -60,6 +72,13 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_key_is_none(cls, key: str | None) -> str | None:
         return key or None
+
+    @field_validator("executor")
+    @classmethod
+    def _known_executor(cls, name: str) -> str:
+        if name not in EXECUTORS:
+            raise ValueError(EXECUTORS.unknown(name))
+        return name
 
     @classmethod
     def from_env(cls, **overrides) -> "Settings":

@@ -42,7 +42,8 @@ CREATE TABLE IF NOT EXISTS models (
     describe_json TEXT NOT NULL,
     training_frames_json TEXT,
     calibration_json TEXT,
-    created_at TEXT NOT NULL
+    created_at TEXT NOT NULL,
+    owner TEXT
 )
 """
 
@@ -66,6 +67,7 @@ class ModelRecord:
     training_frames: list[dict] | None     # nerfstudio-style frames (Camera.to_frame())
     calibration: dict[str, Any] | None     # CalibrationResult.to_dict() + num_cameras, created_at
     created_at: str
+    owner: str | None = None               # name of the API key that uploaded it (None: no named keys)
 
 
 class ModelStore:
@@ -82,6 +84,9 @@ class ModelStore:
         with self._connect() as db:
             db.execute("PRAGMA journal_mode=WAL")
             db.execute(SCHEMA)
+            columns = {row["name"] for row in db.execute("PRAGMA table_info(models)")}
+            if "owner" not in columns:  # a data directory from before per-key ownership
+                db.execute("ALTER TABLE models ADD COLUMN owner TEXT")
 
     def _connect(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.db_path, timeout=30.0, isolation_level=None)  # explicit transactions
@@ -108,7 +113,7 @@ class ModelStore:
         return self.tmp_dir / f"upload-{uuid.uuid4().hex}.part"
 
     def add(self, temp_path: Path, *, name: str, kind: str, size_bytes: int, sha256: str, num_units: int,
-            describe: dict[str, Any], training_frames: list[dict] | None) -> ModelRecord:
+            describe: dict[str, Any], training_frames: list[dict] | None, owner: str | None = None) -> ModelRecord:
         """Move a complete, validated upload into the store and record it.
 
         The temp file must already be fsynced. On any failure neither file nor row remains.
@@ -118,7 +123,7 @@ class ModelStore:
         target = self.models_dir / file
         record = ModelRecord(id=model_id, name=name, kind=kind, file=file, size_bytes=size_bytes, sha256=sha256,
                              num_units=num_units, describe=describe, training_frames=training_frames,
-                             calibration=None, created_at=utc_now())
+                             calibration=None, created_at=utc_now(), owner=owner)
         os.replace(temp_path, target)
         try:
             fsync_path(self.models_dir)
@@ -126,9 +131,10 @@ class ModelStore:
                 db.execute("BEGIN IMMEDIATE")
                 db.execute(
                     "INSERT INTO models (id, name, kind, file, size_bytes, sha256, num_units, describe_json, "
-                    "training_frames_json, calibration_json, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, NULL, ?)",
+                    "training_frames_json, calibration_json, created_at, owner) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, NULL, ?, ?)",
                     (model_id, name, kind, file, size_bytes, sha256, num_units, json.dumps(describe),
-                     None if training_frames is None else json.dumps(training_frames), record.created_at))
+                     None if training_frames is None else json.dumps(training_frames), record.created_at, owner))
                 db.execute("COMMIT")
         except BaseException:
             target.unlink(missing_ok=True)
@@ -181,4 +187,4 @@ def _record(row: sqlite3.Row) -> ModelRecord:
     return ModelRecord(id=row["id"], name=row["name"], kind=row["kind"], file=row["file"],
                        size_bytes=row["size_bytes"], sha256=row["sha256"], num_units=row["num_units"],
                        describe=decode(row["describe_json"]), training_frames=decode(row["training_frames_json"]),
-                       calibration=decode(row["calibration_json"]), created_at=row["created_at"])
+                       calibration=decode(row["calibration_json"]), created_at=row["created_at"], owner=row["owner"])

@@ -1,7 +1,7 @@
 """Model uploads: stream a multipart body to a temp file, then check it fully.
 
 Form fields of `POST /v1/models`:
-- `file` (required): the model, a 3DGS PLY or one of our NeRF checkpoints. The kind comes
+- `file` (required): the model, a 3DGS or 2DGS PLY or one of our NeRF checkpoints. The kind comes
   from the first bytes, never from the file name; anything else (a pickle named .pt, a
   zip, text) is refused with 415 before any parser sees more than its head.
 - `cameras` (optional): training cameras as JSON, a transforms.json object or a list of
@@ -58,10 +58,11 @@ class _Part:
     file: BinaryIO | None = None
 
 
-async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: int) -> Upload:
+async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: int, max_file_bytes: int) -> Upload:
     """Parse the multipart body of `request`, writing the model to `temp_path` (then fsynced).
 
-    The caller deletes `temp_path` on any failure.
+    A model past `max_file_bytes` (what the memory budget can parse) is cut off with 413 as it
+    streams. The caller deletes `temp_path` on any failure.
     """
     content_type, params = parse_options_header(request.headers.get("content-type", ""))
     if content_type != b"multipart/form-data" or not params.get(b"boundary"):
@@ -107,6 +108,9 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
                 upload.head += chunk[:SNIFF_BYTES - len(upload.head)]
             digest.update(chunk)
             upload.size += len(chunk)
+            if upload.size > max_file_bytes:
+                raise ServiceError(413, "payload_too_large", f"the model file exceeds {max_file_bytes} bytes, the "
+                                   "largest this service's memory budget can parse", "file")
             part.file.write(chunk)
             return
         part.buffer += chunk

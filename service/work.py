@@ -17,11 +17,15 @@ from typing import Any, Callable
 
 from phd_core import uq
 from phd_core.uq import Progress
+from phd_core.data.inria import cameras_from_entries, is_inria_cameras
 from phd_core.scene import Camera, cameras_from_json
+from phd_core.uq.candidates import candidate_cameras
 from phd_core.errors import InputError
+from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import Renderer, load_model
 
+from .budget import MemoryLedger, MemoryPlan, plan_work
 from .errors import ServiceError, invalid, not_found
 from .jobs import Work
 from .schemas import (Calibration, CalibrateRequest, RankedCandidate, RankRequest, RankResult, SelectedView,
@@ -87,7 +91,11 @@ def parse_cameras(source: Any, size: RenderSize, settings: Settings, *, field: s
     if (size.width is None) != (size.height is None):
         raise invalid("width" if size.width is None else "height", "give width and height together")
     try:
-        cameras = cameras_from_json(source, width=size.width, height=size.height, max_size=settings.max_frame_size)
+        if is_inria_cameras(source):     # the reference 3DGS trainer's cameras.json, as is
+            cameras = cameras_from_entries(source, settings.max_frame_size, file="frames")
+        else:
+            cameras = cameras_from_json(source, width=size.width, height=size.height,
+                                        max_size=settings.max_frame_size)
         if size.width is not None:
             cameras = [c.resized(size.width, size.height) for c in cameras]
         elif size.downscale is not None:
@@ -130,6 +138,21 @@ def pixels(cameras: list[Camera]) -> int:
 
 
 
+def memory_plan(records: list[ModelRecord], cameras: list[Camera], samples: int, settings: Settings, *,
+                kept_bytes: int = 0, kept_field: str = "cameras") -> MemoryPlan:
+    """The job's memory plan (service.budget), or a 413 naming the field to lower."""
+    return plan_work([(r.kind, r.num_units, r.size_bytes) for r in records], max(c.width * c.height for c in cameras),
+                     samples, kept_bytes, settings.memory_budget_bytes, size_field="downscale", kept_field=kept_field)
+
+
+def bounded(work: Work, plan: MemoryPlan, ledger: MemoryLedger) -> Work:
+    """The work run with its memory reserved and its renders batched to fit it."""
+    def run(progress: Progress) -> tuple[Any, dict[str, bytes]]:
+        with ledger.reserve(plan.bytes), uq.limit_mask_batch(plan.mask_batch):
+            return work(progress)
+    return run
+
+
 def b64(data: bytes) -> str:
     return base64.b64encode(data).decode("ascii")
 
@@ -142,7 +165,7 @@ def _span(progress: Progress, start: float, end: float) -> Progress:
 # ----------------------------------------------------------------------------- calibrate
 
 def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Settings, store: ModelStore,
-                  cache: RendererCache) -> tuple[Work, float]:
+                  cache: RendererCache, ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
     if body.training_cameras is not None:
         source, field = body.training_cameras, "training_cameras"
     elif record.training_frames:
@@ -156,24 +179,46 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
     options = {k: v for k, v in options.items() if v is not None}
     step = body.step or uq.DEFAULT_STEP
     estimate = pixels(cameras) * (1 + samples * int(1 / step))
+    plan = memory_plan([record], cameras, samples, settings, kept_bytes=12 * pixels(cameras),  # float32 references
+                       kept_field="training_cameras")
 
     def work(progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
         renderer = cache.get(record.id)
         result = uq.calibrate(renderer, cameras, samples=samples, method=body.method, seed=body.seed,
-                              progress=progress, **options)
+                              progress=progress, executor=executor, **options)
         calibration = Calibration(**result.to_dict(), num_cameras=len(cameras), created_at=utc_now())
         if not store.set_calibration(record.id, calibration.model_dump()):
             raise not_found("model", record.id)
         return calibration, {}
 
-    return work, float(estimate)
+    return bounded(work, plan, ledger), float(estimate)
 
 
 # ----------------------------------------------------------------------------- rank
 
+def generated_candidates(record: ModelRecord, body: RankRequest, settings: Settings,
+                         cache: RendererCache) -> list[Camera]:
+    """The poses of a rank request's generator spec, placed around the model's training cameras
+    (else its splats: the model is loaded), checked like explicit cameras."""
+    spec = body.candidates
+    if spec.count > settings.max_candidates:
+        raise invalid("candidates.count", f"{spec.count} poses exceed the cap of {settings.max_candidates} per request")
+    training = stored_cameras(record)
+    try:
+        poses = candidate_cameras(spec.generator, spec.count, cameras=training or None,
+                                  renderer=None if training else cache.get(record.id), **spec.options)
+    except InputError as exc:
+        raise invalid(f"candidates.{exc.field}", exc.reason) from None
+    return parse_cameras([c.to_frame() for c in poses], body, settings, field="candidates",
+                         cap=settings.max_candidates)
+
+
 def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: RendererCache,
-             job_url: Callable[[str], str]) -> tuple[Work, float]:
-    cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
+             job_url: Callable[[str], str], ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
+    if body.candidates is not None:
+        cameras = generated_candidates(record, body, settings, cache)
+    else:
+        cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
     captured = (stored_cameras(record) if body.captured is None else
@@ -183,12 +228,15 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
     rendered = pixels(cameras[:returned]) if heatmaps else 0   # one plain render per returned view
     estimate = pixels(cameras) * samples + rendered
     split = 1.0 - rendered / estimate if estimate else 1.0
+    # With heat maps, every candidate's zeta channel max ([H, W] float32) is kept until the order is known.
+    plan = memory_plan([record], cameras, samples, settings, kept_bytes=4 * pixels(cameras) if heatmaps else 0,
+                       kept_field="heatmaps")
 
     def work(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
         renderer = cache.get(record.id)
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
                                strategy=body.strategy, captured=captured, keep_peak=heatmaps,
-                               progress=_span(progress, 0.0, split))
+                               progress=_span(progress, 0.0, split), executor=executor)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score) for r in ranked]
         artifacts: dict[str, bytes] = {}
@@ -213,7 +261,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
                             num_candidates=len(cameras), heatmap_vmax=vmax, views=views)
         return result, artifacts
 
-    return work, float(estimate)
+    return bounded(work, plan, ledger), float(estimate)
 
 
 def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
@@ -228,12 +276,14 @@ def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
 # ----------------------------------------------------------------------------- select
 
 def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest, settings: Settings,
-               cache: RendererCache, job_url: Callable[[str], str]) -> tuple[Work, float]:
+               cache: RendererCache, job_url: Callable[[str], str], ledger: MemoryLedger,
+               executor: Executor = LOCAL) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
     estimate = pixels(cameras) * (2 * samples + (body.images != "none") * (1 + body.both_images))
+    plan = memory_plan([record_a, record_b], cameras, samples, settings)
     if body.rule == "distance_sigma":
         for name, record in (("model_a", record_a), ("model_b", record_b)):
             if not record.training_frames:
@@ -248,7 +298,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
                                   training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
                                   keep_images=("both" if body.both_images else True) if body.images != "none"
                                   else False,
-                                  progress=progress)
+                                  progress=progress, executor=executor)
         views, artifacts = [], {}
         for v in result.views:
             view = SelectedView(index=v.index, choice=v.choice, score_a=v.score_a, score_b=v.score_b,
@@ -264,4 +314,4 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
         return SelectResult(model_a=record_a.id, model_b=record_b.id, ratio_a=ratio_a, ratio_b=ratio_b,
                             rule=body.rule, samples=samples, seed=body.seed, counts=counts, views=views), artifacts
 
-    return work, float(estimate)
+    return bounded(work, plan, ledger), float(estimate)

@@ -1,16 +1,23 @@
-"""Datasets: one module per capture format (blender, nerfstudio) behind `FORMATS`, a registry
-that recognises the folder; `frames` holds what they share (Dataset, views, images)."""
+"""Datasets: one module per capture format (blender, nerfstudio, colmap, llff, the reference
+3DGS trainer's output folder) behind `FORMATS`, a registry that recognises the folder from
+its content; `frames` holds what they share (Dataset, views, images). docs/formats.md lists
+every format with its axis convention."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+from ..scene import DEFAULT_MAX_SIZE, Camera, cameras_from_json
 from .blender import BLENDER_FAR, BLENDER_NEAR, load_blender
 from .formats import FORMATS, DataFormat
 from .frames import Dataset, check_split, read_transforms, select_views
 from .nerfstudio import load_nerfstudio
+from .colmap import load_colmap
+from .llff import load_llff
+from .inria import cameras_from_entries, is_inria_cameras, load_inria, read_output_folder
 
 
 def locate(path: str | Path, split: str) -> tuple[DataFormat, Path]:
@@ -23,23 +30,50 @@ def locate(path: str | Path, split: str) -> tuple[DataFormat, Path]:
         located = data_format.locate(path, split)
         if located is not None:
             return data_format, located
-    raise InputError("data", f"{path} has neither transforms_{split}.json nor transforms.json")
+    raise InputError("data", f"{path} is no capture this project reads ({', '.join(FORMATS)}): it has neither "
+                     f"transforms_{split}.json, transforms.json, a COLMAP sparse model, poses_bounds.npy nor "
+                     "cameras.json with point_cloud/iteration_*")
 
 
 def load_dataset(path: str | Path, split: str = "train", **kw: Any) -> Dataset:
-    """Load any registered format: a directory with transforms_{split}.json is Blender; a
-    transforms.json (or a directory with one) is nerfstudio, whose one frame list is
-    served as the "train" (or "all") split."""
+    """Load any registered format, recognised from the content: a directory with
+    transforms_{split}.json is Blender; a transforms.json (or a directory with one) is
+    nerfstudio, whose one frame list is served as the "train" (or "all") split; a COLMAP
+    model, an LLFF poses_bounds.npy and a 3DGS output folder have "train", "test" and "all"."""
     data_format, located = locate(path, split)
     return data_format.load(located, split, **kw)
 
 
 def split_size(root: str | Path, split: str) -> int:
-    """Number of frames in a split, read from the JSON alone (no images)."""
-    _, json_path = locate(root, split)
-    frames, _ = read_transforms(json_path)
-    return len(frames)
+    """Number of frames in a split (cameras only, no images)."""
+    data_format, located = locate(root, split)
+    if data_format.name in ("blender", "nerfstudio"):
+        frames, _ = read_transforms(located)
+        return len(frames)
+    return len(data_format.load(located, split, with_images=False).cameras)
 
 
-__all__ = ["BLENDER_FAR", "BLENDER_NEAR", "FORMATS", "DataFormat", "Dataset", "load_blender", "load_dataset",
-           "load_nerfstudio", "select_views", "split_size"]
+def load_cameras(source: str | Path | dict | list, *, split: str = "train", width: int | None = None,
+                 height: int | None = None, max_size: int = DEFAULT_MAX_SIZE) -> list[Camera]:
+    """Cameras from anything a user may hold: a transforms-style JSON (file, dict or list of
+    frames), a reference-trainer cameras.json (file or parsed list), or a capture folder or
+    file of any registered format (its `split`)."""
+    if isinstance(source, (str, Path)):
+        path = Path(source)
+        if path.is_file() and path.suffix.lower() == ".json":
+            try:
+                source = json.loads(path.read_text())
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise InputError("cameras", f"cannot read camera JSON {path}: {exc}") from None
+            if isinstance(source, dict) and isinstance(source.get("training_cameras"), list):
+                source = source["training_cameras"]          # a `phd train` sidecar
+        else:
+            return load_dataset(path, split, with_images=False).cameras
+    if is_inria_cameras(source):
+        return cameras_from_entries(source, max_size, file="frames")
+    return cameras_from_json(source, width=width, height=height, max_size=max_size)
+
+
+__all__ = ["BLENDER_FAR", "BLENDER_NEAR", "FORMATS", "DataFormat", "Dataset", "load_blender", "load_cameras",
+           "load_colmap", "load_dataset", "load_inria", "load_llff", "load_nerfstudio", "read_output_folder",
+           "select_views", "split_size"]

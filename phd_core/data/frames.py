@@ -56,6 +56,9 @@ class Dataset:
     background: tuple[float, float, float]
     near: float | None
     far: float | None
+    points: torch.Tensor | None = None        # [P, 3] float64 SfM points (COLMAP), else None
+    point_colors: torch.Tensor | None = None  # [P, 3] float32 in [0, 1]
+    names: list[str] | None = None            # image names of the loaded frames, when the format has them
 
 
 def select_views(total: int, views: int | Sequence[int] | None, *, seed: int | None = None) -> list[int]:
@@ -103,6 +106,44 @@ def _validated_indices(views: Sequence[Any], total: int) -> list[int]:
     if len(set(indices)) != len(indices):
         raise InputError("views", "frame indices must be unique")
     return indices
+
+
+HOLDOUT = 8   # LLFF-style evaluation: every 8th image (sorted by name) is a test view
+
+
+def holdout_split(total: int, split: str) -> list[int]:
+    """Frames of a split of a capture with one image list (COLMAP, LLFF): "test" is every
+    HOLDOUT-th frame from 0, "train" the rest, "all" every frame."""
+    check_split(split)
+    chosen = {"all": range(total), "test": range(0, total, HOLDOUT),
+              "train": [i for i in range(total) if i % HOLDOUT]}.get(split)
+    if chosen is None:
+        raise InputError("split", f"this capture has the splits train, test (every {HOLDOUT}th image) and all, "
+                         f"not {split!r}")
+    if not chosen:
+        raise InputError("split", f"split {split!r} of a {total}-image capture is empty")
+    return list(chosen)
+
+
+def build_dataset(cameras: list[Camera], paths: list[Path] | None, root: Path, split: str, *, downscale: float,
+                  views: int | Sequence[int] | None, background: Sequence[float], seed: int | None,
+                  near: float | None, far: float | None, points: torch.Tensor | None = None,
+                  point_colors: torch.Tensor | None = None, names: list[str] | None = None) -> Dataset:
+    """A Dataset from full-resolution cameras of a split and their image files (None: no images):
+    select views, downscale, read the images as the transforms layouts do."""
+    bg = check_color(background, "background")
+    _check_downscale(downscale)
+    indices = select_views(len(cameras), views, seed=seed)
+    full_res = [cameras[i] for i in indices]
+    scaled = [camera.scaled(downscale) for camera in full_res] if downscale != 1 else full_res
+    images = alphas = None
+    if paths is not None:
+        for i in indices:
+            if not paths[i].is_file():
+                raise InputError("images", f"image not found: {paths[i]}")
+        images, alphas = _read_images([paths[i] for i in indices], indices, full_res, scaled[0], bg)
+    return Dataset(scaled, images, alphas, indices, root, split, bg, near, far, points, point_colors,
+                   None if names is None else [names[i] for i in indices])
 
 
 def check_split(split: str) -> None:

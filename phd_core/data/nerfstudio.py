@@ -29,7 +29,7 @@ def load_nerfstudio(path: str | Path, *, downscale: float = 1, views: int | Sequ
 def locate(path: Path, split: str) -> Path | None:
     """A transforms.json given directly or inside `path`; its one frame list is "train" or "all"."""
     json_path = path if path.is_file() else path / "transforms.json"
-    if not json_path.is_file():
+    if not json_path.is_file() or json_path.suffix.lower() != ".json":
         return None
     if split not in ("train", "all"):
         raise InputError("split", f"a nerfstudio transforms.json has no '{split}' split: "

@@ -4,6 +4,7 @@
                training_cameras, describe)
     families   FAMILIES: sniff, load, store and train each model family; load_model
     gs3d/      3D Gaussian Splatting (model, PLY, rasteriser)
+    gs2d/      2D Gaussian Splatting, surfels (model, PLY layout, rasteriser)
     nerf/      NeRF (config, field, volume rendering, renderer, checkpoint)
 
 A new family is one module defining a `Family` plus one entry in the tuple below.
@@ -11,11 +12,12 @@ A new family is one module defining a `Family` plus one entry in the tuple below
 
 from .families import (FAMILIES, SNIFF_BYTES, Family, UnknownModelError, family_of, load_model, load_model_bytes,
                        model_kind, register_family)
+from .gs2d.family import GS2D
 from .gs3d.family import GS3D
 from .nerf.family import NERF
 from .protocol import Renderer, check_keep
 
-for _family in (GS3D, NERF):
+for _family in (GS3D, NERF, GS2D):
     register_family(_family)
 
 __all__ = ["FAMILIES", "SNIFF_BYTES", "Family", "Renderer", "UnknownModelError", "check_keep", "family_of",

@@ -15,10 +15,12 @@ from typing import Any, Sequence
 
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, check_int
 
 DEFAULT_MAX_SIZE = 4096
 ORTHONORMAL_TOL = 1e-3
+MAX_INTRINSIC = 1e7        # |focal length| and |principal point| in pixels: larger ones overflow projections
+MAX_COORDINATE = 1e6       # |camera position| in scene units: beyond it float32 splat maths loses every digit
 # OpenGL camera axes -> OpenCV camera axes: flip y and z.
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 
@@ -42,15 +44,17 @@ class Camera:
         validate_pose(c2w, "transform_matrix")
         for name in ("fx", "fy"):
             value = getattr(self, name)
-            if not math.isfinite(value) or value <= 0:
-                raise InputError(name, f"focal length must be a positive finite number, got {value}")
+            if not math.isfinite(value) or not 0 < value <= MAX_INTRINSIC:
+                raise InputError(name, f"focal length must be a positive finite number up to {MAX_INTRINSIC:g} "
+                                       f"pixels, got {value}")
         for name in ("cx", "cy"):
             value = getattr(self, name)
-            if not math.isfinite(value):
-                raise InputError(name, f"principal point must be finite, got {value}")
+            if not math.isfinite(value) or abs(value) > MAX_INTRINSIC:
+                raise InputError(name, f"principal point must be finite and within +-{MAX_INTRINSIC:g} pixels, "
+                                       f"got {value}")
         for name in ("width", "height"):
             value = getattr(self, name)
-            if int(value) != value or value <= 0:
+            if isinstance(value, float) and not math.isfinite(value) or int(value) != value or value <= 0:
                 raise InputError(name, f"image size must be a positive integer, got {value}")
             if value > self.max_size:
                 raise InputError(name, f"image size {value} exceeds the cap of {self.max_size} pixels")
@@ -91,12 +95,18 @@ class Camera:
         """The same view at 1/factor of the resolution (factor 2 halves width and height)."""
         if not math.isfinite(factor) or factor <= 0:
             raise InputError("downscale", f"must be a positive number, got {factor}")
+        largest = max(self.width, self.height) / factor        # inf for a subnormal factor: no round() of it
+        if not largest <= self.max_size:
+            raise InputError("downscale", f"{factor} renders {self.width}x{self.height} at {largest:.4g} pixels "
+                                          f"per side, above the cap of {self.max_size}")
         width = max(1, round(self.width / factor))
         height = max(1, round(self.height / factor))
         return self.resized(width, height)
 
     def resized(self, width: int, height: int) -> "Camera":
         """The same view rendered at width x height; intrinsics scale with the size."""
+        for name, value in (("width", width), ("height", height)):
+            check_int(value, name, 1, self.max_size)         # before a division by it can overflow
         sx, sy = width / self.width, height / self.height
         return Camera(self.c2w, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
                       width, height, self.max_size)
@@ -116,6 +126,8 @@ def validate_pose(c2w: torch.Tensor, name: str = "transform_matrix") -> None:
         raise InputError(name, f"must be a 4x4 (or 3x4) matrix, got shape {list(c2w.shape)}")
     if not torch.isfinite(c2w).all():
         raise InputError(name, "contains NaN or infinite values")
+    if c2w[:3, 3].abs().max() > MAX_COORDINATE:
+        raise InputError(name, f"camera position lies beyond +-{MAX_COORDINATE:g} scene units")
     rot = c2w[:3, :3]
     err = (rot.T @ rot - torch.eye(3, dtype=rot.dtype)).abs().max().item()
     if err > ORTHONORMAL_TOL:

@@ -3,9 +3,7 @@ frames. The inverse is `Camera.to_frame()`."""
 
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -15,10 +13,24 @@ from .camera import DEFAULT_MAX_SIZE, Camera, validate_pose
 
 
 def _number(frame: dict, key: str) -> float:
+    """A finite number (NaN, +-inf and 1e309, which JSON parses as inf, are refused)."""
     value = frame[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(key, f"must be a number, got {type(value).__name__}")
-    return float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # an int too large for a float
+        raise InputError(key, "must be a finite number, got an integer too large for a float") from None
+    if not math.isfinite(value):
+        raise InputError(key, f"must be a finite number, got {value}")
+    return value
+
+
+def _size(value: float, key: str, max_size: int) -> int:
+    """An image side in whole pixels within [1, max_size] (checked before int() sees it)."""
+    if value != int(value) or not 1 <= value <= max_size:
+        raise InputError(key, f"image size must be a whole number of pixels in [1, {max_size}], got {value}")
+    return int(value)
 
 
 def _matrix(value: Any) -> torch.Tensor:
@@ -51,6 +63,7 @@ def camera_from_frame(frame: dict, defaults: dict | None = None, *, width: int |
     h = _number(merged, "h") if "h" in merged else height
     if w is None or h is None:
         raise InputError("w", "image size unknown: give w and h (or load with the images)")
+    w, h = _size(w, "w", max_size), _size(h, "h", max_size)
     if "fl_x" in merged:
         fx = _number(merged, "fl_x")
         fy = _number(merged, "fl_y") if "fl_y" in merged else fx
@@ -70,25 +83,21 @@ def camera_from_frame(frame: dict, defaults: dict | None = None, *, width: int |
         raise InputError("fl_x", "no focal length: give fl_x (nerfstudio) or camera_angle_x (Blender)")
     cx = _number(merged, "cx") if "cx" in merged else w / 2
     cy = _number(merged, "cy") if "cy" in merged else h / 2
-    if w != int(w) or h != int(h):
-        raise InputError("w", f"image size must be whole pixels, got {w} x {h}")
-    return Camera(c2w, fx, fy, cx, cy, int(w), int(h), max_size)
+    return Camera(c2w, fx, fy, cx, cy, w, h, max_size)
 
 
-def cameras_from_json(source: str | Path | dict | list, *, width: int | None = None,
+def cameras_from_json(source: dict | list, *, width: int | None = None,
                       height: int | None = None, max_size: int = DEFAULT_MAX_SIZE) -> list[Camera]:
-    """Cameras from a transforms.json path, its parsed dict, or a plain list of frames."""
-    if isinstance(source, (str, Path)):
-        try:
-            source = json.loads(Path(source).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise InputError("cameras", f"cannot read camera JSON {source}: {exc}") from None
+    """Cameras from parsed JSON: a transforms.json object or a plain list of frames.
+
+    A string is refused, never opened: files are read by `phd_core.data.load_cameras` (the CLI's)."""
     if isinstance(source, list):
         frames, defaults = source, {}
     elif isinstance(source, dict) and isinstance(source.get("frames"), list):
         frames, defaults = source["frames"], {k: v for k, v in source.items() if k != "frames"}
     else:
-        raise InputError("frames", "expected a list of frames or an object with a 'frames' list")
+        raise InputError("frames", "expected a list of frames or an object with a 'frames' list, got "
+                                   f"{type(source).__name__}")
     if not frames:
         raise InputError("frames", "no frames given")
     cameras = []

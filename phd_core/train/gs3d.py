@@ -1,4 +1,4 @@
-"""Fit a 3D Gaussian Splatting model to a Blender-format dataset on the CPU.
+"""Fit a 3D Gaussian Splatting model to a capture (any `phd_core.data` format) on the CPU.
 
 The recipe is the reference one (Kerbl et al. 2023) scaled to short CPU runs:
 L1 + 0.2 D-SSIM, Adam with per-parameter learning rates and an exponentially decaying
@@ -11,8 +11,20 @@ What the scene needs is derived from the data, not configured:
   extent every camera sees);
 - initial splats: carved from the training alpha masks where the data has them (a point
   is kept when every training view that sees it sees foreground there), coloured by the
-  pixels it projects to; uniform in the bounds otherwise;
+  pixels it projects to; else the SfM points where the format has them (COLMAP), each
+  splat as wide as the mean distance to its 3 nearest neighbours, as the reference trainer
+  starts; uniform in the bounds otherwise;
+- real captures (no alpha masks): the background is real and unbounded. The SfM points
+  reach into it; the renderer's background colour is the training images' mean colour;
+  the extent that scales the position rate and the split size is the cameras' spread, as
+  the reference uses. Optionally (`background_splats`) a shell of splats far outside the
+  cameras, coloured by the pixels behind it: on cup_colmap it cost 0.7-1.7 dB at 4 and 8
+  views and gained 0.3-1.0 dB at 12 and 16 (docs/formats.md), so it is off by default;
 - splat budget: a multiple of the pixels in one training view.
+
+The loop is shared by the splat families: a `Recipe` names what differs (the model and
+renderer classes, the rasteriser, an optional regulariser, initial rotations);
+`phd_core.train.gs2d` trains 2DGS surfels with it.
 """
 
 from __future__ import annotations
@@ -21,18 +33,19 @@ import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 from tqdm import tqdm
 
-from ..data import Dataset, load_blender
+from ..data import Dataset, load_dataset
 from ..errors import InputError
 from ..eval import ssim
 from ..io import write_json_atomic
-from ..renderers.gs3d import SIDECAR_FORMAT, GaussianModel, GaussianRenderer, rasterize, sidecar_path, write_ply
+from ..renderers.gs3d import (SIDECAR_FORMAT, GaussianModel, GaussianRenderer, RenderOutput, rasterize, sidecar_path,
+                               write_ply)
 from ..renderers.splats import SH_C0, quaternion_to_rotation
-from ..scene import footprint, scene_bounds, visual_hull
+from ..scene import Camera, footprint, scene_bounds, visual_hull
 
 
 @dataclass
@@ -47,6 +60,8 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     init_points: int = 6000
+    background_splats: int = 0        # a far shell of this many splats for captures without alpha masks
+    shell_radius: float = 3.0         # times the largest camera distance from the scene centre
     splats_per_pixel: float = 4.0     # budget: this many splats per pixel of one view
     densify_from: float = 0.05        # fractions of the run
     densify_until: float = 0.6
@@ -66,6 +81,22 @@ class TrainConfig:
             raise InputError("sh_degree", f"must be 0..3, got {self.sh_degree}")
         if self.init_points < 1:
             raise InputError("init_points", f"must be at least 1, got {self.init_points}")
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """What differs between the splat families this loop trains."""
+
+    kind: str                                     # the renderer's kind, and the progress label
+    model_type: type[GaussianModel]               # GaussianModel, or a subclass with other scale_axes
+    renderer_type: type[GaussianRenderer]
+    render: Callable[..., RenderOutput]           # (model, camera, background, tile=) -> output
+    # (output, camera, fraction of the run done, scene extent) -> loss added to the photometric one
+    regulariser: Callable[[RenderOutput, Camera, float, float], torch.Tensor] | None = None
+    random_rotations: bool = False                # initial orientations: random, or all identity
+
+
+GAUSSIANS = Recipe("3dgs", GaussianModel, GaussianRenderer, rasterize)
 
 
 # ----------------------------------------------------------------------------- scene
@@ -103,21 +134,100 @@ def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
 
 
 def initial_model(points: torch.Tensor, colours: torch.Tensor, sh_degree: int, extent: float,
-                  gen: torch.Generator) -> GaussianModel:
-    """Small isotropic splats at `points` with 10% opacity and DC colour from `colours`."""
-    n = len(points)
-    spacing = extent * 2 / max(1.0, n ** (1 / 3))    # mean distance between points
+                  gen: torch.Generator, spacing: torch.Tensor | None = None,
+                  recipe: Recipe = GAUSSIANS) -> GaussianModel:
+    """Small isotropic splats at `points` with 10% opacity and DC colour from `colours`; their
+    size is half of `spacing` [P] (default the mean distance between points in the bounds)."""
+    n, axes = len(points), recipe.model_type.scale_axes
+    if spacing is None:      # the mean distance between n points spread over the bounds
+        log_scales = torch.full((n, axes), math.log(extent * 2 / max(1.0, n ** (1 / 3)) * 0.5))
+    else:
+        log_scales = (spacing.double() * 0.5).clamp_min(1e-7).log().float()[:, None].expand(n, axes).contiguous()
     sh = torch.zeros(n, (sh_degree + 1) ** 2, 3)
     sh[:, 0] = (colours - 0.5) / SH_C0
-    quats = torch.zeros(n, 4)
-    quats[:, 0] = 1.0
-    return GaussianModel(
+    if recipe.random_rotations:
+        quats = torch.randn(n, 4, generator=gen)
+    else:
+        quats = torch.zeros(n, 4)
+        quats[:, 0] = 1.0
+    return recipe.model_type(
         means=points.clone(),
-        log_scales=torch.full((n, 3), math.log(spacing * 0.5)),
+        log_scales=log_scales,
         quats=quats,
         opacity_logits=torch.full((n,), math.log(0.1 / 0.9)),
         sh=sh,
     )
+
+
+def neighbour_spacing(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
+    """[P] mean distance of each point to its k nearest other points (chunked: no P x P matrix)."""
+    out = torch.empty(len(points), dtype=points.dtype)
+    k = min(k, len(points) - 1)
+    if k < 1:
+        return torch.ones(len(points), dtype=points.dtype)
+    for start in range(0, len(points), chunk):
+        d = torch.cdist(points[start:start + chunk], points)                     # [c, P]
+        out[start:start + chunk] = d.topk(k + 1, largest=False).values[:, 1:].mean(1)
+    return out
+
+
+def background_shell(data: Dataset, centre: torch.Tensor, radius: float, count: int
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Points [B, 3], colours [B, 3] and spacing [B] on a sphere of `radius` around `centre`:
+    the directions some training view sees, coloured by the mean pixel behind them."""
+    total = 4 * count
+    i = torch.arange(total, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / total
+    azimuth = math.pi * (3 - math.sqrt(5)) * i
+    ring = (1 - z * z).sqrt()
+    sphere = centre + radius * torch.stack([ring * azimuth.cos(), ring * azimuth.sin(), z], dim=1)   # [4B, 3]
+    colour_sum = torch.zeros(total, 3, dtype=torch.float64)
+    seen = torch.zeros(total, dtype=torch.float64)
+    for cam, image in zip(data.cameras, data.images):
+        pixel = footprint(cam, sphere)
+        colour_sum += torch.where(pixel.inside[:, None], image[pixel.v0, pixel.u0].double(), 0.0)
+        seen += pixel.inside.double()
+    visible = (seen > 0).nonzero().squeeze(1)[:count]
+    spacing = torch.full((len(visible),), radius * math.sqrt(4 * math.pi / total) * 2, dtype=torch.float64)
+    return sphere[visible], (colour_sum[visible] / seen[visible, None]), spacing
+
+
+def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: TrainConfig,
+               gen: torch.Generator, recipe: Recipe = GAUSSIANS) -> GaussianModel:
+    """The first splats: from the alpha masks' hull, else the SfM points, else uniform (module docstring)."""
+    if data.alphas is not None or data.points is None or len(data.points) == 0:
+        points, colours = carve_points(data, centre, extent, config.init_points, gen)
+        spacing = None
+    else:
+        points, colours = data.points.to(torch.float64), data.point_colors.to(torch.float64)
+        spacing = neighbour_spacing(points)
+    if data.alphas is None and config.background_splats > 0:
+        eyes = torch.stack([c.center for c in data.cameras])
+        radius = config.shell_radius * float((eyes - centre).norm(dim=1).max())
+        if spacing is None:
+            spacing = torch.full((len(points),), extent * 2 / max(1.0, len(points) ** (1 / 3)), dtype=torch.float64)
+        shell, shell_colours, shell_spacing = background_shell(data, centre, radius, config.background_splats)
+        points = torch.cat([points.double(), shell])
+        colours = torch.cat([colours.double(), shell_colours])
+        spacing = torch.cat([spacing.double(), shell_spacing])
+    return initial_model(points.float(), colours.float(), config.sh_degree, extent, gen, spacing, recipe)
+
+
+def training_background(data: Dataset) -> tuple[float, float, float]:
+    """The colour behind the splats: the dataset's where alpha masks define it, else the
+    training images' mean colour (a real capture has no empty background)."""
+    if data.alphas is not None or data.images is None:
+        return data.background
+    return tuple(float(v) for v in data.images.mean(dim=(0, 1, 2)))
+
+
+def training_extent(data: Dataset, extent: float) -> float:
+    """The scale of position steps and splits: the bounds' extent for object captures, the
+    cameras' spread (1.1 x the largest distance from their mean, as the reference) for real ones."""
+    if data.alphas is not None:
+        return extent
+    eyes = torch.stack([c.center for c in data.cameras])
+    return max(extent, 1.1 * float((eyes - eyes.mean(0)).norm(dim=1).max()))
 
 
 # ----------------------------------------------------------------------------- optimiser
@@ -132,6 +242,7 @@ class Splats:
         tensors = {"means": model.means, "log_scales": model.log_scales, "quats": model.quats,
                    "opacity_logits": model.opacity_logits, "sh_dc": model.sh[:, :1], "sh_rest": model.sh[:, 1:]}
         self.params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in tensors.items()}
+        self.model_type = type(model)
         self.lr_means = config.lr_means * extent
         lrs = {"means": self.lr_means, "log_scales": config.lr_scales, "quats": config.lr_quats,
                "opacity_logits": config.lr_opacity, "sh_dc": config.lr_sh_dc, "sh_rest": config.lr_sh_rest}
@@ -142,8 +253,8 @@ class Splats:
         sh = torch.cat([self.params["sh_dc"], self.params["sh_rest"]], dim=1)
         if active_degree is not None:   # unused higher bands contribute nothing yet
             sh = sh[:, : (active_degree + 1) ** 2]
-        return GaussianModel(self.params["means"], self.params["log_scales"], self.params["quats"],
-                             self.params["opacity_logits"], sh)
+        return self.model_type(self.params["means"], self.params["log_scales"], self.params["quats"],
+                               self.params["opacity_logits"], sh)
 
     def set_means_lr(self, fraction: float) -> None:
         """Log-linear decay of the position rate to 1% of its start over the run."""
@@ -190,9 +301,9 @@ def densify(splats: Splats, grad_norm: torch.Tensor, config: TrainConfig, extent
     # Split: two children sampled from the parent's Gaussian, 1/1.6 of its size.
     idx = split.nonzero().squeeze(1).repeat(2)
     if len(idx):
-        rot = quaternion_to_rotation(p["quats"][idx])
-        std = p["log_scales"][idx].exp()
-        offset = (rot @ (torch.randn(len(idx), 3, generator=gen) * std)[..., None]).squeeze(-1)
+        std = p["log_scales"][idx].exp()                               # [S, axes]
+        rot = quaternion_to_rotation(p["quats"][idx])[:, :, :std.shape[1]]   # the scaled axes
+        offset = (rot @ (torch.randn(len(idx), std.shape[1], generator=gen) * std)[..., None]).squeeze(-1)
         children = {k: v[idx] for k, v in p.items()}
         children["means"] = children["means"] + offset
         children["log_scales"] = children["log_scales"] - math.log(1.6)
@@ -206,27 +317,28 @@ def densify(splats: Splats, grad_norm: torch.Tensor, config: TrainConfig, extent
 
 def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downscale: float = 2,
                     iterations: int | None = None, seed: int = 0, out: str | Path,
-                    progress: bool = True, **overrides: Any) -> GaussianRenderer:
-    """Train on the `train` split of a Blender dataset and write `out` (PLY) plus the
-    sidecar `<stem>.json` with the training cameras, the views and the settings."""
+                    progress: bool = True, recipe: Recipe = GAUSSIANS, **overrides: Any) -> GaussianRenderer:
+    """Train on the `train` split of a capture (Blender, nerfstudio, COLMAP, LLFF) and write `out`
+    (PLY) plus the sidecar `<stem>.json` with the training cameras, the views and the settings."""
     config = TrainConfig(seed=seed, **overrides)
     if iterations is not None:
         config.iterations = iterations
     config.validate()
-    dataset = load_blender(data, "train", downscale=downscale, views=views)
+    dataset = load_dataset(data, "train", downscale=downscale, views=views)
     started = time.perf_counter()
-    model, history = fit(dataset, config, progress=progress)
+    model, history = fit(dataset, config, progress=progress, recipe=recipe)
     seconds = time.perf_counter() - started
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_ply(model, out)
     sidecar = {
         "format": SIDECAR_FORMAT,
+        "model": recipe.kind,
         "dataset": str(Path(data).resolve()),
         "split": "train",
         "view_indices": dataset.indices,
         "downscale": downscale,
-        "background": list(dataset.background),
+        "background": list(training_background(dataset)),
         "training_cameras": [c.to_frame() for c in dataset.cameras],
         "settings": asdict(config),
         "num_splats": model.num_splats,
@@ -234,10 +346,11 @@ def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downsc
         "final_loss": history[-1] if history else None,
     }
     write_json_atomic(sidecar_path(out), sidecar)
-    return GaussianRenderer(model, dataset.background, dataset.cameras, tile=config.tile)
+    return recipe.renderer_type(model, training_background(dataset), dataset.cameras, tile=config.tile)
 
 
-def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True) -> tuple[GaussianModel, list[float]]:
+def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True,
+        recipe: Recipe = GAUSSIANS) -> tuple[GaussianModel, list[float]]:
     """The optimisation loop; returns the trained model and the loss every 100 steps.
 
     Seeded: bit-identical for a seed on one torch thread; with several threads, parallel
@@ -248,9 +361,10 @@ def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True) -> tupl
     gen = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)
     centre, extent = scene_bounds(dataset.cameras)
-    points, colours = carve_points(dataset, centre, extent, config.init_points, gen)
-    splats = Splats(initial_model(points, colours, config.sh_degree, extent, gen), config, extent)
-    background = torch.tensor(dataset.background)
+    model = seed_model(dataset, centre, extent, config, gen, recipe)
+    extent = training_extent(dataset, extent)
+    splats = Splats(model, config, extent)
+    background = torch.tensor(training_background(dataset))
     cam0 = dataset.cameras[0]
     budget = int(config.splats_per_pixel * cam0.width * cam0.height)
     n_iter = config.iterations
@@ -261,7 +375,7 @@ def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True) -> tupl
     grad_count = torch.zeros(splats.count)
     history: list[float] = []
     order = torch.randperm(len(dataset.cameras), generator=gen)
-    bar = tqdm(range(n_iter), disable=not progress, desc="3dgs", unit="it")
+    bar = tqdm(range(n_iter), disable=not progress, desc=recipe.kind, unit="it")
     for step in bar:
         if step % len(order) == 0 and step:
             order = torch.randperm(len(dataset.cameras), generator=gen)
@@ -269,11 +383,13 @@ def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True) -> tupl
         cam, target = dataset.cameras[view], dataset.images[view]
         splats.set_means_lr(step / n_iter)
         degree = min(config.sh_degree, step // sh_up)
-        out = rasterize(splats.model(degree), cam, background, tile=config.tile)
+        out = recipe.render(splats.model(degree), cam, background, tile=config.tile)
         out.means2d.retain_grad()
         image = out.rgb[0]
         l1 = (image - target).abs().mean()
         loss = (1 - config.ssim_weight) * l1 + config.ssim_weight * (1 - ssim(image, target))
+        if recipe.regulariser is not None:
+            loss = loss + recipe.regulariser(out, cam, step / n_iter, extent)
         splats.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if step < densify_until:
@@ -298,6 +414,6 @@ def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True) -> tupl
             bar.set_postfix(loss=f"{loss.item():.4f}", splats=splats.count)
     final = splats.model()
     keep = torch.sigmoid(final.opacity_logits.detach()) >= config.min_opacity
-    detached = GaussianModel(*(t.detach().clone() for t in (final.means, final.log_scales, final.quats,
-                                                             final.opacity_logits, final.sh)))
+    detached = recipe.model_type(*(t.detach().clone() for t in (final.means, final.log_scales, final.quats,
+                                                                 final.opacity_logits, final.sh)))
     return detached.subset(keep), history

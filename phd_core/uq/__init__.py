@@ -20,7 +20,8 @@ from .calibrate import (DEFAULT_CALIBRATION_SAMPLES, DEFAULT_EPSILON, DEFAULT_SS
                         CalibrationError, CalibrationResult, calibrate, calibrate_ssim)
 from .candidates import GENERATORS
 from .rank import RankedView, candidate_evidence, rank_views
-from .sampling import MAX_MASKS_PER_RENDER, Progress, dropout_uniforms, keep_masks, sample_std
+from .sampling import (MAX_MASKS_PER_RENDER, Progress, RunningStd, dropout_uniforms, keep_masks, limit_mask_batch,
+                       sample_std)
 from .select import (DEFAULT_SELECTION_RULE, SELECTION_RULES, SELECTION_TRAINING_VIEWS, SelectionResult,
                      ViewSelection, select_models)
 from .strategies import DEFAULT_STRATEGY, STRATEGIES
@@ -30,7 +31,7 @@ __all__ = [
     "DEFAULT_CALIBRATION_SAMPLES", "DEFAULT_EPSILON", "DEFAULT_SAMPLES", "DEFAULT_SELECTION_RULE",
     "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "GENERATORS", "MAX_MASKS_PER_RENDER",
     "SELECTION_RULES", "SELECTION_TRAINING_VIEWS", "STRATEGIES", "CalibrationError", "CalibrationResult",
-    "Progress", "RankedView", "SelectionResult", "ViewSelection", "ViewUncertainty", "calibrate", "calibrate_ssim",
-    "candidate_evidence", "dropout_uniforms", "keep_masks", "rank_views", "sample_std", "select_models",
+    "Progress", "RankedView", "RunningStd", "SelectionResult", "ViewSelection", "ViewUncertainty", "calibrate", "calibrate_ssim",
+    "candidate_evidence", "dropout_uniforms", "keep_masks", "limit_mask_batch", "rank_views", "sample_std", "select_models",
     "sigma_max_bar", "uncertainty", "view_uncertainty",
 ]

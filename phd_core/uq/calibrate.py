@@ -18,9 +18,10 @@ from torch import Tensor
 from ..scene import Camera
 from ..errors import InputError, check_float, check_int
 from ..eval import ssim
+from ..executors import LOCAL, Executor
 from ..renderers import Renderer
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_seed, check_step,
-                       dropout_uniforms, keep_masks, render_masks)
+                       dropout_uniforms, keep_masks, masked_renders, render_masks)
 
 # Defaults measured on the 16-view lego 3DGS model (docs/uq.md, bench/bench_phdropout.py).
 DEFAULT_EPSILON = 0.0175           # mean |full - dropped| per pixel and channel on [0, 1]: on lego16 the
@@ -121,15 +122,33 @@ def _finish_calibration(k: int, grid: int, step: float, probes: dict[int, float]
                              samples=samples, seed=seed, method=method, capped=capped, warnings=warnings)
 
 
+def full_renders(cameras: list[Camera], renderer: Renderer) -> list[Tensor]:
+    """The full model's [1, H, W, 3] render of each camera of a chunk (what an executor runs)."""
+    return [render_masks(renderer, camera, None) for camera in cameras]
+
+
+def dropout_errors(views: tuple[list[Camera], list[Tensor]], renderer: Renderer, keep: Tensor) -> list[float]:
+    """Per view of a chunk (cameras, full renders): mean |full - dropped| over masks, pixels and channels."""
+    cameras, references = views
+    errors = []
+    for camera, reference in zip(cameras, references):
+        total = sum((chunk.double() - reference.double()).abs().sum().item()   # a chunk of masks at a time
+                    for chunk in masked_renders(renderer, camera, keep))
+        errors.append(total / (keep.shape[0] * reference.numel()))
+    return errors
+
+
 def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float = DEFAULT_EPSILON,
               step: float = DEFAULT_STEP, samples: int = DEFAULT_CALIBRATION_SAMPLES,
-              method: str = "linear", seed: int = 0, progress: Progress | None = None) -> CalibrationResult:
+              method: str = "linear", seed: int = 0, progress: Progress | None = None,
+              executor: Executor = LOCAL) -> CalibrationResult:
     """Algorithm 1: the largest dropout ratio whose mean absolute error on the training
     views stays below `epsilon`.
 
     Error(r) = mean over views (each view weighs the same), masks, pixels and channels of
     |F(x; theta) - F(x; D(theta, r))|, with the same `samples` nested masks for every r.
-    Raises CalibrationError when r_drop would be 0.
+    `executor` (phd_core.executors) renders chunks of views, anywhere; each chunk's full
+    renders stay shared between the ratios. Raises CalibrationError when r_drop would be 0.
     """
     epsilon = check_float(epsilon, "epsilon")
     if epsilon <= 0:
@@ -143,20 +162,21 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
 
     grid = _grid_size(step)
     ticker = ProgressTicker(progress, len(cameras) * (1 + _expected_probes(grid, method)))
-    references = []                                   # [1, H, W, 3] full renders
-    for camera in cameras:
-        references.append(render_masks(renderer, camera, None).double())
-        ticker.tick()
+    model = executor.share(renderer)
+    chunks = executor.split(cameras)
+
+    def tick(i: int) -> None:
+        ticker.tick(len(chunks[i]))
+
+    references = executor.map(full_renders, chunks, model, done=tick)
+    views = [executor.share((chunk, refs)) for chunk, refs in zip(chunks, references)]
     uniforms = dropout_uniforms(renderer.num_units, samples, seed)
     probes: dict[int, float] = {}
 
     def error(k: int) -> float:
         if k not in probes:
             keep = keep_masks(uniforms, _grid_ratio(k, step))
-            per_view = []
-            for camera, reference in zip(cameras, references):
-                per_view.append((render_masks(renderer, camera, keep).double() - reference).abs().mean().item())
-                ticker.tick()
+            per_view = [e for part in executor.map(dropout_errors, views, model, keep, done=tick) for e in part]
             probes[k] = sum(per_view) / len(per_view)
         return probes[k]
 

@@ -10,6 +10,7 @@ import torch
 
 from ..scene import Camera
 from ..errors import check_int
+from ..executors import LOCAL, Executor
 from ..renderers import Renderer
 from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
@@ -31,12 +32,13 @@ class RankedView:
 
 def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
                        samples: int = DEFAULT_SAMPLES, seed: int = 0, captured: Sequence[Camera] | None = None,
-                       keep_peak: bool = False, progress: Progress | None = None) -> tuple[Evidence, list[ViewUncertainty]]:
+                       keep_peak: bool = False, progress: Progress | None = None,
+                       executor: Executor = LOCAL) -> tuple[Evidence, list[ViewUncertainty]]:
     """What a strategy sees: the candidates' PH-Dropout statistics under one draw of N
     sub-models, and the captured poses (default: the model's training cameras); with the
     per-view measurements (keeping zeta's channel max when keep_peak)."""
     views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, keep_peak=keep_peak,
-                        progress=progress)
+                        progress=progress, executor=executor)
     if captured is None:
         captured = renderer.training_cameras or []
     captured = check_cameras(captured, "captured") if captured else []
@@ -50,7 +52,7 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
 def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,
                seed: int = 0, top_k: int | None = None, strategy: str = DEFAULT_STRATEGY,
                captured: Sequence[Camera] | None = None, keep_peak: bool = False,
-               progress: Progress | None = None) -> list[RankedView]:
+               progress: Progress | None = None, executor: Executor = LOCAL) -> list[RankedView]:
     """Candidates in the order the strategy would capture them; ties go to the lower index.
 
     top_k keeps the first k, a batch meant to be captured together (all when k exceeds the
@@ -58,12 +60,15 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     strategy. `captured` are the poses already taken (default: the model's training cameras).
     keep_peak keeps each returned view's zeta channel max, so heat maps need no second render
     (4 bytes a pixel for every candidate until the ranking is known).
+    `executor` (phd_core.executors) renders the candidates in chunks, anywhere: the same
+    masks go to every chunk, so the ranking is the local one.
     """
     chosen = get_strategy(strategy)
     if top_k is not None:
         top_k = check_int(top_k, "top_k", 1)
     evidence, views = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed,
-                                         captured=captured, keep_peak=keep_peak, progress=progress)
+                                         captured=captured, keep_peak=keep_peak, progress=progress,
+                                         executor=executor)
     count = len(evidence.candidates)
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]

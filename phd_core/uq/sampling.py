@@ -8,7 +8,9 @@ draw serves every ratio, r = 0 keeps everything and r = 1 drops everything.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
+from typing import Any, Callable, Iterator, Sequence
 
 import torch
 from torch import Tensor
@@ -18,6 +20,7 @@ from ..errors import InputError, check_float, check_int
 from ..renderers import Renderer
 
 MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds renderer memory)
+_MASK_BATCH: ContextVar[int] = ContextVar("mask_batch", default=MAX_MASKS_PER_RENDER)
 
 Progress = Callable[[float], None]
 
@@ -107,19 +110,43 @@ def keep_masks(uniforms: Tensor, ratio: float) -> Tensor:
     return uniforms >= check_ratio(ratio)
 
 
-def render_masks(renderer: Renderer, camera: Camera, keep: Tensor | None) -> Tensor:
-    """Render with a batch of keep-masks (None = full model), MAX_MASKS_PER_RENDER at a time.
+def mask_batch() -> int:
+    """Masks per renderer.render call in this context (MAX_MASKS_PER_RENDER unless limited)."""
+    return _MASK_BATCH.get()
 
-    Returns [N, H, W, 3] float32, checked for shape and finiteness.
+
+@contextmanager
+def limit_mask_batch(masks: int) -> Iterator[None]:
+    """Render at most `masks` masks per call inside the block (this thread only): peak memory
+    then grows with `masks`, never with the number of samples N (the service sets it from its
+    memory budget)."""
+    token = _MASK_BATCH.set(min(check_int(masks, "masks", 1), MAX_MASKS_PER_RENDER))
+    try:
+        yield
+    finally:
+        _MASK_BATCH.reset(token)
+
+
+def masked_renders(renderer: Renderer, camera: Camera, keep: Tensor) -> Iterator[Tensor]:
+    """The renders of keep [N, U], `mask_batch()` masks at a time: [m, H, W, 3] float32 chunks,
+    checked for shape and finiteness."""
+    for chunk in keep.split(mask_batch()):
+        yield _checked(renderer.render(camera, chunk), chunk.shape[0], camera)
+
+
+def render_masks(renderer: Renderer, camera: Camera, keep: Tensor | None) -> Tensor:
+    """Render with a batch of keep-masks (None = full model), all N at once in memory.
+
+    Returns [N, H, W, 3] float32. Statistics over many masks use `masked_renders` instead.
     """
     if keep is None:
-        images = renderer.render(camera)
-        expected = 1
-    else:
-        parts = [renderer.render(camera, chunk) for chunk in keep.split(MAX_MASKS_PER_RENDER)]
-        images = torch.cat(parts) if len(parts) > 1 else parts[0]
-        expected = keep.shape[0]
-    shape = (expected, camera.height, camera.width, 3)
+        return _checked(renderer.render(camera), 1, camera)
+    parts = list(masked_renders(renderer, camera, keep))
+    return torch.cat(parts) if len(parts) > 1 else parts[0]
+
+
+def _checked(images: Tensor, count: int, camera: Camera) -> Tensor:
+    shape = (count, camera.height, camera.width, 3)
     if tuple(images.shape) != shape:
         raise RuntimeError(f"renderer returned shape {list(images.shape)}, expected {list(shape)}")
     if not torch.isfinite(images).all():
@@ -127,36 +154,68 @@ def render_masks(renderer: Renderer, camera: Camera, keep: Tensor | None) -> Ten
     return images.to(torch.float32)
 
 
+class RunningStd:
+    """Per-element mean and standard deviation over samples that arrive in chunks [m, ...].
+
+    Each chunk is reduced by two passes around the first sample ever seen (the shift), and
+    chunks are merged with Chan et al.'s pairwise update (Welford's method for blocks). So
+    memory holds one chunk, never all N samples; identical samples give a std of exactly 0
+    in any dtype, and nearly equal ones lose no precision to cancellation.
+    """
+
+    def __init__(self, dtype: torch.dtype = torch.float64):
+        self.dtype = check_dtype(dtype)
+        self.count = 0
+        self.shift: Tensor | None = None     # [...] the first sample
+        self.mean: Tensor | None = None      # [...] mean of (x - shift)
+        self.m2: Tensor | None = None        # [...] sum of squared deviations from the mean
+
+    def add(self, chunk: Tensor) -> None:
+        if self.shift is None:
+            self.shift = chunk[0].to(self.dtype)
+            self.mean, self.m2 = torch.zeros_like(self.shift), torch.zeros_like(self.shift)
+        m = chunk.shape[0]
+        if m == 0:
+            return
+        offsets = chunk.to(self.dtype) - self.shift           # [m, ...]
+        chunk_mean = offsets.mean(0)
+        offsets -= chunk_mean
+        chunk_m2 = offsets.square_().sum(0)
+        del offsets
+        total = self.count + m
+        delta = chunk_mean - self.mean
+        self.mean += delta * (m / total)
+        self.m2 += chunk_m2 + delta.square_() * (self.count * m / total)
+        self.count = total
+
+    def result(self, ddof: int = 1) -> tuple[Tensor, Tensor]:
+        """(std, mean), both in the accumulation dtype; divides by N - ddof."""
+        check_samples(self.count, ddof)
+        return (self.m2 / (self.count - ddof)).sqrt(), self.shift + self.mean
+
+
 def sample_std(images: Tensor, *, ddof: int = 1, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
     """Per-element standard deviation and mean over the first axis, accumulated in `dtype`.
 
-    images: [N, ...]. Two passes over the samples shifted by the first one, so identical
-    samples give a standard deviation of exactly 0 in any dtype and nearly equal ones
-    lose no precision to cancellation. Divides by N - ddof.
+    images: [N, ...], reduced MAX_MASKS_PER_RENDER samples at a time by `RunningStd`
+    (identical samples give exactly 0). Divides by N - ddof.
     Returns (std [...], mean [...]), both in `dtype`.
     """
-    n = images.shape[0]
-    check_samples(n, ddof)
-    shift = images[0].to(dtype)                       # [...]
-    total = torch.zeros_like(shift)
+    check_samples(images.shape[0], ddof)
+    running = RunningStd(dtype)
     for chunk in images.split(MAX_MASKS_PER_RENDER):
-        total += (chunk.to(dtype) - shift).sum(0)
-    mean_offset = total / n                          # mean of (x_i - x_0)
-    squares = torch.zeros_like(shift)
-    for chunk in images.split(MAX_MASKS_PER_RENDER):
-        squares += ((chunk.to(dtype) - shift) - mean_offset).square().sum(0)
-    std = (squares / (n - ddof)).sqrt()
-    return std, shift + mean_offset
+        running.add(chunk)
+    return running.result(ddof)
 
 
 class ProgressTicker:
-    """Turns 'one more view done' into progress(fraction) calls, never beyond 0.99 until done."""
+    """Turns 'views done' into progress(fraction) calls, never beyond 0.99 until done."""
 
     def __init__(self, progress: Progress | None, total: int):
         self.progress, self.total, self.done = progress, max(total, 1), 0
 
-    def tick(self) -> None:
-        self.done += 1
+    def tick(self, views: int = 1) -> None:
+        self.done += views
         if self.progress is not None:
             self.progress(min(self.done / self.total, 0.99))
 

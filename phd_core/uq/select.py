@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Sequence
 
 import torch
@@ -13,10 +14,11 @@ from torch import Tensor
 from ..scene import Camera
 from ..errors import InputError
 from ..eval import ensemble_efficiency, psnr, ssim
+from ..executors import LOCAL, Executor
 from ..renderers import Renderer
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_ratio, check_samples, check_seed,
                        dropout_uniforms, keep_masks, render_masks)
-from .uncertainty import DEFAULT_SAMPLES, measure_view
+from .uncertainty import DEFAULT_SAMPLES, measure_views
 
 @dataclass
 class ViewSelection:
@@ -49,25 +51,26 @@ def _nearest_distance(camera: Camera, training: Sequence[Camera]) -> float:
     return float(torch.stack([c.center for c in training]).sub(camera.center).norm(dim=1).min())
 
 
-def _own_level(renderer: Renderer, training: Sequence[Camera] | None, keep: Tensor,
-               name: str) -> tuple[list[Camera], float]:
-    """A model's training cameras (default: the renderer's) and its mean zeta over up to 8 of
-    them: the level its uncertainty has where it was trained, which `distance_sigma` divides by."""
+def _training_views(renderer: Renderer, training: Sequence[Camera] | None, name: str) -> list[Camera]:
+    """A model's training cameras (default: the renderer's), which `distance_sigma` needs."""
     training = list((renderer.training_cameras or []) if training is None else training)
     if not training:
         raise InputError(name, "the model carries no training cameras, which rule 'distance_sigma' needs: "
                                "give them with the model, or use rule 'sigma_mean'")
-    step = max(1, len(training) // SELECTION_TRAINING_VIEWS)
-    levels = [measure_view(renderer, c, keep, 1, False, torch.float64).sigma_mean
-              for c in training[::step][:SELECTION_TRAINING_VIEWS]]
-    return training, max(sum(levels) / len(levels), 1e-12)
+    return training
+
+
+def _level_views(training: list[Camera]) -> list[Camera]:
+    """Up to 8 evenly spaced training views: their mean zeta is the level a model's uncertainty
+    has where it was trained, which `distance_sigma` divides by."""
+    return training[::max(1, len(training) // SELECTION_TRAINING_VIEWS)][:SELECTION_TRAINING_VIEWS]
 
 
 def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[Camera], *, ratio_a: float,
                   ratio_b: float, samples: int = DEFAULT_SAMPLES, seed: int = 0, images: Tensor | None = None,
                   rule: str = DEFAULT_SELECTION_RULE, training_a: Sequence[Camera] | None = None,
                   training_b: Sequence[Camera] | None = None, keep_images: bool | str = False,
-                  progress: Progress | None = None) -> SelectionResult:
+                  progress: Progress | None = None, executor: Executor = LOCAL) -> SelectionResult:
     """Per view, pick the model with the lower score (each at its own dropout ratio).
 
     rule "sigma_mean" (the paper): the mean zeta of the view. Rule "distance_sigma" (the
@@ -79,7 +82,9 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     mean PSNR and SSIM of a, b and the selection, E_ME (mean over views of
     SSIM(selected) / max(SSIM(a), SSIM(b))) and how often the choice was the model
     with the higher SSIM. keep_images: True keeps the chosen model's full render per view,
-    "both" also the other model's (to show the two side by side).
+    "both" also the other model's (to show the two side by side). `executor`
+    (phd_core.executors) runs the masked renders in chunks, anywhere; the full renders of the
+    chosen models stay in this process.
     """
     ratio_a, ratio_b = check_ratio(ratio_a, "ratio_a"), check_ratio(ratio_b, "ratio_b")
     samples, _ = check_samples(samples, 1)
@@ -93,20 +98,35 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     keeps = {"a": keep_masks(dropout_uniforms(renderer_a.num_units, samples, seed), ratio_a),
              "b": keep_masks(dropout_uniforms(renderer_b.num_units, samples, seed), ratio_b)}
     if rule == "distance_sigma":
-        training = {"a": training_a, "b": training_b}
-        own = {key: _own_level(renderers[key], training[key], keeps[key], f"model_{key}") for key in renderers}
+        given = {"a": training_a, "b": training_b}
+        training = {key: _training_views(renderers[key], given[key], f"model_{key}") for key in renderers}
+        levels = {key: _level_views(training[key]) for key in renderers}
+    else:
+        levels = {"a": [], "b": []}
+    ticker = ProgressTicker(progress, 3 * len(cameras) + len(levels["a"]) + len(levels["b"]))
 
-    def score(key: str, camera: Camera) -> float:
-        sigma = measure_view(renderers[key], camera, keeps[key], 1, False, torch.float64).sigma_mean
+    def sigma_means(key: str, views: list[Camera]) -> list[float]:
+        """Mean zeta of each view under model `key`'s masks, on the executor."""
+        chunks = executor.split(views)
+        parts = executor.map(partial(measure_views, ddof=1, keep_maps=False, dtype=torch.float64), chunks,
+                             executor.share(renderers[key]), keeps[key], done=lambda i: ticker.tick(len(chunks[i])))
+        return [view.sigma_mean for part in parts for view in part]
+
+    sigmas = {key: sigma_means(key, cameras) for key in renderers}
+    if rule == "distance_sigma":
+        own = {}
+        for key in renderers:
+            means = sigma_means(key, levels[key])
+            own[key] = max(sum(means) / len(means), 1e-12)
+
+    def score(key: str, i: int) -> float:
         if rule == "sigma_mean":
-            return sigma
-        training, level = own[key]
-        return _nearest_distance(camera, training) * sigma / level
+            return sigmas[key][i]
+        return _nearest_distance(cameras[i], training[key]) * sigmas[key][i] / own[key]
 
-    ticker = ProgressTicker(progress, len(cameras))
     views, scores = [], {"a": [], "b": [], "selected": []}
     for i, camera in enumerate(cameras):
-        score_a, score_b = score("a", camera), score("b", camera)
+        score_a, score_b = score("a", i), score("b", i)
         choice = "a" if score_a <= score_b else "b"
         # Full renders: both models when scoring against ground truth, else only the chosen one.
         both = images is not None or keep_images == "both"

@@ -5,6 +5,7 @@ sigma_max = max of zeta over H, W, C; sigma-max-bar = mean of sigma_max over vie
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Sequence
 
 import torch
@@ -12,9 +13,10 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError
+from ..executors import LOCAL, Executor
 from ..renderers import Renderer
-from .sampling import (Progress, ProgressTicker, check_cameras, check_dtype, check_ratio, check_samples, check_seed,
-                       dropout_uniforms, keep_masks, render_masks, sample_std)
+from .sampling import (Progress, ProgressTicker, RunningStd, check_cameras, check_dtype, check_ratio, check_samples,
+                       check_seed, dropout_uniforms, keep_masks, masked_renders)
 
 TOP_SHARE = 0.1                    # sigma_top: the share of pixels it averages
 AREA_THRESHOLD = 0.05              # area: zeta above this (on [0, 1] colours) counts as uncertain
@@ -36,8 +38,10 @@ class ViewUncertainty:
 
 def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, keep_maps: bool,
                  dtype: torch.dtype, keep_peak: bool = False) -> ViewUncertainty:
-    images = render_masks(renderer, camera, keep)             # [N, H, W, 3]
-    zeta, mean = sample_std(images, ddof=ddof, dtype=dtype)
+    running = RunningStd(dtype)                               # never holds all N renders
+    for chunk in masked_renders(renderer, camera, keep):      # [m, H, W, 3]
+        running.add(chunk)
+    zeta, mean = running.result(ddof)
     peak = zeta.amax(dim=-1)                                  # [H, W]
     per_pixel = peak.flatten()                                # [H * W]
     top = per_pixel.topk(max(1, round(TOP_SHARE * per_pixel.numel()))).values
@@ -47,6 +51,12 @@ def measure_view(renderer: Renderer, camera: Camera, keep: Tensor, ddof: int, ke
         mean=mean.to(torch.float32) if keep_maps else None,
         zeta=zeta.to(torch.float32) if keep_maps else None,
         peak=peak.to(torch.float32) if keep_peak else None)
+
+
+def measure_views(cameras: list[Camera], renderer: Renderer, keep: Tensor, *, ddof: int, keep_maps: bool,
+                  dtype: torch.dtype, keep_peak: bool = False) -> list[ViewUncertainty]:
+    """measure_view for a chunk of cameras (what an executor runs)."""
+    return [measure_view(renderer, camera, keep, ddof, keep_maps, dtype, keep_peak) for camera in cameras]
 
 
 def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, samples: int = DEFAULT_SAMPLES,
@@ -64,11 +74,13 @@ def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, sample
 def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
                 samples: int = DEFAULT_SAMPLES, seed: int = 0, ddof: int = 1, keep_maps: bool = False,
                 keep_peak: bool = False, progress: Progress | None = None,
-                dtype: torch.dtype = torch.float64) -> list[ViewUncertainty]:
+                dtype: torch.dtype = torch.float64, executor: Executor = LOCAL) -> list[ViewUncertainty]:
     """view_uncertainty for every camera under the SAME N sub-models (one draw from `seed`).
 
     keep_maps keeps zeta and the mean image of every view (24 bytes a pixel); keep_peak only
     zeta's max over channels (4 bytes a pixel), enough to draw heat maps after ranking.
+    `executor` (phd_core.executors) runs chunks of cameras, anywhere; the masks are drawn
+    here and shipped, so every executor gives the same numbers.
     """
     ratio = check_ratio(ratio)
     samples, ddof = check_samples(samples, ddof)
@@ -77,12 +89,11 @@ def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
     cameras = check_cameras(cameras)
     keep = keep_masks(dropout_uniforms(renderer.num_units, samples, seed), ratio)
     ticker = ProgressTicker(progress, len(cameras))
-    views = []
-    for camera in cameras:
-        views.append(measure_view(renderer, camera, keep, ddof, keep_maps, dtype, keep_peak))
-        ticker.tick()
+    chunks = executor.split(cameras)
+    parts = executor.map(partial(measure_views, ddof=ddof, keep_maps=keep_maps, dtype=dtype, keep_peak=keep_peak), chunks,
+                         executor.share(renderer), keep, done=lambda i: ticker.tick(len(chunks[i])))
     ticker.finish()
-    return views
+    return [view for part in parts for view in part]
 
 
 def sigma_max_bar(views: Sequence[ViewUncertainty]) -> float:

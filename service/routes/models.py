@@ -7,7 +7,8 @@ import asyncio
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
-from ..deps import ERRORS, Service
+from ..budget import PARSE_BYTES_PER_FILE_BYTE
+from ..deps import ERRORS, Caller, Service
 from ..errors import not_found
 from ..schemas import Calibration, ModelInfo, ModelList, TrainingCameras
 from ..store import ModelRecord
@@ -41,13 +42,14 @@ def model_info(record: ModelRecord) -> ModelInfo:
 
 
 @router.post("/models", status_code=201, response_model=ModelInfo, openapi_extra=UPLOAD_BODY)
-async def upload_model(request: Request, svc: Service) -> JSONResponse:
+async def upload_model(request: Request, svc: Service, who: Caller) -> JSONResponse:
     """Upload a model (3DGS PLY or NeRF checkpoint) with optional training cameras."""
     temp = svc.store.new_temp_path()
     try:
-        upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes)
+        upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes,
+                                      svc.settings.memory_budget_bytes // PARSE_BYTES_PER_FILE_BYTE)
         kind = sniff_kind(upload.head)
-        record = await asyncio.to_thread(svc.ingest, upload, kind)
+        record = await asyncio.to_thread(svc.ingest, upload, kind, who)
     finally:
         temp.unlink(missing_ok=True)  # gone already after a successful move into the store
     info = model_info(record)
@@ -55,24 +57,25 @@ async def upload_model(request: Request, svc: Service) -> JSONResponse:
 
 
 @router.get("/models", response_model=ModelList)
-async def list_models(svc: Service) -> ModelList:
+async def list_models(svc: Service, who: Caller) -> ModelList:
     records = await asyncio.to_thread(svc.store.list)
-    return ModelList(models=[model_info(r) for r in records])
+    return ModelList(models=[model_info(r) for r in records if who.may_see(r.owner)])
 
 
 @router.get("/models/{model_id}", response_model=ModelInfo)
-async def get_model(model_id: str, svc: Service) -> ModelInfo:
-    return model_info(svc.model(model_id))
+async def get_model(model_id: str, svc: Service, who: Caller) -> ModelInfo:
+    return model_info(svc.model(model_id, who))
 
 
 @router.get("/models/{model_id}/cameras", response_model=TrainingCameras)
-async def get_training_cameras(model_id: str, svc: Service) -> TrainingCameras:
+async def get_training_cameras(model_id: str, svc: Service, who: Caller) -> TrainingCameras:
     """The stored training cameras as frames (the page plots them and places candidates around them)."""
-    return TrainingCameras(frames=svc.model(model_id).training_frames or [])
+    return TrainingCameras(frames=svc.model(model_id, who).training_frames or [])   # 404 for another key's model
 
 
 @router.delete("/models/{model_id}", status_code=204)
-async def delete_model(model_id: str, svc: Service) -> Response:
+async def delete_model(model_id: str, svc: Service, who: Caller) -> Response:
+    svc.model(model_id, who)                # 404 for another key's model
     if not await asyncio.to_thread(svc.store.delete, model_id):
         raise not_found("model", model_id)
     svc.cache.evict(model_id)

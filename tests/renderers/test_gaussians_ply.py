@@ -159,6 +159,25 @@ def test_ascii_file_with_crlf_and_preceding_element():
     assert_models_equal(parse_ply(data), expected_model(cols, k))
 
 
+@pytest.mark.parametrize("block", [1, 97, 1 << 22])
+def test_ascii_body_parsed_in_blocks_gives_the_same_model(monkeypatch, block):
+    """Blocks that end mid-file, after one line or past the end all give the exact model."""
+    k = 4
+    cols = standard_columns(40, k, seed=6)
+    data = ply_file(standard_props(cols, k), fmt="ascii",
+                    header_before="element camera 3\nproperty float fov\n", body_before=b"1\n2\n3\n")
+    monkeypatch.setattr(gs3d.ply, "ASCII_BLOCK_BYTES", block)
+    assert_models_equal(parse_ply(data), expected_model(cols, k))
+    assert_models_equal(parse_ply(data.rstrip(b"\n")), expected_model(cols, k))   # no final newline
+
+
+def test_ascii_vertex_count_beyond_the_body_is_refused_before_allocating():
+    data = b"ply\nformat ascii 1.0\nelement vertex 1000000000000\nproperty float x\nend_header\n1\n"
+    with pytest.raises(InputError) as exc:
+        parse_ply(data)
+    assert exc.value.field == "ply.vertex" and "truncated" in exc.value.reason
+
+
 def test_is_ply_sniffs_content():
     assert is_ply(b"ply\nformat ascii 1.0\n") and is_ply(b"ply\r\n")
     assert not is_ply(b"PK\x03\x04") and not is_ply(b"plyx\n") and not is_ply(b"")

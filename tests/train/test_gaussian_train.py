@@ -152,3 +152,48 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys) -> None:
     assert "error" in err and "Traceback" not in err
     assert phd(["train", "--data", str(LEGO), "--views", "a,b", "--out", str(tmp_path / "x.ply")]) == 2
     assert "views" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- real captures
+
+CUP = LEGO.parent / "cup_colmap"
+
+
+def test_a_real_capture_starts_from_its_sfm_points_and_a_background_shell() -> None:
+    from phd_core.data import load_dataset
+    from phd_core.train.gs3d import seed_model, training_background, training_extent
+
+    data = load_dataset(CUP, "train", downscale=20, views=4)
+    assert data.alphas is None and data.points is not None
+    centre, extent = scene_bounds(data.cameras)
+    config = TrainConfig(background_splats=300)
+    model = seed_model(data, centre, extent, config, torch.Generator().manual_seed(0))
+    sfm = len(data.points)
+    assert model.num_splats > sfm
+    assert torch.allclose(model.means[:sfm].double(), data.points, atol=1e-5)      # every SfM point is a splat
+    colours = model.sh[:sfm, 0] * 0.28209479177387814 + 0.5
+    assert torch.allclose(colours, data.point_colors, atol=1e-5)
+    eyes = torch.stack([c.center for c in data.cameras])
+    shell = model.means[sfm:].double()
+    radius = (shell - centre).norm(dim=1)
+    assert torch.allclose(radius, torch.full_like(radius, 3.0 * float((eyes - centre).norm(dim=1).max())))
+    # Each shell splat lies behind pixels of some view and takes their colour, not grey.
+    assert (model.sh[sfm:, 0] != 0).any(dim=1).all()
+    # Splat sizes follow the SfM points' spacing: dense regions get smaller splats.
+    scales = model.log_scales[:sfm, 0].exp()
+    assert scales.min() < 0.2 * scales.max()
+    background = torch.tensor(training_background(data))
+    assert torch.allclose(background, data.images.mean(dim=(0, 1, 2)), atol=1e-6)
+    assert training_extent(data, extent) > extent                                   # the cameras' spread
+
+
+def test_phd_train_on_a_colmap_capture_writes_a_loadable_model(tmp_path) -> None:
+    out = tmp_path / "cup.ply"
+    assert phd(["train", "--data", str(CUP), "--views", "4", "--downscale", "40", "--iterations", "20",
+                "--quiet", "--out", str(out)]) == 0
+    renderer = load_model(out)
+    sidecar = read_sidecar(out)
+    assert len(renderer.training_cameras) == 4 and renderer.training_cameras[0].width == 20
+    assert sidecar["background"] != [1.0, 1.0, 1.0]           # the images' mean colour, not white
+    image = renderer.render(renderer.training_cameras[0])[0]
+    assert image.shape == (15, 20, 3) and torch.isfinite(image).all()

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ...scene import Camera, cameras_from_json
 from ..families import Family
-from .ply import is_ply, parse_ply, read_sidecar
+from .ply import is_3dgs_ply, parse_ply, read_ply, read_sidecar
 from .render import GaussianRenderer
 
 
@@ -15,12 +15,24 @@ def _load(data: bytes, name: str, cameras: list[Camera] | None) -> GaussianRende
     return GaussianRenderer(parse_ply(data, name), training_cameras=cameras)
 
 
-def _beside(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
+def load_output_folder(folder: Path) -> GaussianRenderer:
+    """A reference 3DGS trainer's output folder as is: the latest iteration's PLY, the training
+    cameras of cameras.json and the trainer's background (`phd_core.data.inria`)."""
+    from ...data.inria import read_output_folder
+
+    found = read_output_folder(folder)
+    return GaussianRenderer(read_ply(found.ply), found.background, found.cameras)
+
+
+def with_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
+    """The renderer rebuilt with the training cameras and background of the sidecar beside
+    `path` (any splat renderer class built like `GaussianRenderer`)."""
     sidecar = read_sidecar(path)
     if sidecar is None:
         return renderer
-    return GaussianRenderer(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
-                            cameras_from_json(sidecar["training_cameras"]))
+    return type(renderer)(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
+                          cameras_from_json(sidecar["training_cameras"]))
 
 
-GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_ply, _load, _beside, trainer="phd_core.train.gs3d:train_gaussians")
+GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_3dgs_ply, _load, with_sidecar,
+              trainer="phd_core.train.gs3d:train_gaussians")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -20,8 +21,10 @@ SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
 class GaussianModel:
     """G Gaussian splats as a trainer stores them (all tensors float32)."""
 
+    scale_axes: ClassVar[int] = 3  # local axes with a scale (2DGS surfels have 2)
+
     means: torch.Tensor           # [G, 3] centres
-    log_scales: torch.Tensor      # [G, 3] log of the std along each local axis
+    log_scales: torch.Tensor      # [G, scale_axes] log of the std along each local axis
     quats: torch.Tensor           # [G, 4] rotation, wxyz, not necessarily normalised
     opacity_logits: torch.Tensor  # [G] opacity before the sigmoid
     sh: torch.Tensor              # [G, K, 3] SH colour coefficients, sh[:, 0] is the DC term
@@ -37,7 +40,8 @@ class GaussianModel:
     def validate(self) -> None:
         """Raise `InputError` naming the field unless shapes agree, K is 1, 4, 9 or 16,
         every tensor is float32 and every value is finite."""
-        described = {"means": "[G, 3]", "log_scales": "[G, 3]", "quats": "[G, 4]",
+        axes = self.scale_axes
+        described = {"means": "[G, 3]", "log_scales": f"[G, {axes}]", "quats": "[G, 4]",
                      "opacity_logits": "[G]", "sh": "[G, K, 3]"}
         for name in described:
             value = getattr(self, name)
@@ -47,7 +51,7 @@ class GaussianModel:
                 raise InputError(name, f"must be float32, got {value.dtype}")
         num = self.means.shape[0] if self.means.dim() > 0 else -1
         k = self.sh.shape[1] if self.sh.dim() == 3 else -1
-        expected = {"means": (num, 3), "log_scales": (num, 3), "quats": (num, 4),
+        expected = {"means": (num, 3), "log_scales": (num, axes), "quats": (num, 4),
                     "opacity_logits": (num,), "sh": (num, k, 3)}
         for name, shape in expected.items():
             if tuple(getattr(self, name).shape) != shape:
@@ -62,7 +66,7 @@ class GaussianModel:
 
     def subset(self, index: torch.Tensor) -> "GaussianModel":
         """The splats selected by `index`: [M] integer indices or a [G] bool mask."""
-        return GaussianModel(self.means[index], self.log_scales[index], self.quats[index],
+        return type(self)(self.means[index], self.log_scales[index], self.quats[index],
                              self.opacity_logits[index], self.sh[index])
 
     def bounds(self, quantile: float = 0.0) -> tuple[list[float], list[float]]:

@@ -8,6 +8,10 @@ where f_rest is channel-major: f_rest index = c * (K - 1) + (k - 1) for colour c
 and SH coefficient k >= 1. The reader looks properties up by name and skips anything else
 (normals, `filter_3D`, colours, other elements), because the trainer's forks differ in
 exactly those details. Every malformed file raises `InputError` naming the PLY field.
+
+The 2DGS reference trainer writes the same layout with two scale columns (scale_0,
+scale_1); `scale_axes` tells the two apart from the header alone, and the readers and the
+writer take the model class (`GaussianModel` or a subclass with `scale_axes = 2`).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ _PLY_TYPES = {
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
+ASCII_BLOCK_BYTES = 1 << 22   # ASCII body parsed this many bytes of lines at a time
 _FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 
 
@@ -41,11 +46,35 @@ def is_ply(head: bytes) -> bool:
     return head.startswith(b"ply\n") or head.startswith(b"ply\r\n")
 
 
-def property_names(num_coeffs: int) -> list[str]:
-    """The per-splat float properties of a standard 3DGS PLY with K = num_coeffs, in order."""
+def scale_axes(head: bytes) -> int | None:
+    """The number of scale_<i> properties of the vertex element declared in `head` (the first
+    bytes of a PLY), or None when `head` holds no complete PLY header."""
+    if not is_ply(head):
+        return None
+    element, count = None, 0
+    for line in head.split(b"\n")[1:]:
+        words = line.split()
+        if words[:1] == [b"end_header"]:
+            return count
+        if words[:1] == [b"element"] and len(words) > 1:
+            element = words[1]
+        elif words[:1] == [b"property"] and element == b"vertex" and words[-1].startswith(b"scale_"):
+            count += 1
+    return None
+
+
+def is_3dgs_ply(head: bytes) -> bool:
+    """A PLY that is not a 2DGS one (exactly two scale columns); exclusive with the 2DGS sniff,
+    and a header longer than `head` counts as 3DGS, whose reader then names what is missing."""
+    return is_ply(head) and scale_axes(head) != 2
+
+
+def property_names(num_coeffs: int, axes: int = 3) -> list[str]:
+    """The per-splat float properties of a standard 3DGS PLY with K = num_coeffs (or a 2DGS
+    one with axes = 2 scale columns), in order."""
     return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
             + [f"f_rest_{i}" for i in range(3 * (num_coeffs - 1))]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+            + ["opacity", *(f"scale_{i}" for i in range(axes)), "rot_0", "rot_1", "rot_2", "rot_3"])
 
 
 # ----------------------------------------------------------------------------- reading
@@ -139,24 +168,7 @@ def _vertex_columns(data: bytes) -> tuple[dict[str, np.ndarray], int]:
     count = vertex.count
 
     if fmt == "ascii":
-        # One record per line: skip the lines of the elements before vertex.
-        lines = data[offset:].splitlines()
-        skip = sum(e.count for e in before)
-        rows = lines[skip:skip + count]
-        if len(rows) < count:
-            raise InputError("ply.vertex", f"truncated: the header declares {count} vertices, "
-                                           f"the body holds {max(0, len(lines) - skip)}")
-        width = len(vertex.properties)
-        tokens = []
-        for i, row in enumerate(rows):
-            words = row.split()
-            if len(words) != width:
-                raise InputError("ply.vertex", f"vertex {i} has {len(words)} values, the header declares {width}")
-            tokens.extend(words)
-        try:
-            values = np.array(tokens, dtype=np.float64).reshape(count, width)  # [G, P]
-        except ValueError as exc:
-            raise InputError("ply.vertex", f"the ASCII body holds a value that is not a number ({exc})") from None
+        values = _ascii_records(data, offset, sum(e.count for e in before), count, len(vertex.properties))
         return {name: values[:, j] for j, (name, _) in enumerate(vertex.properties)}, count
 
     order = _FORMATS[fmt]
@@ -176,27 +188,71 @@ def _vertex_columns(data: bytes) -> tuple[dict[str, np.ndarray], int]:
     return {name: records[name] for name, _ in vertex.properties}, count
 
 
-def parse_ply(data: bytes, name: str = "model") -> GaussianModel:
-    """Read a 3DGS PLY held in memory (an upload); `name` only labels error messages."""
+def _ascii_records(data: bytes, offset: int, skip: int, count: int, width: int) -> np.ndarray:
+    """The ASCII vertex records: [count, width] float64, one record per line after `skip` lines.
+
+    Parsed ASCII_BLOCK_BYTES of lines at a time into a preallocated array, so the temporaries
+    (line and word objects, about 50 bytes per value) never exceed one block: peak memory is
+    the file plus 8 bytes per value, instead of about 12x the file for the whole body at once.
+    """
+    pos = offset
+    for _ in range(skip):                                # the records of elements before vertex
+        end = data.find(b"\n", pos)
+        pos = len(data) if end < 0 else end + 1
+    if count * 2 * width > len(data) - pos + 1:          # every value takes >= 2 bytes ("0 ")
+        raise InputError("ply.vertex", f"truncated: the header declares {count} vertices of {width} values, "
+                                       f"more than the {max(0, len(data) - pos)} bytes of the body can hold")
+    values = np.empty((count, width), dtype=np.float64)  # [G, P]
+    row = 0
+    while row < count:
+        if pos >= len(data):
+            raise InputError("ply.vertex", f"truncated: the header declares {count} vertices, the body holds {row}")
+        end = data.find(b"\n", min(pos + ASCII_BLOCK_BYTES, len(data) - 1))
+        end = len(data) if end < 0 else end + 1
+        lines = data[pos:end].splitlines()[:count - row]
+        pos = end
+        words = []
+        for i, line in enumerate(lines):
+            fields = line.split()
+            if len(fields) != width:
+                raise InputError("ply.vertex", f"vertex {row + i} has {len(fields)} values, the header declares "
+                                               f"{width}")
+            words += fields
+        try:
+            values[row:row + len(lines)] = np.array(words, dtype=np.float64).reshape(len(lines), width)
+        except ValueError as exc:
+            raise InputError("ply.vertex", f"the ASCII body holds a value that is not a number ({exc})") from None
+        row += len(lines)
+    return values
+
+
+def parse_ply(data: bytes, name: str = "model", model_type: type[GaussianModel] = GaussianModel) -> GaussianModel:
+    """Read a 3DGS PLY held in memory (an upload), or a 2DGS one with model_type a 2DGS model;
+    `name` only labels error messages."""
     try:
-        return _model_from_columns(*_vertex_columns(data))
+        return _model_from_columns(*_vertex_columns(data), model_type)
     except InputError as exc:
         raise InputError(exc.field, f"{exc.reason} (in {name})") from None
 
 
-def _model_from_columns(columns: dict[str, np.ndarray], count: int) -> GaussianModel:
+def _model_from_columns(columns: dict[str, np.ndarray], count: int,
+                        model_type: type[GaussianModel] = GaussianModel) -> GaussianModel:
     """Gather the used properties by name into a float32 model, checking every value."""
+    axes = model_type.scale_axes
+    if f"scale_{axes}" in columns:
+        raise InputError(f"ply.scale_{axes}", f"this model kind has {axes} scale columns, the file has more "
+                                               "(2DGS PLYs have scale_0, scale_1; 3DGS ones add scale_2)")
     n_rest = sum(name.startswith("f_rest_") for name in columns)
     if n_rest not in _REST_COUNTS:
         raise InputError("ply.f_rest", f"found {n_rest} f_rest properties; SH degree 0, 1, 2 or 3 "
                                        "needs 0, 9, 24 or 45")
     k = _REST_COUNTS[n_rest]
-    used = [name for name in property_names(k) if name not in ("nx", "ny", "nz")]
+    used = [name for name in property_names(k, axes) if name not in ("nx", "ny", "nz")]
     missing = [name for name in used if name not in columns]
     if missing:
         field = "ply.f_rest" if missing[0].startswith("f_rest_") else f"ply.{missing[0]}"
         raise InputError(field, f"required property missing (all missing: {', '.join(missing)})")
-    packed = np.empty((count, len(used)), dtype=np.float32)  # [G, 14 + 3(K-1)]
+    packed = np.empty((count, len(used)), dtype=np.float32)  # [G, 11 + axes + 3(K-1)]
     for j, prop in enumerate(used):
         packed[:, j] = columns[prop]
     finite = np.isfinite(packed)
@@ -207,29 +263,31 @@ def _model_from_columns(columns: dict[str, np.ndarray], count: int) -> GaussianM
     values = torch.from_numpy(packed)
     dc = values[:, 3:6]  # [G, 3]
     higher = values[:, 6:6 + n_rest].reshape(count, 3, k - 1).transpose(1, 2)  # [G, K-1, 3]
-    return GaussianModel(
+    return model_type(
         means=values[:, 0:3].clone(),
-        log_scales=values[:, 7 + n_rest:10 + n_rest].clone(),
-        quats=values[:, 10 + n_rest:14 + n_rest].clone(),
+        log_scales=values[:, 7 + n_rest:7 + axes + n_rest].clone(),
+        quats=values[:, 7 + axes + n_rest:11 + axes + n_rest].clone(),
         opacity_logits=values[:, 6 + n_rest].clone(),
         sh=torch.cat([dc[:, None, :], higher], dim=1).contiguous(),
     )
 
 
-def read_ply(path: str | Path) -> GaussianModel:
-    """Read a standard 3DGS PLY file (binary either endianness, or ASCII)."""
+def read_ply(path: str | Path, model_type: type[GaussianModel] = GaussianModel) -> GaussianModel:
+    """Read a standard 3DGS PLY file (binary either endianness, or ASCII); a 2DGS one with
+    model_type a 2DGS model."""
     path = Path(path)
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise InputError("ply.path", f"cannot read {path}: {exc.strerror or exc}") from None
-    return parse_ply(data, path.name)
+    return parse_ply(data, path.name, model_type)
 
 
 # ----------------------------------------------------------------------------- writing
 
 def write_ply(model: GaussianModel, path: str | Path) -> None:
-    """Write `model` as a standard binary little-endian 3DGS PLY (normals zero).
+    """Write `model` as a standard binary little-endian 3DGS PLY (normals zero), or in the
+    2DGS reference layout (two scale columns) for a 2DGS model.
 
     Atomic: the bytes go to a temporary file in the same directory, which replaces `path`
     only once complete, so a failure never leaves a partial file or clobbers an old one.
@@ -243,9 +301,9 @@ def write_ply(model: GaussianModel, path: str | Path) -> None:
         model.means.detach().cpu(), torch.zeros(count, 3, dtype=torch.float32), sh[:, 0, :], rest,
         model.opacity_logits.detach().cpu()[:, None], model.log_scales.detach().cpu(),
         model.quats.detach().cpu(),
-    ], dim=1)  # [G, 17 + 3(K-1)]
+    ], dim=1)  # [G, 14 + axes + 3(K-1)]
     header = "".join(["ply\n", "format binary_little_endian 1.0\n", f"element vertex {count}\n",
-                      *(f"property float {n}\n" for n in property_names(k)), "end_header\n"])
+                      *(f"property float {n}\n" for n in property_names(k, model.scale_axes)), "end_header\n"])
     body = packed.numpy().astype("<f4").tobytes()
 
     write_bytes_atomic(path, header.encode("ascii") + body)

@@ -33,6 +33,7 @@ from typing import Any, Sequence
 
 import torch
 
+from ...errors import InputError
 from ...scene import Camera
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR
 from ..protocol import check_keep
@@ -182,10 +183,14 @@ class GaussianRenderer:
     """
 
     kind = "3dgs"
+    model_type = GaussianModel
 
     def __init__(self, model: GaussianModel, background: Sequence[float] = (1.0, 1.0, 1.0),
                  training_cameras: list[Camera] | None = None, *, tile: int = DEFAULT_TILE,
                  near: float = NEAR_PLANE, compositor: str = DEFAULT_COMPOSITOR):
+        if not isinstance(model, self.model_type) or model.scale_axes != self.model_type.scale_axes:
+            raise InputError("model", f"a {self.kind} renderer needs a {self.model_type.__name__}, "
+                                      f"got {type(model).__name__}")
         model.validate()
         COMPOSITORS.lookup(compositor, "compositor")
         self.model = model

@@ -9,6 +9,7 @@ import torch
 
 from ...errors import InputError
 from ...scene import Camera, look_at
+from .frame import horizontal_axes
 
 
 def hemisphere_cameras(count: int, *, center: Sequence[float] = (0, 0, 0), radius: float = 4.0,
@@ -27,15 +28,7 @@ def hemisphere_cameras(count: int, *, center: Sequence[float] = (0, 0, 0), radiu
         raise InputError("radius", f"must be a positive finite number, got {radius}")
     if not -math.pi / 2 <= min_elevation <= max_elevation <= math.pi / 2:
         raise InputError("elevation", "need -pi/2 <= min_elevation <= max_elevation <= pi/2")
-    up_t = torch.tensor(up, dtype=torch.float64)
-    up_t = up_t / up_t.norm()
-    # Two axes perpendicular to `up` span the horizontal plane.
-    helper = torch.tensor([1.0, 0, 0], dtype=torch.float64)
-    if abs(float(helper @ up_t)) > 0.9:
-        helper = torch.tensor([0, 1.0, 0], dtype=torch.float64)
-    ax = torch.linalg.cross(up_t, helper)
-    ax = ax / ax.norm()
-    ay = torch.linalg.cross(up_t, ax)
+    up_t, ax, ay = horizontal_axes(up)      # two axes perpendicular to `up` span the horizontal plane
     golden = math.pi * (3.0 - math.sqrt(5.0))
     sin_lo, sin_hi = math.sin(min_elevation), math.sin(max_elevation)
     center_t = torch.tensor(center, dtype=torch.float64)
@@ -51,3 +44,11 @@ def hemisphere_cameras(count: int, *, center: Sequence[float] = (0, 0, 0), radiu
         cameras.append(look_at(eye.tolist(), center_t.tolist(), up_t.tolist(),
                                width=width, height=height, fov_x=fov_x))
     return cameras
+
+
+def sphere_cameras(count: int, *, center: Sequence[float] = (0, 0, 0), radius: float = 4.0,
+                   width: int = 100, height: int = 100, fov_x: float = 0.6911112070083618,
+                   up: Sequence[float] = (0, 0, 1)) -> list[Camera]:
+    """`count` look-at poses spread evenly over the whole sphere around `center`."""
+    return hemisphere_cameras(count, center=center, radius=radius, min_elevation=-math.pi / 2,
+                              max_elevation=math.pi / 2, width=width, height=height, fov_x=fov_x, up=up)

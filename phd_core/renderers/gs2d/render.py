@@ -1,0 +1,227 @@
+"""2D Gaussian Splatting on the CPU (Huang et al. 2024), built for batches of keep-masks.
+
+The same four stages as the 3DGS rasteriser (`phd_core.renderers.gs3d.render`), sharing its
+stages 2 and 4 (`phd_core.renderers.splats`, `phd_core.renderers.composite`); only what a
+surfel is differs:
+
+1. `project`:   per surfel the 3x3 map T from its local (u, v, 1) to homogeneous pixels,
+                T = K [s_u R t_u, s_v R t_v, p_cam] (K the intrinsics, R, p_cam the surfel's
+                axes and centre in the camera frame), the camera-facing normal, SH colour,
+                near-plane culling and the exact screen box of its alpha >= 1/255 region.
+2. `intersect`: tile/surfel pairs ordered by (tile, centre depth).
+3. `splat_alpha`: per pair and pixel, the ray-surfel intersection in (u, v): a pixel x
+                defines the planes h_x = T_1 - x T_3 and h_y = T_2 - y T_3 (rows of T) in
+                (u, v, 1) space; the ray meets the surfel at q ~ h_x cross h_y, so
+                (u, v) = (q_1, q_2) / q_3 and the intersection's depth is T_3 . (u, v, 1)
+                (= det T / q_3; q is affine in the pixel position).
+                The surfel's Gaussian there is exp(-(u^2 + v^2) / 2). Seen edge-on that
+                Gaussian degenerates to a line, so the screen-space low-pass
+                exp(-|x - c|^2 / (2 sigma^2)) with sigma = sqrt(2) / 2 px around the projected
+                centre c is taken where it is larger:
+                    alpha = min(0.99, opacity * max(G(u, v), G_lowpass(x))).
+                Intersections nearer than the near plane do not count. The per-pixel depth is
+                the intersection's where the surfel's Gaussian wins, the centre's otherwise.
+4. `composite`: front-to-back in log space, once per keep-mask (a backend by name).
+
+Outputs: RGB, alpha, depth (alpha-weighted), and with `geometry=True` the alpha-weighted
+camera-frame normal (OpenCV axes, facing the camera) and the depth distortion
+sum_ij w_i w_j (d_i - d_j)^2 / 2 per pixel, which the 2DGS trainer regularises.
+Compositing rules and constants are the 3DGS ones (`splats`). Float64 up to alpha.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ...scene import Camera
+from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR
+from ..gs3d.render import CHUNK_ELEMENTS, NEAR_PLANE, GaussianRenderer, RenderOutput
+from ..protocol import check_keep
+from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, eval_sh, fragments, intersect, quaternion_to_rotation,
+                      untile)
+from .model import SurfelModel
+
+LOWPASS_INV_VAR = 2.0   # 1 / sigma^2 of the screen-space low-pass, sigma = sqrt(2)/2 px
+RHO_MAX = 1e6           # (u^2 + v^2) beyond this is no intersection (alpha < 1e-300 anyway)
+
+
+@dataclass
+class Projected:
+    """Per-view, mask-independent state of the visible surfels (V of the model's G)."""
+
+    ids: torch.Tensor         # [V] long, index into the model's surfels, sorted front to back
+    means2d: torch.Tensor     # [V, 2] pixel coordinates of the centres
+    transforms: torch.Tensor  # [V, 3, 3] T: (u, v, 1) -> (x w, y w, w), float64
+    opacities: torch.Tensor   # [V]
+    colors: torch.Tensor      # [V, 3]
+    normals: torch.Tensor     # [V, 3] camera frame, facing the camera
+    depths: torch.Tensor      # [V] camera-space z of the centres
+    box_centres: torch.Tensor  # [V, 2] centre of the screen box of the alpha >= 1/255 region, px
+    extents: torch.Tensor     # [V, 2] half-width/height of that box, px
+
+
+@dataclass
+class SurfelOutput(RenderOutput):
+    normal: torch.Tensor | None = None      # [N, H, W, 3] alpha-weighted camera-frame normal
+    distortion: torch.Tensor | None = None  # [N, H, W] sum_ij w_i w_j (d_i - d_j)^2 / 2
+
+
+def screen_boxes(transforms: torch.Tensor, means2d: torch.Tensor, level: torch.Tensor, near: float,
+                 width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Centre and half-size [G, 2] of a box holding every pixel where alpha >= 1/255.
+
+    The surfel's part is the disk u^2 + v^2 <= level (level = 2 ln(255 opacity)); its image
+    is the conic whose dual is C* = T diag(level, level, -1) T^T, and the tangent lines
+    x = const of that conic solve C*_33 x^2 - 2 C*_13 x + C*_11 = 0 (same for y). This
+    holds while the whole disk lies beyond the near plane; otherwise the box is the
+    screen. The low-pass part is the circle |x - c|^2 <= level / LOWPASS_INV_VAR.
+    """
+    t = transforms.detach()
+    dual = t @ torch.diag_embed(torch.stack([level, level, -torch.ones_like(level)], -1)) @ t.transpose(1, 2)
+    c33 = dual[:, 2, 2]
+    # Nearest depth on the disk: w_centre - sqrt(level) * |(T_31, T_32)|.
+    in_front = t[:, 2, 2] - level.sqrt() * t[:, 2, :2].norm(dim=-1) > near
+    safe = torch.where(in_front, c33, -torch.ones_like(c33))
+    centre = dual[:, :2, 2] / safe[:, None]                                    # [G, 2]
+    half = (dual[:, :2, 2].square() - dual[:, [0, 1], [0, 1]] * c33[:, None]).clamp_min(0).sqrt() / safe.abs()[:, None]
+    screen = torch.tensor([width, height], dtype=t.dtype)
+    lo = torch.where(in_front[:, None], centre - half, torch.zeros_like(centre) - 1)
+    hi = torch.where(in_front[:, None], centre + half, screen + 1)
+    radius = (level / LOWPASS_INV_VAR).sqrt()[:, None]
+    c = means2d.detach()
+    lo, hi = torch.minimum(lo, c - radius), torch.maximum(hi, c + radius)
+    return (lo + hi) / 2, (hi - lo) / 2
+
+
+def project(model: SurfelModel, camera: Camera,
+            near: float = NEAR_PLANE) -> tuple[Projected, torch.Tensor, torch.Tensor]:
+    """Stage 1. Returns the visible surfels, the screen means of ALL surfels [G, 2] (for
+    densification gradients) and the visibility mask [G]."""
+    rot_wc = camera.world_to_camera()[:3, :3]            # [3, 3] float64
+    intrinsics = torch.tensor([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]],
+                              dtype=torch.float64)
+    means = model.means.double()
+    p_cam = camera.to_camera(means)                      # [G, 3]
+    depth = p_cam[:, 2]
+    in_front = depth > near
+    z = torch.where(in_front, depth, torch.ones_like(depth))
+    means2d = camera.to_pixels(p_cam, z)                 # [G, 2]
+    axes = rot_wc @ quaternion_to_rotation(model.quats.double())        # [G, 3, 3] t_u, t_v, normal in camera frame
+    scales = model.log_scales.double().clamp(-30.0, 30.0).exp()         # [G, 2]
+    tangents = intrinsics @ (axes[:, :, :2] * scales[:, None, :])       # [G, 3, 2]
+    # K p_cam written through means2d, so the screen-space gradient reaches the means2d leaf.
+    centre = torch.cat([means2d, torch.ones_like(z)[:, None]], dim=-1) * z[:, None]   # [G, 3]
+    transforms = torch.cat([tangents, centre[:, :, None]], dim=-1)      # [G, 3, 3]
+    normals = axes[:, :, 2]
+    normals = torch.where(((normals * p_cam).sum(-1) > 0)[:, None], -normals, normals)
+
+    opacities = torch.sigmoid(model.opacity_logits.double())
+    level = 2.0 * torch.log((opacities * 255.0).clamp_min(1.0)).detach()
+    box_centres, extents = screen_boxes(transforms, means2d, level, near, camera.width, camera.height)
+    on_screen = ((box_centres + extents > 0) & (box_centres - extents < torch.tensor(
+        [camera.width, camera.height], dtype=torch.float64))).all(dim=-1)
+    finite = torch.isfinite(transforms.detach()).flatten(1).all(-1) & torch.isfinite(extents).all(-1)
+    visible = in_front & (opacities * 255.0 > 1.0) & on_screen & finite
+
+    ids = visible.nonzero().squeeze(1)
+    ids = ids[torch.argsort(depth[ids], stable=True)]   # front to back, ties by index
+    dirs = means[ids] - camera.center
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    colors = eval_sh(model.sh[ids], dirs.to(model.sh.dtype))
+    projected = Projected(ids=ids, means2d=means2d[ids], transforms=transforms[ids], opacities=opacities[ids],
+                          colors=colors, normals=normals[ids], depths=depth[ids], box_centres=box_centres[ids],
+                          extents=extents[ids])
+    return projected, means2d, visible
+
+
+def splat_alpha(proj: Projected, pairs: Pairs, tile: int,
+                near: float = NEAR_PLANE) -> tuple[torch.Tensor, torch.Tensor]:
+    """Stage 3: alpha [M, P] and depth [M, P] of each pair at each of the P = tile^2 pixels
+    of its tile (alpha zero below 1/255).
+
+    With T's rows a, b, c the intersection q = (a - x c) x (b - y c) = a x b + x (b x c) +
+    y (c x a) is affine in the pixel (x, y), so over a tile it is one [M, 3, 3] x [3, P]
+    product; and c . q = det T for every pixel, so the depth is det T / q_3.
+    """
+    offsets = torch.arange(tile * tile)
+    ox, oy = (offsets % tile).double(), (offsets // tile).double()
+    monomials = torch.stack([torch.ones_like(ox), ox, oy])                              # [3, P]
+    corner = torch.stack([(pairs.tile % pairs.tiles_x) * tile + 0.5,
+                          (pairs.tile // pairs.tiles_x) * tile + 0.5], dim=-1).double()  # [M, 2] first pixel
+    a, b, c = proj.transforms[pairs.splat].unbind(1)                                     # [M, 3] each
+    along_x, along_y = torch.linalg.cross(b, c), torch.linalg.cross(c, a)
+    at_corner = torch.linalg.cross(a, b) + corner[:, :1] * along_x + corner[:, 1:] * along_y
+    q = torch.stack([at_corner, along_x, along_y], dim=-1) @ monomials                  # [M, 3, P] ~ (u, v, 1)
+    det = q[:, 2]
+    numer = q[:, 0].square() + q[:, 1].square()
+    det_t = (c * torch.linalg.cross(a, b)).sum(-1)[:, None]                             # depth * det, [M, 1]
+    hit = (numer < RHO_MAX * det.square()) & ((det_t - near * det) * det > 0)
+    safe_det = torch.where(hit, det, torch.ones_like(det))
+    rho_surfel = torch.where(hit, numer / safe_det.square(), torch.full_like(det, RHO_MAX))
+    d = corner - proj.means2d[pairs.splat]                                              # [M, 2]
+    rho_lowpass = LOWPASS_INV_VAR * ((d[:, :1] + ox).square() + (d[:, 1:] + oy).square())
+    surfel_wins = rho_surfel <= rho_lowpass
+    rho = torch.where(surfel_wins, rho_surfel, rho_lowpass)
+    log_alpha = (torch.log(proj.opacities[pairs.splat])[:, None] - 0.5 * rho).clamp_max(math.log(ALPHA_MAX))
+    alpha = log_alpha.float().exp()
+    alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
+    depth = torch.where(surfel_wins, det_t / safe_det, proj.depths[pairs.splat][:, None])
+    return alpha, depth.float()
+
+
+def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tensor,
+                      keep: torch.Tensor | None = None, *, tile: int = DEFAULT_TILE, near: float = NEAR_PLANE,
+                      compositor: str = DEFAULT_COMPOSITOR, geometry: bool = False) -> SurfelOutput:
+    """Render `camera` once per keep-mask (keep: [N, G] bool, None = all surfels).
+
+    Differentiable with respect to the model's tensors (with the reference compositor).
+    geometry: also composite normals and the depth distortion (for training and normal maps).
+    """
+    keep = check_keep(keep, model.num_splats)
+    composite = COMPOSITORS.lookup(compositor, "compositor")
+    proj, means2d_all, visible = project(model, camera, near)
+    pairs = intersect(proj.box_centres, proj.extents, camera.width, camera.height, tile)
+    alpha, depth = splat_alpha(proj, pairs, tile, near)
+    frags = fragments(alpha, pairs)
+    per_tile = tile * tile
+    splat = pairs.splat[frags.pair]                                     # [E] index into proj
+    in_tile = frags.pixel.index_select(0, frags.row) % per_tile
+    entry_depth = depth.reshape(-1).index_select(0, frags.pair * per_tile + in_tile)[:, None]   # [E, 1]
+    columns = [proj.colors.float()[splat], entry_depth]
+    if geometry:
+        columns += [proj.normals.float()[splat], entry_depth.square()]
+    values = torch.cat(columns, dim=-1)                                  # [E, 4] or [E, 8]
+    num_pixels = pairs.tiles_x * pairs.tiles_y * per_tile
+    if keep is None:
+        acc_v, acc_a = composite(frags, values, None, num_pixels)
+    else:
+        keep_frags = keep[:, proj.ids[splat]]                           # [N, E]
+        chunk = max(1, CHUNK_ELEMENTS // max(1, len(splat)))
+        parts = [composite(frags, values, keep_frags[i:i + chunk], num_pixels)
+                 for i in range(0, keep.shape[0], chunk)]
+        acc_v = torch.cat([v for v, _ in parts])
+        acc_a = torch.cat([a for _, a in parts])
+    acc_v = untile(acc_v, pairs, tile, camera.width, camera.height)     # [N, H, W, C]
+    acc_a = untile(acc_a[..., None], pairs, tile, camera.width, camera.height)[..., 0]
+    rgb = acc_v[..., :3] + (1.0 - acc_a)[..., None].clamp_min(0.0) * background.to(acc_v.dtype)
+    out = SurfelOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all, visible=visible)
+    if geometry:
+        out.normal = acc_v[..., 4:7]
+        out.distortion = (acc_a * acc_v[..., 7] - acc_v[..., 3].square()).clamp_min(0.0)
+    return out
+
+
+class SurfelRenderer(GaussianRenderer):
+    """A trained 2DGS model behind the renderer protocol; dropout units are the surfels."""
+
+    kind = "2dgs"
+    model_type = SurfelModel
+
+    @torch.no_grad()
+    def render_full(self, camera: Camera, keep: torch.Tensor | None = None, *,
+                    geometry: bool = False) -> SurfelOutput:
+        return rasterize_surfels(self.model, camera, self.background, keep, tile=self.tile, near=self.near,
+                                 compositor=self.compositor, geometry=geometry)

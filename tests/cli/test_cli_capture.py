@@ -1,0 +1,164 @@
+"""Bring your own capture through the `phd` command: a reference-trainer output folder taken
+as is by calibrate and rank (with generated candidates), `phd candidates`, training cameras
+from COLMAP and LLFF files, and clean errors for malformed files."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from phd_cli import main
+from phd_core import uq as phd
+from phd_core.renderers import load_model
+from phd_core.renderers.gs3d import GaussianModel
+from phd_core.scene import Camera
+from phd_core.uq.candidates import candidate_cameras
+from support.captures import write_colmap, write_llff, write_output_folder
+from support.toy_renderers import ring_cameras
+
+SIZE, STEP = 16, 0.25
+
+
+def run(capsys, *argv) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> dict:
+    root = tmp_path_factory.mktemp("capture")
+    g = torch.Generator().manual_seed(5)
+    count = 250
+    model = GaussianModel(means=(torch.rand(count, 3, generator=g) - 0.5) * 1.4,
+                          log_scales=torch.log(0.05 + 0.1 * torch.rand(count, 3, generator=g)),
+                          quats=torch.randn(count, 4, generator=g),
+                          opacity_logits=torch.rand(count, generator=g) * 4 - 1,
+                          sh=torch.randn(count, 1, 3, generator=g) * 0.5)
+    training = ring_cameras(3, size=SIZE)
+    folder = write_output_folder(root / "output", model, training)
+    renderer = load_model(folder)
+    curve = phd.calibrate(renderer, renderer.training_cameras, epsilon=100.0, step=STEP, samples=3)
+    epsilon = float(np.quantile(curve.errors, 0.5))
+    expected = phd.calibrate(renderer, renderer.training_cameras, epsilon=epsilon, step=STEP, samples=3)
+    assert expected.r_drop > 0
+    return {"root": root, "folder": folder, "renderer": renderer, "training": training, "epsilon": epsilon,
+            "r_drop": expected.r_drop}
+
+
+def calibration_args(capture, samples_flag: str = "--calibration-samples") -> list:
+    return ["--epsilon", capture["epsilon"], "--step", STEP, samples_flag, 3]
+
+
+def test_calibrate_takes_a_reference_output_folder_as_is(capture, capsys) -> None:
+    code, out, err = run(capsys, "calibrate", "--model", capture["folder"], *calibration_args(capture, "--samples"))
+    assert code == 0 and f"r_drop = {capture['r_drop']}" in out and "3 views" in out, err
+
+
+def test_rank_an_output_folder_with_generated_candidates_in_one_line(capture, capsys) -> None:
+    code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6,rings=2",
+                         "--samples", 3, *calibration_args(capture))
+    assert code == 0, err
+    result = json.loads(out)
+    assert result["dropout_ratio"] == capture["r_drop"] and result["candidates"] == 6
+    renderer = capture["renderer"]
+    poses = candidate_cameras("orbit", 6, renderer=renderer, rings=2)
+    ranked = phd.rank_views(renderer, poses, ratio=capture["r_drop"], samples=3)
+    assert result["order"] == [r.index for r in ranked]
+    assert [r["sigma_max"] for r in result["ranking"]] == pytest.approx([r.sigma_max for r in ranked])
+
+
+def test_phd_candidates_writes_json_that_rank_reads(capture, capsys) -> None:
+    out_json = capture["root"] / "candidates.json"
+    code, out, err = run(capsys, "candidates", "sphere:5", "--model", capture["folder"], "--out", out_json)
+    assert code == 0 and "5 sphere poses at 16x16" in out, err
+    frames = json.loads(out_json.read_text())["frames"]
+    expected = candidate_cameras("sphere", 5, renderer=capture["renderer"])
+    assert [f["transform_matrix"] for f in frames] == [c.c2w.tolist() for c in expected]
+    assert {(f["w"], f["h"], f["fl_x"]) for f in frames} == {(SIZE, SIZE, capture["training"][0].fx)}
+    from_file = run(capsys, "rank", "--model", capture["folder"], "--candidates", out_json, "--samples", 3,
+                    "--dropout-ratio", 0.3)
+    from_spec = run(capsys, "rank", "--model", capture["folder"], "--candidates", "sphere:5", "--samples", 3,
+                    "--dropout-ratio", 0.3)
+    assert from_file[0] == from_spec[0] == 0
+    assert json.loads(from_file[1])["ranking"] == json.loads(from_spec[1])["ranking"]
+    # Candidates placed from a capture's training split, printed to stdout.
+    write_llff(capture["root"] / "llff", [Camera(c.c2w, c.fx, c.fx, 8, 8, 16, 16) for c in ring_cameras(9, SIZE)])
+    code, out, err = run(capsys, "candidates", "jitter:4", "--data", capture["root"] / "llff")
+    assert code == 0 and len(json.loads(out)["frames"]) == 4, err
+
+
+@pytest.mark.parametrize("kind", ["colmap-text", "colmap-binary", "llff", "cameras.json"])
+def test_calibrate_on_training_cameras_from_any_format(capture, capsys, kind) -> None:
+    """The same three poses from each format give the same r_drop (captures: --data with split all)."""
+    root = capture["root"] / kind
+    if kind.startswith("colmap"):
+        write_colmap(root, capture["training"], binary=kind.endswith("binary"))
+        source = ["--data", root, "--split", "all"]
+    elif kind == "llff":
+        source = ["--data", write_llff(root, capture["training"]), "--split", "all"]
+    else:
+        source = ["--cameras", capture["folder"] / "cameras.json"]
+    code, out, err = run(capsys, "calibrate", "--model", capture["folder"], *source,
+                         *calibration_args(capture, "--samples"))
+    assert code == 0 and f"r_drop = {capture['r_drop']}" in out and "3 views" in out, err
+
+
+def test_malformed_files_give_a_clean_cli_error(capture, capsys, tmp_path) -> None:
+    broken = write_output_folder(tmp_path / "broken", capture["renderer"].model, capture["training"])
+    entries = json.loads((broken / "cameras.json").read_text())
+    entries[1]["rotation"] = [[1, 0, 0], [0, 1, 0]]
+    (broken / "cameras.json").write_text(json.dumps(entries))
+    code, _, err = run(capsys, "calibrate", "--model", broken)
+    assert code == 2 and "cameras.json[1].rotation" in err and "Traceback" not in err
+    write_llff(tmp_path / "llff", capture["training"])
+    np.save(tmp_path / "llff" / "poses_bounds.npy", np.zeros((3, 12)))
+    code, _, err = run(capsys, "calibrate", "--model", capture["folder"], "--cameras",
+                       tmp_path / "llff" / "poses_bounds.npy")
+    assert code == 2 and "poses_bounds.npy" in err and "[N, 17]" in err
+    code, _, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "zigzag:3",
+                       "--dropout-ratio", 0.3)
+    assert code == 2 and "generator" in err and "orbit" in err
+    code, _, err = run(capsys, "candidates", "orbit:3,tilt=2", "--model", capture["folder"])
+    assert code == 2 and "options.tilt" in err
+    sparse = write_colmap(tmp_path / "colmap", capture["training"], binary=False, model="SIMPLE_RADIAL", extra=(0.2,))
+    code, _, err = run(capsys, "calibrate", "--model", capture["folder"], "--cameras", sparse)
+    assert code == 2 and "SIMPLE_RADIAL" in err and "Traceback" not in err
+
+
+def test_rank_candidates_from_a_folder_without_cameras_use_the_splats(capture, capsys, tmp_path) -> None:
+    from phd_core.renderers.gs3d import write_ply
+
+    write_ply(capture["renderer"].model, tmp_path / "bare.ply")
+    code, out, err = run(capsys, "rank", "--model", tmp_path / "bare.ply", "--candidates", "hemisphere:4",
+                         "--width", 12, "--height", 12, "--samples", 3, "--dropout-ratio", 0.3)
+    assert code == 0, err
+    result = json.loads(out)
+    assert result["candidates"] == 4 and sorted(result["order"]) == [0, 1, 2, 3]
+    assert math.isfinite(result["ranking"][0]["sigma_max"]) and result["ranking"][0]["sigma_max"] > 0
+
+
+def test_uq_and_rank_read_colmap_and_llff_captures(capture, capsys) -> None:
+    """Candidates and evaluation views straight from COLMAP / LLFF captures (images rendered by the model)."""
+    renderer = capture["renderer"]
+    views = ring_cameras(9, size=SIZE, height=1.5)
+    images = [renderer.render(c)[0].numpy() for c in views]
+    colmap = capture["root"] / "uq-colmap"
+    write_colmap(colmap, views, binary=True, images=images)
+    llff = capture["root"] / "uq-llff"
+    write_llff(llff, [Camera(c.c2w, c.fx, c.fx, SIZE / 2, SIZE / 2, SIZE, SIZE) for c in views], images=images)
+    for data in (colmap, llff):
+        out = capture["root"] / f"report-{data.name}"
+        code, _, err = run(capsys, "uq", "--model", capture["folder"], "--data", data, "--split", "test",
+                           "--samples", 3, "--dropout-ratio", 0.3, "--no-heatmaps", "--out", out)
+        assert code == 0, err
+        report = json.loads((out / "report.json").read_text())
+        assert [v["index"] for v in report["views"]] == [0, 1]                  # frames 0 and 8 by name
+        assert all(v["rmse"] < 0.01 for v in report["views"])                   # the images are the model's renders
+        code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", data, "--samples", 3,
+                             "--dropout-ratio", 0.3)
+        assert code == 0 and json.loads(out)["candidates"] == 9, err

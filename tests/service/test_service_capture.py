@@ -1,0 +1,117 @@
+"""Bring your own capture through the service and the real client: a reference-trainer output
+folder uploaded as is, cameras from COLMAP and LLFF files, rank requests that name a
+candidate generator instead of a camera list, and 4xx (never 5xx) for malformed input."""
+
+from __future__ import annotations
+
+import json
+
+import httpx
+import numpy as np
+import pytest
+
+from client import InvalidInputError, PHDClient
+from conftest import svc_cameras, svc_random_gaussians
+from phd_core import uq as phd
+from phd_core.renderers import load_model
+from phd_core.scene import Camera
+from phd_core.uq.candidates import candidate_cameras
+from support.captures import inria_entries, write_colmap, write_llff, write_output_folder
+
+
+@pytest.fixture(scope="module")
+def output_folder(tmp_path_factory):
+    root = tmp_path_factory.mktemp("svc_capture")
+    return write_output_folder(root / "output", svc_random_gaussians(300, seed=0), svc_cameras(3))
+
+
+def test_upload_an_output_folder_calibrate_and_rank_generated_candidates(svc_start, output_folder) -> None:
+    server = svc_start()
+    renderer = load_model(output_folder)
+    # The service stores the PLY alone: it renders on its default white background, not the trainer's.
+    served = load_model(next(output_folder.glob("point_cloud/iteration_30000/point_cloud.ply")))
+    with PHDClient(server.url) as client:
+        info = client.upload_model(output_folder)
+        assert info.num_units == 300 and info.num_training_cameras == 3
+        calibration = client.calibrate(info.id, epsilon=0.05, samples=3)
+        expected = phd.calibrate(served, renderer.training_cameras, epsilon=0.05, samples=3)
+        assert calibration.r_drop == expected.r_drop
+        ranking = client.rank(info.id, candidates="orbit:5,rings=2", samples=3, dropout_ratio=0.2)
+    poses = candidate_cameras("orbit", 5, cameras=renderer.training_cameras, rings=2)
+    ranked = phd.rank_views(served, poses, ratio=0.2, samples=3, captured=renderer.training_cameras)
+    assert ranking.num_candidates == 5 and (ranking.width, ranking.height) == (24, 24)
+    assert [v.index for v in ranking.views] == [r.index for r in ranked]
+    assert [v.sigma_max for v in ranking.views] == pytest.approx([r.sigma_max for r in ranked], rel=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["raw cameras.json", "colmap", "llff"])
+def test_upload_cameras_from_any_format(svc_start, output_folder, tmp_path, kind) -> None:
+    cameras = svc_cameras(3)
+    server = svc_start()
+    ply = next(output_folder.glob("point_cloud/iteration_30000/point_cloud.ply"))
+    if kind == "raw cameras.json":        # what a curl user sends: the file as the trainer wrote it
+        with open(ply, "rb") as f:
+            response = httpx.post(f"{server.url}/v1/models", files={"file": ("point_cloud.ply", f)},
+                                  data={"cameras": (output_folder / "cameras.json").read_text()})
+        assert response.status_code == 201, response.text
+        model_id = response.json()["id"]
+    else:
+        if kind == "colmap":
+            write_colmap(tmp_path, cameras, binary=True)
+            source = tmp_path
+        else:                             # an LLFF capture of 9 frames: frames 0 and 8 are test views
+            cameras = [Camera(c.c2w, c.fx, c.fx, 12, 12, 24, 24) for c in svc_cameras(9)]
+            source = write_llff(tmp_path, cameras)
+        with PHDClient(server.url) as client:
+            model_id = client.upload_model(ply, cameras=source).id
+    with PHDClient(server.url) as client:
+        stored = client.get_model(model_id)
+        expected = {"raw cameras.json": 3, "colmap": 2, "llff": 7}[kind]   # train splits hold out every 8th
+        assert stored.num_training_cameras == expected
+        assert client.calibrate(model_id, epsilon=0.05, samples=2).num_cameras == expected
+
+
+def test_malformed_capture_input_is_a_4xx(svc_start, output_folder) -> None:
+    server = svc_start(max_candidates=10)
+    url = server.url
+    with PHDClient(server.url) as client:
+        model_id = client.upload_model(output_folder).id
+    ply = next(output_folder.glob("point_cloud/iteration_30000/point_cloud.ply"))
+    entries = inria_entries(svc_cameras(2))
+    entries[1]["rotation"] = [[1, 0, 0], [0, 1, 0], [0, 0, 5]]
+    with open(ply, "rb") as f:
+        response = httpx.post(f"{url}/v1/models", files={"file": ("p.ply", f)}, data={"cameras": json.dumps(entries)})
+    assert response.status_code == 422 and response.json()["error"]["field"] == "cameras[1].rotation", response.text
+    for body, field in (({"candidates": {"generator": "zigzag", "count": 3}}, "candidates.generator"),
+                        ({"candidates": {"generator": "orbit", "count": 11}}, "candidates.count"),
+                        ({"candidates": {"generator": "orbit", "count": 3, "options": {"tilt": 1}}},
+                         "candidates.options.tilt"),
+                        ({"candidates": {"generator": "orbit", "count": 3, "options": {"rings": 9}}},
+                         "candidates.options.rings"),
+                        ({"candidates": {"generator": "orbit", "count": 0}}, "candidates.count"),
+                        ({}, None),
+                        ({"candidates": {"generator": "orbit"}, "cameras": [svc_cameras(1)[0].to_frame()]}, None)):
+        response = httpx.post(f"{url}/v1/models/{model_id}/rank", json={"dropout_ratio": 0.1, "samples": 2, **body})
+        assert response.status_code == 422, (body, response.text)
+        error = response.json()["error"]
+        assert field is None or error["field"] == field, (body, error)
+        assert "candidates" in error["message"] or "generator" in error["message"] or field, error
+    bad = np.zeros((2, 5))
+    with pytest.raises(InvalidInputError):
+        with PHDClient(server.url) as client:
+            np.save(output_folder.parent / "bad.npy", bad)
+            client.upload_model(ply, cameras=output_folder.parent / "bad.npy")
+
+
+def test_generated_candidates_for_a_model_without_cameras_come_from_its_splats(svc_start, svc_model_files) -> None:
+    server = svc_start()
+    with PHDClient(server.url) as client:
+        info = client.upload_model(svc_model_files["ply"])
+        assert info.num_training_cameras == 0
+        ranking = client.rank(info.id, candidates={"generator": "hemisphere", "count": 4, "options": {}},
+                              width=16, height=16, samples=2, dropout_ratio=0.2)
+    renderer = load_model(svc_model_files["ply"])
+    poses = [c.resized(16, 16) for c in candidate_cameras("hemisphere", 4, renderer=renderer)]
+    ranked = phd.rank_views(renderer, poses, ratio=0.2, samples=2, captured=[])
+    assert [v.index for v in ranking.views] == [r.index for r in ranked]
+    assert [v.sigma_max for v in ranking.views] == pytest.approx([r.sigma_max for r in ranked], rel=1e-5)
