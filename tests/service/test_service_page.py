@@ -5,6 +5,7 @@ the model's render beside each heat map, and both models' renders in a selection
 from __future__ import annotations
 
 import base64
+import json
 from pathlib import Path
 
 import httpx
@@ -124,3 +125,14 @@ def test_page_files_hold_no_inline_code():
     assert html.count("<script") == html.count('<script src="app.js"') == 1
     script = (PAGE_DIR / "app.js").read_text()
     assert "innerHTML" not in script and "eval(" not in script and '"style"' not in script
+
+
+def test_training_cameras_of_another_keys_model_are_not_found(svc_start, svc_model_files, tmp_path):
+    keys = tmp_path / "keys.json"
+    keys.write_text(json.dumps({"alice": "alice-key-1", "bob": "bob-key-22"}))
+    server = svc_start(keys_file=keys)
+    with PHDClient(server.url, api_key="alice-key-1") as alice, PHDClient(server.url, api_key="bob-key-22") as bob:
+        info = alice.upload_model(svc_model_files["ply"], cameras=svc_cameras(2))
+        assert len(alice.training_cameras(info.id)) == 2
+        with pytest.raises(NotFoundError):
+            bob.training_cameras(info.id)
