@@ -20,12 +20,11 @@ from .timeouts import uvicorn_options
 
 class BackgroundServer:
     def __init__(self, settings: Settings, *, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning",
-                 start_timeout: float = 30.0, wrap=None):
+                 start_timeout: float = 30.0):
         self.settings = settings
         self.app = create_app(settings)
-        # wrap: an ASGI middleware put in front of the app (tests add response headers with it)
-        config = uvicorn.Config(self.app if wrap is None else wrap(self.app), host=host, port=port,
-                                log_level=log_level, lifespan="on", **uvicorn_options(settings))
+        config = uvicorn.Config(self.app, host=host, port=port, log_level=log_level, lifespan="on",
+                                **uvicorn_options(settings))
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="phd-service", daemon=True)
         self.thread.start()

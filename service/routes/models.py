@@ -70,7 +70,7 @@ async def get_model(model_id: str, svc: Service, who: Caller) -> ModelInfo:
 @router.get("/models/{model_id}/cameras", response_model=TrainingCameras)
 async def get_training_cameras(model_id: str, svc: Service, who: Caller) -> TrainingCameras:
     """The stored training cameras as frames (the page plots them and places candidates around them)."""
-    return TrainingCameras(frames=svc.model(model_id, who).training_frames or [])
+    return TrainingCameras(frames=svc.model(model_id, who).training_frames or [])   # 404 for another key's model
 
 
 @router.delete("/models/{model_id}", status_code=204)

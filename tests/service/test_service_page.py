@@ -5,6 +5,8 @@ the model's render beside each heat map, and both models' renders in a selection
 from __future__ import annotations
 
 import base64
+import json
+from pathlib import Path
 
 import httpx
 import imageio.v3 as iio
@@ -16,6 +18,9 @@ from conftest import svc_cameras
 from phd_core import uq
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
+
+
+PAGE_DIR = Path(__file__).resolve().parents[2] / "service" / "page"
 
 
 def _png(data: str | bytes) -> np.ndarray:
@@ -111,3 +116,23 @@ def test_selection_can_return_both_models_renders(svc_start, svc_model_files):
             assert np.array_equal(_png(phd.download(view.other_image_url)), _pixels(full[other]))
             assert view.other_image_png is None
         assert all(v.other_image_png is None and v.other_image_url is None for v in one.views)
+
+
+def test_page_files_hold_no_inline_code():
+    """What the CSP forbids, checked in the files themselves (the browser tests check it live)."""
+    html = (PAGE_DIR / "index.html").read_text()
+    assert "<style" not in html and " style=" not in html and "javascript:" not in html
+    assert html.count("<script") == html.count('<script src="app.js"') == 1
+    script = (PAGE_DIR / "app.js").read_text()
+    assert "innerHTML" not in script and "eval(" not in script and '"style"' not in script
+
+
+def test_training_cameras_of_another_keys_model_are_not_found(svc_start, svc_model_files, tmp_path):
+    keys = tmp_path / "keys.json"
+    keys.write_text(json.dumps({"alice": "alice-key-1", "bob": "bob-key-22"}))
+    server = svc_start(keys_file=keys)
+    with PHDClient(server.url, api_key="alice-key-1") as alice, PHDClient(server.url, api_key="bob-key-22") as bob:
+        info = alice.upload_model(svc_model_files["ply"], cameras=svc_cameras(2))
+        assert len(alice.training_cameras(info.id)) == 2
+        with pytest.raises(NotFoundError):
+            bob.training_cameras(info.id)
