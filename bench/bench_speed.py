@@ -39,6 +39,8 @@ from phd_core.renderers.gs3d.render import project, splat_alpha  # noqa: E402
 from phd_core.renderers.splats import SH_C0, fragments, intersect  # noqa: E402
 from phd_core.train.gs3d import TrainConfig, fit  # noqa: E402
 
+from bench_gaussians import best_of  # noqa: E402  (bench/ is on the path when run as a script)
+
 ROOT = Path(__file__).resolve().parents[1]
 DONUT = ROOT.parent / "shared" / "data" / "donut_200"
 LEGO = ROOT.parent / "shared" / "data" / "lego_200"
@@ -73,16 +75,6 @@ def donut_model(splats: int = SPLATS, seed: int = 0) -> GaussianModel:
     colour = (colour + 0.08 * torch.randn(splats, 3, generator=g, **f64)).clamp(0, 1)
     return GaussianModel(means.float(), log_scales.float(), quats.float(), logits.float(),
                          ((colour - 0.5) / SH_C0)[:, None, :].float())
-
-
-def best_of(fn, repeats: int = 3) -> float:
-    """Best wall time of `repeats` calls (the least disturbed by other load on the machine)."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def child(args: list[str], env: dict[str, str] | None = None) -> dict:

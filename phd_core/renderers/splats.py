@@ -29,6 +29,8 @@ ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4            # stop compositing below this transmittance
 LOG_T_MIN = math.log(T_MIN)
 DEFAULT_TILE = 4        # pixels per tile side; see bench/bench_gaussians.py
+# Upper bound on elements of one [masks, fragments] compositing chunk (about 1 GB of temporaries).
+CHUNK_ELEMENTS = 1 << 24
 
 
 def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
@@ -148,3 +150,25 @@ def untile(x: torch.Tensor, pairs: Pairs, tile: int, width: int, height: int) ->
     return x.reshape(n, pairs.tiles_y * tile, pairs.tiles_x * tile, c)[:, :height, :width]
 
 
+def composite_images(composite, frags: Fragments, values: torch.Tensor, keep_frags: torch.Tensor | None,
+                     pairs: Pairs, tile: int, width: int, height: int,
+                     background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stage 4 with a compositing backend, in mask batches of at most CHUNK_ELEMENTS values,
+    back to images. values: [E, C]; keep_frags: [N, E] bool or None (all kept).
+
+    Returns (accumulated values [N, H, W, C], alpha [N, H, W], rgb [N, H, W, 3]: values[..., :3]
+    over `background`).
+    """
+    num_pixels = pairs.tiles_x * pairs.tiles_y * tile * tile
+    if keep_frags is None:
+        acc_v, acc_a = composite(frags, values, None, num_pixels)
+    else:
+        chunk = max(1, CHUNK_ELEMENTS // max(1, keep_frags.shape[1]))
+        parts = [composite(frags, values, keep_frags[i:i + chunk], num_pixels)
+                 for i in range(0, keep_frags.shape[0], chunk)]
+        acc_v = torch.cat([v for v, _ in parts])
+        acc_a = torch.cat([a for _, a in parts])
+    acc_v = untile(acc_v, pairs, tile, width, height)                               # [N, H, W, C]
+    acc_a = untile(acc_a[..., None], pairs, tile, width, height)[..., 0]            # [N, H, W]
+    rgb = acc_v[..., :3] + (1.0 - acc_a)[..., None].clamp_min(0.0) * background.to(acc_v.dtype)
+    return acc_v, acc_a, rgb

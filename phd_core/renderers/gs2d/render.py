@@ -38,10 +38,10 @@ import torch
 
 from ...scene import Camera
 from ..composite import pick_compositor
-from ..gs3d.render import CHUNK_ELEMENTS, NEAR_PLANE, GaussianRenderer, RenderOutput
+from ..gs3d.render import NEAR_PLANE, GaussianRenderer, RenderOutput
 from ..protocol import CameraView, View, check_keep
-from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, eval_sh, fragments, intersect, quaternion_to_rotation,
-                      untile)
+from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, composite_images, eval_sh, fragments, intersect,
+                      quaternion_to_rotation)
 from .model import SurfelModel
 
 LOWPASS_INV_VAR = 2.0   # 1 / sigma^2 of the screen-space low-pass, sigma = sqrt(2)/2 px
@@ -195,19 +195,9 @@ def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tens
     if geometry:
         columns += [proj.normals.float()[splat], entry_depth.square()]
     values = torch.cat(columns, dim=-1)                                  # [E, 4] or [E, 8]
-    num_pixels = pairs.tiles_x * pairs.tiles_y * per_tile
-    if keep is None:
-        acc_v, acc_a = composite(frags, values, None, num_pixels)
-    else:
-        keep_frags = keep[:, proj.ids[splat]]                           # [N, E]
-        chunk = max(1, CHUNK_ELEMENTS // max(1, len(splat)))
-        parts = [composite(frags, values, keep_frags[i:i + chunk], num_pixels)
-                 for i in range(0, keep.shape[0], chunk)]
-        acc_v = torch.cat([v for v, _ in parts])
-        acc_a = torch.cat([a for _, a in parts])
-    acc_v = untile(acc_v, pairs, tile, camera.width, camera.height)     # [N, H, W, C]
-    acc_a = untile(acc_a[..., None], pairs, tile, camera.width, camera.height)[..., 0]
-    rgb = acc_v[..., :3] + (1.0 - acc_a)[..., None].clamp_min(0.0) * background.to(acc_v.dtype)
+    keep_frags = None if keep is None else keep[:, proj.ids[splat]]    # [N, E]
+    acc_v, acc_a, rgb = composite_images(composite, frags, values, keep_frags, pairs, tile, camera.width,
+                                         camera.height, background)
     out = SurfelOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all, visible=visible)
     if geometry:
         out.normal = acc_v[..., 4:7]

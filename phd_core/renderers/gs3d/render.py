@@ -42,15 +42,13 @@ from ...scene import Camera
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR, pick_compositor
 from ..composite.fused import composite_indexed
 from ..protocol import CameraView, View, check_keep
-from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, eval_sh, fragments, intersect, quaternion_to_rotation,
-                      untile)
+from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, composite_images, eval_sh, fragments, intersect,
+                      quaternion_to_rotation, untile)
 from .kernels import project_splats, splat_fragments
 from .model import GaussianModel
 
 NEAR_PLANE = 0.2
 DILATION = 0.3          # px^2 added to the 2D covariance diagonal (anti-aliasing low-pass)
-# Upper bound on elements of one [masks, fragments] compositing chunk (about 1 GB of temporaries).
-CHUNK_ELEMENTS = 1 << 24
 
 
 @dataclass
@@ -177,19 +175,9 @@ def rasterize(model: GaussianModel, camera: Camera, background: torch.Tensor,
     frags = fragments(splat_alpha(proj, pairs, tile), pairs)
     splat = pairs.splat[frags.pair]                                    # [E] index into proj
     values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]  # [E, 4]
-    num_pixels = pairs.tiles_x * pairs.tiles_y * tile * tile
-    if keep is None:
-        acc_v, acc_a = composite(frags, values, None, num_pixels)
-    else:
-        keep_frags = keep[:, proj.ids[splat]]                          # [N, E]
-        chunk = max(1, CHUNK_ELEMENTS // max(1, len(splat)))
-        parts = [composite(frags, values, keep_frags[i:i + chunk], num_pixels)
-                 for i in range(0, keep.shape[0], chunk)]
-        acc_v = torch.cat([v for v, _ in parts])
-        acc_a = torch.cat([a for _, a in parts])
-    acc_v = untile(acc_v, pairs, tile, camera.width, camera.height)               # [N, H, W, 4]
-    acc_a = untile(acc_a[..., None], pairs, tile, camera.width, camera.height)[..., 0]
-    rgb = acc_v[..., :3] + (1.0 - acc_a)[..., None].clamp_min(0.0) * background.to(acc_v.dtype)
+    keep_frags = None if keep is None else keep[:, proj.ids[splat]]   # [N, E]
+    acc_v, acc_a, rgb = composite_images(composite, frags, values, keep_frags, pairs, tile, camera.width,
+                                         camera.height, background)
     return RenderOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all, visible=visible)
 
 
