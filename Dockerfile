@@ -31,8 +31,11 @@ RUN pip install ".${EXTRAS}" \
 USER phd
 # OMP_WAIT_POLICY=PASSIVE: idle OpenMP threads sleep instead of spinning, which keeps worker
 # threads from starving each other on few or shared cores (docs/service.md, "Benchmark").
+# NUMBA_CACHE_DIR: the compiled render kernels are cached where the service user may write
+# (site-packages is root's), so only the first render after a fresh container compiles them.
 ENV PHD_DATA_DIR=/data \
-    OMP_WAIT_POLICY=PASSIVE
+    OMP_WAIT_POLICY=PASSIVE \
+    NUMBA_CACHE_DIR=/home/phd/.cache/numba
 VOLUME ["/data"]
 EXPOSE 8000
 
