@@ -25,7 +25,7 @@ import json
 import struct
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterable, Union
+from typing import Any, Callable, Iterable, Sequence, Union
 
 import httpx
 
@@ -195,6 +195,15 @@ def camera_frames(cameras: Cameras) -> list[dict]:
 
 # ----------------------------------------------------------------------------- the client
 
+def _sidecar_background(sidecar: Path) -> list[float] | None:
+    """The background a `phd train` sidecar records (None when it has none or is unreadable)."""
+    try:
+        value = json.loads(sidecar.read_text()).get("background")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return list(value) if isinstance(value, (list, tuple)) and len(value) == 3 else None
+
+
 class PHDClient:
     """A synchronous client of the PH-Dropout service (thread-safe: one httpx.Client)."""
 
@@ -229,24 +238,32 @@ class PHDClient:
     def health(self) -> Health:
         return Health.model_validate(self._request("GET", "/health").json())
 
-    def upload_model(self, path: str | Path, cameras: Cameras | None = None, name: str | None = None) -> ModelInfo:
-        """Upload a 3DGS PLY or NeRF checkpoint with its training cameras: `cameras`, else
+    def upload_model(self, path: str | Path, cameras: Cameras | None = None, name: str | None = None,
+                     background: str | Sequence[float] | None = None) -> ModelInfo:
+        """Upload a 3DGS/2DGS PLY or NeRF checkpoint with its training cameras: `cameras`, else
         the trainer's sidecar `<stem>.json` next to a PLY when there is one (NeRF
         checkpoints carry theirs inside). `path` may be the reference 3DGS trainer's output
-        folder as is: its latest point_cloud.ply goes up with its cameras.json."""
+        folder as is: its latest point_cloud.ply goes up with its cameras.json. `background`
+        (splat models): the colour trained over, else the sidecar's or the folder's."""
         path = Path(path)
         if path.is_dir():
             from phd_core.data.inria import read_output_folder
 
             folder = read_output_folder(path)
             cameras = folder.cameras if cameras is None else cameras     # test views (eval runs) left out
+            background = folder.background if background is None else background
             path = folder.ply
         sidecar = path.with_name(path.stem + ".json")
-        if cameras is None and path.suffix.lower() == ".ply" and sidecar.is_file():
-            cameras = sidecar
+        if path.suffix.lower() == ".ply" and sidecar.is_file():
+            if cameras is None:
+                cameras = sidecar
+            if background is None:
+                background = _sidecar_background(sidecar)
         data = {}
         if cameras is not None:
             data["cameras"] = json.dumps(camera_frames(cameras))
+        if background is not None:
+            data["background"] = json.dumps(background if isinstance(background, str) else list(background))
         if name is not None:
             data["name"] = name
         try:

@@ -21,8 +21,8 @@ from .keys import OPEN, Principal
 from .schemas import ErrorResponse, Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore
-from .upload import Upload, parse_camera_json
-from .work import RendererCache, parse_cameras
+from .upload import Upload, parse_background, parse_camera_json
+from .work import RendererCache, parse_cameras, set_background
 
 ERRORS: dict[int | str, dict[str, Any]] = {
     status: {"model": ErrorResponse, "description": text} for status, text in (
@@ -104,6 +104,8 @@ class ServiceState:
         except TimeoutError:
             raise ServiceError(429, "busy", "the service's memory budget is taken by other work; retry later",
                                "file", {"Retry-After": str(self.settings.retry_after)}) from None
+        if upload.background is not None:
+            set_background(renderer, parse_background(upload.background))
         cameras = cameras if cameras is not None else renderer.training_cameras
         frames = None if not cameras else [c.to_frame() for c in cameras]
         name = upload.name or upload.filename or f"model{FAMILIES[kind].extension}"

@@ -7,6 +7,9 @@ Form fields of `POST /v1/models`:
 - `cameras` (optional): training cameras as JSON, a transforms.json object or a list of
   frames, as a text field or a file.
 - `name` (optional): a display name; default the uploaded file's name.
+- `background` (optional, splat models): the colour the model was trained over, JSON
+  `[r, g, b]` in [0, 1] or "white" / "black" (a trainer's sidecar or cfg_args says it);
+  default white. Stored with the model and used by every render.
 
 The body is parsed as it arrives (python-multipart's streaming parser): the model bytes go
 straight to `tmp/` in the data directory and are hashed on the way, so an upload never sits
@@ -27,13 +30,14 @@ from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
+from phd_core.errors import InputError, check_color
 from phd_core.io import fsync_path
 from phd_core.renderers import FAMILIES, SNIFF_BYTES, model_kind
 
 from .errors import ServiceError, invalid
 
 MAX_NAME_BYTES = 256
-FIELDS = ("file", "cameras", "name")
+FIELDS = ("file", "cameras", "name", "background")
 
 
 @dataclass
@@ -42,6 +46,7 @@ class Upload:
     filename: str | None = None
     name: str | None = None
     cameras: bytes | None = None
+    background: bytes | None = None
     size: int = 0
     head: bytes = b""
     sha256: str = ""
@@ -126,6 +131,8 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
             upload.cameras = bytes(part.buffer)
         elif part.name == "name":
             upload.name = part.buffer.decode("utf-8", "replace").strip() or None
+        elif part.name == "background":
+            upload.background = bytes(part.buffer)
 
     parser = MultipartParser(params[b"boundary"], {
         "on_part_begin": on_part_begin, "on_header_field": on_header_field, "on_header_value": on_header_value,
@@ -161,6 +168,19 @@ def sniff_kind(head: bytes) -> str:
         what = ("a Python pickle or zip archive (e.g. a torch.save file); such files can run code when loaded "
                 "and are never opened")
     raise ServiceError(415, "unsupported_model", f"the uploaded file is {what}", "file")
+
+
+def parse_background(raw: bytes) -> tuple[float, float, float]:
+    """The `background` field: a JSON colour or a bare "white" / "black"."""
+    text = raw.decode("utf-8", "replace").strip()
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        value = text
+    try:
+        return check_color(value, "background")
+    except InputError as exc:
+        raise invalid("background", exc.reason) from None
 
 
 def parse_camera_json(raw: bytes) -> Any:

@@ -14,6 +14,7 @@ import threading
 from collections import OrderedDict
 from typing import Any, Callable
 
+import torch
 
 from phd_core import uq
 from phd_core.uq import Progress
@@ -24,6 +25,7 @@ from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import Renderer, load_model
+from phd_core.renderers.gs3d import GaussianRenderer
 
 from .budget import MemoryLedger, MemoryPlan, plan_work
 from .errors import ServiceError, invalid, not_found
@@ -36,6 +38,14 @@ from .store import ModelRecord, ModelStore, utc_now
 
 
 # ----------------------------------------------------------------------------- loaded models
+
+def set_background(renderer: Renderer, color: tuple[float, float, float] | list[float]) -> None:
+    """The colour a splat model (3DGS, 2DGS) is rendered over; a NeRF checkpoint carries its
+    own background, so giving one is a 422."""
+    if not isinstance(renderer, GaussianRenderer):
+        raise invalid("background", f"a {renderer.kind} model carries its own background")
+    renderer.background = torch.tensor(color, dtype=torch.float32)
+
 
 class RendererCache:
     """The last `capacity` loaded renderers, by model id (least recently used goes first)."""
@@ -55,6 +65,8 @@ class RendererCache:
             if record is None:
                 raise not_found("model", model_id)
             renderer = load_model(self.store.path(record))
+            if isinstance(renderer, GaussianRenderer) and record.describe.get("background") is not None:
+                set_background(renderer, record.describe["background"])
         self.put(model_id, renderer)
         return renderer
 

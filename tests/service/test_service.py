@@ -204,3 +204,33 @@ def test_client_reads_cameras_from_transforms_and_sidecars(svc_start, svc_model_
             phd.upload_model(ply, cameras={"camera_angle_x": 0.7,
                                            "frames": [{"transform_matrix": frames[0]["transform_matrix"]}]})
         assert exc.value.field == "cameras[0].w"
+
+
+def test_a_splat_models_background_is_stored_and_used_after_a_restart(svc_start, svc_model_files, tmp_path):
+    # A sidecar that says the model was trained over black: the client sends it, the service
+    # renders over it (a ranking equals the library's black-background renderer, not the white one).
+    ply = tmp_path / "black.ply"
+    ply.write_bytes(svc_model_files["ply"].read_bytes())
+    cameras = svc_cameras(4, phase=0.2)
+    (tmp_path / "black.json").write_text(json.dumps({"background": [0.0, 0.0, 0.0],
+                                                     "training_cameras": camera_frames(cameras)}))
+    candidates = svc_cameras(5, phase=0.7)
+    model = read_ply(svc_model_files["ply"])
+    black = uq.rank_views(GaussianRenderer(model, (0, 0, 0), cameras), candidates, ratio=0.3, samples=5, seed=1)
+    white = uq.rank_views(GaussianRenderer(model, (1, 1, 1), cameras), candidates, ratio=0.3, samples=5, seed=1)
+    assert [r.sigma_max for r in black] != pytest.approx([r.sigma_max for r in white], rel=1e-6)
+    data_dir = tmp_path / "data"
+    server = svc_start(data_dir=data_dir)
+    with PHDClient(server.url) as phd:
+        info = phd.upload_model(ply)
+        assert info.details["background"] == [0.0, 0.0, 0.0]
+        _assert_ranking_equal(phd.rank(info.id, candidates, samples=5, seed=1, dropout_ratio=0.3), black)
+        with pytest.raises(InvalidInputError) as bad:
+            phd.upload_model(svc_model_files["ply"], background=[0.0, 2.0, 0.0])
+        assert bad.value.field == "background"
+        with pytest.raises(InvalidInputError) as nerf:
+            phd.upload_model(svc_model_files["nerf"], background="black")
+        assert nerf.value.field == "background"
+    server.stop()
+    with PHDClient(svc_start(data_dir=data_dir).url) as phd:   # reloaded from disk, not the cache
+        _assert_ranking_equal(phd.rank(info.id, candidates, samples=5, seed=1, dropout_ratio=0.3), black)
