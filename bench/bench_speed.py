@@ -1,7 +1,7 @@
 """Ranking at interactive speed: render, batch, compositing, calibration, ranking and training
 times, measured in one run and written to docs/performance.md.
 
-    nice -n 10 python bench/bench_speed.py [--candidates 100] [--out docs/performance.md]
+    python bench/bench_speed.py [--candidates 100] [--out docs/performance.md]
 
 The model: a synthetic 3DGS "glazed donut" of 45,624 splats, SH degree 0 (the size of the
 third-party PLY of issue 11, which is not on disk): splats on a torus surface inside
@@ -128,6 +128,14 @@ def training_steps(size: int, iterations: int) -> dict:
     return {"iterations": iterations, "step_s": round(seconds / iterations, 4), "final_splats": model.num_splats}
 
 
+def write_report(path: Path, text: str) -> None:
+    """Write this benchmark's part of `path`, keeping the sections other benchmarks write there
+    (from "## Ray" on: bench/bench_ray.py)."""
+    old = path.read_text() if path.exists() else ""
+    tail = old[old.index("\n## Ray") + 1:] if "\n## Ray" in old else ""
+    path.write_text(text.rstrip() + "\n" + ("\n" + tail if tail else ""))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--candidates", type=int, default=100)
@@ -137,7 +145,7 @@ def main() -> None:
     parser.add_argument("--report-only", action="store_true", help="rewrite --out from the numbers in --json")
     args = parser.parse_args()
     if args.report_only:
-        args.out.write_text(report(json.loads(args.json.read_text())))
+        write_report(args.out, report(json.loads(args.json.read_text())))
         return
 
     model = donut_model()
@@ -182,7 +190,7 @@ def main() -> None:
     results["machine"]["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
     args.json.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.json, results)
-    args.out.write_text(report(results))
+    write_report(args.out, report(results))
     print(f"written {args.out} and {args.json}")
 
 
@@ -244,7 +252,7 @@ def report(r: dict) -> str:
 Measured by `bench/bench_speed.py` in one run (every ratio below compares numbers from that
 run); raw numbers in `bench/results/speed.json`. Command:
 
-    nice -n 10 .venv/bin/python bench/bench_speed.py
+    .venv/bin/python bench/bench_speed.py
 
 Machine: {m['cpus']} cores, {m['platform']}, Python {m['python']}, torch {m['torch']}; load average
 {m['load_average_at_start']} at the start and {m['load_average_at_end']} at the end (the
