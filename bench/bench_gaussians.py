@@ -70,21 +70,24 @@ def main() -> None:
     parser.add_argument("--masks", type=int, default=16)
     parser.add_argument("--model", choices=("3dgs", "2dgs"), default="3dgs", help="splat family (default 3dgs)")
     parser.add_argument("--views", default="16,100", help="training view counts (default 16,100)")
+    parser.add_argument("--depth-distortion", type=float, default=0.0, help="2DGS regulariser weight (default 0)")
+    parser.add_argument("--normal-consistency", type=float, default=0.0, help="2DGS regulariser weight (default 0)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "gaussians.json")
     args = parser.parse_args()
     module, function = FAMILIES[args.model].trainer.split(":")
     train = getattr(importlib.import_module(module), function)
+    options = {name: getattr(args, name) for name in FAMILIES[args.model].train_options}
     test = load_blender(DATA, "test", downscale=2, views=25)
     results = {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                            "torch": torch.__version__, "threads": torch.get_num_threads()},
                "settings": {"downscale": 2, "test_views": 25, "masks": args.masks, "model": args.model,
-                            "iterations": args.iterations}, "models": {}}
+                            "iterations": args.iterations, **options}, "models": {}}
     for views in (int(v) for v in args.views.split(",")):
         path = ROOT / "runs" / f"lego{views}{'' if args.model == '3dgs' else '_' + args.model}" / "model.ply"
         entry: dict = {}
         if not args.skip_train:
             start = time.perf_counter()
-            train(DATA, views=views, downscale=2, iterations=args.iterations, out=path, progress=False)
+            train(DATA, views=views, downscale=2, iterations=args.iterations, out=path, progress=False, **options)
             entry["train_s"] = round(time.perf_counter() - start, 1)
         else:
             entry["train_s"] = json.loads(path.with_suffix(".json").read_text())["train_seconds"]
