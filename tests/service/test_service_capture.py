@@ -28,8 +28,10 @@ def output_folder(tmp_path_factory):
 def test_upload_an_output_folder_calibrate_and_rank_generated_candidates(svc_start, output_folder) -> None:
     server = svc_start()
     renderer = load_model(output_folder)
-    # The service stores the PLY alone: it renders on its default white background, not the trainer's.
-    served = load_model(next(output_folder.glob("point_cloud/iteration_30000/point_cloud.ply")))
+    # The service renders over the trainer's background (cfg_args), as the CLI does, not over white.
+    served = renderer
+    white = load_model(next(output_folder.glob("point_cloud/iteration_30000/point_cloud.ply")))
+    assert renderer.background.tolist() != white.background.tolist()
     with PHDClient(server.url) as client:
         info = client.upload_model(output_folder)
         assert info.num_units == 300 and info.num_training_cameras == 3
