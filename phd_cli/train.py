@@ -27,9 +27,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         f"{FAMILIES[kind].extension} for {kind}" for kind in trainable) + ")")
     p.add_argument("--encoding", choices=("pe", "spe", "hash"), default="pe", help="NeRF input encoding")
     p.add_argument("--freenerf", action="store_true", help="NeRF: FreeNeRF frequency and occlusion regularisation")
-    p.add_argument("--depth-distortion", type=float, default=0.0, help="2DGS: depth distortion weight (default 0, off)")
-    p.add_argument("--normal-consistency", type=float, default=0.0,
-                   help="2DGS: normal consistency weight (default 0, off)")
+    p.add_argument("--depth-distortion", type=float, default=1.0,
+                   help="2DGS: depth distortion weight (default 1; 0 off)")
+    p.add_argument("--normal-consistency", type=float, default=0.05,
+                   help="2DGS: normal consistency weight (default 0.05; 0 off)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

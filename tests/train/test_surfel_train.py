@@ -97,8 +97,10 @@ def test_training_fits_and_regularisers_run(tiny) -> None:
         return psnr(renders.clamp(0, 1), tiny.images)
 
     config = TrainConfig(iterations=100, init_points=800, seed=3)
-    trained, _ = fit(tiny, config, progress=False, recipe=gs2d.recipe())
-    untrained, _ = fit(tiny, TrainConfig(iterations=1, init_points=800, seed=3), progress=False, recipe=gs2d.recipe())
+    plain = gs2d.recipe(depth_distortion=0.0, normal_consistency=0.0)
+    assert plain.regulariser is None and gs2d.recipe().regulariser is not None   # on by default
+    trained, _ = fit(tiny, config, progress=False, recipe=plain)
+    untrained, _ = fit(tiny, TrainConfig(iterations=1, init_points=800, seed=3), progress=False, recipe=plain)
     assert type(trained) is SurfelModel
     assert train_psnr(trained) > train_psnr(untrained) + 2.0
     regularised, history = fit(tiny, TrainConfig(iterations=30, init_points=500, seed=3), progress=False,
