@@ -1,4 +1,4 @@
-"""Splat maths every splat renderer shares (3DGS today, 2DGS next): the reference
+"""Splat maths every splat renderer shares (3DGS and 2DGS): the reference
 rasteriser's constants and compositing rules, SH colour, quaternion rotations, and the
 mask-independent stages that turn projected splats into per-pixel fragments.
 
