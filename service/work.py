@@ -294,8 +294,11 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
-    estimate = pixels(cameras) * (2 * samples + (body.images != "none") * (1 + body.both_images))
-    plan = memory_plan([record_a, record_b], cameras, samples, settings)
+    images = body.images != "none"
+    estimate = pixels(cameras) * (2 * samples + 2 * images)
+    # With images, both models' full render of every view ([H, W, 3] float32) is kept until the choice.
+    plan = memory_plan([record_a, record_b], cameras, samples, settings,
+                       kept_bytes=2 * 12 * pixels(cameras) if images else 0, kept_field="images")
     if body.rule == "distance_sigma":
         for name, record in (("model_a", record_a), ("model_b", record_b)):
             if not record.training_frames:
@@ -308,8 +311,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
         result = uq.select_models(renderer_a, renderer_b, cameras, ratio_a=ratio_a, ratio_b=ratio_b,
                                   samples=samples, seed=body.seed, rule=body.rule,
                                   training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
-                                  keep_images=("both" if body.both_images else True) if body.images != "none"
-                                  else False,
+                                  keep_images=("both" if body.both_images else True) if images else False,
                                   progress=progress, executor=executor)
         views, artifacts = [], {}
         for v in result.views:

@@ -17,8 +17,8 @@ from ..eval import ensemble_efficiency, psnr, ssim
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_ratio, check_samples, check_seed,
-                       dropout_uniforms, keep_masks, render_masks)
-from .uncertainty import DEFAULT_SAMPLES, measure_views
+                       dropout_uniforms, keep_masks)
+from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, measure_views
 
 
 @dataclass
@@ -104,20 +104,26 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         levels = {key: _level_views(training[key]) for key in renderers}
     else:
         levels = {"a": [], "b": []}
-    ticker = ProgressTicker(progress, 3 * len(cameras) + len(levels["a"]) + len(levels["b"]))
+    ticker = ProgressTicker(progress, 2 * len(cameras) + len(levels["a"]) + len(levels["b"]))
 
-    def sigma_means(key: str, views: list[Camera]) -> list[float]:
-        """Mean zeta of each view under model `key`'s masks, on the executor."""
+    # Full renders: both models when scoring against ground truth, else only the chosen one (made
+    # from the prepared view that served the masks, for both models, before the choice is known).
+    both = images is not None or keep_images == "both"
+
+    def measure(key: str, views: list[Camera], keep_full: bool = False) -> list[ViewUncertainty]:
+        """Each view under model `key`'s masks, on the executor."""
         chunks = executor.split(views)
-        parts = executor.map(partial(measure_views, ddof=1, keep_maps=False, dtype=torch.float64), chunks,
+        parts = executor.map(partial(measure_views, ddof=1, keep_maps=False, dtype=torch.float64,
+                                     keep_full=keep_full), chunks,
                              executor.share(renderers[key]), keeps[key], done=lambda i: ticker.tick(len(chunks[i])))
-        return [view.sigma_mean for part in parts for view in part]
+        return [view for part in parts for view in part]
 
-    sigmas = {key: sigma_means(key, cameras) for key in renderers}
+    measured = {key: measure(key, cameras, keep_full=both or bool(keep_images)) for key in renderers}
+    sigmas = {key: [view.sigma_mean for view in measured[key]] for key in renderers}
     if rule == "distance_sigma":
         own = {}
         for key in renderers:
-            means = sigma_means(key, levels[key])
+            means = [view.sigma_mean for view in measure(key, levels[key])]
             own[key] = max(sum(means) / len(means), 1e-12)
 
     def score(key: str, i: int) -> float:
@@ -126,20 +132,15 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         return _nearest_distance(cameras[i], training[key]) * sigmas[key][i] / own[key]
 
     views, scores = [], {"a": [], "b": [], "selected": []}
-    for i, camera in enumerate(cameras):
+    for i in range(len(cameras)):
         score_a, score_b = score("a", i), score("b", i)
-        choice = "a" if score_a <= score_b else "b"
-        # Full renders: both models when scoring against ground truth, else only the chosen one.
-        both = images is not None or keep_images == "both"
-        needed = ("a", "b") if both else (choice,) if keep_images else ()
-        full = {key: render_masks(renderers[key].prepare(camera), None)[0] for key in needed}
-        image, other = full.get(choice), full.get("b" if choice == "a" else "a")
+        choice, other = ("a", "b") if score_a <= score_b else ("b", "a")
+        image = measured[choice][i].image
         if images is not None:
-            _score_images(scores, full["a"], full["b"], image, images[i])
+            _score_images(scores, measured["a"][i].image, measured["b"][i].image, image, images[i])
         views.append(ViewSelection(index=i, choice=choice, score_a=score_a, score_b=score_b,
                                    image=image if keep_images else None,
-                                   other_image=other if keep_images == "both" else None))
-        ticker.tick()
+                                   other_image=measured[other][i].image if keep_images == "both" else None))
     metrics = _selection_metrics(views, scores) if images is not None else None
     ticker.finish()
     return SelectionResult(views=views, metrics=metrics)

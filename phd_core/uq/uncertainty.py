@@ -16,7 +16,7 @@ from ..errors import InputError
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer, View
 from .sampling import (Progress, ProgressTicker, RunningStd, check_cameras, check_dtype, check_ratio, check_samples,
-                       check_seed, dropout_uniforms, keep_masks, masked_renders)
+                       check_seed, dropout_uniforms, keep_masks, masked_renders, render_masks)
 
 TOP_SHARE = 0.1                    # sigma_top: the share of pixels it averages
 AREA_THRESHOLD = 0.05              # area: zeta above this (on [0, 1] colours) counts as uncertain
@@ -34,10 +34,11 @@ class ViewUncertainty:
     mean: Tensor | None = None      # [H, W, 3] float32 mean image over the N samples (keep_maps=True)
     zeta: Tensor | None = None      # [H, W, 3] float32 per-pixel per-channel std (keep_maps=True)
     peak: Tensor | None = None      # [H, W] float32 zeta's max over channels, what a heat map draws (keep_peak=True)
+    image: Tensor | None = None     # [H, W, 3] float32 the full model's render, from the same prepared view (keep_full)
 
 
 def measure_view(view: View, keep: Tensor, ddof: int, keep_maps: bool, dtype: torch.dtype,
-                 keep_peak: bool = False) -> ViewUncertainty:
+                 keep_peak: bool = False, keep_full: bool = False) -> ViewUncertainty:
     running = RunningStd(dtype)                               # never holds all N renders
     for chunk in masked_renders(view, keep):                  # [m, H, W, 3]
         running.add(chunk)
@@ -50,13 +51,16 @@ def measure_view(view: View, keep: Tensor, ddof: int, keep_maps: bool, dtype: to
         area=float((per_pixel > AREA_THRESHOLD).double().mean()),
         mean=mean.to(torch.float32) if keep_maps else None,
         zeta=zeta.to(torch.float32) if keep_maps else None,
-        peak=peak.to(torch.float32) if keep_peak else None)
+        peak=peak.to(torch.float32) if keep_peak else None,
+        image=render_masks(view, None)[0] if keep_full else None)
 
 
 def measure_views(cameras: list[Camera], renderer: Renderer, keep: Tensor, *, ddof: int, keep_maps: bool,
-                  dtype: torch.dtype, keep_peak: bool = False) -> list[ViewUncertainty]:
-    """measure_view for a chunk of cameras (what an executor runs)."""
-    return [measure_view(renderer.prepare(camera), keep, ddof, keep_maps, dtype, keep_peak) for camera in cameras]
+                  dtype: torch.dtype, keep_peak: bool = False, keep_full: bool = False) -> list[ViewUncertainty]:
+    """measure_view for a chunk of cameras (what an executor runs): one `prepare` per camera
+    serves the N masked renders and, with keep_full, the full model's render."""
+    return [measure_view(renderer.prepare(camera), keep, ddof, keep_maps, dtype, keep_peak, keep_full)
+            for camera in cameras]
 
 
 def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, samples: int = DEFAULT_SAMPLES,

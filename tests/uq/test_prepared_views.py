@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 import phd_core.uq.sampling as sampling
 from phd_core import uq as phd
@@ -48,6 +49,18 @@ def test_uncertainty_prepares_once_per_view_for_all_mask_chunks(monkeypatch) -> 
     renderer, prepared = counting_renderer()
     views = phd.uncertainty(renderer, CAMERAS[:2], ratio=0.3, samples=10)
     assert len(prepared) == 2 and all(v.sigma_max > 0 for v in views)
+
+
+def test_selection_prepares_each_view_once_per_model_for_masks_and_full_renders() -> None:
+    renderer_a, prepared_a = counting_renderer()
+    renderer_b, prepared_b = counting_renderer()
+    result = phd.select_models(renderer_a, renderer_b, CAMERAS, ratio_a=0.2, ratio_b=0.4, samples=4,
+                               rule="sigma_mean", keep_images="both")
+    assert len(prepared_a) == len(prepared_b) == len(CAMERAS)
+    for view, cam in zip(result.views, CAMERAS):          # the kept renders are the full models'
+        chosen, other = (renderer_a, renderer_b) if view.choice == "a" else (renderer_b, renderer_a)
+        assert torch.equal(view.image, chosen.render(cam)[0])
+        assert torch.equal(view.other_image, other.render(cam)[0])
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt")
