@@ -36,11 +36,15 @@ LAUNCH_LOCK = threading.Lock()
 def _composite_kernel(row_ptr, alpha, log_1ma, index, unit, keep_t, values, out_values,
                       out_alpha):  # pragma: no cover
     """row_ptr [S + 1] int64: fragments of pixel s are row_ptr[s]:row_ptr[s + 1], front to back;
-    alpha [E] float32 and log_1ma = log1p(-alpha) [E] float32 (as the reference takes it); index [E] int32 (value row of each fragment); unit [V] int64 (keep
-    row of each value row); keep_t [U, N] bool (one unit's N flags share a cache line);
-    values [V, C] float32. Writes out_values [N, S, C] and out_alpha [N, S] (float32, all).
-    The stop rule reads the log transmittance; the weight uses the same transmittance kept
-    as a float64 product (one exp fewer per fragment and mask)."""
+    alpha [E] float32 and log_1ma = log1p(-alpha) [E] float32 (as the reference takes it);
+    index [E] int32 (value row of each fragment); unit [V] int64 (keep row of each value row);
+    keep_t [U, N] bool (one unit's N flags share a cache line); values [V, C] float32.
+    Writes out_values [N, S, C] and out_alpha [N, S] (float32, all).
+
+    The loops over the N masks have no branches (selects instead), so they run as SIMD
+    lanes; state is laid out mask-last for that. The stop rule reads the log
+    transmittance; the weight uses the same transmittance kept as a float64 running
+    value (T - alpha T, one exp fewer per fragment and mask)."""
     num_pixels = row_ptr.shape[0] - 1
     masks = keep_t.shape[1]
     channels = values.shape[1]
@@ -48,39 +52,43 @@ def _composite_kernel(row_ptr, alpha, log_1ma, index, unit, keep_t, values, out_
     for block in numba.prange(blocks):
         log_t = np.empty(masks)                     # log transmittance per mask
         trans = np.empty(masks)                     # the same, exp'd
-        active = np.empty(masks, dtype=np.bool_)
-        acc = np.empty((masks, channels + 1))       # colour/depth sums, then accumulated alpha
+        live = np.empty(masks, dtype=np.uint8)      # 1 until the mask's transmittance is spent
+        weight = np.empty(masks)                    # this fragment's weight per mask (0: skipped)
+        acc = np.empty((channels + 1, masks))       # colour/depth sums, then accumulated alpha
         for s in range(block * PIXEL_BLOCK, min(num_pixels, (block + 1) * PIXEL_BLOCK)):
             log_t[:] = 0.0
             trans[:] = 1.0
-            active[:] = True
+            live[:] = 1
             acc[:] = 0.0
-            alive = masks
             for e in range(row_ptr[s], row_ptr[s + 1]):
                 a = np.float64(alpha[e])
                 step = np.float64(log_1ma[e])
                 v = index[e]
                 u = unit[v]
+                alive = 0
                 for n in range(masks):
-                    if not active[n] or not keep_t[u, n]:
-                        continue
                     after = log_t[n] + step
-                    if after < LOG_T_MIN:               # this fragment would spend the pixel: stop
-                        active[n] = False
-                        alive -= 1
-                        continue
-                    weight = a * trans[n]
-                    for c in range(channels):
-                        acc[n, c] += weight * values[v, c]
-                    acc[n, channels] += weight
-                    log_t[n] = after
-                    trans[n] *= 1.0 - a
+                    kept = live[n] & keep_t[u, n]               # the mask keeps this unit, still live
+                    room = np.uint8(after >= LOG_T_MIN)         # 0: this fragment would spend the pixel
+                    use = kept & room
+                    live[n] &= room | (1 - kept)                # a kept fragment without room stops the mask
+                    w = a * trans[n] if use else 0.0
+                    weight[n] = w
+                    log_t[n] = after if use else log_t[n]
+                    trans[n] -= w
+                    alive += live[n]
+                for c in range(channels):
+                    x = np.float64(values[v, c])
+                    for n in range(masks):
+                        acc[c, n] += weight[n] * x
+                for n in range(masks):
+                    acc[channels, n] += weight[n]
                 if alive == 0:
                     break
             for n in range(masks):
                 for c in range(channels):
-                    out_values[n, s, c] = acc[n, c]
-                out_alpha[n, s] = acc[n, channels]
+                    out_values[n, s, c] = acc[c, n]
+                out_alpha[n, s] = acc[channels, n]
 
 
 def _launch(row_ptr: torch.Tensor, alpha: torch.Tensor, log_1ma: torch.Tensor, index: torch.Tensor,
@@ -115,19 +123,14 @@ def composite_indexed(row_ptr: torch.Tensor, alpha: torch.Tensor, index: torch.T
     return _launch(row_ptr, alpha, log_1ma, index, unit, keep.T.contiguous(), values)
 
 
-def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
+def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None, unit: torch.Tensor,
               num_pixels: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Stage 4 with the `COMPOSITORS` signature: values [E, C], keep [N, E] bool or None.
+    """Stage 4 with the `COMPOSITORS` signature: values [E, C], keep [N, U] bool or None, unit [E].
 
     Returns (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
     """
-    entries = torch.arange(len(frags.alpha))
-    if keep is None:
-        sums, alpha = composite_indexed(frags.row_ptr, frags.alpha, entries.int(), entries, None, values)
-    else:
-        # Entries are read in order, so the [N, E] masks are read in place (a strided [E, N] view).
-        sums, alpha = _launch(frags.row_ptr, frags.alpha, torch.log1p(-frags.alpha.float()), entries.int(), entries,
-                              keep.T, values)
+    entries = torch.arange(len(frags.alpha), dtype=torch.int32)      # one value row per entry
+    sums, alpha = composite_indexed(frags.row_ptr, frags.alpha, entries, unit, keep, values)
     totals = sums.new_zeros(sums.shape[0], num_pixels, sums.shape[-1])
     totals[:, frags.pixel] = sums
     acc_alpha = alpha.new_zeros(alpha.shape[0], num_pixels)
