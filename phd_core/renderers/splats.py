@@ -150,22 +150,23 @@ def untile(x: torch.Tensor, pairs: Pairs, tile: int, width: int, height: int) ->
     return x.reshape(n, pairs.tiles_y * tile, pairs.tiles_x * tile, c)[:, :height, :width]
 
 
-def composite_images(composite, frags: Fragments, values: torch.Tensor, keep_frags: torch.Tensor | None,
-                     pairs: Pairs, tile: int, width: int, height: int,
+def composite_images(composite, frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
+                     unit: torch.Tensor, pairs: Pairs, tile: int, width: int, height: int,
                      background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Stage 4 with a compositing backend, in mask batches of at most CHUNK_ELEMENTS values,
-    back to images. values: [E, C]; keep_frags: [N, E] bool or None (all kept).
+    back to images. values: [E, C]; keep: [N, U] bool or None (all kept); unit: [E] the keep
+    column of each entry.
 
     Returns (accumulated values [N, H, W, C], alpha [N, H, W], rgb [N, H, W, 3]: values[..., :3]
     over `background`).
     """
     num_pixels = pairs.tiles_x * pairs.tiles_y * tile * tile
-    if keep_frags is None:
-        acc_v, acc_a = composite(frags, values, None, num_pixels)
+    if keep is None:
+        acc_v, acc_a = composite(frags, values, None, unit, num_pixels)
     else:
-        chunk = max(1, CHUNK_ELEMENTS // max(1, keep_frags.shape[1]))
-        parts = [composite(frags, values, keep_frags[i:i + chunk], num_pixels)
-                 for i in range(0, keep_frags.shape[0], chunk)]
+        chunk = max(1, CHUNK_ELEMENTS // max(1, len(unit)))
+        parts = [composite(frags, values, keep[i:i + chunk], unit, num_pixels)
+                 for i in range(0, keep.shape[0], chunk)]
         acc_v = torch.cat([v for v, _ in parts])
         acc_a = torch.cat([a for _, a in parts])
     acc_v = untile(acc_v, pairs, tile, width, height)                               # [N, H, W, C]

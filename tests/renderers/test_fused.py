@@ -50,15 +50,17 @@ def test_fused_compositor_matches_reference_on_the_same_fragments(tile: int, see
     pairs = intersect(proj.means2d, proj.extents, cam.width, cam.height, tile)
     frags = fragments(splat_alpha(proj, pairs, tile), pairs)
     splat = pairs.splat[frags.pair]
+    unit = proj.ids[splat]                                               # [E] the splat of each entry
     values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]
     num_pixels = pairs.tiles_x * pairs.tiles_y * tile * tile
-    for keep in (None, masks(7, len(splat), 0.4, seed), torch.zeros(2, len(splat), dtype=torch.bool)):
-        ref_v, ref_a = COMPOSITORS["reference"](frags, values, keep, num_pixels)
-        fus_v, fus_a = COMPOSITORS["fused"](frags, values, keep, num_pixels)
+    units = model.num_splats
+    for keep in (None, masks(7, units, 0.4, seed), torch.zeros(2, units, dtype=torch.bool)):
+        ref_v, ref_a = COMPOSITORS["reference"](frags, values, keep, unit, num_pixels)
+        fus_v, fus_a = COMPOSITORS["fused"](frags, values, keep, unit, num_pixels)
         assert fus_v.shape == ref_v.shape and fus_a.shape == ref_a.shape
         assert (fus_v - ref_v).abs().max() <= TOL and (fus_a - ref_a).abs().max() <= TOL
     assert ref_a.max() == 0 and fus_a.max() == 0                # the all-dropped batch
-    full_a = COMPOSITORS["fused"](frags, values, None, num_pixels)[1]
+    full_a = COMPOSITORS["fused"](frags, values, None, unit, num_pixels)[1]
     assert full_a.max() > 0.9, "the scene must cover pixels for the comparison to mean anything"
 
 

@@ -1,7 +1,8 @@
 """Compositing backends: stage 4 of splat rendering, the only stage run once per keep-mask.
 
-A backend is a function (fragments, values [E, C], keep [N, E] bool or None, num_pixels)
--> (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
+A backend is a function (fragments, values [E, C], keep [N, U] bool or None, unit [E] int64,
+num_pixels) -> (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]):
+entry e is dropped by mask n when not keep[n, unit[e]] (U dropout units, e.g. splats).
 `COMPOSITORS` maps a name to one:
 
     reference   pure torch, differentiable: training, and the tested twin of the others
@@ -20,7 +21,8 @@ from ...registry import Registry
 from ..splats import Fragments
 from . import fused, reference
 
-Compositor = Callable[[Fragments, torch.Tensor, "torch.Tensor | None", int], tuple[torch.Tensor, torch.Tensor]]
+Compositor = Callable[[Fragments, torch.Tensor, "torch.Tensor | None", torch.Tensor, int],
+                      tuple[torch.Tensor, torch.Tensor]]
 
 COMPOSITORS: Registry[Compositor] = Registry("compositor")
 COMPOSITORS.add("reference", reference.composite)

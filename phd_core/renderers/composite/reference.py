@@ -44,16 +44,17 @@ class PixelSums(torch.autograd.Function):
         return grad_weight, grad_values, None, None
 
 
-def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
+def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None, unit: torch.Tensor,
               num_pixels: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Stage 4: front-to-back compositing, once per keep-mask.
 
-    values: [E, C] per-entry quantities (colour, depth); keep: [N, E] bool or None.
+    values: [E, C] per-entry quantities (colour, depth); keep: [N, U] bool or None; unit: [E]
+    the keep column of each entry.
     Returns (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
     Transmittance is a running sum of log(1 - alpha) in float64 along the entries,
     rebased at each pixel's first entry. Per-pixel sums go through `PixelSums`.
     """
-    alpha = frags.alpha[None] if keep is None else frags.alpha[None] * keep   # [N, E]
+    alpha = frags.alpha[None] if keep is None else frags.alpha[None] * keep[:, unit]   # [N, E]
     log_1ma = torch.log1p(-alpha).double()
     inclusive = torch.cumsum(log_1ma, dim=1)
     exclusive = inclusive - log_1ma

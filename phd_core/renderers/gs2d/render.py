@@ -195,9 +195,8 @@ def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tens
     if geometry:
         columns += [proj.normals.float()[splat], entry_depth.square()]
     values = torch.cat(columns, dim=-1)                                  # [E, 4] or [E, 8]
-    keep_frags = None if keep is None else keep[:, proj.ids[splat]]    # [N, E]
-    acc_v, acc_a, rgb = composite_images(composite, frags, values, keep_frags, pairs, tile, camera.width,
-                                         camera.height, background)
+    acc_v, acc_a, rgb = composite_images(composite, frags, values, keep, proj.ids[splat], pairs, tile,
+                                         camera.width, camera.height, background)
     out = SurfelOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all, visible=visible)
     if geometry:
         out.normal = acc_v[..., 4:7]

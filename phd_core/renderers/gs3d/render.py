@@ -175,9 +175,8 @@ def rasterize(model: GaussianModel, camera: Camera, background: torch.Tensor,
     frags = fragments(splat_alpha(proj, pairs, tile), pairs)
     splat = pairs.splat[frags.pair]                                    # [E] index into proj
     values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]  # [E, 4]
-    keep_frags = None if keep is None else keep[:, proj.ids[splat]]   # [N, E]
-    acc_v, acc_a, rgb = composite_images(composite, frags, values, keep_frags, pairs, tile, camera.width,
-                                         camera.height, background)
+    acc_v, acc_a, rgb = composite_images(composite, frags, values, keep, proj.ids[splat], pairs, tile,
+                                         camera.width, camera.height, background)
     return RenderOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all, visible=visible)
 
 
