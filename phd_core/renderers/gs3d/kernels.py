@@ -170,16 +170,19 @@ def _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _gather(start, splat, pair_alpha, row_ptr, alpha, index):  # pragma: no cover
-    """The nonzero pair_alpha entries, pixel by pixel, front to back."""
+    """The nonzero pair_alpha entries, pixel by pixel, front to back: one pass over a tile's
+    pairs (in depth order) appends each pair's fragments at its pixels' cursors."""
     pixels = pair_alpha.shape[1]
     for t in numba.prange(start.shape[0] - 1):
-        for p in range(pixels):
-            e = row_ptr[t * pixels + p]
-            for k in range(start[t], start[t + 1]):
-                if pair_alpha[k, p] > 0.0:
-                    alpha[e] = pair_alpha[k, p]
+        cursor = row_ptr[t * pixels:(t + 1) * pixels].copy()     # next free entry of each pixel
+        for k in range(start[t], start[t + 1]):
+            for p in range(pixels):
+                a = pair_alpha[k, p]
+                if a > 0.0:
+                    e = cursor[p]
+                    alpha[e] = a
                     index[e] = splat[k]
-                    e += 1
+                    cursor[p] = e + 1
 
 
 def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, extents: torch.Tensor,
