@@ -191,8 +191,8 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
     options = {k: v for k, v in options.items() if v is not None}
     step = body.step or uq.DEFAULT_STEP
     estimate = pixels(cameras) * (1 + samples * int(1 / step))
-    plan = memory_plan([record], cameras, samples, settings, kept_bytes=12 * pixels(cameras),  # float32 references
-                       kept_field="training_cameras")
+    plan = memory_plan([record], cameras, samples * uq.LOOKAHEAD, settings,  # masks of one pass per view
+                       kept_bytes=12 * pixels(cameras), kept_field="training_cameras")   # float32 references
 
     def work(progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
         renderer = cache.get(record.id)

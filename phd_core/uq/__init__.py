@@ -16,7 +16,7 @@ one image per mask, so N sub-models of one view cost one batched pass.
 Everything public is importable from here: `from phd_core import uq`.
 """
 
-from .calibrate import (DEFAULT_CALIBRATION_SAMPLES, DEFAULT_EPSILON, DEFAULT_SSIM_MARGIN, DEFAULT_STEP,
+from .calibrate import (DEFAULT_CALIBRATION_SAMPLES, DEFAULT_EPSILON, DEFAULT_SSIM_MARGIN, DEFAULT_STEP, LOOKAHEAD,
                         CalibrationError, CalibrationResult, calibrate, calibrate_ssim)
 from .candidates import GENERATORS
 from .rank import RankedView, candidate_evidence, rank_views
@@ -29,7 +29,7 @@ from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, sigma_max_bar, uncert
 
 __all__ = [
     "DEFAULT_CALIBRATION_SAMPLES", "DEFAULT_EPSILON", "DEFAULT_SAMPLES", "DEFAULT_SELECTION_RULE",
-    "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "GENERATORS", "MAX_MASKS_PER_RENDER",
+    "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "GENERATORS", "LOOKAHEAD", "MAX_MASKS_PER_RENDER",
     "SELECTION_RULES", "SELECTION_TRAINING_VIEWS", "STRATEGIES", "CalibrationError", "CalibrationResult",
     "Progress", "RankedView", "RunningStd", "SelectionResult", "ViewSelection", "ViewUncertainty", "calibrate", "calibrate_ssim",
     "candidate_evidence", "dropout_uniforms", "keep_masks", "limit_mask_batch", "rank_views", "sample_std", "select_models",

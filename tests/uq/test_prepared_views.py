@@ -3,6 +3,8 @@ re-uses it for every ratio it tries (within the byte budget), with unchanged res
 
 from __future__ import annotations
 
+import importlib
+import math
 import os
 import subprocess
 import sys
@@ -12,8 +14,11 @@ import torch
 
 import phd_core.uq.sampling as sampling
 from phd_core import uq as phd
+from phd_core.uq.calibrate import LOOKAHEAD
 from phd_core.renderers.gs3d import GaussianRenderer
 from renderers.test_gaussian_render import camera, random_scene
+
+calibration = importlib.import_module("phd_core.uq.calibrate")   # the module (phd.calibrate is the function)
 
 
 def counting_renderer() -> tuple[GaussianRenderer, list]:
@@ -33,15 +38,26 @@ CAMERAS = [camera(24, 18, eye=(0.5 * i - 1.0, -3.0, 1.0)) for i in range(4)]
 
 def test_calibration_prepares_each_training_view_once(monkeypatch) -> None:
     renderer, prepared = counting_renderer()
-    kept = phd.calibrate(renderer, CAMERAS, epsilon=0.02, step=0.05, samples=3)
-    assert len(kept.ratios) >= 3, "several ratios must be tried for re-use to matter"
+    kept = phd.calibrate(renderer, CAMERAS, epsilon=0.04, step=0.05, samples=3)
+    passes = math.ceil(len(kept.ratios) / LOOKAHEAD)                 # the linear scan's passes over the views
+    assert passes >= 2, "several passes must be made for re-use to matter"
     assert len(prepared) == len(CAMERAS)
 
     monkeypatch.setattr(sampling, "VIEW_CACHE_BYTES", 0)           # nothing fits: prepared on every use
     renderer, prepared = counting_renderer()
-    again = phd.calibrate(renderer, CAMERAS, epsilon=0.02, step=0.05, samples=3)
-    assert len(prepared) == len(CAMERAS) * (1 + len(again.ratios))
+    again = phd.calibrate(renderer, CAMERAS, epsilon=0.04, step=0.05, samples=3)
+    assert len(prepared) == len(CAMERAS) * (1 + passes)
     assert (again.r_drop, again.errors) == (kept.r_drop, kept.errors)
+
+
+def test_linear_scan_with_lookahead_equals_the_one_by_one_scan(monkeypatch) -> None:
+    """Rendering LOOKAHEAD ratios per pass changes the cost, not the result or the curve."""
+    batched = phd.calibrate(counting_renderer()[0], CAMERAS, epsilon=0.04, step=0.05, samples=3)
+    monkeypatch.setattr(calibration, "LOOKAHEAD", 1)
+    single = phd.calibrate(counting_renderer()[0], CAMERAS, epsilon=0.04, step=0.05, samples=3)
+    assert batched.r_drop == single.r_drop and batched.ratios == single.ratios
+    assert batched.errors == pytest.approx(single.errors, rel=1e-12)
+    assert batched.errors[-1] >= 0.04 > batched.errors[-2]      # the curve ends at the first failure
 
 
 def test_uncertainty_prepares_once_per_view_for_all_mask_chunks(monkeypatch) -> None:
