@@ -103,8 +103,8 @@ def render_speed(model: GaussianModel, camera, keep: torch.Tensor) -> dict:
         f"separate{MASKS}_s": best_of(lambda: [fused.render(camera, keep[i:i + 1]) for i in range(MASKS)], 1),
         "prepare_s": best_of(lambda: fused.prepare(camera)),
         f"prepared_batch{MASKS}_s": best_of(lambda: view.render(keep)),
-        "pure_torch_one_s": best_of(lambda: pure.render(camera), 1),
-        f"pure_torch_batch{MASKS}_s": best_of(lambda: pure.render(camera, keep), 1),
+        "pure_torch_one_s": best_of(lambda: pure.render(camera), 3),
+        f"pure_torch_batch{MASKS}_s": best_of(lambda: pure.render(camera, keep), 3),
         "fragments": len(view.alpha),
     }
     # Stage 4 alone, both backends on the same torch-built fragments and masks.
@@ -113,10 +113,10 @@ def render_speed(model: GaussianModel, camera, keep: torch.Tensor) -> dict:
     frags = fragments(splat_alpha(proj, pairs, 4), pairs)
     splat = pairs.splat[frags.pair]
     values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]
-    keep_frags = keep[:, proj.ids[splat]]
+    unit = proj.ids[splat]
     num_pixels = pairs.tiles_x * pairs.tiles_y * 16
-    out["composite_reference_s"] = best_of(lambda: COMPOSITORS["reference"](frags, values, keep_frags, num_pixels), 2)
-    out["composite_fused_s"] = best_of(lambda: COMPOSITORS["fused"](frags, values, keep_frags, num_pixels))
+    out["composite_reference_s"] = best_of(lambda: COMPOSITORS["reference"](frags, values, keep, unit, num_pixels), 2)
+    out["composite_fused_s"] = best_of(lambda: COMPOSITORS["fused"](frags, values, keep, unit, num_pixels))
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in out.items()}
 
 
@@ -171,6 +171,8 @@ def main() -> None:
         frames = json.loads((DONUT / "transforms_test.json").read_text())
         frames["frames"] = frames["frames"][:args.candidates]
         candidates.write_text(json.dumps(frames))
+        one = Path(tmp) / "one.json"
+        one.write_text(json.dumps({**frames, "frames": frames["frames"][:1]}))
         calibrate = child(PHD + ["calibrate", "--model", str(ply), "--out", str(Path(tmp) / "cal.json")])
         r_drop = json.loads((Path(tmp) / "cal.json").read_text())["r_drop"]
         results["calibrate"] = {**calibrate, "views": 16, "size": 100, "r_drop": r_drop}
@@ -181,7 +183,10 @@ def main() -> None:
         results["rank_with_calibration"] = child(rank)
         results["rank_allocator_off"] = child(rank + ["--dropout-ratio", str(r_drop)],
                                               env={"PHD_KEEP_FREED_MEMORY": "0"})
-        for key in ("rank", "rank_with_calibration", "rank_allocator_off"):
+        results["rank_one"] = child(PHD + ["rank", "--model", str(ply), "--candidates", str(one), "--width", "100",
+                                           "--height", "100", "--samples", str(MASKS), "--dropout-ratio",
+                                           str(r_drop), "--out", str(Path(tmp) / "one_rank.json")])
+        for key in ("rank", "rank_with_calibration", "rank_allocator_off", "rank_one"):
             print(key, results[key], flush=True)
 
     for size in (50, 100):
@@ -241,7 +246,8 @@ def report(r: dict) -> str:
                        ("rank", f"`phd rank`, {r['rank']['candidates']} candidates, 100x100, N = {MASKS}, "
                                 "given --dropout-ratio"),
                        ("rank_with_calibration", "the same `phd rank` calibrating first (no --dropout-ratio)"),
-                       ("rank_allocator_off", "`phd rank` as above with PHD_KEEP_FREED_MEMORY=0")):
+                       ("rank_allocator_off", "`phd rank` as above with PHD_KEEP_FREED_MEMORY=0"),
+                       ("rank_one", "`phd rank` of 1 candidate (start-up: imports, model, kernels)")):
         x = r[key]
         runs.append(f"| {title} | {x['wall_s']:.1f} | {x['user_s']:.1f} | {x['system_s']:.2f} | "
                     f"{(x['user_s'] + x['system_s']) / 2:.1f} | "
@@ -273,9 +279,12 @@ sidecar; candidates: the test poses). N = {MASKS} keep-masks at ratio 0.2.
 both cores to itself (start-up, Python and the serial tile lists do not split over cores, so
 the true figure lies above it); on this shared machine the wall clock also counts the other
 jobs. For comparison, issue 11 measured on the landed code (pure torch): `phd rank` of 100
-candidates at 100x100 with 16 masks 160 s wall, 152 s of it system time, peak RSS 1.5 GB. The compositing ratio is lowest at 100x100, where the
-fused backend's fixed costs (the `COMPOSITORS` adapter's index arrays and pixel scatter)
-weigh most; the product path (`SplatView`) skips that adapter.
+candidates at 100x100 with 16 masks 160 s wall, 152 s of it system time, peak RSS 1.5 GB.
+
+System time: a `phd` process spends about {r['rank_one']['system_s']:.2f} s of system time just starting (loading
+torch's and numba's libraries, the model, the cached kernels; last row of the table below),
+so the share grows as the work itself gets faster; the rest is page faults of first-touched
+memory. The allocator row shows what issue 11 measured (unmapping per call) is gone.
 
 Not done: nothing is shared between different candidate cameras beyond the model's tensors
 (each camera gets one projection, one depth sort and one fragment pass, compiled); training
@@ -290,9 +299,13 @@ keeps the pure-torch forward and backward (no fused backward).
   per pixel, front to back, all N masks at once, early stop per mask, float64 log-space
   transmittance; pixels spread over both cores. The pure-torch `reference` stays for training
   (gradients) and as its tested twin (tests/renderers/test_fused.py, 1e-5).
+  The loops over the N masks have no branches, so they run as SIMD lanes (2.2x over a
+  branching loop at N = 16).
 - Calibration keeps each training view's `SplatView` across the ratios it tries
-  (`phd_core.uq.sampling.PreparedViews`, 256 MiB budget); uncertainty and selection prepare
-  each view once for all mask chunks and the full render.
+  (`phd_core.uq.sampling.PreparedViews`, 256 MiB budget) and renders 4 ratios per pass
+  (`LOOKAHEAD`: one batch of 16 masks per view instead of four of 4; ratios past the first
+  failure are dropped from the curve, so the result equals a one-by-one scan); uncertainty
+  and selection prepare each view once for all mask chunks and the full render.
 - Importing `phd_core` sets glibc's malloc to keep freed memory (`phd_core/allocator.py`,
   mallopt through ctypes: mmap threshold 32 MiB, no trimming, 1 GiB top pad).
 
@@ -310,8 +323,9 @@ Targets: batch <= 3x one render, and >= 5x faster than {MASKS} separate renders.
 |---|---|---|---|---|---|---|
 {chr(10).join(pure)}
 
-"render" is the whole render (all stages); "compositing" is stage 4 alone on the same
-fragments and masks. Target: >= 10x.
+"render" is the whole render (all stages); "compositing" is stage 4 alone, both backends
+called through `COMPOSITORS` with the same fragments, values and keep-masks [N, G] (the
+per-entry gather of the masks is part of the stage for both). Target: >= 10x.
 
 ## Calibration and ranking (child processes)
 
