@@ -238,14 +238,12 @@ def beyond_startup(r: dict, key: str) -> float:
 
 def report(r: dict) -> str:
     a, b = r["render_100"], r["render_200"]
-    rows = []
+    rows, pure = [], []
     for name, x in (("100x100", a), ("200x200", b)):
         rows.append(f"| {name} | {x['fragments']:,} | {x['one_s']:.3f} | {x[f'batch{MASKS}_s']:.3f} | "
                     f"{x[f'batch{MASKS}_s'] / x['one_s']:.2f}x | {x[f'separate{MASKS}_s']:.3f} | "
                     f"{x[f'separate{MASKS}_s'] / x[f'batch{MASKS}_s']:.1f}x | {x['prepare_s']:.3f} | "
                     f"{x[f'prepared_batch{MASKS}_s']:.3f} |")
-    pure = []
-    for name, x in (("100x100", a), ("200x200", b)):
         pure.append(f"| {name} | {x[f'pure_torch_batch{MASKS}_s']:.3f} | {x[f'batch{MASKS}_s']:.3f} | "
                     f"{x[f'pure_torch_batch{MASKS}_s'] / x[f'batch{MASKS}_s']:.1f}x | "
                     f"{x['composite_reference_s']:.3f} | {x['composite_fused_s']:.4f} | "

@@ -97,6 +97,19 @@ def _csp_violations(driver) -> list[str]:
             if "Content Security Policy" in entry["message"] or "Refused to" in entry["message"]]
 
 
+def _run_on_candidates(browser, count: int, job: str, fields: dict[str, int]) -> None:
+    """Generate `count` candidates, fill `fields`, press the job's button ("rank" or "select")
+    and wait until its grid shows `count` cards with every image loaded."""
+    _set(browser, "gen-count", count)
+    browser.find_element(By.ID, "gen-elevation").click()          # the change event regenerates candidates
+    for field, value in fields.items():
+        _set(browser, field, value)
+    _wait(browser, lambda d: d.execute_script("return state.candidates.length") == count, what=f"{count} candidates")
+    browser.find_element(By.ID, f"{job}-run").click()
+    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, f"#{job}-grid li.card")) == count
+          and d.execute_script(f"return [...document.querySelectorAll('#{job}-grid img')].every(i => i.complete "
+                               "&& i.naturalWidth > 0)"), what=f"the {job} grid and its images")
+
 def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_path):
     server, model_a, _ = models
     _open(browser, server)
@@ -106,16 +119,7 @@ def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_pa
     assert browser.find_element(By.ID, "rank-strategy").get_attribute("value") == uq.DEFAULT_STRATEGY
     offered = browser.execute_script("return [...document.querySelectorAll('#strategies option')].map(o => o.value)")
     assert offered == list(uq.STRATEGIES)
-    _set(browser, "gen-count", 7)
-    browser.find_element(By.ID, "gen-elevation").click()          # the change event regenerates candidates
-    _set(browser, "rank-samples", 4)
-    _set(browser, "rank-downscale", 1)
-    _set(browser, "rank-seed", 3)
-    _wait(browser, lambda d: d.execute_script("return state.candidates.length") == 7, what="7 candidates")
-    browser.find_element(By.ID, "rank-run").click()
-    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")) == 7
-          and d.execute_script("return [...document.querySelectorAll('#rank-grid img')].every(i => i.complete "
-                               "&& i.naturalWidth > 0)"), what="the ranked grid and its images")
+    _run_on_candidates(browser, 7, "rank", {"rank-samples": 4, "rank-downscale": 1, "rank-seed": 3})
 
     # The same request through the Python client gives the order the grid shows.
     candidates = browser.execute_script("return state.candidates")
@@ -155,15 +159,7 @@ def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_p
     _open(browser, server)
     Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
     Select(browser.find_element(By.ID, "model-b-select")).select_by_value(model_b.id)
-    _set(browser, "gen-count", 4)
-    browser.find_element(By.ID, "gen-elevation").click()
-    _set(browser, "rank-samples", 3)
-    _set(browser, "rank-downscale", 2)
-    _wait(browser, lambda d: d.execute_script("return state.candidates.length") == 4, what="4 candidates")
-    browser.find_element(By.ID, "select-run").click()
-    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#select-grid li.card")) == 4
-          and d.execute_script("return [...document.querySelectorAll('#select-grid img')].every(i => i.complete "
-                               "&& i.naturalWidth > 0)"), what="the selection grid")
+    _run_on_candidates(browser, 4, "select", {"rank-samples": 3, "rank-downscale": 2})
     candidates = browser.execute_script("return state.candidates")
     with PHDClient(server.url, api_key=KEY) as phd:
         expected = phd.select(model_a.id, model_b.id, candidates, samples=3, seed=0, downscale=2)
