@@ -31,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Open an interactive 3D view (viser, in the browser) of the model's splats, its training "
                     "cameras and the candidate poses coloured by score (yellow = capture first). Click a candidate "
                     "to see its mean render and zeta heat map.")
-    p.add_argument("model", type=Path, help="3DGS PLY or NeRF checkpoint")
+    p.add_argument("model", type=Path, help="3DGS or 2DGS PLY, or NeRF checkpoint")
     p.add_argument("--candidates", type=Path, default=None,
                    help="candidate poses (transforms.json or a list of frames), as given to `phd rank`")
     p.add_argument("--ranking", type=Path, default=None,

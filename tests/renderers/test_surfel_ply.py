@@ -12,6 +12,7 @@ from phd_core.errors import InputError
 from phd_core.renderers import FAMILIES, SNIFF_BYTES, load_model, load_model_bytes, model_kind
 from phd_core.renderers.gs2d import SurfelModel, SurfelRenderer, parse_surfel_ply, read_surfel_ply, write_surfel_ply
 from phd_core.renderers.gs3d import SIDECAR_FORMAT, GaussianModel, GaussianRenderer, parse_ply, sidecar_path, write_ply
+from phd_core.renderers.splats import quaternion_to_rotation
 from support.surfels import random_surfels, reference_layout_ply
 
 
@@ -112,3 +113,18 @@ def test_bad_2dgs_content_names_the_field() -> None:
     with pytest.raises(InputError) as info:
         parse_surfel_ply(reference_layout_ply(nan))
     assert info.value.field == "ply.scale_1" and "vertex 2" in str(info.value)
+
+
+def test_surfel_covariances_are_flat_along_the_normal() -> None:
+    """Viewers draw 2DGS surfels from `covariances()`: rank 2, the normal (third rotation
+    axis) in its null space, the two tangent axes scaled by the surfel's scales."""
+    model = random_surfels(20, seed=3)
+    cov = model.covariances()                                                   # [G, 3, 3]
+    rot = quaternion_to_rotation(model.quats.double())
+    scales = model.log_scales.double().exp()
+    assert cov.shape == (20, 3, 3) and torch.allclose(cov, cov.transpose(1, 2))
+    normal = rot[:, :, 2]
+    assert (cov @ normal[..., None]).abs().max() < 1e-12
+    for axis in (0, 1):
+        along = (cov @ rot[:, :, axis, None])[..., 0]
+        assert torch.allclose(along, scales[:, axis, None] ** 2 * rot[:, :, axis], atol=1e-12)

@@ -86,8 +86,11 @@ class GaussianModel:
         return low.tolist(), high.tolist()
 
     def covariances(self) -> torch.Tensor:
-        """[G, 3, 3] float64 world-space covariances R S S^T R^T (for viewers and exports)."""
-        m = quaternion_to_rotation(self.quats.double()) * self.log_scales.double().clamp(-30.0, 30.0).exp()[:, None, :]
+        """[G, 3, 3] float64 world-space covariances R S S^T R^T (for viewers and exports); with
+        two scale axes (2DGS surfels) the third is flat, so the covariance is rank 2."""
+        axes = self.log_scales.shape[1]
+        scales = self.log_scales.double().clamp(-30.0, 30.0).exp()[:, None, :]          # [G, 1, axes]
+        m = quaternion_to_rotation(self.quats.double())[:, :, :axes] * scales            # [G, 3, axes]
         return m @ m.transpose(1, 2)
 
     def base_colours(self) -> torch.Tensor:
