@@ -96,3 +96,20 @@ def test_clicking_a_candidate_shows_its_render_and_heat_map(scene):
                           (expected.mean.clamp(0, 1) * 255).round().to(torch.uint8).numpy())
     assert f"candidate {index}**, rank 1" in viewer.info.content
     assert f"sigma_max {expected.sigma_max:.4g}" in viewer.info.content
+
+
+def test_a_2dgs_model_is_drawn_as_flat_splats(tmp_path):
+    viser = pytest.importorskip("viser", reason="viser is not installed (pip install -e '.[viewer]')")
+    from phd_cli.view import Viewer
+    from phd_core.renderers.gs2d import SurfelRenderer
+    from support.surfels import random_surfels
+
+    renderer = SurfelRenderer(random_surfels(40, seed=2), training_cameras=svc_cameras(2))
+    server = viser.ViserServer(host="127.0.0.1", port=svc_free_port(), verbose=False)
+    try:
+        viewer = Viewer(server, renderer, svc_cameras(3, phase=0.35), None, ratio=0.3, samples=4, max_splats=30)
+        assert viewer.num_splats == 30
+        assert sorted(viewer.frustums) == ["/candidates/0", "/candidates/1", "/candidates/2",
+                                           "/training/0", "/training/1"]
+    finally:
+        server.stop()
