@@ -293,8 +293,12 @@ of the table below: faulting in torch's and numba's libraries, CPython's frame-s
 during imports, the model, the cached kernels), so the whole-process share grows as the
 work itself gets faster: calibration is now short enough for start-up to push it over 10 %.
 Beyond start-up, the work's own system time is the row "(no target)" above: page faults of
-first-touched memory and thread wake-ups. The per-call unmapping that issue 11 measured is
-gone (the allocator row barely moves).
+first-touched memory (the prepared training views alone hold about 170 MB) and thread
+wake-ups: idle OpenMP threads sleep (OMP_WAIT_POLICY=PASSIVE, set by `phd`) and every
+parallel kernel launch wakes them, about 7,700 futex calls in one calibration (630 with
+NUMBA_NUM_THREADS=1). Letting them spin instead (OMP_WAIT_POLICY=ACTIVE) made calibration
+3-4x slower in wall time on this 2-core machine (12-15 s), so sleeping stays. The per-call
+unmapping that issue 11 measured is gone (the allocator row barely moves).
 
 Not done: nothing is shared between different candidate cameras beyond the model's tensors
 (each camera gets one projection, one depth sort and one fragment pass, compiled); training
