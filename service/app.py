@@ -45,7 +45,7 @@ from .keys import KeyRing
 from .routes import ROUTERS
 from .settings import Settings
 from .store import ModelStore
-from .work import RendererCache
+from .work import model_loader
 
 log = logging.getLogger("phd.service")
 
@@ -116,8 +116,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     interrupted = job_store.recover()
     if interrupted:
         log.warning("%d job(s) were unfinished at the last shutdown: marked failed (interrupted)", interrupted)
-    state = ServiceState(settings=settings, store=store, cache=RendererCache(store, settings.cache_size),
-                         ledger=MemoryLedger(settings.memory_budget_bytes), job_store=job_store,
+    state = ServiceState(settings=settings, store=store, job_store=job_store,
+                         ledger=MemoryLedger(settings.memory_budget_bytes, settings.cache_size, model_loader(store)),
                          executor=make_executor(settings.executor, settings.executor_address))
 
     @asynccontextmanager

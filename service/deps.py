@@ -13,8 +13,8 @@ from fastapi.responses import JSONResponse
 from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import FAMILIES, load_model_bytes
 
-from .budget import PARSE_BYTES_PER_FILE_BYTE, MemoryLedger
-from .errors import ServiceError, not_found
+from .budget import MemoryLedger, load_bytes
+from .errors import ServiceError, busy, not_found
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
 from .keys import OPEN, Principal
@@ -22,7 +22,7 @@ from .schemas import ErrorResponse, Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore
 from .upload import Upload, parse_background, parse_camera_json
-from .work import RendererCache, parse_cameras, set_background
+from .work import parse_cameras, set_background
 
 ERRORS: dict[int | str, dict[str, Any]] = {
     status: {"model": ErrorResponse, "description": text} for status, text in (
@@ -37,8 +37,7 @@ ACCEPTED = {202: {"model": Job, "description": "Queued as a job: poll GET /v1/jo
 class ServiceState:
     settings: Settings
     store: ModelStore
-    cache: RendererCache
-    ledger: MemoryLedger
+    ledger: MemoryLedger                # the memory budget, and the models in memory
     job_store: JobStore
     jobs: JobManager | None = None
     executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
@@ -99,11 +98,10 @@ class ServiceState:
         # Parsed under the shared memory budget; by content and the client's file name, so no
         # message ever names the server's temp file.
         try:
-            with self.ledger.reserve(PARSE_BYTES_PER_FILE_BYTE * upload.size, timeout=self.settings.upload_wait):
+            with self.ledger.reserve(load_bytes(upload.size), timeout=self.settings.upload_wait):
                 renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
         except TimeoutError:
-            raise ServiceError(429, "busy", "the service's memory budget is taken by other work; retry later",
-                               "file", {"Retry-After": str(self.settings.retry_after)}) from None
+            raise busy("file", self.settings.retry_after) from None
         if upload.background is not None:
             set_background(renderer, parse_background(upload.background))
         cameras = cameras if cameras is not None else renderer.training_cameras
@@ -114,7 +112,7 @@ class ServiceState:
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)
-        self.cache.put(record.id, renderer)
+        self.ledger.offer(record.id, renderer, record.size_bytes)   # kept in memory if there is room now
         return record
 
 
