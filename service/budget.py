@@ -17,7 +17,7 @@ camera: how many splats cover each pixel decides most of it, and no request size
     + kept         what the job keeps across views (references, heat-map peaks, images, and the
                    prepared views calibration re-uses, at most VIEW_CACHE_BYTES)
     + the largest render's fixed part (projection, tile and fragment lists)
-    + batch x (the largest render's per-mask part + pixels x STREAM_PIXEL_BYTES)
+    + batch x max(the largest render's per-mask part, pixels x STREAM_PIXEL_BYTES)
 
 The std is streamed over mask batches (`phd_core.uq.limit_mask_batch`), so N enters through the
 masks only: the plan picks the largest batch (<= 64 masks) that fits. It is made twice: before
@@ -45,8 +45,8 @@ MODEL_BYTES_OVERHEAD = 1 << 20      # and the objects around them
 LOAD_BYTES_PER_FILE_BYTE = 4        # loading: the file read and its parse (ASCII PLY measured 2.5x)
 MASK_SAMPLE_UNIT_BYTES = 5          # a float32 uniform and a keep flag per sample and unit
 ACCUMULATOR_PIXEL_BYTES = 192       # float64 shift, mean, M2 and one batch's merge terms; the maps from them
-STREAM_PIXEL_BYTES = 96             # per mask and pixel, the engine's own: the float64 copy the std or the
-                                    # calibration error takes of a batch, and its finiteness check
+STREAM_PIXEL_BYTES = 96             # per mask and pixel once rendered: the batch's images, the float64
+                                    # copies the std or the calibration error takes of them, their check
 DEFAULT_MASK_PIXEL_BYTES = 8192     # a family that gives no RenderMemory: per mask and pixel, assumed
 PNG_PIXEL_BYTES = 8                 # a result image kept as PNG (<= 3 bytes a pixel stored) or its base64 text
 
@@ -98,7 +98,8 @@ def plan_work(models: Sequence[ModelSize], pixels: int, samples: int, kept_bytes
     fixed += renders.fixed if renders is not None else max(memory_probe_bytes(m.units) for m in models)
     if loading + fixed + kept_bytes > budget and kept_bytes:
         raise over_budget(kept_field, loading + fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
-    per_mask = pixels * STREAM_PIXEL_BYTES + (renders.per_mask if renders is not None else 0)
+    # A batch's renderer temporaries are gone once its images reach the engine's float64 copies.
+    per_mask = max(pixels * STREAM_PIXEL_BYTES, renders.per_mask if renders is not None else 0)
     batch = min(MAX_MASKS_PER_RENDER, samples, (budget - loading - fixed - kept_bytes) // per_mask)
     if batch < 1:
         raise over_budget(size_field, loading + fixed + kept_bytes + per_mask, budget,

@@ -50,9 +50,10 @@ class ServiceState:
         return record
 
     def job(self, job_id: str, who: Principal) -> Job:
-        """The job as the API shows it: live from memory, else as persisted (also after a restart)."""
+        """The job as the API shows it: live from memory until it is final and persisted, then from
+        the store (also after a restart)."""
         live = self.jobs.get(job_id)
-        if live is not None:
+        if live is not None and not live.on_disk:
             found = (live.to_schema(), live.owner)
         else:
             found = self.job_store.get(job_id)
@@ -63,7 +64,7 @@ class ServiceState:
     def artifact(self, job_id: str, name: str, who: Principal) -> bytes | None:
         self.job(job_id, who)
         live = self.jobs.get(job_id)
-        if live is not None and name in live.artifacts:
+        if live is not None and name in live.artifacts:     # a job whose final state could not be persisted
             return live.artifacts[name]
         return self.job_store.artifact(job_id, name)
 
@@ -82,9 +83,9 @@ class ServiceState:
         if run_async or estimate > self.settings.async_threshold:
             return JSONResponse(job.to_schema().model_dump(mode="json"), status_code=202,
                                 headers={"Location": f"/v1/jobs/{job.id}"})
-        await asyncio.wrap_future(job.done)
+        result = await asyncio.wrap_future(job.done)
         if job.state == "succeeded":
-            return job.result
+            return result
         if job.state == "cancelled":
             raise ServiceError(409, "job_cancelled", f"job '{job.id}' was cancelled before it finished")
         raise job.error

@@ -67,3 +67,19 @@ def test_a_view_whose_fragments_exceed_the_budget_is_413_once_the_model_is_proje
     response = rank(server, model.id, cameras=[frame], downscale=8)           # 25x25 fits
     assert response.status_code == 200, response.text
     assert server.app.state.service.ledger.used <= 64 << 20
+
+
+def test_a_finished_job_keeps_its_result_and_images_on_disk_not_in_memory(svc_start, svc_model_files):
+    server = svc_start()
+    with PHDClient(server.url) as phd:
+        model = phd.upload_model(svc_model_files["ply"])
+        job = phd.rank(model.id, svc_cameras(2), samples=2, dropout_ratio=0.1, heatmaps="files", run_async=True,
+                       wait=False)
+        phd.wait_job(job.id, timeout=60)
+        live = server.app.state.service.jobs.get(job.id)
+        assert live.on_disk and live.result is None and live.artifacts == {}
+        served = phd.get_job(job.id)                   # answered from the job store
+        assert served.state == "succeeded" and len(served.result.views) == 2
+        assert sorted(served.artifacts) == sorted([f"heatmap_{i:04d}.png" for i in range(2)]
+                                                  + [f"render_{i:04d}.png" for i in range(2)])
+        assert phd.download(served.result.views[0].heatmap_url).startswith(b"\x89PNG")
