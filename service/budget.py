@@ -33,8 +33,9 @@ import time
 from collections import OrderedDict
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
+from phd_core.allocator import release_freed_memory
 from phd_core.renderers import Renderer, RenderMemory, memory_probe_bytes
 from phd_core.uq import MAX_MASKS_PER_RENDER
 
@@ -59,6 +60,15 @@ def model_bytes(size: int) -> int:
 def load_bytes(size: int) -> int:
     """What loading a model of `size` file bytes takes at its peak (always >= model_bytes)."""
     return LOAD_BYTES_PER_FILE_BYTE * size + MODEL_BYTES_OVERHEAD
+
+
+def taking(amount: int, sizes: Iterable[int]) -> int:
+    """What a job of `amount` bytes takes with the models it must load (their file sizes): each
+    stays at model_bytes, and a load's parse peak is over before the job's own bytes are used
+    (models load one after another, before the work starts)."""
+    sizes = list(sizes)
+    extra = max((load_bytes(size) - model_bytes(size) for size in sizes), default=0)
+    return sum(model_bytes(size) for size in sizes) + max(amount, extra)
 
 
 def largest_model_file(budget: int) -> int:
@@ -86,23 +96,29 @@ def plan_work(models: Sequence[ModelSize], pixels: int, samples: int, kept_bytes
 
     pixels: of the largest view rendered; kept_bytes: what the job holds across views;
     renders: the largest bounds of the job's renders (None: not known yet, a lower bound).
-    The plan fits the budget with its models loading (the worst case the job may meet); a
-    model named twice (select a model against itself) loads once but draws its masks twice.
+    The plan fits beside its models in memory, and each model's load fits beside the others
+    (`taking`); a model named twice (select a model against itself) is in memory once but
+    draws its masks twice.
     """
+    distinct: dict[str, ModelSize] = {}
     for model in models:
-        if load_bytes(model.file_bytes) > budget:
-            raise over_budget(model.field, load_bytes(model.file_bytes), budget, "a smaller model")
-    loading = sum(load_bytes(m.file_bytes) for m in {m.id: m for m in models}.values())
+        distinct.setdefault(model.id, model)
+    resident = sum(model_bytes(m.file_bytes) for m in distinct.values())
+    for model in distinct.values():
+        need = resident + load_bytes(model.file_bytes) - model_bytes(model.file_bytes)
+        if need > budget:
+            raise over_budget(model.field, need, budget, "a smaller model")
+    room = budget - resident
     fixed = sum(MASK_SAMPLE_UNIT_BYTES * samples * m.units for m in models) + pixels * ACCUMULATOR_PIXEL_BYTES
     # Before the renders are known, the projection that will bound them.
     fixed += renders.fixed if renders is not None else max(memory_probe_bytes(m.units) for m in models)
-    if loading + fixed + kept_bytes > budget and kept_bytes:
-        raise over_budget(kept_field, loading + fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
+    if fixed + kept_bytes > room and kept_bytes:
+        raise over_budget(kept_field, resident + fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
     # A batch's renderer temporaries are gone once its images reach the engine's float64 copies.
     per_mask = max(pixels * STREAM_PIXEL_BYTES, renders.per_mask if renders is not None else 0)
-    batch = min(MAX_MASKS_PER_RENDER, samples, (budget - loading - fixed - kept_bytes) // per_mask)
+    batch = min(MAX_MASKS_PER_RENDER, samples, (room - fixed - kept_bytes) // per_mask)
     if batch < 1:
-        raise over_budget(size_field, loading + fixed + kept_bytes + per_mask, budget,
+        raise over_budget(size_field, resident + fixed + kept_bytes + per_mask, budget,
                           "a lower resolution (downscale, or width/height)")
     return MemoryPlan(bytes=fixed + kept_bytes + batch * per_mask, mask_batch=int(batch))
 
@@ -155,13 +171,17 @@ class MemoryLedger:
         `self.load(id)` (its load bytes reserved with the rest, then lowered to what it keeps).
         Raises TimeoutError as `reserve` does; what the load raises, in every job waiting on it."""
         self._check(amount, records)
-        held, loading = self._take(records, amount, timeout)
+        held, loading, taken = self._take(records, amount, timeout)
         try:
             for model_id, resident in loading.items():
-                self._load(model_id, resident, records[model_id])
+                self._load(model_id, resident)
+            with self._cond:                          # the parse peaks are over: down to the job's own bytes
+                self.used -= taken - amount
+                taken = amount
+                self._cond.notify_all()
             yield {model_id: self._loaded(resident) for model_id, resident in held.items()}
         finally:
-            self._give(held, amount)
+            self._give(held, taken)
 
     def offer(self, model_id: str, renderer: Renderer, size: int) -> bool:
         """Keep a model just loaded elsewhere (an upload) if it fits now, evicting idle ones;
@@ -175,7 +195,7 @@ class MemoryLedger:
                 return False
             self.used += need
             self._models[model_id] = Resident(need, renderer)
-            self._trim()
+            self._cap_idle()
             return True
 
     def forget(self, model_id: str) -> None:
@@ -195,20 +215,20 @@ class MemoryLedger:
 
     def _check(self, amount: int, records: dict[str, int]) -> None:
         """What can never fit is a caller's error (plans are checked against the budget first)."""
-        if amount + sum(load_bytes(size) for size in records.values()) > self.budget:
+        if taking(amount, records.values()) > self.budget:
             raise ValueError(f"{amount} bytes and the models {list(records)} exceed the budget of {self.budget}")
 
     # ------------------------------------------------------------------ under the lock
 
     def _take(self, records: dict[str, int], amount: int,
-              timeout: float | None) -> tuple[dict[str, Resident], dict[str, Resident]]:
-        """Wait until `amount` and every model not in memory fit, then take them all at once:
-        (the residents held, those this call must load)."""
+              timeout: float | None) -> tuple[dict[str, Resident], dict[str, Resident], int]:
+        """Wait until `amount` and every model not in memory fit (`taking`), then take them all
+        at once: (the residents held, those this call must load, the bytes taken beyond them)."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
             while True:
-                missing = {i: load_bytes(size) for i, size in records.items() if i not in self._models}
-                need = amount + sum(missing.values())
+                missing = {i: size for i, size in records.items() if i not in self._models}
+                need = taking(amount, missing.values())
                 self._evict(self.used + need - self.budget, keep=records)
                 if self.used + need <= self.budget:
                     break
@@ -216,24 +236,26 @@ class MemoryLedger:
                 if remaining is not None and remaining <= 0 or not self._cond.wait(remaining):
                     raise TimeoutError(f"{self.used} of {self.budget} bytes are reserved")
             self.used += need
-            loading = {i: Resident(b) for i, b in missing.items()}
+            loading = {i: Resident(model_bytes(size)) for i, size in missing.items()}
             self._models.update(loading)
             held = {i: self._models[i] for i in records}
             for model_id, resident in held.items():
                 resident.users += 1
                 self._models.move_to_end(model_id)
-            return held, loading
+            return held, loading, need - sum(r.bytes for r in loading.values())
 
     def _give(self, held: dict[str, Resident], amount: int) -> None:
-        """Release `amount` and the models held; a model no longer listed goes with its last user."""
+        """Release `amount` and the models held (a model no longer listed goes with its last
+        user), and give what the work freed back to the system: the budget counts resident memory."""
         with self._cond:
             self.used -= amount
             for resident in held.values():
                 resident.users -= 1
                 if resident.users == 0 and not resident.listed:
                     self.used -= resident.bytes
-            self._trim()
+            self._cap_idle()
             self._cond.notify_all()
+        release_freed_memory()
 
     def _evict(self, need: int, keep: dict[str, int] | None = None) -> None:
         """Evict idle loaded models, least recently used first, until `need` bytes are free."""
@@ -246,7 +268,8 @@ class MemoryLedger:
                 self.used -= resident.bytes
                 need -= resident.bytes
 
-    def _trim(self) -> None:
+    def _cap_idle(self) -> None:
+        """Evict the least recently used idle models past `capacity`."""
         idle = [i for i, r in self._models.items() if r.users == 0 and r.renderer is not None]
         for model_id in idle[:max(0, len(idle) - self.capacity)]:
             resident = self._models.pop(model_id)
@@ -255,7 +278,7 @@ class MemoryLedger:
 
     # ------------------------------------------------------------------ loading (outside the lock)
 
-    def _load(self, model_id: str, resident: Resident, size: int) -> None:
+    def _load(self, model_id: str, resident: Resident) -> None:
         try:
             renderer = self.load(model_id)
         except BaseException as exc:
@@ -267,9 +290,7 @@ class MemoryLedger:
                 self._cond.notify_all()
             raise
         with self._cond:
-            keeps = model_bytes(size)
-            self.used -= resident.bytes - keeps
-            resident.bytes, resident.renderer = keeps, renderer
+            resident.renderer = renderer
             self._cond.notify_all()
 
     def _loaded(self, resident: Resident) -> Renderer:
