@@ -213,6 +213,7 @@ SWEEP = [
     Row("3dgs 300k small 400 N=32", "rank", ["3dgs-300k-small"], 400, 32),
     Row("3dgs 300k small 800 N=256", "rank", ["3dgs-300k-small"], 800, 256),
     Row("3dgs 300k small 800 N=64, 1 GiB", "rank", ["3dgs-300k-small"], 800, 64, budget=GIB),
+    Row("3dgs 50k small 32 candidates x400 N=16", "rank", ["3dgs-50k-small"], 400, 16, views=32),
     Row("3dgs 50k small heatmaps=files 8x400", "rank", ["3dgs-50k-small"], 400, 16, views=8,
         body={"heatmaps": "files"}),
     Row("3dgs 50k small heatmaps=base64 4x400", "rank", ["3dgs-50k-small"], 400, 16, views=4,
@@ -228,6 +229,7 @@ SWEEP = [
     Row("2dgs 1k large 400 N=32", "rank", ["2dgs-1k-large"], 400, 32),
     Row("2dgs 50k small 400 N=32", "rank", ["2dgs-50k-small"], 400, 32),
     Row("2dgs 50k large 300 N=16", "rank", ["2dgs-50k-large"], 300, 16),
+    Row("2dgs 50k small 8 candidates x200 N=8", "rank", ["2dgs-50k-small"], 200, 8, views=8),
     Row("2dgs 50k small calibrate 4x200", "calibrate", ["2dgs-50k-small"], 200, 8, training=4,
         body={"samples": 8, "step": 0.25}),
     Row("nerf pe 100 N=16", "rank", ["nerf-pe"], 100, 16),
@@ -302,11 +304,13 @@ def table(rows: list[dict]) -> str:
         else:
             result = r["state"] if r.get("error") is None else f"{r['state']} {r['error']['code']}"
         estimate = r.get("estimate_bytes")
+        if estimate is not None:
+            planned, within = mib(estimate), "yes" if r["within_estimate"] else "NO"
+        else:      # refused once projected (no plan), or concurrent work (the budget is its bound)
+            planned, within = ("(budget)", "") if "states" in r else ("(refused)", "")
         lines.append(f"| {r['name']} | {mib(r['budget_bytes'])} | {result} | {r.get('fragments_per_pixel_bound') or ''} | "
-                     f"{r.get('mask_batch', '')} | {mib(estimate) if estimate else '(budget)'} | "
-                     f"{mib(r['peak_over_idle_bytes'])} | {r.get('ratio', '')} | "
-                     f"{'yes' if r.get('within_estimate', r['within_budget']) else 'NO'} | "
-                     f"{'yes' if r['within_budget'] else 'NO'} |")
+                     f"{r.get('mask_batch', '')} | {planned} | {mib(r['peak_over_idle_bytes'])} | {r.get('ratio', '')} | "
+                     f"{within} | {'yes' if r['within_budget'] else 'NO'} |")
     return "\n".join(lines)
 
 

@@ -153,15 +153,16 @@ class MemoryLedger:
         self._cond = threading.Condition()
 
     @contextmanager
-    def reserve(self, amount: int, timeout: float | None = None) -> Iterator[None]:
+    def reserve(self, amount: int, timeout: float | None = None) -> Iterator["Reservation"]:
         """Hold `amount` bytes for the block; waits while they do not fit even with idle models
         evicted. Raises TimeoutError after `timeout` seconds without room (None: no limit)."""
         self._check(amount, {})
         self._take({}, amount, timeout)
+        reservation = Reservation(self, amount)
         try:
-            yield
+            yield reservation
         finally:
-            self._give({}, amount)
+            self._give({}, reservation.amount)
 
     @contextmanager
     def models(self, records: dict[str, int], amount: int,
@@ -182,21 +183,6 @@ class MemoryLedger:
             yield {model_id: self._loaded(resident) for model_id, resident in held.items()}
         finally:
             self._give(held, taken)
-
-    def offer(self, model_id: str, renderer: Renderer, size: int) -> bool:
-        """Keep a model just loaded elsewhere (an upload) if it fits now, evicting idle ones;
-        never waits. True if kept."""
-        need = model_bytes(size)
-        with self._cond:
-            if model_id in self._models:
-                return True
-            self._evict(self.used + need - self.budget)
-            if self.used + need > self.budget:
-                return False
-            self.used += need
-            self._models[model_id] = Resident(need, renderer)
-            self._cap_idle()
-            return True
 
     def forget(self, model_id: str) -> None:
         """A deleted model: out now if idle, else once its last job is done."""
@@ -300,3 +286,22 @@ class MemoryLedger:
             if resident.failed is not None:
                 raise resident.failed
             return resident.renderer
+
+
+class Reservation:
+    """Bytes held from a ledger for a block (`MemoryLedger.reserve`)."""
+
+    def __init__(self, ledger: MemoryLedger, amount: int):
+        self.ledger, self.amount = ledger, amount
+
+    def keep(self, model_id: str, renderer: Renderer, size: int) -> None:
+        """Hand part of these bytes to a model loaded in the block (an upload's parse becomes
+        the model in memory; nothing is reserved anew, so nothing waits): it stays in memory
+        as an idle model once the block ends. A model the bytes cannot hold is not kept."""
+        ledger, need = self.ledger, model_bytes(size)
+        with ledger._cond:
+            if model_id in ledger._models or need > self.amount:
+                return
+            self.amount -= need
+            ledger._models[model_id] = Resident(need, renderer)
+            ledger._cap_idle()

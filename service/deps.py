@@ -12,8 +12,9 @@ from fastapi.responses import JSONResponse
 
 from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import FAMILIES, load_model_bytes
+from phd_core.scene import Camera
 
-from .budget import MemoryLedger, load_bytes
+from .budget import MemoryLedger, Reservation, load_bytes
 from .errors import ServiceError, busy, not_found
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
@@ -96,13 +97,18 @@ class ServiceState:
         if upload.cameras is not None:  # the cheap check first
             cameras = parse_cameras(parse_camera_json(upload.cameras), RenderSize(), self.settings,
                                     field="cameras", cap=self.settings.max_training_cameras)
-        # Parsed under the shared memory budget; by content and the client's file name, so no
-        # message ever names the server's temp file.
+        # Parsed under the shared memory budget, which the model then stays in (if the parse's
+        # bytes hold it); by content and the client's file name, so no message ever names the
+        # server's temp file.
         try:
-            with self.ledger.reserve(load_bytes(upload.size), timeout=self.settings.upload_wait):
-                renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
+            with self.ledger.reserve(load_bytes(upload.size), timeout=self.settings.upload_wait) as parse:
+                return self._store(upload, kind, who, cameras, parse)
         except TimeoutError:
             raise busy("file", self.settings.retry_after) from None
+
+    def _store(self, upload: Upload, kind: str, who: Principal, cameras: list[Camera] | None,
+               parse: Reservation) -> ModelRecord:
+        renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
         if upload.background is not None:
             set_background(renderer, parse_background(upload.background))
         cameras = cameras if cameras is not None else renderer.training_cameras
@@ -113,7 +119,7 @@ class ServiceState:
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)
-        self.ledger.offer(record.id, renderer, record.size_bytes)   # kept in memory if there is room now
+        parse.keep(record.id, renderer, record.size_bytes)
         return record
 
 

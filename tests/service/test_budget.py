@@ -205,16 +205,19 @@ def test_two_jobs_share_one_load_and_a_failed_load_fails_both_and_frees_its_byte
     assert ledger.used == KEEP and ledger.loaded() == ["a"]
 
 
-def test_an_uploaded_model_is_kept_only_if_it_fits_at_once():
-    ledger = MemoryLedger(KEEP + LOAD, 4, Models())          # two idle models, or one in use and its job
+def test_an_uploaded_model_stays_in_memory_in_the_bytes_of_its_parse():
+    ledger = MemoryLedger(2 * LOAD, 1, Models())
     renderer = GaussianRenderer(svc_random_gaussians(20))
-    assert ledger.offer("a", renderer, SIZE) and ledger.offer("b", renderer, SIZE)
-    assert ledger.offer("c", renderer, SIZE) and ledger.loaded() == ["b", "c"]    # the idle a made room
-    with ledger.models({"c": SIZE}, KEEP):               # c in use, the rest taken: b went for it
-        started = time.monotonic()
-        assert not ledger.offer("d", renderer, SIZE)     # no room, and no waiting for it
-        assert time.monotonic() - started < 1 and ledger.loaded() == ["c"]
-    assert ledger.used == KEEP
+    with ledger.reserve(LOAD) as parse:
+        parse.keep("a", renderer, SIZE)
+        assert ledger.used == LOAD                        # nothing reserved anew
+    assert ledger.used == KEEP and ledger.loaded() == ["a"]
+    with ledger.reserve(LOAD) as parse:
+        parse.keep("b", renderer, SIZE)
+    assert ledger.loaded() == ["b"] and ledger.used == KEEP    # one idle model at most: a went
+    with ledger.reserve(KEEP - 1) as parse:
+        parse.keep("c", renderer, SIZE)                   # the bytes cannot hold it: not kept
+    assert ledger.loaded() == ["b"] and ledger.used == KEEP
 
 
 def test_every_built_in_family_loads_within_its_model_bytes(svc_model_files, tmp_path):
