@@ -234,6 +234,7 @@ SWEEP = [
         body={"samples": 8, "step": 0.25}),
     Row("nerf pe 100 N=16", "rank", ["nerf-pe"], 100, 16),
     Row("nerf hash 100 N=16", "rank", ["nerf-hash"], 100, 16),
+    Row("nerf pe 4 candidates x100 N=8", "rank", ["nerf-pe"], 100, 8, views=4),
     Row("nerf pe heatmaps=files 2x100", "rank", ["nerf-pe"], 100, 8, views=2, body={"heatmaps": "files"}),
 ]
 

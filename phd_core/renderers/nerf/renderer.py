@@ -21,13 +21,14 @@ from .volume import camera_rays, render_rays
 # occupancy lookup), per sample and unit (first layer, skip term), per sample and band of the
 # position encoding (a PE frequency, or a hash level with its 8 corners); one group of masks
 # through the trunk and heads, in tensors of at most CHUNK_ELEMENTS values (or one mask's): about
-# five at once, and as many again for the heap the allocator keeps around them (phd_core.allocator
-# never trims it: measured 441 MB against 176 MB with every block returned, 100x100 and 16 masks);
-# and per mask and pixel, its images as the ray chunks return them and once joined.
+# five at once, and more again for the heap the allocator keeps around them (phd_core.allocator
+# never trims it during a job: 441 MB resident against 176 MB with every block returned, at
+# 100x100 with 16 masks); and per mask and pixel, its images as the ray chunks return them and
+# once joined.
 RAY_PIXEL_BYTES = 128
 SAMPLE_BYTES, SAMPLE_UNIT_BYTES = 96, 16
 PE_BAND_BYTES, HASH_LEVEL_BYTES = 96, 256
-GROUP_TENSORS = 10
+GROUP_TENSORS = 12
 MASK_PIXEL_BYTES = 64
 
 
