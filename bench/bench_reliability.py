@@ -4,15 +4,13 @@ as a separate process, as users run it:
 - fuzz: `--requests` mutated requests (tests/support/fuzz.py) over one keep-alive
   connection: how many got a 5xx, how many connections were dropped (a transport error or
   `Connection: close`), and whether any accepted job failed with internal_error;
-- memory: the attack's request (1 candidate at 800x800, samples=256, a 300-splat model)
-  against a `--budget` memory budget: the answer, and the server's peak RSS (VmHWM) over
-  its RSS before the request, next to the budget and the service's own estimate;
 - ASCII PLY: peak RSS of parsing a `--splats`-splat ASCII PLY held in memory, over the
   RSS once the file is read, next to the file size.
 
-    nice -n 10 .venv/bin/python bench/bench_reliability.py [--requests 10000] [--budget 4294967296]
+    nice -n 10 .venv/bin/python bench/bench_reliability.py [--requests 10000]
 
-Writes bench/results/reliability.json.
+Writes bench/results/reliability.json. Memory under every kind of request (the attack's
+800x800, samples=256 rank included) is bench/bench_memory.py's sweep.
 """
 
 from __future__ import annotations
@@ -38,14 +36,6 @@ from client import PHDClient  # noqa: E402
 from conftest import SvcProcess, svc_cameras, svc_random_gaussians  # noqa: E402
 from phd_core.renderers.gs3d import write_ply  # noqa: E402
 from support.fuzz import mutated_request, send  # noqa: E402
-
-
-def vm(pid: int, key: str) -> int:
-    """A /proc/<pid>/status memory figure in bytes (VmRSS, VmHWM)."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) * 1024
-    raise KeyError(key)
 
 
 def fuzz(requests: int, root: Path, ply: Path, ply_b: Path) -> dict:
@@ -91,35 +81,6 @@ def fuzz(requests: int, root: Path, ply: Path, ply_b: Path) -> dict:
             "statuses": dict(sorted(statuses.items())), "failures": failures[:20]}
 
 
-def memory(root: Path, ply: Path, budget: int) -> dict:
-    server = SvcProcess(root / "memory", PHD_MEMORY_BUDGET_BYTES=str(budget))
-    try:
-        with PHDClient(server.url, timeout=3600) as phd:
-            model = phd.upload_model(ply)
-            phd.rank(model.id, svc_cameras(1, size=16), samples=2, dropout_ratio=0.1)    # warm up
-            frame = svc_cameras(1, size=800)[0].to_frame()
-            before = vm(server.proc.pid, "VmRSS")
-            start = time.perf_counter()
-            response = httpx.post(f"{server.url}/v1/models/{model.id}/rank", timeout=3600,
-                                  json={"cameras": [frame], "samples": 256, "dropout_ratio": 0.1})
-            state = "succeeded" if response.status_code == 200 else response.json().get("state")
-            if response.status_code == 202:                      # big work becomes a job: wait for it
-                phd.wait_job(response.json()["id"], poll_interval=1.0)
-                state = phd.get_job(response.json()["id"]).state
-            seconds = time.perf_counter() - start
-            peak = vm(server.proc.pid, "VmHWM")
-    finally:
-        server.kill()
-    from service.budget import plan_work
-    plan = plan_work([("3dgs", 300, ply.stat().st_size)], 800 * 800, 256, 0, budget, size_field="downscale",
-                     kept_field="cameras")
-    return {"request": "rank, 1 candidate at 800x800, samples=256, 300 splats", "budget_bytes": budget,
-            "status": response.status_code, "job_state": state, "seconds": round(seconds, 1), "rss_before_bytes": before,
-            "peak_rss_bytes": peak, "peak_over_before_bytes": peak - before,
-            "estimate_bytes": plan.bytes, "mask_batch": plan.mask_batch,
-            "within_budget": peak - before <= budget}
-
-
 def ascii_ply(root: Path, splats: int) -> dict:
     # The peak is reset (clear_refs 5) after the file is read, so VmHWM - VmRSS is the parse alone.
     code = ("import sys; from pathlib import Path; from phd_core.renderers.gs3d import parse_ply; "
@@ -148,9 +109,8 @@ def ascii_ply(root: Path, splats: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--requests", type=int, default=10_000)
-    parser.add_argument("--budget", type=int, default=4 << 30)
     parser.add_argument("--splats", type=int, default=200_000)
-    parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "memory", "ascii"])
+    parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "ascii"])
     args = parser.parse_args()
     results = {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                            "python": platform.python_version()}}
@@ -162,9 +122,6 @@ def main() -> None:
         if "ascii" not in args.skip:
             results["ascii_ply"] = ascii_ply(root, args.splats)
             print(json.dumps(results["ascii_ply"]), flush=True)
-        if "memory" not in args.skip:
-            results["memory"] = memory(root, ply, args.budget)
-            print(json.dumps(results["memory"]), flush=True)
         if "fuzz" not in args.skip:
             results["fuzz"] = fuzz(args.requests, root, ply, ply_b)
             print(json.dumps(results["fuzz"]), flush=True)

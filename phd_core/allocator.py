@@ -11,7 +11,11 @@ default on Linux): the kernels' scratch arrays then sit in 2 MiB pages that the 
 zeroes whole on every fresh fault, which doubled calibration's system time (0.73 s -> 0.36 s
 median of 5 runs, `phd calibrate` of docs/performance.md's model).
 `phd_core` calls it at import (so the CLI, the service and library users get it); set
-PHD_KEEP_FREED_MEMORY=0 to leave malloc and NumPy alone. Elsewhere than glibc it does nothing.
+PHD_KEEP_FREED_MEMORY=0 to leave malloc and NumPy alone. Elsewhere than glibc the malloc
+part does nothing.
+
+A process that runs large work on several threads and bounds its memory (the service) also
+wants `one_arena` and `release_freed_memory` (below).
 """
 
 from __future__ import annotations
@@ -25,25 +29,55 @@ import numpy as np
 M_TRIM_THRESHOLD = -1
 M_TOP_PAD = -2
 M_MMAP_THRESHOLD = -3
+M_ARENA_MAX = -8
 MMAP_THRESHOLD_MAX = 32 << 20      # glibc's ceiling on 64-bit (larger values are refused)
 TRIM_THRESHOLD = (1 << 31) - 1     # mallopt takes an int: about 2 GiB, i.e. never trim in practice
 TOP_PAD = 1 << 30                  # grow the heap 1 GiB at a time (address space; pages fault in on use)
+
+
+def _libc() -> ctypes.CDLL | None:
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
 
 
 def keep_freed_memory() -> bool:
     """Apply the settings; True when glibc accepted all three."""
     if os.environ.get("PHD_KEEP_FREED_MEMORY", "1") == "0":
         return False
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
-    results = [mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX), mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD),
-               mallopt(M_TOP_PAD, TOP_PAD)]
     core = np._core if hasattr(np, "_core") else np.core       # NumPy 2 / 1
     set_madvise_hugepage = getattr(core.multiarray, "_set_madvise_hugepage", None)
     if set_madvise_hugepage is not None:            # NumPy's switch (env NUMPY_MADVISE_HUGEPAGE at its import)
         set_madvise_hugepage(False)
-    return all(r == 1 for r in results)
+    return _mallopt((M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX), (M_TRIM_THRESHOLD, TRIM_THRESHOLD), (M_TOP_PAD, TOP_PAD))
+
+
+def one_arena() -> bool:
+    """Serve every thread from one malloc arena (call it before the threads start). With an
+    arena per thread, what one thread frees stays in its arena, out of the others' reach: a
+    process whose threads take turns with large temporaries then holds the sum of their
+    peaks, not the peak of their sum (the service, 6 jobs and 2 uploads on 2 workers under a
+    1 GiB budget: 1.6 GB over its idle RSS with an arena per thread, 0.77 GB with one;
+    bench/bench_memory.py). True when glibc accepted it."""
+    return _mallopt((M_ARENA_MAX, 1))
+
+
+def release_freed_memory() -> bool:
+    """Give the whole free pages of every arena back to the system (glibc malloc_trim): what a
+    finished unit of work freed stops counting as resident. True when glibc released some."""
+    libc = _libc()
+    if libc is None or not hasattr(libc, "malloc_trim"):
+        return False
+    libc.malloc_trim.argtypes = [ctypes.c_size_t]
+    libc.malloc_trim.restype = ctypes.c_int
+    return libc.malloc_trim(0) == 1
+
+
+def _mallopt(*settings: tuple[int, int]) -> bool:
+    libc = _libc()
+    if libc is None or not hasattr(libc, "mallopt"):
+        return False
+    libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    libc.mallopt.restype = ctypes.c_int
+    return all([libc.mallopt(param, value) == 1 for param, value in settings])

@@ -32,6 +32,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import phd_core
+from phd_core.allocator import one_arena
 from phd_core.errors import InputError
 from phd_core.executors import make_executor
 
@@ -45,7 +46,7 @@ from .keys import KeyRing
 from .routes import ROUTERS
 from .settings import Settings
 from .store import ModelStore
-from .work import RendererCache
+from .work import model_loader
 
 log = logging.getLogger("phd.service")
 
@@ -107,6 +108,7 @@ def install_error_handlers(app: FastAPI) -> None:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The service on `settings.data_dir` (swept of unfinished uploads before serving)."""
     settings = settings or Settings.from_env()
+    one_arena()             # workers and request threads reuse each other's freed memory (phd_core.allocator)
     store = ModelStore(settings.data_dir)
     swept = store.sweep()
     if swept:
@@ -116,8 +118,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     interrupted = job_store.recover()
     if interrupted:
         log.warning("%d job(s) were unfinished at the last shutdown: marked failed (interrupted)", interrupted)
-    state = ServiceState(settings=settings, store=store, cache=RendererCache(store, settings.cache_size),
-                         ledger=MemoryLedger(settings.memory_budget_bytes), job_store=job_store,
+    state = ServiceState(settings=settings, store=store, job_store=job_store,
+                         ledger=MemoryLedger(settings.memory_budget_bytes, settings.cache_size, model_loader(store)),
                          executor=make_executor(settings.executor, settings.executor_address))
 
     @asynccontextmanager

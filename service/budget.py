@@ -1,63 +1,124 @@
-"""Memory: every unit of work gets an estimate from its inputs BEFORE it is queued, and runs
-only while its estimate is reserved from one budget shared by all workers and upload parsing.
+"""Memory: one budget (PHD_MEMORY_BUDGET_BYTES) for everything large the service holds, kept by
+one `MemoryLedger`: the models in memory, the running jobs and the upload parses.
 
-    estimate = model in memory + pixels of the largest view x (accumulators + masks per render
-               call x bytes per mask and pixel) + what the work keeps (calibration references)
+A model in memory holds MODEL_BYTES_PER_FILE_BYTE x its file size (the loaded tensors are at
+most the file for every built-in family, tests/service/test_budget.py) from its load until it is
+evicted, and LOAD_BYTES_PER_FILE_BYTE x the file while it is parsed. The ledger keeps idle models
+(at most PHD_CACHE_SIZE, least recently used out first) while nothing else needs their room, and
+evicts them when something does; a model a job is using is never evicted. A job takes its models
+and its own estimate together or waits for both, so no job holds memory while it waits.
 
-The std is streamed over mask batches (`phd_core.uq.limit_mask_batch`), so N never enters:
-the plan picks the largest batch (<= 64 masks) that fits the budget. Work whose single-mask
-estimate exceeds the budget is refused with 413 naming the request field to lower. The per
-mask-pixel costs were measured with bench/bench_reliability.py (peak RSS of one render call;
-docs/reliability.md): they are upper envelopes of those measurements, not exact.
+A job's own estimate (`plan_work`) comes from its inputs and, once its models are loaded, from
+each render's `RenderMemory` (bounds a model family computes by projecting the model into the
+camera: how many splats cover each pixel decides most of it, and no request size tells that):
+
+    masks          samples x units x MASK_SAMPLE_UNIT_BYTES per model (uniform draws, keep-masks)
+    + accumulators pixels of the largest view x ACCUMULATOR_PIXEL_BYTES (the streamed std)
+    + kept         what the job keeps across views (references, heat-map peaks, images, and the
+                   prepared views calibration re-uses, at most VIEW_CACHE_BYTES)
+    + the largest render's fixed part (projection, tile and fragment lists)
+    + batch x max(the largest render's per-mask part, pixels x STREAM_PIXEL_BYTES)
+
+The std is streamed over mask batches (`phd_core.uq.limit_mask_batch`), so N enters through the
+masks only: the plan picks the largest batch (<= 64 masks) that fits. It is made twice: before
+the job is queued, without the renders (a lower bound: over the budget is a 413 naming the field
+to lower), and when a worker takes the job, with them (over the budget: the job fails with that
+413). The constants are upper envelopes of peaks measured by bench/bench_memory.py.
 """
 
 from __future__ import annotations
 
 import threading
+import time
+from collections import OrderedDict
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Callable, Iterable, Iterator, Sequence
 
+from phd_core.allocator import release_freed_memory
+from phd_core.renderers import Renderer, RenderMemory, memory_probe_bytes
 from phd_core.uq import MAX_MASKS_PER_RENDER
 
 from .errors import ServiceError
 
-ACCUMULATOR_PIXEL_BYTES = 160       # float64 shift, mean, M2, one chunk's offsets per channel; float32 maps
-MODEL_BYTES_PER_FILE_BYTE = 4       # a loaded model and its per-view projections over its file size
-SPLAT_MASK_PIXEL_BYTES = 2          # 3DGS: fragments grow with the splats a pixel sees (capped below)
-SPLAT_DEPTH_CAP = 8192
-MASK_PIXEL_BYTES = {"3dgs": 512, "nerf": 6144}        # renderer temporaries per mask and pixel
-DEFAULT_MASK_PIXEL_BYTES = 8192     # a family without a measurement: assume the worst measured
-PARSE_BYTES_PER_FILE_BYTE = 4       # upload parse peak over the file size (ASCII PLY measured 2.1x)
+MODEL_BYTES_PER_FILE_BYTE = 1       # a loaded model over its file (tensors <= the file: 0.88 PLY, 1.00 NeRF)
+MODEL_BYTES_OVERHEAD = 1 << 20      # and the objects around them
+LOAD_BYTES_PER_FILE_BYTE = 4        # loading: the file read and its parse (ASCII PLY measured 2.5x)
+MASK_SAMPLE_UNIT_BYTES = 5          # a float32 uniform and a keep flag per sample and unit
+ACCUMULATOR_PIXEL_BYTES = 192       # float64 shift, mean, M2 and one batch's merge terms; the maps from them
+STREAM_PIXEL_BYTES = 96             # per mask and pixel once rendered: the batch's images, the float64
+                                    # copies the std or the calibration error takes of them, their check
+DEFAULT_MASK_PIXEL_BYTES = 8192     # a family that gives no RenderMemory: per mask and pixel, assumed
+PNG_PIXEL_BYTES = 8                 # a result image kept as PNG (<= 3 bytes a pixel stored) or its base64 text
 
 
-def mask_pixel_bytes(kind: str, units: int) -> int:
-    if kind == "3dgs":
-        return MASK_PIXEL_BYTES["3dgs"] + SPLAT_MASK_PIXEL_BYTES * min(units, SPLAT_DEPTH_CAP)
-    return MASK_PIXEL_BYTES.get(kind, DEFAULT_MASK_PIXEL_BYTES)
+def model_bytes(size: int) -> int:
+    """What a loaded model of `size` file bytes holds while it stays in memory."""
+    return MODEL_BYTES_PER_FILE_BYTE * size + MODEL_BYTES_OVERHEAD
+
+
+def load_bytes(size: int) -> int:
+    """What loading a model of `size` file bytes takes at its peak (always >= model_bytes)."""
+    return LOAD_BYTES_PER_FILE_BYTE * size + MODEL_BYTES_OVERHEAD
+
+
+def taking(amount: int, sizes: Iterable[int]) -> int:
+    """What a job of `amount` bytes takes with the models it must load (their file sizes): each
+    stays at model_bytes, and a load's parse peak is over before the job's own bytes are used
+    (models load one after another, before the work starts)."""
+    sizes = list(sizes)
+    extra = max((load_bytes(size) - model_bytes(size) for size in sizes), default=0)
+    return sum(model_bytes(size) for size in sizes) + max(amount, extra)
+
+
+def largest_model_file(budget: int) -> int:
+    """The largest model file whose load fits `budget` (an upload past it is cut off)."""
+    return max(0, budget - MODEL_BYTES_OVERHEAD) // LOAD_BYTES_PER_FILE_BYTE
+
+
+@dataclass(frozen=True)
+class ModelSize:
+    id: str
+    units: int          # dropout units (splats, NeRF first-layer width)
+    file_bytes: int
+    field: str          # the request field that names the model
 
 
 @dataclass(frozen=True)
 class MemoryPlan:
-    bytes: int          # reserved from the budget while the work runs
+    bytes: int          # reserved from the budget while the job runs (its models apart)
     mask_batch: int     # masks per render call
 
 
-def plan_work(models: list[tuple[str, int, int]], view_pixels: int, samples: int, kept_bytes: int, budget: int,
-              *, size_field: str, kept_field: str) -> MemoryPlan:
-    """The memory plan of one job over `models` [(kind, units, file bytes)], or 413 naming what to lower.
+def plan_work(models: Sequence[ModelSize], pixels: int, samples: int, kept_bytes: int, budget: int, *,
+              renders: RenderMemory | None = None, size_field: str, kept_field: str) -> MemoryPlan:
+    """The memory plan of one job, or a 413 naming the field to lower.
 
-    view_pixels: pixels of the largest view; kept_bytes: what the work holds across views.
+    pixels: of the largest view rendered; kept_bytes: what the job holds across views;
+    renders: the largest bounds of the job's renders (None: not known yet, a lower bound).
+    The plan fits beside its models in memory, and each model's load fits beside the others
+    (`taking`); a model named twice (select a model against itself) is in memory once but
+    draws its masks twice.
     """
-    fixed = sum(MODEL_BYTES_PER_FILE_BYTE * size for _, _, size in models)
-    fixed += view_pixels * ACCUMULATOR_PIXEL_BYTES
-    if kept_bytes and fixed + kept_bytes > budget:
-        raise over_budget(kept_field, fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
-    per_mask = view_pixels * max(mask_pixel_bytes(kind, units) for kind, units, _ in models)
-    room = budget - fixed - kept_bytes
-    batch = min(MAX_MASKS_PER_RENDER, samples, room // per_mask if per_mask else MAX_MASKS_PER_RENDER)
+    distinct: dict[str, ModelSize] = {}
+    for model in models:
+        distinct.setdefault(model.id, model)
+    resident = sum(model_bytes(m.file_bytes) for m in distinct.values())
+    for model in distinct.values():
+        need = resident + load_bytes(model.file_bytes) - model_bytes(model.file_bytes)
+        if need > budget:
+            raise over_budget(model.field, need, budget, "a smaller model")
+    room = budget - resident
+    fixed = sum(MASK_SAMPLE_UNIT_BYTES * samples * m.units for m in models) + pixels * ACCUMULATOR_PIXEL_BYTES
+    # Before the renders are known, the projection that will bound them.
+    fixed += renders.fixed if renders is not None else max(memory_probe_bytes(m.units) for m in models)
+    if fixed + kept_bytes > room and kept_bytes:
+        raise over_budget(kept_field, resident + fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
+    # A batch's renderer temporaries are gone once its images reach the engine's float64 copies.
+    per_mask = max(pixels * STREAM_PIXEL_BYTES, renders.per_mask if renders is not None else 0)
+    batch = min(MAX_MASKS_PER_RENDER, samples, (room - fixed - kept_bytes) // per_mask)
     if batch < 1:
-        raise over_budget(size_field, fixed + kept_bytes + per_mask, budget,
+        raise over_budget(size_field, resident + fixed + kept_bytes + per_mask, budget,
                           "a lower resolution (downscale, or width/height)")
     return MemoryPlan(bytes=fixed + kept_bytes + batch * per_mask, mask_batch=int(batch))
 
@@ -68,28 +129,179 @@ def over_budget(field: str, need: int, budget: int, advice: str) -> ServiceError
                         f"(field '{field}')", field)
 
 
-class MemoryLedger:
-    """The budget shared by every worker and upload parse: reserve before, release after."""
+@dataclass(eq=False)
+class Resident:
+    """A model in memory: its renderer (None while it loads) and the bytes it holds."""
 
-    def __init__(self, budget: int):
+    bytes: int
+    renderer: Renderer | None = None
+    users: int = 0                  # jobs using it: never evicted while > 0
+    failed: BaseException | None = None
+    listed: bool = True             # still findable by id (False once evicted, deleted or failed)
+
+
+class MemoryLedger:
+    """The budget shared by models in memory, running jobs and upload parses: reserve before,
+    release after, and evict idle models (least recently used first) for room."""
+
+    def __init__(self, budget: int, capacity: int, load: Callable[[str], Renderer]):
         self.budget = budget
+        self.capacity = capacity        # idle models kept at most
+        self.load = load                # a model by id, from where the models are stored
         self.used = 0
+        self._models: OrderedDict[str, Resident] = OrderedDict()   # least recently used first
         self._cond = threading.Condition()
 
     @contextmanager
-    def reserve(self, amount: int, timeout: float | None = None) -> Iterator[None]:
-        """Hold `amount` bytes of the budget for the block; waits while others hold too much.
-
-        Raises TimeoutError after `timeout` seconds without room (None: wait as long as it takes).
-        """
-        amount = min(amount, self.budget)
-        with self._cond:
-            if not self._cond.wait_for(lambda: self.used + amount <= self.budget, timeout):
-                raise TimeoutError(f"{self.used} of {self.budget} bytes are reserved")
-            self.used += amount
+    def reserve(self, amount: int, timeout: float | None = None) -> Iterator["Reservation"]:
+        """Hold `amount` bytes for the block; waits while they do not fit even with idle models
+        evicted. Raises TimeoutError after `timeout` seconds without room (None: no limit)."""
+        self._check(amount, {})
+        self._take({}, amount, timeout)
+        reservation = Reservation(self, amount)
         try:
-            yield
+            yield reservation
         finally:
-            with self._cond:
-                self.used -= amount
+            self._give({}, reservation.amount)
+
+    @contextmanager
+    def models(self, records: dict[str, int], amount: int,
+               timeout: float | None = None) -> Iterator[dict[str, Renderer]]:
+        """The renderers of the models `records` ({id: file bytes}), in memory for the block,
+        and `amount` bytes more, taken together. A model not in memory is loaded with
+        `self.load(id)` (its load bytes reserved with the rest, then lowered to what it keeps).
+        Raises TimeoutError as `reserve` does; what the load raises, in every job waiting on it."""
+        self._check(amount, records)
+        held, loading, taken = self._take(records, amount, timeout)
+        try:
+            for model_id, resident in loading.items():
+                self._load(model_id, resident)
+            with self._cond:                          # the parse peaks are over: down to the job's own bytes
+                self.used -= taken - amount
+                taken = amount
                 self._cond.notify_all()
+            yield {model_id: self._loaded(resident) for model_id, resident in held.items()}
+        finally:
+            self._give(held, taken)
+
+    def forget(self, model_id: str) -> None:
+        """A deleted model: out now if idle, else once its last job is done."""
+        with self._cond:
+            resident = self._models.pop(model_id, None)
+            if resident is not None:
+                resident.listed = False
+                if resident.users == 0:
+                    self.used -= resident.bytes
+                self._cond.notify_all()
+
+    def loaded(self) -> list[str]:
+        """The ids of the models in memory, least recently used first."""
+        with self._cond:
+            return [model_id for model_id, r in self._models.items() if r.renderer is not None]
+
+    def _check(self, amount: int, records: dict[str, int]) -> None:
+        """What can never fit is a caller's error (plans are checked against the budget first)."""
+        if taking(amount, records.values()) > self.budget:
+            raise ValueError(f"{amount} bytes and the models {list(records)} exceed the budget of {self.budget}")
+
+    # ------------------------------------------------------------------ under the lock
+
+    def _take(self, records: dict[str, int], amount: int,
+              timeout: float | None) -> tuple[dict[str, Resident], dict[str, Resident], int]:
+        """Wait until `amount` and every model not in memory fit (`taking`), then take them all
+        at once: (the residents held, those this call must load, the bytes taken beyond them)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while True:
+                missing = {i: size for i, size in records.items() if i not in self._models}
+                need = taking(amount, missing.values())
+                self._evict(self.used + need - self.budget, keep=records)
+                if self.used + need <= self.budget:
+                    break
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0 or not self._cond.wait(remaining):
+                    raise TimeoutError(f"{self.used} of {self.budget} bytes are reserved")
+            self.used += need
+            loading = {i: Resident(model_bytes(size)) for i, size in missing.items()}
+            self._models.update(loading)
+            held = {i: self._models[i] for i in records}
+            for model_id, resident in held.items():
+                resident.users += 1
+                self._models.move_to_end(model_id)
+            return held, loading, need - sum(r.bytes for r in loading.values())
+
+    def _give(self, held: dict[str, Resident], amount: int) -> None:
+        """Release `amount` and the models held (a model no longer listed goes with its last
+        user), and give what the work freed back to the system: the budget counts resident memory."""
+        with self._cond:
+            self.used -= amount
+            for resident in held.values():
+                resident.users -= 1
+                if resident.users == 0 and not resident.listed:
+                    self.used -= resident.bytes
+            self._cap_idle()
+            self._cond.notify_all()
+        release_freed_memory()
+
+    def _evict(self, need: int, keep: dict[str, int] | None = None) -> None:
+        """Evict idle loaded models, least recently used first, until `need` bytes are free."""
+        for model_id, resident in list(self._models.items()):
+            if need <= 0:
+                return
+            if resident.users == 0 and resident.renderer is not None and model_id not in (keep or {}):
+                del self._models[model_id]
+                resident.listed = False
+                self.used -= resident.bytes
+                need -= resident.bytes
+
+    def _cap_idle(self) -> None:
+        """Evict the least recently used idle models past `capacity`."""
+        idle = [i for i, r in self._models.items() if r.users == 0 and r.renderer is not None]
+        for model_id in idle[:max(0, len(idle) - self.capacity)]:
+            resident = self._models.pop(model_id)
+            resident.listed = False
+            self.used -= resident.bytes
+
+    # ------------------------------------------------------------------ loading (outside the lock)
+
+    def _load(self, model_id: str, resident: Resident) -> None:
+        try:
+            renderer = self.load(model_id)
+        except BaseException as exc:
+            with self._cond:
+                resident.failed = exc
+                if self._models.get(model_id) is resident:
+                    del self._models[model_id]
+                resident.listed = False
+                self._cond.notify_all()
+            raise
+        with self._cond:
+            resident.renderer = renderer
+            self._cond.notify_all()
+
+    def _loaded(self, resident: Resident) -> Renderer:
+        """The renderer once loaded (by this job or another one waiting on the same model)."""
+        with self._cond:
+            self._cond.wait_for(lambda: resident.renderer is not None or resident.failed is not None)
+            if resident.failed is not None:
+                raise resident.failed
+            return resident.renderer
+
+
+class Reservation:
+    """Bytes held from a ledger for a block (`MemoryLedger.reserve`)."""
+
+    def __init__(self, ledger: MemoryLedger, amount: int):
+        self.ledger, self.amount = ledger, amount
+
+    def keep(self, model_id: str, renderer: Renderer, size: int) -> None:
+        """Hand part of these bytes to a model loaded in the block (an upload's parse becomes
+        the model in memory; nothing is reserved anew, so nothing waits): it stays in memory
+        as an idle model once the block ends. A model the bytes cannot hold is not kept."""
+        ledger, need = self.ledger, model_bytes(size)
+        with ledger._cond:
+            if model_id in ledger._models or need > self.amount:
+                return
+            self.amount -= need
+            ledger._models[model_id] = Resident(need, renderer)
+            ledger._cap_idle()

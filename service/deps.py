@@ -12,9 +12,10 @@ from fastapi.responses import JSONResponse
 
 from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import FAMILIES, load_model_bytes
+from phd_core.scene import Camera
 
-from .budget import PARSE_BYTES_PER_FILE_BYTE, MemoryLedger
-from .errors import ServiceError, not_found
+from .budget import MemoryLedger, Reservation, load_bytes
+from .errors import ServiceError, busy, not_found
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
 from .keys import OPEN, Principal
@@ -22,7 +23,7 @@ from .schemas import ErrorResponse, Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore
 from .upload import Upload, parse_background, parse_camera_json
-from .work import RendererCache, parse_cameras, set_background
+from .work import parse_cameras, set_background
 
 ERRORS: dict[int | str, dict[str, Any]] = {
     status: {"model": ErrorResponse, "description": text} for status, text in (
@@ -37,8 +38,7 @@ ACCEPTED = {202: {"model": Job, "description": "Queued as a job: poll GET /v1/jo
 class ServiceState:
     settings: Settings
     store: ModelStore
-    cache: RendererCache
-    ledger: MemoryLedger
+    ledger: MemoryLedger                # the memory budget, and the models in memory
     job_store: JobStore
     jobs: JobManager | None = None
     executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
@@ -51,9 +51,10 @@ class ServiceState:
         return record
 
     def job(self, job_id: str, who: Principal) -> Job:
-        """The job as the API shows it: live from memory, else as persisted (also after a restart)."""
+        """The job as the API shows it: live from memory until it is final and persisted, then from
+        the store (also after a restart)."""
         live = self.jobs.get(job_id)
-        if live is not None:
+        if live is not None and not live.on_disk:
             found = (live.to_schema(), live.owner)
         else:
             found = self.job_store.get(job_id)
@@ -64,7 +65,7 @@ class ServiceState:
     def artifact(self, job_id: str, name: str, who: Principal) -> bytes | None:
         self.job(job_id, who)
         live = self.jobs.get(job_id)
-        if live is not None and name in live.artifacts:
+        if live is not None and name in live.artifacts:     # a job whose final state could not be persisted
             return live.artifacts[name]
         return self.job_store.artifact(job_id, name)
 
@@ -83,9 +84,9 @@ class ServiceState:
         if run_async or estimate > self.settings.async_threshold:
             return JSONResponse(job.to_schema().model_dump(mode="json"), status_code=202,
                                 headers={"Location": f"/v1/jobs/{job.id}"})
-        await asyncio.wrap_future(job.done)
+        result = await asyncio.wrap_future(job.done)
         if job.state == "succeeded":
-            return job.result
+            return result
         if job.state == "cancelled":
             raise ServiceError(409, "job_cancelled", f"job '{job.id}' was cancelled before it finished")
         raise job.error
@@ -96,14 +97,18 @@ class ServiceState:
         if upload.cameras is not None:  # the cheap check first
             cameras = parse_cameras(parse_camera_json(upload.cameras), RenderSize(), self.settings,
                                     field="cameras", cap=self.settings.max_training_cameras)
-        # Parsed under the shared memory budget; by content and the client's file name, so no
-        # message ever names the server's temp file.
+        # Parsed under the shared memory budget, which the model then stays in (if the parse's
+        # bytes hold it); by content and the client's file name, so no message ever names the
+        # server's temp file.
         try:
-            with self.ledger.reserve(PARSE_BYTES_PER_FILE_BYTE * upload.size, timeout=self.settings.upload_wait):
-                renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
+            with self.ledger.reserve(load_bytes(upload.size), timeout=self.settings.upload_wait) as parse:
+                return self._store(upload, kind, who, cameras, parse)
         except TimeoutError:
-            raise ServiceError(429, "busy", "the service's memory budget is taken by other work; retry later",
-                               "file", {"Retry-After": str(self.settings.retry_after)}) from None
+            raise busy("file", self.settings.retry_after) from None
+
+    def _store(self, upload: Upload, kind: str, who: Principal, cameras: list[Camera] | None,
+               parse: Reservation) -> ModelRecord:
+        renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
         if upload.background is not None:
             set_background(renderer, parse_background(upload.background))
         cameras = cameras if cameras is not None else renderer.training_cameras
@@ -114,7 +119,7 @@ class ServiceState:
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)
-        self.cache.put(record.id, renderer)
+        parse.keep(record.id, renderer, record.size_bytes)
         return record
 
 

@@ -38,6 +38,12 @@ def invalid(field: str | None, message: str) -> ServiceError:
     return ServiceError(422, "invalid_input", message, field)
 
 
+def busy(field: str | None, retry_after: int) -> ServiceError:
+    """429: the memory budget stayed taken by other work for as long as a request may wait."""
+    return ServiceError(429, "busy", "the service's memory budget is taken by other work; retry later", field,
+                        {"Retry-After": str(retry_after)})
+
+
 def from_exception(exc: BaseException) -> ServiceError | None:
     """The error answer for a library exception, or None if it is a bug (-> 500)."""
     if isinstance(exc, ServiceError):

@@ -5,10 +5,11 @@ awaits its job's future. `workers` threads take jobs from a waiting line of at m
 `queue_size` jobs; a submission past that raises `QueueFull` (the API answers 429 with
 Retry-After) instead of waiting. Cancelling a waiting job removes it from the line;
 cancelling a running job sets a flag that the engine's progress callback checks between
-views, raising `JobCancelled` inside the engine. The last `retention` finished jobs (and
-their artefacts) are kept in memory; every state change is also handed to `on_change`
-(the service persists it, `service.jobstore`). A shutdown fails unfinished jobs with the
-code `interrupted`.
+views, raising `JobCancelled` inside the engine. Every state change is handed to `on_change`
+(the service persists it, `service.jobstore`); once a final state is persisted, the job's
+result and artefacts leave memory (`on_disk`: they are served from the store, so finished
+jobs hold no memory outside the budget). The last `retention` finished jobs are remembered.
+A shutdown fails unfinished jobs with the code `interrupted`.
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ class JobRecord:
     artifacts: dict[str, bytes] = field(default_factory=dict)
     cancel_requested: threading.Event = field(default_factory=threading.Event)
     cancelled_by_user: bool = False
-    done: Future = field(default_factory=Future)   # resolves to the record itself when final
+    on_disk: bool = False                    # final, persisted, result and artefacts dropped from memory
+    done: Future = field(default_factory=Future)   # resolves to the result when final
 
     def to_schema(self) -> Job:
         return Job(id=self.id, kind=self.kind, state=self.state, progress=self.progress,
@@ -72,11 +74,10 @@ INTERRUPTED = ("interrupted", "the job was interrupted by a restart of the servi
 
 
 class JobManager:
-    def __init__(self, workers: int, queue_size: int, retention: int,
-                 on_change: Callable[[JobRecord], None] | None = None):
+    def __init__(self, workers: int, queue_size: int, retention: int, on_change: Callable[[JobRecord], None]):
         self.queue_size = queue_size
         self.retention = retention
-        self.on_change = on_change or (lambda job: None)
+        self.on_change = on_change
         self._waiting: deque[JobRecord] = deque()
         self._jobs: OrderedDict[str, JobRecord] = OrderedDict()
         self._cond = threading.Condition()
@@ -190,9 +191,12 @@ class JobManager:
         job.work = None  # type: ignore[assignment]  # drop references to renderers and inputs
         try:
             self.on_change(job)          # artefacts and result on disk before anyone is told
+            job.on_disk = True
         except Exception:  # a full disk must not leave a job unfinished in memory
             log.error("job %s: could not persist its final state:\n%s", job.id, traceback.format_exc())
-        job.done.set_result(job)
+        job.done.set_result(job.result)
+        if job.on_disk:
+            job.result, job.artifacts = None, {}
         finished = [j for j in self._jobs.values() if j.state in FINAL_STATES]
         for old in finished[:max(0, len(finished) - self.retention)]:
             del self._jobs[old.id]

@@ -40,7 +40,8 @@ class Settings(BaseSettings):
     workers: PositiveInt = 1                   # threads running PH-Dropout work
     queue_size: PositiveInt = 8                # jobs waiting for a worker; past it: 429
     retry_after: PositiveInt = 5               # seconds, sent with 429
-    cache_size: PositiveInt = 4                # loaded renderers kept in memory (LRU)
+    cache_size: PositiveInt = 4                # idle models kept in memory (LRU; evicted sooner when the
+                                               # memory budget needs their room)
     job_retention: PositiveInt = 256           # finished jobs (and their artefacts) kept in memory
     max_upload_bytes: PositiveInt = 1 << 30    # model upload cap (413 past it)
     max_camera_json_bytes: PositiveInt = 16 << 20  # training-camera JSON part of an upload
@@ -52,8 +53,8 @@ class Settings(BaseSettings):
     max_samples: PositiveInt = 256             # dropout samples N per request
     async_threshold: PositiveFloat = 2e7       # estimated rendered pixels (views * N * H * W) above which
                                                # a request becomes a 202 job
-    memory_budget_bytes: PositiveInt = 4 << 30  # estimated memory of all running work and upload parses
-                                               # together (service.budget); a single request above it: 413
+    memory_budget_bytes: PositiveInt = 4 << 30  # estimated memory of the models in memory, running work and
+                                               # upload parses together (service.budget); one request above it: 413
     upload_wait: PositiveFloat = 30.0          # seconds an upload parse waits for budget before 429
     keys_file: Path | None = None              # JSON {"name": "key", ...}: per-key model ownership (docs/service.md)
     cors_origins: list[str] = []               # origins a browser page may call the API from (none by default)

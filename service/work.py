@@ -10,8 +10,7 @@ library's numbers.
 from __future__ import annotations
 
 import base64
-import threading
-from collections import OrderedDict
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import torch
@@ -24,11 +23,14 @@ from phd_core.uq.candidates import candidate_cameras
 from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
-from phd_core.renderers import Renderer, load_model
+from phd_core.renderers import FAMILIES, Renderer, RenderMemory, load_model, memory_probe_bytes
 from phd_core.renderers.gs3d import GaussianRenderer
+from phd_core.uq.sampling import VIEW_CACHE_BYTES
+from phd_core.uq.select import level_views
 
-from .budget import MemoryLedger, MemoryPlan, plan_work
-from .errors import ServiceError, invalid, not_found
+from .budget import (DEFAULT_MASK_PIXEL_BYTES, PNG_PIXEL_BYTES, MemoryLedger, MemoryPlan, ModelSize, model_bytes,
+                     plan_work)
+from .errors import ServiceError, busy, invalid, not_found
 from .jobs import Work
 from .schemas import (Calibration, CalibrateRequest, RankedCandidate, RankRequest, RankResult, SelectedView,
                       SelectRequest, SelectResult, RenderSize)
@@ -47,39 +49,17 @@ def set_background(renderer: Renderer, color: tuple[float, float, float] | list[
     renderer.background = torch.tensor(color, dtype=torch.float32)
 
 
-class RendererCache:
-    """The last `capacity` loaded renderers, by model id (least recently used goes first)."""
-
-    def __init__(self, store: ModelStore, capacity: int):
-        self.store = store
-        self.capacity = capacity
-        self._items: OrderedDict[str, Renderer] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def get(self, model_id: str) -> Renderer:
-        with self._lock:
-            if model_id in self._items:
-                self._items.move_to_end(model_id)
-                return self._items[model_id]
-            record = self.store.get(model_id)  # the model may have been deleted while the job waited
-            if record is None:
-                raise not_found("model", model_id)
-            renderer = load_model(self.store.path(record))
-            if isinstance(renderer, GaussianRenderer) and record.describe.get("background") is not None:
-                set_background(renderer, record.describe["background"])
-        self.put(model_id, renderer)
+def model_loader(store: ModelStore) -> Callable[[str], Renderer]:
+    """How the memory ledger loads a stored model by id (404 if it was deleted meanwhile)."""
+    def load(model_id: str) -> Renderer:
+        record = store.get(model_id)
+        if record is None:
+            raise not_found("model", model_id)
+        renderer = load_model(store.path(record))
+        if isinstance(renderer, GaussianRenderer) and record.describe.get("background") is not None:
+            set_background(renderer, record.describe["background"])
         return renderer
-
-    def put(self, model_id: str, renderer: Renderer) -> None:
-        with self._lock:
-            self._items[model_id] = renderer
-            self._items.move_to_end(model_id)
-            while len(self._items) > self.capacity:
-                self._items.popitem(last=False)
-
-    def evict(self, model_id: str) -> None:
-        with self._lock:
-            self._items.pop(model_id, None)
+    return load
 
 
 # ----------------------------------------------------------------------------- request checks
@@ -150,19 +130,64 @@ def pixels(cameras: list[Camera]) -> int:
 
 
 
-def memory_plan(records: list[ModelRecord], cameras: list[Camera], samples: int, settings: Settings, *,
-                kept_bytes: int = 0, kept_field: str = "cameras") -> MemoryPlan:
-    """The job's memory plan (service.budget), or a 413 naming the field to lower."""
-    return plan_work([(r.kind, r.num_units, r.size_bytes) for r in records], max(c.width * c.height for c in cameras),
-                     samples, kept_bytes, settings.memory_budget_bytes, size_field="downscale", kept_field=kept_field)
+@dataclass
+class Renders:
+    """What a job renders, for its memory plan: each model (with the request field naming it)
+    and every camera rendered with it; what the job keeps across views."""
+
+    models: list[tuple[ModelRecord, str, list[Camera]]]
+    samples: int
+    kept_bytes: int = 0
+    kept_field: str = "cameras"
+    keeps_views: bool = False       # calibration keeps prepared views for re-use (up to VIEW_CACHE_BYTES)
+    sizes: dict[str, int] = field(init=False)    # file bytes by model id
+
+    def __post_init__(self) -> None:
+        self.sizes = {record.id: record.size_bytes for record, _, _ in self.models}
+
+    def plan(self, settings: Settings, bounds: RenderMemory | None = None, kept_views: int = 0) -> MemoryPlan:
+        """The memory plan (service.budget), or a 413 naming the field to lower. Without the
+        renders' bounds (before the models are loaded), a lower bound."""
+        pixels = max(c.width * c.height for _, _, cameras in self.models for c in cameras)
+        return plan_work([ModelSize(r.id, r.num_units, r.size_bytes, name) for r, name, _ in self.models], pixels,
+                         self.samples, self.kept_bytes + kept_views, settings.memory_budget_bytes, renders=bounds,
+                         size_field="downscale", kept_field=self.kept_field)
+
+    def bounds(self, renderers: dict[str, Renderer], progress: Progress) -> tuple[RenderMemory, int]:
+        """The largest bounds of the renders, and what calibration's prepared views keep."""
+        found, kept = [], 0
+        for record, _, cameras in self.models:
+            renderer = renderers[record.id]
+            memory = FAMILIES[renderer.kind].memory
+            for camera in cameras:
+                progress(0.0)                     # a cancelled job stops here too
+                found.append(RenderMemory(0, 0, DEFAULT_MASK_PIXEL_BYTES * camera.width * camera.height)
+                             if memory is None else memory(renderer, camera))
+                kept += found[-1].kept
+        return RenderMemory.largest(found), min(kept, VIEW_CACHE_BYTES) if self.keeps_views else 0
 
 
-def bounded(work: Work, plan: MemoryPlan, ledger: MemoryLedger) -> Work:
-    """The work run with its memory reserved and its renders batched to fit it."""
-    def run(progress: Progress) -> tuple[Any, dict[str, bytes]]:
-        with ledger.reserve(plan.bytes), uq.limit_mask_batch(plan.mask_batch):
-            return work(progress)
-    return run
+@dataclass
+class Bounded:
+    """A job's work, run with its models in memory and its memory reserved, together. Once its
+    models are loaded the plan is made again with the bounds of its renders (each model
+    projected into each camera), and the renders are batched to fit it."""
+
+    renders: Renders
+    settings: Settings
+    ledger: MemoryLedger
+    work: Callable[[dict[str, Renderer], Progress], tuple[Any, dict[str, bytes]]]
+
+    def plan(self, renderers: dict[str, Renderer], progress: Progress) -> MemoryPlan:
+        """The plan with the bounds of the renders, or a 413 naming the field to lower."""
+        return self.renders.plan(self.settings, *self.renders.bounds(renderers, progress))
+
+    def __call__(self, progress: Progress) -> tuple[Any, dict[str, bytes]]:
+        probe = max(memory_probe_bytes(record.num_units) for record, _, _ in self.renders.models)
+        with self.ledger.models(self.renders.sizes, probe) as renderers:
+            plan = self.plan(renderers, progress)
+        with self.ledger.models(self.renders.sizes, plan.bytes) as renderers, uq.limit_mask_batch(plan.mask_batch):
+            return self.work(renderers, progress)
 
 
 def b64(data: bytes) -> str:
@@ -177,7 +202,7 @@ def _span(progress: Progress, start: float, end: float) -> Progress:
 # ----------------------------------------------------------------------------- calibrate
 
 def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Settings, store: ModelStore,
-                  cache: RendererCache, ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
+                  ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
     if body.training_cameras is not None:
         source, field = body.training_cameras, "training_cameras"
     elif record.training_frames:
@@ -191,44 +216,53 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
     options = {k: v for k, v in options.items() if v is not None}
     step = body.step or uq.DEFAULT_STEP
     estimate = pixels(cameras) * (1 + samples * int(1 / step))
-    plan = memory_plan([record], cameras, samples * uq.LOOKAHEAD, settings,  # masks of one pass per view
-                       kept_bytes=12 * pixels(cameras), kept_field="training_cameras")   # float32 references
+    # One pass renders LOOKAHEAD ratios of `samples` masks per view; it keeps float32 references.
+    renders = Renders([(record, "model_id", cameras)], samples * uq.LOOKAHEAD, kept_bytes=12 * pixels(cameras),
+                      kept_field="training_cameras", keeps_views=True)
+    renders.plan(settings)
 
-    def work(progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
-        renderer = cache.get(record.id)
-        result = uq.calibrate(renderer, cameras, samples=samples, method=body.method, seed=body.seed,
+    def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
+        result = uq.calibrate(renderers[record.id], cameras, samples=samples, method=body.method, seed=body.seed,
                               progress=progress, executor=executor, **options)
         calibration = Calibration(**result.to_dict(), num_cameras=len(cameras), created_at=utc_now())
         if not store.set_calibration(record.id, calibration.model_dump()):
             raise not_found("model", record.id)
         return calibration, {}
 
-    return bounded(work, plan, ledger), float(estimate)
+    return Bounded(renders, settings, ledger, work), float(estimate)
 
 
 # ----------------------------------------------------------------------------- rank
 
 def generated_candidates(record: ModelRecord, body: RankRequest, settings: Settings,
-                         cache: RendererCache) -> list[Camera]:
+                         ledger: MemoryLedger) -> list[Camera]:
     """The poses of a rank request's generator spec, placed around the model's training cameras
-    (else its splats: the model is loaded), checked like explicit cameras."""
+    (else its splats: the model is loaded, waiting for memory at most `upload_wait`), checked
+    like explicit cameras."""
     spec = body.candidates
     if spec.count > settings.max_candidates:
         raise invalid("candidates.count", f"{spec.count} poses exceed the cap of {settings.max_candidates} per request")
     training = stored_cameras(record)
     try:
-        poses = candidate_cameras(spec.generator, spec.count, cameras=training or None,
-                                  renderer=None if training else cache.get(record.id), **spec.options)
+        if training:
+            poses = candidate_cameras(spec.generator, spec.count, cameras=training, **spec.options)
+        else:
+            # The points taken from the splats are a fraction of the model's own bytes.
+            with ledger.models({record.id: record.size_bytes}, model_bytes(record.size_bytes),
+                               timeout=settings.upload_wait) as renderers:
+                poses = candidate_cameras(spec.generator, spec.count, renderer=renderers[record.id], **spec.options)
     except InputError as exc:
         raise invalid(f"candidates.{exc.field}", exc.reason) from None
+    except TimeoutError:
+        raise busy("candidates", settings.retry_after) from None
     return parse_cameras([c.to_frame() for c in poses], body, settings, field="candidates",
                          cap=settings.max_candidates)
 
 
-def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: RendererCache,
-             job_url: Callable[[str], str], ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
+def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url: Callable[[str], str],
+             ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
     if body.candidates is not None:
-        cameras = generated_candidates(record, body, settings, cache)
+        cameras = generated_candidates(record, body, settings, ledger)
     else:
         cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
@@ -240,12 +274,15 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
     rendered = pixels(cameras[:returned]) if heatmaps else 0   # one plain render per returned view
     estimate = pixels(cameras) * samples + rendered
     split = 1.0 - rendered / estimate if estimate else 1.0
-    # With heat maps, every candidate's zeta channel max ([H, W] float32) is kept until the order is known.
-    plan = memory_plan([record], cameras, samples, settings, kept_bytes=4 * pixels(cameras) if heatmaps else 0,
-                       kept_field="heatmaps")
+    # With heat maps, every candidate's zeta channel max ([H, W] float32) is kept until the order is
+    # known, then each returned view's two PNGs (at most PNG_PIXEL_BYTES a pixel each).
+    kept = 4 * pixels(cameras) + 2 * PNG_PIXEL_BYTES * returned * max(c.width * c.height for c in cameras)
+    kept = kept if heatmaps else 0
+    renders = Renders([(record, "model_id", cameras)], samples, kept_bytes=kept, kept_field="heatmaps")
+    renders.plan(settings)
 
-    def work(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
-        renderer = cache.get(record.id)
+    def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
+        renderer = renderers[record.id]
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
                                strategy=body.strategy, captured=captured, keep_peak=heatmaps,
                                progress=_span(progress, 0.0, split), executor=executor)
@@ -273,7 +310,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, cache: 
                             num_candidates=len(cameras), heatmap_vmax=vmax, views=views)
         return result, artifacts
 
-    return bounded(work, plan, ledger), float(estimate)
+    return Bounded(renders, settings, ledger, work), float(estimate)
 
 
 def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
@@ -288,26 +325,31 @@ def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],
 # ----------------------------------------------------------------------------- select
 
 def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest, settings: Settings,
-               cache: RendererCache, job_url: Callable[[str], str], ledger: MemoryLedger,
-               executor: Executor = LOCAL) -> tuple[Work, float]:
+               job_url: Callable[[str], str], ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
     images = body.images != "none"
     estimate = pixels(cameras) * (2 * samples + 2 * images)
-    # With images, both models' full render of every view ([H, W, 3] float32) is kept until the choice.
-    plan = memory_plan([record_a, record_b], cameras, samples, settings,
-                       kept_bytes=2 * 12 * pixels(cameras) if images else 0, kept_field="images")
+    levels: dict[str, list[Camera]] = {"model_a": [], "model_b": []}
     if body.rule == "distance_sigma":
         for name, record in (("model_a", record_a), ("model_b", record_b)):
             if not record.training_frames:
                 raise invalid(name, "the model has no training cameras, which rule 'distance_sigma' needs: upload "
                               "it with its cameras, or use rule 'sigma_mean'")
+            levels[name] = level_views(stored_cameras(record))     # rendered at their own size
         estimate += 2 * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples   # each model's own zeta level
+    # With images, both models' full render of every view ([H, W, 3] float32) is kept until the
+    # choice, then the PNGs of the chosen one (and of the other with both_images).
+    kept = (2 * 12 + (1 + body.both_images) * PNG_PIXEL_BYTES) * pixels(cameras) if images else 0
+    renders = Renders([(record_a, "model_a", cameras + levels["model_a"]),
+                       (record_b, "model_b", cameras + levels["model_b"])], samples, kept_bytes=kept,
+                      kept_field="images")
+    renders.plan(settings)
 
-    def work(progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:
-        renderer_a, renderer_b = cache.get(record_a.id), cache.get(record_b.id)
+    def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:
+        renderer_a, renderer_b = renderers[record_a.id], renderers[record_b.id]
         result = uq.select_models(renderer_a, renderer_b, cameras, ratio_a=ratio_a, ratio_b=ratio_b,
                                   samples=samples, seed=body.seed, rule=body.rule,
                                   training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
@@ -328,4 +370,4 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
         return SelectResult(model_a=record_a.id, model_b=record_b.id, ratio_a=ratio_a, ratio_b=ratio_b,
                             rule=body.rule, samples=samples, seed=body.seed, counts=counts, views=views), artifacts
 
-    return bounded(work, plan, ledger), float(estimate)
+    return Bounded(renders, settings, ledger, work), float(estimate)

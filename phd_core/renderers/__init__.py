@@ -15,10 +15,11 @@ from .families import (FAMILIES, SNIFF_BYTES, Family, UnknownModelError, family_
 from .gs2d.family import GS2D
 from .gs3d.family import GS3D
 from .nerf.family import NERF
-from .protocol import CameraView, Renderer, View, check_keep
+from .protocol import CameraView, Renderer, RenderMemory, View, check_keep, memory_probe_bytes
 
 for _family in (GS3D, NERF, GS2D):
     register_family(_family)
 
-__all__ = ["FAMILIES", "SNIFF_BYTES", "CameraView", "Family", "Renderer", "View", "UnknownModelError", "check_keep", "family_of",
-           "load_model", "load_model_bytes", "model_kind", "register_family"]
+__all__ = ["FAMILIES", "SNIFF_BYTES", "CameraView", "Family", "RenderMemory", "Renderer", "View", "UnknownModelError",
+           "check_keep", "family_of", "load_model", "load_model_bytes", "memory_probe_bytes", "model_kind",
+           "register_family"]

@@ -3,8 +3,9 @@ its file name.
 
 `FAMILIES` maps a kind ("3dgs", "nerf") to a `Family`: how its files are recognised (a
 3DGS PLY starts with `ply`; a NeRF checkpoint is a safetensors file marked as ours), how
-they are loaded, which file extension the service stores them under, and which trainer
-`phd train` calls (named, so loading a model never imports a trainer). Anything no family
+they are loaded, which file extension the service stores them under, which trainer
+`phd train` calls (named, so loading a model never imports a trainer) and how much memory
+a render of one camera takes (`RenderMemory`, which the service budgets with). Anything no family
 recognises (a pickle, an archive, random bytes) is refused before it is parsed, so no file
 can execute code on load. A new family is one module defining its `Family` plus one
 `register_family` call (`phd_core/renderers/__init__.py` registers the built-in ones); the
@@ -20,7 +21,7 @@ from typing import Callable
 from ..errors import InputError
 from ..registry import Registry
 from ..scene import Camera
-from .protocol import Renderer
+from .protocol import Renderer, RenderMemory
 
 SNIFF_BYTES = 4096
 
@@ -37,6 +38,8 @@ class Family:
     beside: Callable[[Path, Renderer], Renderer] | None = None    # extras stored next to a model file
     trainer: str | None = None                              # "module:function" that `phd train` calls
     train_options: tuple[str, ...] = ()                     # `phd train` flags the trainer takes
+    memory: Callable[[Renderer, Camera], RenderMemory] | None = None   # bounds of one camera's render
+                                                            # (None: unknown; the service assumes its worst case)
 
 
 FAMILIES: Registry[Family] = Registry("model family")

@@ -12,6 +12,7 @@ batches from it (calibration renders the same training views for every ratio it 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import torch
@@ -77,6 +78,37 @@ class Renderer(Protocol):
     def describe(self) -> dict[str, Any]:
         """JSON-ready facts about the model (kind, units, bounds, ...)."""
         ...
+
+
+@dataclass(frozen=True)
+class RenderMemory:
+    """Upper bounds, in bytes, of what rendering one camera holds beyond the model itself.
+
+    A family computes them before rendering (`Family.memory`) from a projection of the model
+    into the camera: how many splats cover each pixel decides most of it, and no request
+    size tells that. The service plans its memory budget from them (service.budget).
+    """
+
+    fixed: int      # whatever the number of masks: `prepare`'s peak, or each render call's mask-independent part
+    kept: int       # what the prepared view keeps between render calls (its `nbytes`)
+    per_mask: int   # what each keep-mask of one render call adds
+
+    @staticmethod
+    def largest(items: "list[RenderMemory]") -> "RenderMemory":
+        """Each bound's maximum over renders that run one after another."""
+        return RenderMemory(max(m.fixed for m in items), max(m.kept for m in items), max(m.per_mask for m in items))
+
+
+# Memory functions project the model in chunks of MEMORY_PROBE_UNITS units, so that what they
+# hold themselves stays under `memory_probe_bytes` whatever the model (measured: 2DGS with SH
+# degree 3 took 1.2 KB a unit, bench/bench_memory.py).
+MEMORY_PROBE_UNITS = 1 << 14
+MEMORY_PROBE_UNIT_BYTES = 2048
+
+
+def memory_probe_bytes(units: int) -> int:
+    """The most a family's `memory` function holds for a model of `units` units."""
+    return min(units, MEMORY_PROBE_UNITS) * MEMORY_PROBE_UNIT_BYTES
 
 
 def check_keep(keep: torch.Tensor | None, num_units: int) -> torch.Tensor | None:

@@ -6,6 +6,7 @@ mask-independent stages that turn projected splats into per-pixel fragments.
     intersect   tile/splat pairs ordered by (tile, depth)
     fragments   the (pair, pixel) entries with alpha >= 1/255, grouped by pixel
     untile      tile layout -> image
+    box_counts  how many pairs and fragments a view will have, before it is rasterised
 
 Stage 4, compositing the fragments once per keep-mask, is a backend (`composite`).
 """
@@ -31,6 +32,7 @@ LOG_T_MIN = math.log(T_MIN)
 DEFAULT_TILE = 4        # pixels per tile side; see bench/bench_gaussians.py
 # Upper bound on elements of one [masks, fragments] compositing chunk (about 1 GB of temporaries).
 CHUNK_ELEMENTS = 1 << 24
+BOX_MARGIN = 0.5        # px added to each side of a splat box when bounding its fragments (box_counts)
 
 
 def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
@@ -107,6 +109,21 @@ def intersect(means2d: torch.Tensor, extents: torch.Tensor, width: int, height: 
     per_tile = torch.bincount(tile_id, minlength=tiles_x * tiles_y)
     tile_first = torch.cumsum(per_tile, 0) - per_tile
     return Pairs(tile=tile_id, splat=splat, tile_start=tile_first[tile_id], tiles_x=tiles_x, tiles_y=tiles_y)
+
+
+def box_counts(centres: torch.Tensor, extents: torch.Tensor, width: int, height: int, tile: int) -> tuple[int, int]:
+    """(pairs, pixels) of splat boxes (centres and half-sizes [V, 2], px): the tile/splat pairs
+    `intersect` lists for them, and the image pixels their boxes cover, each box one pixel
+    wider by BOX_MARGIN on every side (against rounding). A fragment (alpha >= 1/255) lies in
+    its splat's box, so `pixels` bounds the fragments a rasteriser keeps: the memory of a
+    view, known from a projection."""
+    lo, hi, _, _ = tile_boxes(centres, extents, width, height, tile)
+    span = (hi - lo + 1).clamp_min(0)                  # [V, 2] tiles in x and y
+    first = (centres - extents - BOX_MARGIN - 0.5).ceil().clamp_min(0)   # pixel centres sit at integer + 0.5
+    last = torch.minimum((centres + extents + BOX_MARGIN - 0.5).floor(),
+                         torch.tensor([width - 1, height - 1], dtype=centres.dtype))
+    pixels = (last - first + 1).clamp_min(0).prod(-1)
+    return int((span[:, 0] * span[:, 1]).sum()), int(pixels.sum())
 
 
 @dataclass

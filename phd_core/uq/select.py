@@ -61,7 +61,7 @@ def _training_views(renderer: Renderer, training: Sequence[Camera] | None, name:
     return training
 
 
-def _level_views(training: list[Camera]) -> list[Camera]:
+def level_views(training: list[Camera]) -> list[Camera]:
     """Up to 8 evenly spaced training views: their mean zeta is the level a model's uncertainty
     has where it was trained, which `distance_sigma` divides by."""
     return training[::max(1, len(training) // SELECTION_TRAINING_VIEWS)][:SELECTION_TRAINING_VIEWS]
@@ -101,7 +101,7 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     if rule == "distance_sigma":
         given = {"a": training_a, "b": training_b}
         training = {key: _training_views(renderers[key], given[key], f"model_{key}") for key in renderers}
-        levels = {key: _level_views(training[key]) for key in renderers}
+        levels = {key: level_views(training[key]) for key in renderers}
     else:
         levels = {"a": [], "b": []}
     ticker = ProgressTicker(progress, 2 * len(cameras) + len(levels["a"]) + len(levels["b"]))

@@ -7,7 +7,7 @@ import asyncio
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
-from ..budget import PARSE_BYTES_PER_FILE_BYTE
+from ..budget import largest_model_file
 from ..deps import ERRORS, Caller, Service
 from ..errors import not_found
 from ..schemas import Calibration, ModelInfo, ModelList, TrainingCameras
@@ -47,7 +47,7 @@ async def upload_model(request: Request, svc: Service, who: Caller) -> JSONRespo
     temp = svc.store.new_temp_path()
     try:
         upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes,
-                                      svc.settings.memory_budget_bytes // PARSE_BYTES_PER_FILE_BYTE)
+                                      largest_model_file(svc.settings.memory_budget_bytes))
         kind = sniff_kind(upload.head)
         record = await asyncio.to_thread(svc.ingest, upload, kind, who)
     finally:
@@ -78,5 +78,5 @@ async def delete_model(model_id: str, svc: Service, who: Caller) -> Response:
     svc.model(model_id, who)                # 404 for another key's model
     if not await asyncio.to_thread(svc.store.delete, model_id):
         raise not_found("model", model_id)
-    svc.cache.evict(model_id)
+    svc.ledger.forget(model_id)
     return Response(status_code=204)

@@ -20,8 +20,8 @@ async def calibrate(model_id: str, svc: Service, who: Caller, body: CalibrateReq
     body = body or CalibrateRequest()
     record = svc.model(model_id, who)
     job_id = svc.jobs.new_id()
-    work, estimate = await asyncio.to_thread(calibrate_job, record, body, svc.settings, svc.store, svc.cache,
-                                             svc.ledger, svc.executor)
+    work, estimate = await asyncio.to_thread(calibrate_job, record, body, svc.settings, svc.store, svc.ledger,
+                                             svc.executor)
     return await svc.run(job_id, "calibrate", work, estimate, body.run_async, who)
 
 
@@ -30,7 +30,7 @@ async def rank(model_id: str, body: RankRequest, svc: Service, who: Caller) -> A
     """Candidate poses in the order to capture them (next-best view; strategy in the body, docs/nbv.md)."""
     record = svc.model(model_id, who)
     job_id = svc.jobs.new_id()
-    work, estimate = await asyncio.to_thread(rank_job, record, body, svc.settings, svc.cache, _artifact_url(job_id),
+    work, estimate = await asyncio.to_thread(rank_job, record, body, svc.settings, _artifact_url(job_id),
                                              svc.ledger, svc.executor)
     return await svc.run(job_id, "rank", work, estimate, body.run_async, who)
 
@@ -40,7 +40,7 @@ async def select(body: SelectRequest, svc: Service, who: Caller) -> Any:
     """Per view, which of two models to trust (ensemble selection; rule in the body)."""
     record_a, record_b = svc.model(body.model_a, who, "model_a"), svc.model(body.model_b, who, "model_b")
     job_id = svc.jobs.new_id()
-    work, estimate = await asyncio.to_thread(select_job, record_a, record_b, body, svc.settings, svc.cache,
+    work, estimate = await asyncio.to_thread(select_job, record_a, record_b, body, svc.settings,
                                              _artifact_url(job_id), svc.ledger, svc.executor)
     return await svc.run(job_id, "select", work, estimate, body.run_async, who)
 

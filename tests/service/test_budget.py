@@ -1,4 +1,4 @@
-"""The memory plan and the ledger that running work and upload parses share."""
+"""The memory plan, and the ledger that models in memory, running jobs and upload parses share."""
 
 from __future__ import annotations
 
@@ -6,30 +6,97 @@ import threading
 import time
 
 import pytest
+import torch
 
-from service.budget import MemoryLedger, plan_work
+from conftest import svc_random_gaussians
+from phd_core.errors import InputError
+from phd_core.renderers import RenderMemory
+from phd_core.renderers.gs3d import GaussianRenderer
+from service.budget import MemoryLedger, ModelSize, load_bytes, model_bytes, plan_work
 from service.errors import ServiceError
+
+MODEL = [ModelSize("a", 300, 20_000, "model_id")]
+
+
+def plan(pixels: int, samples: int, budget: int, *, models=MODEL, kept: int = 0, renders=None):
+    return plan_work(models, pixels, samples, kept, budget, renders=renders, size_field="downscale",
+                     kept_field="training_cameras")
 
 
 def test_plan_fits_the_budget_and_batches_masks_instead_of_growing_with_samples():
-    model = [("3dgs", 300, 20_000)]
-    small = plan_work(model, 800 * 800, 256, 0, 4 << 30, size_field="downscale", kept_field="cameras")
-    assert 1 <= small.mask_batch < 64 and small.bytes <= 4 << 30
-    same = plan_work(model, 800 * 800, 4096, 0, 4 << 30, size_field="downscale", kept_field="cameras")
-    assert same == small                                  # N does not enter: the std is streamed
-    roomy = plan_work(model, 100 * 100, 256, 0, 4 << 30, size_field="downscale", kept_field="cameras")
-    assert roomy.mask_batch == 64
-    assert plan_work(model, 100 * 100, 3, 0, 4 << 30, size_field="downscale", kept_field="cameras").mask_batch == 3
+    small = plan(800 * 800, 256, 256 << 20)
+    assert 1 <= small.mask_batch < 64 and small.bytes + load_bytes(20_000) <= 256 << 20
+    assert plan(800 * 800, 4096, 256 << 20).mask_batch == small.mask_batch   # the std is streamed
+    assert plan(100 * 100, 256, 4 << 30).mask_batch == 64
+    assert plan(100 * 100, 3, 4 << 30).mask_batch == 3
     with pytest.raises(ServiceError) as exc:
-        plan_work(model, 800 * 800, 256, 0, 64 << 20, size_field="downscale", kept_field="cameras")
+        plan(800 * 800, 256, 64 << 20)
     assert (exc.value.status, exc.value.field) == (413, "downscale")
     with pytest.raises(ServiceError) as exc:
-        plan_work(model, 100 * 100, 2, 10 << 30, 4 << 30, size_field="downscale", kept_field="training_cameras")
+        plan(100 * 100, 2, 4 << 30, kept=10 << 30)
     assert exc.value.field == "training_cameras"
 
 
+def test_the_renders_bounds_shrink_the_batch_and_refuse_what_cannot_fit():
+    without = plan(200 * 200, 64, 1 << 30)
+    render = RenderMemory(fixed=300 << 20, kept=0, per_mask=20 << 20)
+    bounded = plan(200 * 200, 64, 1 << 30, renders=render)
+    assert bounded.mask_batch < without.mask_batch and bounded.bytes >= (300 << 20) + bounded.mask_batch * (20 << 20)
+    with pytest.raises(ServiceError) as exc:                       # one view's fragments alone exceed it
+        plan(200 * 200, 64, 1 << 30, renders=RenderMemory(fixed=2 << 30, kept=0, per_mask=0))
+    assert exc.value.field == "downscale"
+
+
+def test_masks_grow_with_samples_times_units_and_a_model_too_big_is_named():
+    few = plan(100 * 100, 64, 4 << 30, models=[ModelSize("a", 1_000_000, 1 << 20, "model_id")])
+    many = plan(100 * 100, 256, 4 << 30, models=[ModelSize("a", 1_000_000, 1 << 20, "model_id")])
+    assert many.bytes - few.bytes >= 192 * 1_000_000               # uniforms and keep flags of 192 more samples
+    with pytest.raises(ServiceError) as exc:
+        plan(100 * 100, 2, 64 << 20, models=[ModelSize("a", 300, 20 << 20, "model_b")])
+    assert (exc.value.status, exc.value.code, exc.value.field) == (413, "over_memory_budget", "model_b")
+
+
+def test_a_model_named_twice_loads_once_but_draws_masks_twice():
+    one = plan(100 * 100, 8, 4 << 30, models=[ModelSize("a", 300, 20_000, "model_a")])
+    budget = load_bytes(20_000) + one.bytes + 5 * 8 * 300         # room for one load, two mask draws
+    twice = [ModelSize("a", 300, 20_000, "model_a"), ModelSize("a", 300, 20_000, "model_b")]
+    assert one.mask_batch == plan(100 * 100, 8, budget, models=twice).mask_batch == 8
+    other = [ModelSize("a", 300, 20_000, "model_a"), ModelSize("b", 300, 20_000, "model_b")]
+    assert plan(100 * 100, 8, budget, models=other).mask_batch < 8   # two different models: two loads
+
+
+# ----------------------------------------------------------------------------- the ledger
+
+class Models:
+    """Real small renderers, loaded by id; counts the loads, and holds each load until `go` is set."""
+
+    def __init__(self, fail: frozenset[str] = frozenset()):
+        self.loads: list[str] = []
+        self.fail = fail
+        self.go = threading.Event()
+        self.go.set()
+
+    def __call__(self, model_id: str) -> GaussianRenderer:
+        self.loads.append(model_id)
+        self.go.wait(10)
+        if model_id in self.fail:
+            raise InputError("model", f"{model_id} is broken")
+        return GaussianRenderer(svc_random_gaussians(50, seed=len(self.loads)))
+
+
+def wait_until(condition, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+
+
+SIZE = 1000                                       # file bytes of every model below
+KEEP, LOAD = model_bytes(SIZE), load_bytes(SIZE)
+
+
 def test_ledger_makes_concurrent_work_wait_and_times_out():
-    ledger = MemoryLedger(100)
+    ledger = MemoryLedger(100, 4, Models())
     order = []
     with ledger.reserve(70):
         def second():
@@ -46,3 +113,127 @@ def test_ledger_makes_concurrent_work_wait_and_times_out():
         order.append("first done")
     thread.join(5)
     assert order == ["first done", "second"] and ledger.used == 0
+    with pytest.raises(ValueError):                       # more than the budget can never be granted
+        with ledger.reserve(101):
+            pass
+
+
+def test_a_model_in_memory_is_counted_once_and_kept_idle_until_room_is_needed():
+    load = Models()
+    ledger = MemoryLedger(2 * KEEP + LOAD, 4, load)
+    with ledger.models({"a": SIZE}, 100) as renderers:
+        assert ledger.used == KEEP + 100                  # the load's parse bytes went back once loaded
+        first = renderers["a"]
+    assert ledger.used == KEEP and ledger.loaded() == ["a"]          # idle, still in memory
+    with ledger.models({"a": SIZE}, LOAD) as renderers:   # only the new bytes: the model is already held
+        assert renderers["a"] is first and ledger.used == KEEP + LOAD
+    assert load.loads == ["a"]
+    with ledger.reserve(2 * KEEP + LOAD):                 # needs all of it: the idle model goes
+        assert ledger.loaded() == [] and ledger.used == 2 * KEEP + LOAD
+    assert ledger.used == 0
+
+
+def test_a_model_in_use_is_never_evicted_the_others_go_least_recently_used_first():
+    ledger = MemoryLedger(3 * KEEP + LOAD - 1, 4, Models())
+    for model_id in "abc":
+        with ledger.models({model_id: SIZE}, 0):
+            pass
+    with ledger.models({"a": SIZE}, 0):                   # a is now the most recently used
+        pass
+    assert ledger.loaded() == ["b", "c", "a"]
+    seen, release = [], threading.Event()
+
+    def everything() -> None:                             # the whole budget: every model must go
+        with ledger.reserve(ledger.budget):
+            seen.append(ledger.loaded())
+            release.wait(10)
+
+    with ledger.models({"b": SIZE}, 0):                   # b in use
+        with ledger.models({"d": SIZE}, 0):               # d's load needs room: c goes, not b
+            assert ledger.loaded() == ["a", "b", "d"]
+        thread = threading.Thread(target=everything)
+        thread.start()
+        time.sleep(0.2)
+        assert seen == [] and "b" in ledger.loaded()      # waits for b rather than evicting it
+    wait_until(lambda: seen)
+    assert seen == [[]] and ledger.used == ledger.budget
+    release.set()
+    thread.join(10)
+    assert ledger.used == 0
+
+
+def test_idle_models_are_capped_and_a_deleted_model_leaves_with_its_last_job():
+    ledger = MemoryLedger(10 * LOAD, 2, Models())
+    for model_id in "abc":
+        with ledger.models({model_id: SIZE}, 0):
+            pass
+    assert ledger.loaded() == ["b", "c"] and ledger.used == 2 * KEEP
+    with ledger.models({"b": SIZE}, 0):
+        ledger.forget("b")
+        assert ledger.loaded() == ["c"] and ledger.used == 2 * KEEP   # still held by the job
+    assert ledger.used == KEEP
+
+
+def test_two_jobs_share_one_load_and_a_failed_load_fails_both_and_frees_its_bytes():
+    load = Models(fail=frozenset({"bad"}))
+    ledger = MemoryLedger(4 * LOAD, 4, load)
+    for model_id in ("a", "bad"):
+        got = []
+
+        def job() -> None:
+            try:
+                with ledger.models({model_id: SIZE}, 10) as renderers:
+                    got.append(renderers[model_id])
+            except InputError as exc:
+                got.append(exc.field)
+
+        load.go.clear()
+        threads = [threading.Thread(target=job) for _ in range(2)]
+        threads[0].start()
+        wait_until(lambda: model_id in load.loads)        # the first job is loading it
+        threads[1].start()
+        # The first holds the load's peak (its 10 inside it), the second its 10 while it waits on that load.
+        wait_until(lambda: ledger.used == LOAD + 10 + (KEEP if model_id == "bad" else 0))
+        load.go.set()
+        for thread in threads:
+            thread.join(10)
+        assert load.loads.count(model_id) == 1
+        if model_id == "a":
+            assert len(got) == 2 and got[0] is got[1]
+        else:
+            assert got == ["model", "model"]
+    assert ledger.used == KEEP and ledger.loaded() == ["a"]
+
+
+def test_an_uploaded_model_stays_in_memory_in_the_bytes_of_its_parse():
+    ledger = MemoryLedger(2 * LOAD, 1, Models())
+    renderer = GaussianRenderer(svc_random_gaussians(20))
+    with ledger.reserve(LOAD) as parse:
+        parse.keep("a", renderer, SIZE)
+        assert ledger.used == LOAD                        # nothing reserved anew
+    assert ledger.used == KEEP and ledger.loaded() == ["a"]
+    with ledger.reserve(LOAD) as parse:
+        parse.keep("b", renderer, SIZE)
+    assert ledger.loaded() == ["b"] and ledger.used == KEEP    # one idle model at most: a went
+    with ledger.reserve(KEEP - 1) as parse:
+        parse.keep("c", renderer, SIZE)                   # the bytes cannot hold it: not kept
+    assert ledger.loaded() == ["b"] and ledger.used == KEEP
+
+
+def test_every_built_in_family_loads_within_its_model_bytes(svc_model_files, tmp_path):
+    from phd_core.renderers import FAMILIES, load_model
+    from phd_core.renderers.gs2d import SurfelModel, write_surfel_ply
+
+    g = torch.Generator().manual_seed(0)
+    write_surfel_ply(SurfelModel(torch.rand(300, 3, generator=g), torch.rand(300, 2, generator=g) - 3,
+                                 torch.randn(300, 4, generator=g), torch.zeros(300), torch.rand(300, 16, 3)),
+                     tmp_path / "surfels.ply")
+    for path in (svc_model_files["ply"], svc_model_files["nerf"], tmp_path / "surfels.ply"):
+        renderer = load_model(path)
+        model = renderer.model
+        tensors = (list(model.parameters()) + list(model.buffers()) if isinstance(model, torch.nn.Module)
+                   else list(model.tensors()))
+        assert sum(t.numel() * t.element_size() for t in tensors) <= model_bytes(path.stat().st_size)
+        assert FAMILIES[renderer.kind].memory is not None        # and it bounds its renders
+    assert {load_model(p).kind for p in (svc_model_files["ply"], svc_model_files["nerf"], tmp_path / "surfels.ply")} \
+        == set(FAMILIES)

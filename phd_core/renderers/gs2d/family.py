@@ -8,7 +8,7 @@ from ...scene import Camera
 from ..families import Family
 from ..gs3d.family import with_sidecar
 from .ply import is_2dgs_ply, parse_surfel_ply
-from .render import SurfelRenderer
+from .render import SurfelRenderer, surfel_memory
 
 
 def _load(data: bytes, name: str, cameras: list[Camera] | None) -> SurfelRenderer:
@@ -16,4 +16,5 @@ def _load(data: bytes, name: str, cameras: list[Camera] | None) -> SurfelRendere
 
 
 GS2D = Family("2dgs", "a 2DGS PLY", ".ply", is_2dgs_ply, _load, with_sidecar,
-              trainer="phd_core.train.gs2d:train_surfels", train_options=("depth_distortion", "normal_consistency"))
+              trainer="phd_core.train.gs2d:train_surfels", train_options=("depth_distortion", "normal_consistency"),
+              memory=surfel_memory)

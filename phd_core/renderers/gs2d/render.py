@@ -39,9 +39,9 @@ import torch
 from ...scene import Camera
 from ..composite import pick_compositor
 from ..gs3d.render import NEAR_PLANE, GaussianRenderer, RenderOutput
-from ..protocol import CameraView, View, check_keep
-from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, composite_images, eval_sh, fragments, intersect,
-                      quaternion_to_rotation)
+from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
+from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, box_counts, composite_images, eval_sh, fragments,
+                      intersect, quaternion_to_rotation)
 from .model import SurfelModel
 
 LOWPASS_INV_VAR = 2.0   # 1 / sigma^2 of the screen-space low-pass, sigma = sqrt(2)/2 px
@@ -202,6 +202,48 @@ def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tens
         out.normal = acc_v[..., 4:7]
         out.distortion = (acc_a * acc_v[..., 7] - acc_v[..., 3].square()).clamp_min(0.0)
     return out
+
+
+# What one `rasterize_surfels` call holds, in bytes per item (upper envelopes of the peaks
+# bench/bench_memory.py measures): per surfel of the model (stage 1's [G, 3, 3] float64 maps and
+# screen boxes), per visible surfel and per SH coefficient of one, per tile/surfel pair (the
+# int64 pair lists and their sort), per pair and pixel of its tile (stage 3's [M, 3, P] float64
+# intersections and [M, P] temporaries), per fragment (their int64 bookkeeping and values), per
+# pixel of the tile grid; and per keep-mask: its flag for each fragment and the images it composites.
+# The live peak is about 2/3 of these: the rest is the heap that phd_core.allocator keeps between
+# renders of different views (measured over 4 views at 200x200: 1.52 GB resident for 1.07 GB at
+# the first render).
+SURFEL_BYTES = 1024
+VISIBLE_BYTES, SH_COEFF_BYTES = 96, 48
+PAIR_BYTES, PAIR_PIXEL_BYTES = 24, 168
+FRAGMENT_BYTES = 72
+GRID_PIXEL_BYTES = 48
+MASK_FRAGMENT_BYTES, MASK_GRID_PIXEL_BYTES = 1, 96
+
+
+@torch.no_grad()
+def surfel_counts(renderer: "SurfelRenderer", camera: Camera) -> tuple[int, int, int]:
+    """(visible surfels, tile/surfel pairs, a bound on fragments) of `camera`, from stage 1 run
+    MEMORY_PROBE_UNITS surfels at a time (so this costs little memory whatever the model)."""
+    model, counts = renderer.model, [0, 0, 0]
+    for start in range(0, model.num_splats, MEMORY_PROBE_UNITS):
+        proj, _, _ = project(model.subset(slice(start, start + MEMORY_PROBE_UNITS)), camera, renderer.near)
+        pairs, pixels = box_counts(proj.box_centres, proj.extents, camera.width, camera.height, renderer.tile)
+        for i, n in enumerate((len(proj.ids), pairs, pixels)):
+            counts[i] += n
+    return counts[0], counts[1], counts[2]
+
+
+def surfel_memory(renderer: "SurfelRenderer", camera: Camera) -> RenderMemory:
+    """Bounds of one render of `camera` (the family's `memory`): every render call projects,
+    lists and rasterises anew (no prepared view), so all of it is `fixed`."""
+    visible, pairs, fragments_ = surfel_counts(renderer, camera)
+    model, tile = renderer.model, renderer.tile
+    grid = math.ceil(camera.width / tile) * math.ceil(camera.height / tile) * tile * tile
+    fixed = (SURFEL_BYTES * model.num_splats + (VISIBLE_BYTES + SH_COEFF_BYTES * model.sh.shape[1]) * visible
+             + pairs * (PAIR_BYTES + PAIR_PIXEL_BYTES * tile * tile) + FRAGMENT_BYTES * fragments_
+             + GRID_PIXEL_BYTES * grid)
+    return RenderMemory(fixed=fixed, kept=0, per_mask=MASK_FRAGMENT_BYTES * fragments_ + MASK_GRID_PIXEL_BYTES * grid)
 
 
 class SurfelRenderer(GaussianRenderer):

@@ -8,7 +8,7 @@ from pathlib import Path
 from ...scene import Camera, cameras_from_json
 from ..families import Family
 from .ply import is_3dgs_ply, parse_ply, read_ply, read_sidecar
-from .render import GaussianRenderer
+from .render import GaussianRenderer, view_memory
 
 
 def _load(data: bytes, name: str, cameras: list[Camera] | None) -> GaussianRenderer:
@@ -35,4 +35,4 @@ def with_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
 
 
 GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_3dgs_ply, _load, with_sidecar,
-              trainer="phd_core.train.gs3d:train_gaussians")
+              trainer="phd_core.train.gs3d:train_gaussians", memory=view_memory)

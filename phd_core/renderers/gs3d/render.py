@@ -41,9 +41,9 @@ from ...errors import InputError
 from ...scene import Camera
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR, pick_compositor
 from ..composite.fused import composite_indexed
-from ..protocol import CameraView, View, check_keep
-from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, composite_images, eval_sh, fragments, intersect,
-                      quaternion_to_rotation, untile)
+from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
+from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, box_counts, composite_images, eval_sh, fragments,
+                      intersect, quaternion_to_rotation, untile)
 from .kernels import project_splats, splat_fragments
 from .model import GaussianModel
 
@@ -234,6 +234,48 @@ def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor,
                      values=values.contiguous(), row_ptr=row_ptr, alpha=alpha, log_1ma=torch.log1p(-alpha),
                      index=index, pairs=grid, tile=tile,
                      means2d=means2d.float(), visible=visible)
+
+
+# What `prepare_view` and a SplatView render hold, in bytes per item (upper envelopes of the peaks
+# bench/bench_memory.py measures): per splat of the model (stage 1 in float64, what the view keeps of
+# every splat), per visible splat (depth order, gathered projection) and per SH coefficient of a
+# visible splat (its colour), per tile/splat pair and per pixel of its tile (the pair list, stage 3's
+# [M, P] alphas), per fragment (alpha, index, log(1 - alpha)), per pixel of the tile grid (fragment
+# offsets); and per keep-mask: its flags by splat (1 byte each) and the images it composites, per grid pixel.
+SPLAT_BYTES = 128
+VISIBLE_BYTES, SH_COEFF_BYTES = 64, 32
+PAIR_BYTES, PAIR_PIXEL_BYTES = 4, 4
+FRAGMENT_BYTES = 16
+GRID_PIXEL_BYTES = 24
+MASK_GRID_PIXEL_BYTES = 80
+
+
+def splat_counts(renderer: "GaussianRenderer", camera: Camera) -> tuple[int, int, int]:
+    """(visible splats, tile/splat pairs, a bound on fragments) of `camera`, from stage 1 run
+    MEMORY_PROBE_UNITS splats at a time (so this costs little memory whatever the model)."""
+    model, counts = renderer.model, [0, 0, 0]
+    for start in range(0, model.num_splats, MEMORY_PROBE_UNITS):
+        part = model.subset(slice(start, start + MEMORY_PROBE_UNITS))
+        means2d, _, _, extents, _, seen = project_splats(part.means, part.quats, part.log_scales,
+                                                        part.opacity_logits, camera, renderer.near, DILATION)
+        pairs, pixels = box_counts(means2d[seen], extents[seen], camera.width, camera.height, renderer.tile)
+        for i, n in enumerate((int(seen.sum()), pairs, pixels)):
+            counts[i] += n
+    return counts[0], counts[1], counts[2]
+
+
+def view_memory(renderer: "GaussianRenderer", camera: Camera) -> RenderMemory:
+    """Bounds of `prepare(camera)` and its renders (the family's `memory`; fused compositing)."""
+    if renderer.compositor != "fused":
+        raise InputError("compositor", f"memory bounds are measured for the fused compositor, not {renderer.compositor!r}")
+    visible, pairs, fragments_ = splat_counts(renderer, camera)
+    units, tile = renderer.num_units, renderer.tile
+    grid = math.ceil(camera.width / tile) * math.ceil(camera.height / tile) * tile * tile
+    kept = 9 * units + 24 * visible + 8 * grid + 12 * fragments_          # SplatView.nbytes at most
+    fixed = (SPLAT_BYTES * units + (VISIBLE_BYTES + SH_COEFF_BYTES * renderer.model.sh.shape[1]) * visible
+             + pairs * (PAIR_BYTES + PAIR_PIXEL_BYTES * tile * tile) + FRAGMENT_BYTES * fragments_
+             + GRID_PIXEL_BYTES * grid)
+    return RenderMemory(fixed=fixed, kept=kept, per_mask=units + MASK_GRID_PIXEL_BYTES * grid)
 
 
 class GaussianRenderer:

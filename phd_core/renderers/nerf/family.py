@@ -6,7 +6,7 @@ from __future__ import annotations
 from ...scene import Camera
 from ..families import Family
 from .checkpoint import is_nerf_checkpoint, load_nerf_bytes
-from .renderer import NeRFRenderer
+from .renderer import NeRFRenderer, nerf_memory
 
 
 def _load(data: bytes, name: str, cameras: list[Camera] | None) -> NeRFRenderer:
@@ -17,4 +17,5 @@ def _load(data: bytes, name: str, cameras: list[Camera] | None) -> NeRFRenderer:
 
 
 NERF = Family("nerf", "a phd NeRF checkpoint", ".nerf", is_nerf_checkpoint, _load,
-              trainer="phd_core.train.nerf:train_nerf", train_options=("encoding", "freenerf"))
+              trainer="phd_core.train.nerf:train_nerf", train_options=("encoding", "freenerf"),
+              memory=nerf_memory)

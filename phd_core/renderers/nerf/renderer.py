@@ -9,10 +9,40 @@ import torch
 from torch import Tensor
 
 from ...scene import Camera
-from ..protocol import CameraView, check_keep
-from .config import CHUNK_SAMPLES, NeRFConfig
+from ..protocol import CameraView, RenderMemory, check_keep
+from .config import CHUNK_ELEMENTS, CHUNK_SAMPLES, NeRFConfig
 from .field import RadianceField
 from .volume import camera_rays, render_rays
+
+# --------------------------------------------------------------------------- memory
+
+# What one render call holds, in bytes (upper envelopes of the peaks bench/bench_memory.py
+# measures): per pixel (its ray, made in float64); per sample of a ray chunk (bins, points, the
+# occupancy lookup), per sample and unit (first layer, skip term), per sample and band of the
+# position encoding (a PE frequency, or a hash level with its 8 corners); one group of masks
+# through the trunk and heads, in tensors of at most CHUNK_ELEMENTS values (or one mask's): about
+# five at once, and more again for the heap the allocator keeps around them (phd_core.allocator
+# never trims it during a job: 441 MB resident against 176 MB with every block returned, at
+# 100x100 with 16 masks); and per mask and pixel, its images as the ray chunks return them and
+# once joined.
+RAY_PIXEL_BYTES = 128
+SAMPLE_BYTES, SAMPLE_UNIT_BYTES = 96, 16
+PE_BAND_BYTES, HASH_LEVEL_BYTES = 96, 256
+GROUP_TENSORS = 12
+MASK_PIXEL_BYTES = 64
+
+
+def nerf_memory(renderer: "NeRFRenderer", camera: Camera) -> RenderMemory:
+    """Bounds of one render of `camera` (the family's `memory`): nothing is prepared, and past
+    the rays a render holds one chunk of samples and one group of masks at a time."""
+    c = renderer.config
+    bands = c.hash_levels * HASH_LEVEL_BYTES if c.encoding == "hash" else c.pos_freqs * PE_BAND_BYTES
+    chunk = CHUNK_SAMPLES * (SAMPLE_BYTES + SAMPLE_UNIT_BYTES * max(c.width, c.color_width) + bands
+                             + PE_BAND_BYTES * c.dir_freqs)
+    group = GROUP_TENSORS * 4 * max(CHUNK_ELEMENTS, CHUNK_SAMPLES * max(c.width, c.color_width, 3))
+    pixels = camera.width * camera.height
+    return RenderMemory(fixed=RAY_PIXEL_BYTES * pixels + chunk + group, kept=0, per_mask=MASK_PIXEL_BYTES * pixels)
+
 
 # --------------------------------------------------------------------------- the renderer
 

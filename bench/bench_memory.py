@@ -1,0 +1,346 @@
+"""Peak memory of `phd serve` against its own memory plan (issue 17, docs/reliability.md).
+
+Sweep: one request per fresh server process (as users run it), over the model families
+(3dgs, 2dgs, nerf), model sizes (1k / 50k / 300k splats, synthetic PLYs written by the
+project's own writers), overlap (small or large splats: from a few splats per pixel to
+hundreds), resolution, samples, the routes rank / select / calibrate and their heat-map and
+image options. For each: the server's peak RSS (VmHWM, reset just before the request) over
+its idle RSS (models uploaded and in memory, every code path warmed up by a tiny request of
+the same route), next to the service's plan of that request (`service.work.Bounded.plan`: the
+same code the worker runs, here with the model loaded in this process).
+
+Concurrent: one server with a small budget (`--concurrent-budget`, 1 GiB), 2 workers and a
+cache of 4 models, under jobs on several models and uploads at the same time: its peak over
+its idle RSS before the first upload, next to the budget.
+
+    OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/bench_memory.py [--only NAME ...]
+
+Writes bench/results/memory.json (merged with the rows already there when --only is given)
+and prints the table docs/reliability.md shows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+
+from client import PHDClient  # noqa: E402
+from conftest import SvcProcess, svc_cameras  # noqa: E402
+from phd_core.io.files import write_json_atomic  # noqa: E402
+from phd_core.renderers.gs2d import SurfelModel, write_surfel_ply  # noqa: E402
+from phd_core.renderers.gs2d.render import surfel_counts  # noqa: E402
+from phd_core.renderers.gs3d import GaussianModel, write_ply  # noqa: E402
+from phd_core.renderers.gs3d.render import splat_counts  # noqa: E402
+from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, save_nerf  # noqa: E402
+from phd_core.executors import LOCAL  # noqa: E402
+from service.budget import MemoryLedger  # noqa: E402
+from service.schemas import CalibrateRequest, RankRequest, SelectRequest  # noqa: E402
+from service.settings import Settings  # noqa: E402
+from service.store import ModelStore  # noqa: E402
+from service.work import calibrate_job, model_loader, rank_job, select_job  # noqa: E402
+
+GIB = 1 << 30
+OUT = ROOT / "bench" / "results" / "memory.json"
+
+
+# ----------------------------------------------------------------------------- models
+
+def splats(model_type: type[GaussianModel], count: int, scale: float, sh_degree: int = 3, seed: int = 0):
+    """A random cloud in [-0.6, 0.6]^3 seen by `svc_cameras`; `scale` sets the overlap."""
+    g = torch.Generator().manual_seed(seed)
+    return model_type(means=(torch.rand(count, 3, generator=g) - 0.5) * 1.2,
+                      log_scales=torch.log(scale * (0.5 + torch.rand(count, model_type.scale_axes, generator=g))),
+                      quats=torch.randn(count, 4, generator=g), opacity_logits=torch.rand(count, generator=g) * 4 - 1,
+                      sh=torch.randn(count, (sh_degree + 1) ** 2, 3, generator=g) * 0.3)
+
+
+def nerf(encoding: str) -> NeRFRenderer:
+    """A NeRF whose occupancy grid is all occupied: every sample is evaluated (the worst case)."""
+    config = NeRFConfig(encoding=encoding, width=64, samples=64, bounds=[[-1, -1, -1], [1, 1, 1]], near=1.0, far=5.0)
+    return NeRFRenderer(RadianceField(config, seed=0))
+
+
+MODELS = {   # name: how to write it
+    "3dgs-1k-large": lambda p: write_ply(splats(GaussianModel, 1000, 0.05), p),
+    "3dgs-50k-small": lambda p: write_ply(splats(GaussianModel, 50_000, 0.005), p),
+    "3dgs-50k-small-b": lambda p: write_ply(splats(GaussianModel, 50_000, 0.005, seed=1), p),
+    "3dgs-50k-large": lambda p: write_ply(splats(GaussianModel, 50_000, 0.05), p),
+    "3dgs-300k-small": lambda p: write_ply(splats(GaussianModel, 300_000, 0.002), p),
+    "3dgs-300-attack": lambda p: write_ply(splats(GaussianModel, 300, 0.06, sh_degree=1), p),
+    "2dgs-1k-large": lambda p: write_surfel_ply(splats(SurfelModel, 1000, 0.05), p),
+    "2dgs-50k-small": lambda p: write_surfel_ply(splats(SurfelModel, 50_000, 0.005), p),
+    "2dgs-50k-large": lambda p: write_surfel_ply(splats(SurfelModel, 50_000, 0.02), p),
+    "nerf-pe": lambda p: save_nerf(nerf("pe"), p),
+    "nerf-hash": lambda p: save_nerf(nerf("hash"), p),
+}
+
+
+def model_file(root: Path, name: str) -> Path:
+    path = root / (name + (".nerf" if name.startswith("nerf") else ".ply"))
+    if not path.exists():
+        MODELS[name](path)
+    return path
+
+
+# ----------------------------------------------------------------------------- one server
+
+def vm(pid: int, key: str) -> int:
+    """A /proc/<pid>/status memory figure in bytes (VmRSS, VmHWM)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+    raise KeyError(key)
+
+
+def reset_peak(pid: int) -> int:
+    """Start VmHWM again from the current RSS (clear_refs 5); returns that RSS."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
+    return vm(pid, "VmRSS")
+
+
+def submit(url: str, path: str, body: dict) -> dict:
+    """POST a job asynchronously and wait for it: its final state, or the refusal."""
+    response = httpx.post(url + path, json={**body, "run_async": True}, timeout=600)
+    if response.status_code != 202:
+        return {"state": "refused", "status": response.status_code, "error": response.json().get("error")}
+    job_id = response.json()["id"]
+    while True:
+        job = httpx.get(f"{url}/v1/jobs/{job_id}", timeout=60).json()
+        if job["state"] in ("succeeded", "failed", "cancelled"):
+            return {"state": job["state"], "error": job.get("error")}
+        time.sleep(0.5)
+
+
+@dataclass
+class Row:
+    """One request: its route over uploaded models, its body; the field "cameras" etc. are
+    filled from `size`/`views`. `training`: training cameras uploaded with the models."""
+
+    name: str
+    route: str                       # rank | select | calibrate
+    models: list[str]
+    size: int
+    samples: int
+    views: int = 1
+    training: int = 0
+    body: dict = field(default_factory=dict)
+    budget: int = 4 * GIB
+
+    def request(self, ids: list[str], size: int, samples: int) -> tuple[str, dict]:
+        frames = [c.to_frame() for c in svc_cameras(self.views, size=size, phase=0.3)]
+        body = {"samples": samples, "seed": 0, **self.body}
+        if self.route == "rank":
+            return f"/v1/models/{ids[0]}/rank", {"cameras": frames, "dropout_ratio": 0.1, **body}
+        if self.route == "select":
+            return "/v1/select", {"model_a": ids[0], "model_b": ids[-1], "cameras": frames, "ratio_a": 0.1,
+                                  "ratio_b": 0.1, **body}
+        training = [c.to_frame() for c in svc_cameras(self.training, size=size)]
+        return f"/v1/models/{ids[0]}/calibrate", {"training_cameras": training, "epsilon": 0.5, **body}
+
+
+def plan_of(row: Row, data_dir: Path, ids: list[str], path: str, body: dict) -> dict:
+    """The service's own plan of the request, computed here by the worker's code."""
+    store = ModelStore(data_dir)
+    settings = Settings(data_dir=data_dir, memory_budget_bytes=row.budget)
+    ledger = MemoryLedger(row.budget, 4, model_loader(store))
+    records = [store.get(i) for i in ids]
+    if row.route == "rank":
+        work, _ = rank_job(records[0], RankRequest(**body), settings, lambda name: name, ledger, LOCAL)
+    elif row.route == "select":
+        work, _ = select_job(records[0], records[-1], SelectRequest(**body), settings, lambda name: name, ledger, LOCAL)
+    else:
+        work, _ = calibrate_job(records[0], CalibrateRequest(**body), settings, store, ledger, LOCAL)
+    renderers = {i: ledger.load(i) for i in set(ids)}
+    plan = work.plan(renderers, lambda fraction: None)
+    renderer, camera = renderers[ids[0]], work.renders.models[0][2][0]
+    counts = {"3dgs": splat_counts, "2dgs": surfel_counts}.get(renderer.kind)
+    depth = None if counts is None else counts(renderer, camera)[2] / (camera.width * camera.height)
+    return {"estimate_bytes": plan.bytes, "mask_batch": plan.mask_batch,
+            "fragments_per_pixel_bound": None if depth is None else round(depth, 1)}
+
+
+def measure(row: Row, root: Path) -> dict:
+    data_dir = Path(tempfile.mkdtemp(dir=root))
+    server = SvcProcess(data_dir, PHD_MEMORY_BUDGET_BYTES=str(row.budget))
+    try:
+        with PHDClient(server.url, timeout=600) as phd:
+            cameras = svc_cameras(row.training, size=row.size) if row.training else None
+            ids = [phd.upload_model(model_file(root, name), cameras=cameras).id for name in row.models]
+        warm = submit(server.url, *row.request(ids, 16, 2))          # every code path compiled and warmed
+        assert warm["state"] == "succeeded", warm
+        path, body = row.request(ids, row.size, row.samples)
+        idle = reset_peak(server.proc.pid)
+        start = time.perf_counter()
+        outcome = submit(server.url, path, body)
+        seconds = time.perf_counter() - start
+        peak = vm(server.proc.pid, "VmHWM") - idle
+    finally:
+        server.kill()
+    result = {"name": row.name, "route": row.route, "models": row.models, "size": row.size, "samples": row.samples,
+              "views": row.views, "options": row.body, "budget_bytes": row.budget, **outcome,
+              "seconds": round(seconds, 1), "idle_rss_bytes": idle, "peak_over_idle_bytes": peak,
+              "within_budget": peak <= row.budget}
+    try:
+        result.update(plan_of(row, data_dir, ids, path, body))
+        result["ratio"] = round(peak / result["estimate_bytes"], 3)
+        result["within_estimate"] = peak <= result["estimate_bytes"]
+    except Exception as exc:  # the service refuses it too: the refusal is the row's result
+        result["plan_error"] = str(exc)
+    return result
+
+
+SWEEP = [
+    Row("attack: 1 candidate 800x800 N=256, 300 splats", "rank", ["3dgs-300-attack"], 800, 256),
+    Row("3dgs 1k large 800 N=32", "rank", ["3dgs-1k-large"], 800, 32),
+    Row("3dgs 50k small 800 N=64", "rank", ["3dgs-50k-small"], 800, 64),
+    Row("3dgs 50k large 200 N=32", "rank", ["3dgs-50k-large"], 200, 32),
+    Row("3dgs 50k large 400 N=16", "rank", ["3dgs-50k-large"], 400, 16),
+    Row("3dgs 50k large 800 (refused)", "rank", ["3dgs-50k-large"], 800, 16),
+    Row("3dgs 300k small 400 N=32", "rank", ["3dgs-300k-small"], 400, 32),
+    Row("3dgs 300k small 800 N=256", "rank", ["3dgs-300k-small"], 800, 256),
+    Row("3dgs 300k small 800 N=64, 1 GiB", "rank", ["3dgs-300k-small"], 800, 64, budget=GIB),
+    Row("3dgs 50k small 32 candidates x400 N=16", "rank", ["3dgs-50k-small"], 400, 16, views=32),
+    Row("3dgs 50k small heatmaps=files 8x400", "rank", ["3dgs-50k-small"], 400, 16, views=8,
+        body={"heatmaps": "files"}),
+    Row("3dgs 50k small heatmaps=base64 4x400", "rank", ["3dgs-50k-small"], 400, 16, views=4,
+        body={"heatmaps": "base64"}),
+    Row("3dgs 50k small calibrate 8x400", "calibrate", ["3dgs-50k-small"], 400, 8, training=8,
+        body={"samples": 8, "step": 0.25}),
+    Row("3dgs 50k large calibrate 4x200", "calibrate", ["3dgs-50k-large"], 200, 8, training=4,
+        body={"samples": 8, "step": 0.25}),
+    Row("3dgs select 50k vs 50k images=both 2x400", "select", ["3dgs-50k-small", "3dgs-50k-small-b"], 400, 16,
+        views=2, body={"images": "files", "both_images": True, "rule": "sigma_mean"}),
+    Row("3dgs select distance_sigma 2x400", "select", ["3dgs-50k-small", "3dgs-50k-large"], 400, 8, views=2,
+        training=8),
+    Row("2dgs 1k large 400 N=32", "rank", ["2dgs-1k-large"], 400, 32),
+    Row("2dgs 50k small 400 N=32", "rank", ["2dgs-50k-small"], 400, 32),
+    Row("2dgs 50k large 300 N=16", "rank", ["2dgs-50k-large"], 300, 16),
+    Row("2dgs 50k small 8 candidates x200 N=8", "rank", ["2dgs-50k-small"], 200, 8, views=8),
+    Row("2dgs 50k small calibrate 4x200", "calibrate", ["2dgs-50k-small"], 200, 8, training=4,
+        body={"samples": 8, "step": 0.25}),
+    Row("nerf pe 100 N=16", "rank", ["nerf-pe"], 100, 16),
+    Row("nerf hash 100 N=16", "rank", ["nerf-hash"], 100, 16),
+    Row("nerf pe 4 candidates x100 N=8", "rank", ["nerf-pe"], 100, 8, views=4),
+    Row("nerf pe heatmaps=files 2x100", "rank", ["nerf-pe"], 100, 8, views=2, body={"heatmaps": "files"}),
+]
+
+
+# ----------------------------------------------------------------------------- concurrent
+
+def concurrent(root: Path, budget: int) -> dict:
+    """Jobs on four models and two uploads at once under one small budget and a cache of 4."""
+    data_dir = Path(tempfile.mkdtemp(dir=root))
+    server = SvcProcess(data_dir, PHD_MEMORY_BUDGET_BYTES=str(budget), PHD_WORKERS="2", PHD_CACHE_SIZE="4",
+                        PHD_QUEUE_SIZE="32")
+    names = ["3dgs-300k-small", "3dgs-50k-large", "2dgs-50k-small", "nerf-pe"]
+    try:
+        with PHDClient(server.url, timeout=600) as phd:      # warm every route up on a tiny model
+            tiny = phd.upload_model(model_file(root, "3dgs-300-attack"), cameras=svc_cameras(2, size=16)).id
+            for route in ("rank", "select", "calibrate"):
+                row = Row("warm", route, ["3dgs-300-attack"], 16, 2, training=2, body={"step": 0.5} if route == "calibrate" else {})
+                assert submit(server.url, *row.request([tiny], 16, 2))["state"] == "succeeded"
+            phd.delete_model(tiny)
+            idle = reset_peak(server.proc.pid)
+            start = time.perf_counter()
+            ids = {name: phd.upload_model(model_file(root, name), cameras=svc_cameras(4, size=16)).id
+                   for name in names}
+        requests = [Row("", "rank", [names[0]], 800, 64), Row("", "rank", [names[1]], 200, 32),
+                    Row("", "rank", [names[2]], 300, 16), Row("", "rank", [names[3]], 100, 16),
+                    Row("", "select", [names[0], names[1]], 200, 16, body={"images": "base64", "rule": "sigma_mean"}),
+                    Row("", "calibrate", [names[1]], 150, 8, training=2, body={"samples": 8, "step": 0.25})]
+        outcomes: list[dict] = []
+
+        def run(row: Row) -> None:
+            outcomes.append(submit(server.url, *row.request([ids[n] for n in row.models], row.size, row.samples)))
+
+        def upload(name: str) -> None:
+            with PHDClient(server.url, timeout=600) as phd:
+                try:
+                    phd.upload_model(model_file(root, name))
+                    outcomes.append({"state": "uploaded"})
+                except Exception as exc:       # a 429 when the budget stays taken: a result, not a failure
+                    outcomes.append({"state": "upload refused", "error": str(exc)})
+
+        threads = [threading.Thread(target=run, args=(row,)) for row in requests]
+        threads += [threading.Thread(target=upload, args=(name,)) for name in ("3dgs-50k-small", "2dgs-50k-large")]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        seconds = time.perf_counter() - start
+        peak = vm(server.proc.pid, "VmHWM") - idle
+    finally:
+        server.kill()
+    states: dict[str, int] = {}
+    for outcome in outcomes:
+        states[outcome["state"]] = states.get(outcome["state"], 0) + 1
+    return {"name": f"concurrent: 6 jobs on 4 models + 2 uploads, {budget / GIB:g} GiB, 2 workers, cache 4",
+            "budget_bytes": budget, "states": states, "outcomes": outcomes, "seconds": round(seconds, 1),
+            "idle_rss_bytes": idle, "peak_over_idle_bytes": peak, "within_budget": peak <= budget}
+
+
+# ----------------------------------------------------------------------------- report
+
+def table(rows: list[dict]) -> str:
+    mib = lambda b: f"{b / 2**20:,.0f}"  # noqa: E731
+    lines = ["| request | budget MiB | result | fragments/px (bound) | batch | estimate MiB | peak MiB | peak/estimate | "
+             "peak <= estimate | peak <= budget |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "states" in r:
+            result = ", ".join(f"{n}x {s}" for s, n in sorted(r["states"].items()))
+        else:
+            result = r["state"] if r.get("error") is None else f"{r['state']} {r['error']['code']}"
+        estimate = r.get("estimate_bytes")
+        if estimate is not None:
+            planned, within = mib(estimate), "yes" if r["within_estimate"] else "NO"
+        else:      # refused once projected (no plan), or concurrent work (the budget is its bound)
+            planned, within = ("(budget)", "") if "states" in r else ("(refused)", "")
+        lines.append(f"| {r['name']} | {mib(r['budget_bytes'])} | {result} | {r.get('fragments_per_pixel_bound') or ''} | "
+                     f"{r.get('mask_batch', '')} | {planned} | {mib(r['peak_over_idle_bytes'])} | {r.get('ratio', '')} | "
+                     f"{within} | {'yes' if r['within_budget'] else 'NO'} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", nargs="*", help="rows whose name contains one of these (and 'concurrent')")
+    parser.add_argument("--concurrent-budget", type=int, default=GIB)
+    args = parser.parse_args()
+    previous = json.loads(OUT.read_text()) if OUT.exists() and args.only else {"rows": []}
+    rows = {r["name"]: r for r in previous["rows"]}
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        for row in SWEEP:
+            if args.only and not any(word in row.name for word in args.only):
+                continue
+            rows[row.name] = measure(row, root)
+            print(json.dumps({k: v for k, v in rows[row.name].items() if k != "options"}), flush=True)
+        if not args.only or "concurrent" in args.only:
+            result = concurrent(root, args.concurrent_budget)
+            rows[result["name"]] = result
+            print(json.dumps(result), flush=True)
+    ordered = [rows[r.name] for r in SWEEP if r.name in rows] + [r for r in rows.values() if "states" in r]
+    results = {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                           "python": platform.python_version(), "load_average": os.getloadavg()},
+               "command": "OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/bench_memory.py", "rows": ordered}
+    write_json_atomic(OUT, results)
+    print(table(ordered))
+    print(f"wrote {OUT}")
+
+
+if __name__ == "__main__":
+    main()

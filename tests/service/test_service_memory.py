@@ -1,0 +1,85 @@
+"""Memory through a real uvicorn server and the real client: models in memory hold their bytes
+in the same budget as jobs and are evicted for a job that needs the room; a model the budget
+cannot hold and a view whose fragments it cannot hold are 413s naming the field to lower."""
+
+from __future__ import annotations
+
+import httpx
+import torch
+
+from client import PHDClient
+from conftest import svc_cameras
+from phd_core.renderers.gs3d import GaussianModel, write_ply
+from service.budget import model_bytes
+from test_service_errors import _error
+
+
+def rank(server, model_id: str, **body) -> httpx.Response:
+    frames = [c.to_frame() for c in svc_cameras(1)]
+    return httpx.post(f"{server.url}/v1/models/{model_id}/rank", timeout=120,
+                      json={"cameras": frames, "samples": 2, "dropout_ratio": 0.1, **body})
+
+
+def test_a_job_evicts_idle_models_for_its_room_instead_of_exceeding_the_budget(svc_start, svc_model_files):
+    files = svc_model_files["ply"], svc_model_files["ply_b"]
+    # Room for both models in memory and not much more: a job must make room by evicting.
+    budget = sum(model_bytes(f.stat().st_size) for f in files) + 200_000
+    server = svc_start(memory_budget_bytes=budget)
+    ledger = server.app.state.service.ledger
+    with PHDClient(server.url) as phd:
+        a, b = (phd.upload_model(f).id for f in files)
+    assert ledger.loaded() == [a, b]                     # both kept in memory after their upload
+    response = rank(server, b)
+    assert response.status_code == 200, response.text
+    assert ledger.loaded() == [b] and ledger.used <= budget     # the idle model a made the room
+    response = rank(server, a)                           # a is loaded again, b goes
+    assert response.status_code == 200, response.text
+    assert ledger.loaded() == [a] and ledger.used <= budget
+
+
+def test_a_model_the_budget_cannot_load_is_413_naming_it(svc_start, svc_model_files, tmp_path):
+    first = svc_start(data_dir=tmp_path / "data")
+    with PHDClient(first.url) as phd:
+        model = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(2))
+    first.stop()
+    server = svc_start(data_dir=tmp_path / "data", memory_budget_bytes=1 << 20)   # restarted with less memory
+    _error(rank(server, model.id), 413, "over_memory_budget", "model_id")
+    select = {"model_a": model.id, "model_b": model.id, "cameras": [svc_cameras(1)[0].to_frame()],
+              "ratio_a": 0.1, "ratio_b": 0.1, "rule": "sigma_mean"}
+    _error(httpx.post(f"{server.url}/v1/select", json=select), 413, "over_memory_budget", "model_a")
+    assert server.app.state.service.ledger.used == 0
+
+
+def test_a_view_whose_fragments_exceed_the_budget_is_413_once_the_model_is_projected(svc_start, tmp_path):
+    # 2,000 large splats: every pixel is covered by hundreds, which only a projection tells.
+    g = torch.Generator().manual_seed(0)
+    count = 2000
+    write_ply(GaussianModel(means=(torch.rand(count, 3, generator=g) - 0.5) * 1.2,
+                            log_scales=torch.full((count, 3), -1.2), quats=torch.randn(count, 4, generator=g),
+                            opacity_logits=torch.zeros(count), sh=torch.randn(count, 4, 3, generator=g) * 0.5),
+              tmp_path / "dense.ply")
+    server = svc_start(memory_budget_bytes=64 << 20)
+    with PHDClient(server.url) as phd:
+        model = phd.upload_model(tmp_path / "dense.ply")
+    frame = svc_cameras(1, size=200)[0].to_frame()
+    error = _error(rank(server, model.id, cameras=[frame]), 413, "over_memory_budget", "downscale")
+    assert "MiB" in error["message"]
+    response = rank(server, model.id, cameras=[frame], downscale=8)           # 25x25 fits
+    assert response.status_code == 200, response.text
+    assert server.app.state.service.ledger.used <= 64 << 20
+
+
+def test_a_finished_job_keeps_its_result_and_images_on_disk_not_in_memory(svc_start, svc_model_files):
+    server = svc_start()
+    with PHDClient(server.url) as phd:
+        model = phd.upload_model(svc_model_files["ply"])
+        job = phd.rank(model.id, svc_cameras(2), samples=2, dropout_ratio=0.1, heatmaps="files", run_async=True,
+                       wait=False)
+        phd.wait_job(job.id, timeout=60)
+        live = server.app.state.service.jobs.get(job.id)
+        assert live.on_disk and live.result is None and live.artifacts == {}
+        served = phd.get_job(job.id)                   # answered from the job store
+        assert served.state == "succeeded" and len(served.result.views) == 2
+        assert sorted(served.artifacts) == sorted([f"heatmap_{i:04d}.png" for i in range(2)]
+                                                  + [f"render_{i:04d}.png" for i in range(2)])
+        assert phd.download(served.result.views[0].heatmap_url).startswith(b"\x89PNG")

@@ -1,0 +1,56 @@
+"""phd_core.allocator in a fresh process: with one arena, memory a thread freed serves the
+next thread instead of staying in the first thread's arena; release_freed_memory gives the
+freed pages back (what the service's memory budget relies on between jobs)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+CODE = """
+import sys, threading
+from pathlib import Path
+import phd_core.allocator as allocator          # importing phd_core keeps freed memory
+
+def rss():
+    line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith("VmRSS:"))
+    return int(line.split()[1]) * 1024
+
+if sys.argv[1] == "one":
+    assert allocator.one_arena()
+done, hold = threading.Event(), threading.Event()
+
+def work(wait):
+    blocks = [bytearray(1 << 20) for _ in range(200)]        # 200 MiB in blocks under the mmap threshold
+    del blocks
+    done.set()
+    if wait:
+        hold.wait()                                           # alive: its arena stays its own
+
+start = rss()
+first = threading.Thread(target=work, args=(True,))
+first.start()
+done.wait()
+second = threading.Thread(target=work, args=(False,))
+second.start()
+second.join()
+held = rss() - start
+allocator.release_freed_memory()
+print(held, rss() - start)
+hold.set()
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc")
+def test_one_arena_reuses_what_other_threads_freed_and_release_gives_it_back() -> None:
+    def run(mode: str) -> tuple[int, int]:
+        out = subprocess.run([sys.executable, "-c", CODE, mode], capture_output=True, text=True, check=True)
+        held, released = out.stdout.split()
+        return int(held), int(released)
+
+    per_thread, one = run("per-thread"), run("one")
+    assert per_thread[0] > 350 << 20                 # each thread's arena kept its 200 MiB
+    assert one[0] < 250 << 20                        # the second thread reused the first one's
+    assert one[1] < 50 << 20 and per_thread[1] < 50 << 20     # and the freed pages went back
