@@ -94,6 +94,37 @@ def child(args: list[str], env: dict[str, str] | None = None) -> dict:
             "system_share": round(usage.ru_stime / wall, 3), "peak_rss_mb": round(peak_kb / 1024)}
 
 
+def repeat_calibration(ply: str) -> None:
+    """Child process: calibrate the model at `ply` twice on its training cameras and print, per
+    run, its wall, user and system seconds and minor page faults as JSON. The second run
+    finds its memory already faulted in: what system time is left there is churn."""
+    import resource
+
+    from phd_core import uq
+    from phd_core.renderers import load_model
+
+    renderer = load_model(ply)
+    cameras = list(renderer.training_cameras)
+    runs = []
+    for _ in range(2):
+        before, start = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        uq.calibrate(renderer, cameras)
+        after, wall = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter() - start
+        runs.append({"wall_s": round(wall, 3), "user_s": round(after.ru_utime - before.ru_utime, 3),
+                     "system_s": round(after.ru_stime - before.ru_stime, 3),
+                     "minor_faults": after.ru_minflt - before.ru_minflt})
+    print(json.dumps(runs))
+
+
+def in_process(ply: Path, env: dict[str, str] | None = None) -> list[dict]:
+    """`repeat_calibration` in a fresh child process."""
+    code = f"import sys; sys.path.insert(0, {str(ROOT / 'bench')!r}); import bench_speed; " \
+           "bench_speed.repeat_calibration(sys.argv[1])"
+    out = subprocess.run([sys.executable, "-c", code, str(ply)], cwd=ROOT, env={**os.environ, **(env or {})},
+                         capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def render_speed(model: GaussianModel, camera, keep: torch.Tensor) -> dict:
     fused, pure = GaussianRenderer(model), GaussianRenderer(model, compositor="reference")
     view = fused.prepare(camera)
@@ -188,6 +219,10 @@ def main() -> None:
                                            str(r_drop), "--out", str(Path(tmp) / "one_rank.json")])
         for key in ("rank", "rank_with_calibration", "rank_allocator_off", "rank_one"):
             print(key, results[key], flush=True)
+        results["calibrate_in_process"] = in_process(ply)
+        results["calibrate_in_process_allocator_off"] = in_process(ply, env={"PHD_KEEP_FREED_MEMORY": "0"})
+        for key in ("calibrate_in_process", "calibrate_in_process_allocator_off"):
+            print(key, results[key], flush=True)
 
     for size in (50, 100):
         results[f"train_{size}"] = training_steps(size, args.train_iterations)
@@ -222,6 +257,8 @@ def verdicts(r: dict) -> str:
          lambda v: v < 10),
         ("system time of the work beyond start-up (largest of the phd runs minus the 1-candidate rank)",
          100 * max(beyond_startup(r, k) for k in ("calibrate", "rank", "rank_with_calibration")), " %", None),
+        ("system time of a calibration repeated in one process (its memory already faulted in: churn)",
+         100 * share(r["calibrate_in_process"][1]), " %", None),
     ]
     lines = ["| target | measured (worst of 100x100 and 200x200 where both) | met |", "|---|---|---|"]
     for title, value, unit, ok in rows:
@@ -234,6 +271,10 @@ def beyond_startup(r: dict, key: str) -> float:
     """System share of a run's wall time once the start-up's (the 1-candidate rank) is taken off both."""
     one = r["rank_one"]
     return (r[key]["system_s"] - one["system_s"]) / (r[key]["wall_s"] - one["wall_s"])
+
+
+def share(run: dict) -> float:
+    return run["system_s"] / run["wall_s"]
 
 
 def report(r: dict) -> str:
@@ -259,6 +300,12 @@ def report(r: dict) -> str:
         runs.append(f"| {title} | {x['wall_s']:.1f} | {x['user_s']:.1f} | {x['system_s']:.2f} | "
                     f"{(x['user_s'] + x['system_s']) / 2:.1f} | "
                     f"{100 * x['system_share']:.1f} % | {x['peak_rss_mb']} |")
+    repeats = []
+    for key, title in (("calibrate_in_process", "allocator settings on (the default)"),
+                       ("calibrate_in_process_allocator_off", "PHD_KEEP_FREED_MEMORY=0")):
+        for i, run in enumerate(r[key]):
+            repeats.append(f"| {title} | {('first', 'second')[i]} | {run['wall_s']:.2f} | {run['user_s']:.2f} | "
+                           f"{run['system_s']:.3f} | {100 * share(run):.1f} % | {run['minor_faults']:,} |")
     m = r["machine"]
     return f"""# Performance: ranking at interactive speed
 
@@ -292,13 +339,16 @@ System time: a `phd` process spends about {r['rank_one']['system_s']:.2f} s of s
 of the table below: faulting in torch's and numba's libraries, CPython's frame-stack chunks
 during imports, the model, the cached kernels), so the whole-process share grows as the
 work itself gets faster: calibration is now short enough for start-up to push it over 10 %.
-Beyond start-up, the work's own system time is the row "(no target)" above: page faults of
-first-touched memory (the prepared training views alone hold about 170 MB) and thread
-wake-ups: idle OpenMP threads sleep (OMP_WAIT_POLICY=PASSIVE, set by `phd`) and every
-parallel kernel launch wakes them, about 7,700 futex calls in one calibration (630 with
-NUMBA_NUM_THREADS=1). Letting them spin instead (OMP_WAIT_POLICY=ACTIVE) made calibration
-3-4x slower in wall time on this 2-core machine (12-15 s), so sleeping stays. The per-call
-unmapping that issue 11 measured is gone (the allocator row barely moves).
+The work's own system time is mostly first-touch page faults: the memory it uses is faulted
+in once (the prepared training views alone hold about 170 MB). Churn, memory mapped and
+faulted in again on every call, is what a second calibration in the same process shows
+(table "Calibration twice in one process" below): there only a few hundred pages fault in,
+and the system time left is thread wake-ups (about 7,700 futex calls per calibration: idle
+OpenMP threads sleep, OMP_WAIT_POLICY=PASSIVE as `phd` sets it, and every parallel kernel
+wakes them). Letting the threads spin (OMP_WAIT_POLICY=ACTIVE) made calibration 3-4x slower
+in wall time on this 2-core machine, and libgomp's default (spin a while, then sleep) moved
+the whole-process system time from 0.44 to 0.40 s and the wall time by nothing measurable
+(farm-bench, 6 runs each), so sleeping stays.
 
 Not done: nothing is shared between different candidate cameras beyond the model's tensors
 (each camera gets one projection, one depth sort and one fragment pass, compiled); training
@@ -321,7 +371,9 @@ keeps the pure-torch forward and backward (no fused backward).
   failure are dropped from the curve, so the result equals a one-by-one scan); uncertainty
   and selection prepare each view once for all mask chunks and the full render.
 - Importing `phd_core` sets glibc's malloc to keep freed memory (`phd_core/allocator.py`,
-  mallopt through ctypes: mmap threshold 32 MiB, no trimming, 1 GiB top pad).
+  mallopt through ctypes: mmap threshold 32 MiB, no trimming, 1 GiB top pad) and stops
+  NumPy's transparent-huge-page advice (the kernels' scratch arrays were faulted in as 2 MiB
+  pages, zeroed whole: calibration's system time 0.73 -> 0.36 s, median of 5).
 
 ## One camera: batch vs one render vs separate renders (fused, the default)
 
@@ -356,6 +408,15 @@ Targets: ranking 100 candidates at 100x100 with N = 16 in < 15 s, calibration < 
 gone, so turning the allocator settings off (last row) changes little here; they matter for
 the pure-torch path, whose [N, E] float64 temporaries are what issue 11 saw mapped and
 unmapped on every call.
+
+## Calibration twice in one process
+
+`phd_core.uq.calibrate` on the same model and training cameras, run twice in one fresh
+process after start-up (`repeat_calibration` in the benchmark); times from getrusage.
+
+| malloc / NumPy settings | run | wall s | user s | system s | system / wall | minor page faults |
+|---|---|---|---|---|---|---|
+{chr(10).join(repeats)}
 
 ## Training step (lego_200, 16 views, `fit`, {r['train_50']['iterations']} iterations, pure-torch path)
 
