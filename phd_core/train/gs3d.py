@@ -44,6 +44,7 @@ from ..eval import ssim
 from ..io import write_json_atomic
 from ..renderers.gs3d import (SIDECAR_FORMAT, GaussianModel, GaussianRenderer, RenderOutput, rasterize, sidecar_path,
                                write_ply)
+from ..renderers.composite import COMPOSITORS, DEFAULT_COMPOSITOR
 from ..renderers.splats import SH_C0, quaternion_to_rotation
 from ..scene import Camera, footprint, scene_bounds, visual_hull
 
@@ -73,6 +74,7 @@ class TrainConfig:
     sh_up_every: float = 0.1          # raise the active SH degree every this fraction of the run
     seed: int = 0
     tile: int = 4
+    compositor: str = DEFAULT_COMPOSITOR   # stage 4 and its gradient: "fused" (compiled) or "reference" (torch)
 
     def validate(self) -> None:
         if self.iterations < 1:
@@ -81,6 +83,7 @@ class TrainConfig:
             raise InputError("sh_degree", f"must be 0..3, got {self.sh_degree}")
         if self.init_points < 1:
             raise InputError("init_points", f"must be at least 1, got {self.init_points}")
+        COMPOSITORS.lookup(self.compositor, "compositor")
 
 
 @dataclass(frozen=True)
@@ -383,7 +386,7 @@ def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True,
         cam, target = dataset.cameras[view], dataset.images[view]
         splats.set_means_lr(step / n_iter)
         degree = min(config.sh_degree, step // sh_up)
-        out = recipe.render(splats.model(degree), cam, background, tile=config.tile)
+        out = recipe.render(splats.model(degree), cam, background, tile=config.tile, compositor=config.compositor)
         out.means2d.retain_grad()
         image = out.rgb[0]
         l1 = (image - target).abs().mean()

@@ -1,8 +1,9 @@
 """The fused (compiled) 3DGS path against its pure-torch twin and the float64 brute force.
 
-Three levels: the fused compositor on the SAME fragments as the reference compositor; the
-compiled projection against the torch projection; whole renders of `GaussianRenderer`
-(prepared `SplatView`, fused) against the pure-torch renderer, extremes included.
+Three levels: the fused compositor on the SAME fragments as the reference compositor (its
+values and its gradients); the compiled projection against the torch projection; whole
+renders of `GaussianRenderer` (prepared `SplatView`, fused) against the pure-torch renderer,
+extremes included, and the gradients of a whole render with respect to the model.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import torch
 from phd_core.renderers.composite import COMPOSITORS
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.gs3d.kernels import project_splats
-from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, project, splat_alpha
+from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, project, rasterize, splat_alpha
 from phd_core.renderers.splats import fragments, intersect
 from renderers.test_gaussian_render import assert_close, camera, random_scene, reference
 
@@ -62,6 +63,63 @@ def test_fused_compositor_matches_reference_on_the_same_fragments(tile: int, see
     assert ref_a.max() == 0 and fus_a.max() == 0                # the all-dropped batch
     full_a = COMPOSITORS["fused"](frags, values, None, unit, num_pixels)[1]
     assert full_a.max() > 0.9, "the scene must cover pixels for the comparison to mean anything"
+
+
+def assert_same_gradients(ours: list[torch.Tensor], theirs: list[torch.Tensor], names: list[str]) -> None:
+    for name, a, b in zip(names, ours, theirs):
+        scale = b.abs().max().item()
+        diff = (a.double() - b.double()).abs().max().item()
+        assert diff <= 1e-4 * scale + 1e-6, f"d/d{name}: fused and reference differ by {diff:.3g} (scale {scale:.3g})"
+
+
+@pytest.mark.parametrize("tile", [1, 4])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fused_compositor_gradients_match_the_reference(tile: int, seed: int) -> None:
+    """d(accumulated values, alpha)/d(alpha, values) of the compiled backward against torch's
+    autograd through the reference, for any keep-masks; opaque splats make pixels stop early."""
+    model = random_scene(120, 1, seed=seed)
+    model.opacity_logits[::4] = 30.0
+    cam = camera(37, 23)
+    proj, _, _ = project(model, cam)
+    pairs = intersect(proj.means2d, proj.extents, cam.width, cam.height, tile)
+    frags = fragments(splat_alpha(proj, pairs, tile), pairs)
+    splat = pairs.splat[frags.pair]
+    unit = proj.ids[splat]
+    values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat].detach()
+    num_pixels = pairs.tiles_x * pairs.tiles_y * tile * tile
+    gen = torch.Generator().manual_seed(seed)
+    for keep in (None, masks(5, model.num_splats, 0.4, seed)):
+        n = 1 if keep is None else len(keep)
+        grad_v, grad_a = torch.randn(n, num_pixels, 4, generator=gen), torch.randn(n, num_pixels, generator=gen)
+        grads = []
+        for name in ("fused", "reference"):
+            alpha, vals = frags.alpha.detach().clone().requires_grad_(), values.clone().requires_grad_()
+            acc_v, acc_a = COMPOSITORS[name](type(frags)(**{**vars(frags), "alpha": alpha}), vals, keep, unit,
+                                             num_pixels)
+            grads.append(torch.autograd.grad((acc_v * grad_v).sum() + (acc_a * grad_a).sum(), (alpha, vals)))
+        assert_same_gradients(list(grads[0]), list(grads[1]), ["alpha", "values"])
+        assert grads[0][0].abs().max() > 0
+
+
+@pytest.mark.parametrize("case", ["random", "opaque"])
+def test_a_render_has_the_same_gradients_with_either_compositor(case: str) -> None:
+    """What training sees: the gradient of an image loss with respect to every model tensor
+    and to the screen positions (densification's statistic)."""
+    names = ["means", "log_scales", "quats", "opacity_logits", "sh", "means2d"]
+    grads = []
+    for compositor in ("fused", "reference"):
+        model = random_scene(60, 2, seed=30)
+        if case == "opaque":
+            model.opacity_logits[:] = 30.0
+        params = [model.means, model.log_scales, model.quats, model.opacity_logits, model.sh]
+        for p in params:
+            p.requires_grad_(True)
+        out = rasterize(model, camera(24, 18), torch.ones(3), compositor=compositor)
+        out.means2d.retain_grad()
+        ((out.rgb - 0.3).square().mean() + out.depth.mean() * 1e-2).backward()
+        grads.append([p.grad for p in params] + [out.means2d.grad])
+    assert_same_gradients(grads[0], grads[1], names)
+    assert all(g.abs().sum() > 0 for g in grads[0])
 
 
 def test_fused_stops_each_mask_when_transmittance_is_spent() -> None:

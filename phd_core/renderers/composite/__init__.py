@@ -5,15 +5,16 @@ num_pixels) -> (accumulated values [N, num_pixels, C], accumulated alpha [N, num
 entry e is dropped by mask n when not keep[n, unit[e]] (U dropout units, e.g. splats).
 `COMPOSITORS` maps a name to one:
 
-    reference   pure torch, differentiable: training, and the tested twin of the others
-    fused       one compiled pass (numba, all cores) for N masks at once; no gradients
+    reference   pure torch, differentiable: the tested twin of the others
+    fused       one compiled pass (numba, all cores) for N masks at once, and a compiled
+                backward pass (training)
 
-`DEFAULT_COMPOSITOR` is what renders without gradients use; training uses `reference`.
+`DEFAULT_COMPOSITOR` is what renders and training use unless a compositor is named.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable
 
 import torch
 
@@ -28,17 +29,11 @@ COMPOSITORS: Registry[Compositor] = Registry("compositor")
 COMPOSITORS.add("reference", reference.composite)
 COMPOSITORS.add("fused", fused.composite)
 DEFAULT_COMPOSITOR = "fused"
-DIFFERENTIABLE_COMPOSITOR = "reference"
 
 
-
-def pick_compositor(compositor: str | None, tensors: Sequence[torch.Tensor]) -> Compositor:
-    """The backend named, or for None: the differentiable one when any of the model's
-    `tensors` needs a gradient here (training), else the default."""
-    if compositor is None:
-        needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
-        compositor = DIFFERENTIABLE_COMPOSITOR if needs_grad else DEFAULT_COMPOSITOR
-    return COMPOSITORS.lookup(compositor, "compositor")
+def pick_compositor(compositor: str | None) -> Compositor:
+    """The backend named, or the default for None."""
+    return COMPOSITORS.lookup(compositor or DEFAULT_COMPOSITOR, "compositor")
 
 
-__all__ = ["COMPOSITORS", "DEFAULT_COMPOSITOR", "DIFFERENTIABLE_COMPOSITOR", "Compositor", "pick_compositor"]
+__all__ = ["COMPOSITORS", "DEFAULT_COMPOSITOR", "Compositor", "pick_compositor"]

@@ -5,14 +5,15 @@ unit a mask drops is skipped by that mask; a mask stops at the fragment that wou
 its transmittance below T_MIN (that fragment excluded), and the pixel stops when every
 mask has. Transmittance is a float64 running sum of log(1 - alpha), as in the reference
 (`reference.py`, its tested twin); weights and sums are float64 until the final store.
-Pixels are spread over the cores (numba `prange`); no gradients (training keeps the
-reference).
+Pixels are spread over the cores (numba `prange`).
 
 Two entry points share the kernel:
-- `composite`, the `COMPOSITORS` signature: values [E, C] and keep [N, E] per entry;
+- `composite`, the `COMPOSITORS` signature: values [E, C] per entry, keep [N, U] with the
+  unit of each entry. Differentiable in alpha and values: its backward is a second compiled
+  pass (`_composite_grad_kernel`), so training composites compiled too;
 - `composite_indexed`, for callers that keep one value row per unit instead of per entry
   (entry e reads row `index[e]`, and row v is dropped by mask n when not keep[n, unit[v]]),
-  so a batch of masks costs no [N, E] gather.
+  so a batch of masks costs no [N, E] gather. No gradients.
 """
 
 from __future__ import annotations
@@ -91,6 +92,83 @@ def _composite_kernel(row_ptr, alpha, log_1ma, index, unit, keep_t, values, out_
                 out_alpha[n, s] = acc[channels, n]
 
 
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _composite_grad_kernel(row_ptr, alpha, log_1ma, unit, keep_t, values, grad_values, grad_alpha,
+                           out_grad_alpha, out_grad_values):  # pragma: no cover
+    """The gradient of `_composite_kernel` with one value row per entry (index = identity).
+
+    grad_values [N, S, C] and grad_alpha [N, S] float32: dL/d(accumulated values, alpha).
+    Writes out_grad_alpha [E] and out_grad_values [E, C] (float32), summed over the masks
+    (terms in float64).
+    Per pixel and mask, with w_i = a_i T_i over the fragments the mask uses (the same stop
+    rule as the forward, the set of used fragments held fixed) and g.u_i = dL/dvalues . v_i
+    + dL/dalpha:
+        dL/dv_i = w_i dL/dvalues
+        dL/da_i = T_i g.u_i - (sum over used j > i of w_j g.u_j) / (1 - a_i)
+    Two front-to-back passes: the first sums w_j g.u_j, the second takes the suffix as the
+    total minus the prefix. Each fragment belongs to one pixel, so blocks write disjoint rows."""
+    num_pixels = row_ptr.shape[0] - 1
+    masks = keep_t.shape[1]
+    channels = values.shape[1]
+    blocks = (num_pixels + PIXEL_BLOCK - 1) // PIXEL_BLOCK
+    for block in numba.prange(blocks):
+        for s in range(block * PIXEL_BLOCK, min(num_pixels, (block + 1) * PIXEL_BLOCK)):
+            first, end = row_ptr[s], row_ptr[s + 1]
+            for e in range(first, end):
+                out_grad_alpha[e] = 0.0
+                for c in range(channels):
+                    out_grad_values[e, c] = 0.0
+            for n in range(masks):
+                total = 0.0
+                for sweep in range(2):
+                    log_t, trans, prefix = 0.0, 1.0, 0.0
+                    for e in range(first, end):
+                        if not keep_t[unit[e], n]:
+                            continue
+                        after = log_t + np.float64(log_1ma[e])
+                        if after < LOG_T_MIN:
+                            break
+                        a = np.float64(alpha[e])
+                        w = a * trans
+                        gu = np.float64(grad_alpha[n, s])
+                        for c in range(channels):
+                            gu += np.float64(grad_values[n, s, c]) * np.float64(values[e, c])
+                        if sweep == 0:
+                            total += w * gu
+                        else:
+                            prefix += w * gu
+                            out_grad_alpha[e] += trans * gu - (total - prefix) / (1.0 - a)
+                            for c in range(channels):
+                                out_grad_values[e, c] += w * np.float64(grad_values[n, s, c])
+                        log_t = after
+                        trans -= w
+
+
+class _Composite(torch.autograd.Function):
+    """`_composite_kernel` over per-entry values, with `_composite_grad_kernel` as its backward."""
+
+    @staticmethod
+    def forward(ctx, alpha: torch.Tensor, values: torch.Tensor, row_ptr: torch.Tensor, unit: torch.Tensor,
+                keep_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        log_1ma = torch.log1p(-alpha.detach().float())
+        entries = torch.arange(len(alpha), dtype=torch.int32)
+        ctx.save_for_backward(alpha, log_1ma, values, row_ptr, unit, keep_t)
+        return _launch(row_ptr, alpha, log_1ma, entries, unit, keep_t, values)
+
+    @staticmethod
+    def backward(ctx, grad_values: torch.Tensor, grad_alpha: torch.Tensor):
+        alpha, log_1ma, values, row_ptr, unit, keep_t = ctx.saved_tensors
+        out_alpha = torch.empty(len(alpha), dtype=torch.float32)
+        out_values = torch.empty(values.shape, dtype=torch.float32)
+        arrays = [t.detach().contiguous().numpy() for t in (row_ptr.long(), alpha.float(), log_1ma, unit.long())]
+        with LAUNCH_LOCK:
+            _composite_grad_kernel(*arrays, keep_t.bool().contiguous().numpy(),
+                                   values.detach().float().contiguous().numpy(),
+                                   grad_values.float().contiguous().numpy(), grad_alpha.float().contiguous().numpy(),
+                                   out_alpha.numpy(), out_values.numpy())
+        return out_alpha.to(alpha.dtype), out_values.to(values.dtype), None, None, None
+
+
 def _launch(row_ptr: torch.Tensor, alpha: torch.Tensor, log_1ma: torch.Tensor, index: torch.Tensor,
             unit: torch.Tensor, keep_t: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Run the kernel; keep_t [U, N] may be a strided view (it is read, never copied)."""
@@ -116,23 +194,25 @@ def composite_indexed(row_ptr: torch.Tensor, alpha: torch.Tensor, index: torch.T
     """
     if log_1ma is None:
         log_1ma = torch.log1p(-alpha.float())
+    return _launch(row_ptr, alpha, log_1ma, index, *_keep_columns(keep, unit), values)
+
+
+def _keep_columns(keep: torch.Tensor | None, unit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(unit, keep_t [U, N]) for the kernels: keep None is one mask keeping every unit.
+    Units are looked up in any order: one unit's N flags share a cache line ([U, N] copy, small)."""
     if keep is None:
-        keep = torch.ones(1, 1, dtype=torch.bool)
-        unit = torch.zeros_like(unit)
-    # Units are looked up in any order: one unit's N flags in one cache line ([U, N] copy, small).
-    return _launch(row_ptr, alpha, log_1ma, index, unit, keep.T.contiguous(), values)
+        return torch.zeros_like(unit), torch.ones(1, 1, dtype=torch.bool)
+    return unit, keep.T.contiguous()
 
 
 def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None, unit: torch.Tensor,
               num_pixels: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Stage 4 with the `COMPOSITORS` signature: values [E, C], keep [N, U] bool or None, unit [E].
+    Differentiable with respect to frags.alpha and values.
 
     Returns (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
     """
-    entries = torch.arange(len(frags.alpha), dtype=torch.int32)      # one value row per entry
-    sums, alpha = composite_indexed(frags.row_ptr, frags.alpha, entries, unit, keep, values)
-    totals = sums.new_zeros(sums.shape[0], num_pixels, sums.shape[-1])
-    totals[:, frags.pixel] = sums
-    acc_alpha = alpha.new_zeros(alpha.shape[0], num_pixels)
-    acc_alpha[:, frags.pixel] = alpha
+    sums, alpha = _Composite.apply(frags.alpha, values, frags.row_ptr, *_keep_columns(keep, unit))
+    totals = sums.new_zeros(sums.shape[0], num_pixels, sums.shape[-1]).index_copy(1, frags.pixel, sums)
+    acc_alpha = alpha.new_zeros(alpha.shape[0], num_pixels).index_copy(1, frags.pixel, alpha)
     return totals, acc_alpha

@@ -177,12 +177,12 @@ def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tens
                       compositor: str | None = None, geometry: bool = False) -> SurfelOutput:
     """Render `camera` once per keep-mask (keep: [N, G] bool, None = all surfels).
 
-    Differentiable with respect to the model's tensors with the reference compositor, the
-    choice (compositor=None) whenever a model tensor requires a gradient (`pick_compositor`).
+    Differentiable with respect to the model's tensors with either compositor (None: the
+    default, `pick_compositor`).
     geometry: also composite normals and the depth distortion (for training and normal maps).
     """
     keep = check_keep(keep, model.num_splats)
-    composite = pick_compositor(compositor, model.tensors())
+    composite = pick_compositor(compositor)
     proj, means2d_all, visible = project(model, camera, near)
     pairs = intersect(proj.box_centres, proj.extents, camera.width, camera.height, tile)
     alpha, depth = splat_alpha(proj, pairs, tile, near)

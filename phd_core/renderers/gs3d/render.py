@@ -163,13 +163,11 @@ def rasterize(model: GaussianModel, camera: Camera, background: torch.Tensor,
               near: float = NEAR_PLANE, compositor: str | None = None) -> RenderOutput:
     """Render `camera` once per keep-mask (keep: [N, G] bool, None = all splats).
 
-    Differentiable with respect to the model's tensors with the reference compositor, which
-    is the choice (compositor=None) whenever a model tensor requires a gradient; otherwise
-    None means DEFAULT_COMPOSITOR. background: [3]; compositor: a name in
-    `phd_core.renderers.composite.COMPOSITORS`.
+    Differentiable with respect to the model's tensors with either compositor. background:
+    [3]; compositor: a name in `phd_core.renderers.composite.COMPOSITORS` (None: the default).
     """
     keep = check_keep(keep, model.num_splats)
-    composite = pick_compositor(compositor, model.tensors())
+    composite = pick_compositor(compositor)
     proj, means2d_all, visible = project(model, camera, near)
     pairs = intersect(proj.means2d, proj.extents, camera.width, camera.height, tile)
     frags = fragments(splat_alpha(proj, pairs, tile), pairs)
