@@ -15,11 +15,13 @@ import pytest
 import torch
 
 from phd_core.renderers.composite import COMPOSITORS
+from phd_core.renderers.gs2d import rasterize_surfels
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.gs3d.kernels import project_splats
 from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, project, rasterize, splat_alpha
 from phd_core.renderers.splats import fragments, intersect
 from renderers.test_gaussian_render import assert_close, camera, random_scene, reference
+from renderers.test_surfel_render import random_surfels
 
 TOL = 1e-5
 
@@ -101,25 +103,35 @@ def test_fused_compositor_gradients_match_the_reference(tile: int, seed: int) ->
         assert grads[0][0].abs().max() > 0
 
 
-@pytest.mark.parametrize("case", ["random", "opaque"])
+def render_gradients(case: str, compositor: str) -> list[torch.Tensor]:
+    """d(an image loss)/d(every model tensor, screen positions) of one render."""
+    if case == "2dgs":
+        model = random_surfels(40, 1, seed=31)
+    else:
+        model = random_scene(60, 2, seed=30)
+        if case == "3dgs opaque":
+            model.opacity_logits[:] = 30.0
+    params = [model.means, model.log_scales, model.quats, model.opacity_logits, model.sh]
+    for p in params:
+        p.requires_grad_(True)
+    if case == "2dgs":      # colour, depth, normals and the depth distortion: 8 channels and alpha
+        out = rasterize_surfels(model, camera(24, 18), torch.ones(3), compositor=compositor, geometry=True)
+        extra = out.distortion.mean() + out.normal.sum() * 1e-3
+    else:
+        out = rasterize(model, camera(24, 18), torch.ones(3), compositor=compositor)
+        extra = out.depth.mean() * 1e-2
+    out.means2d.retain_grad()
+    ((out.rgb - 0.3).square().mean() + extra).backward()
+    return [p.grad for p in params] + [out.means2d.grad]
+
+
+@pytest.mark.parametrize("case", ["3dgs", "3dgs opaque", "2dgs"])
 def test_a_render_has_the_same_gradients_with_either_compositor(case: str) -> None:
     """What training sees: the gradient of an image loss with respect to every model tensor
     and to the screen positions (densification's statistic)."""
-    names = ["means", "log_scales", "quats", "opacity_logits", "sh", "means2d"]
-    grads = []
-    for compositor in ("fused", "reference"):
-        model = random_scene(60, 2, seed=30)
-        if case == "opaque":
-            model.opacity_logits[:] = 30.0
-        params = [model.means, model.log_scales, model.quats, model.opacity_logits, model.sh]
-        for p in params:
-            p.requires_grad_(True)
-        out = rasterize(model, camera(24, 18), torch.ones(3), compositor=compositor)
-        out.means2d.retain_grad()
-        ((out.rgb - 0.3).square().mean() + out.depth.mean() * 1e-2).backward()
-        grads.append([p.grad for p in params] + [out.means2d.grad])
-    assert_same_gradients(grads[0], grads[1], names)
-    assert all(g.abs().sum() > 0 for g in grads[0])
+    fused, pure = render_gradients(case, "fused"), render_gradients(case, "reference")
+    assert_same_gradients(fused, pure, ["means", "log_scales", "quats", "opacity_logits", "sh", "means2d"])
+    assert all(g.abs().sum() > 0 for g in fused)
 
 
 def test_fused_stops_each_mask_when_transmittance_is_spent() -> None:
