@@ -317,6 +317,7 @@ def report(r: dict) -> str:
                 f"{t['reference_step_s'] / t['fused_step_s']:.2f}x | {t['final_splats']:,} | "
                 f"{t['reference_final_loss']:.4f} / {t['fused_final_loss']:.4f} |"
                 for size, t in ((50, r["train_50"]), (100, r["train_100"]))]
+    on, off = r["calibrate_in_process"], r["calibrate_in_process_allocator_off"]
     m = r["machine"]
     return f"""# Performance: ranking at interactive speed
 
@@ -353,8 +354,11 @@ work itself gets faster: calibration is now short enough for start-up to push it
 The work's own system time is mostly first-touch page faults: the memory it uses is faulted
 in once (the prepared training views alone hold about 170 MB). Churn, memory mapped and
 faulted in again on every call, is what a second calibration in the same process shows
-(table "Calibration twice in one process" below): there only a few hundred pages fault in,
-and the system time left is thread wake-ups (about 7,700 futex calls per calibration: idle
+(table "Calibration twice in one process" below): {on[1]['minor_faults']:,} pages fault in there
+instead of {on[0]['minor_faults']:,}, with or without the allocator settings (the fused path has no
+large per-call temporaries left; the settings' effect is on the first run, {off[0]['system_s']:.2f} s of
+system time without them and {on[0]['system_s']:.2f} s with, mostly NumPy's huge pages). The system
+time left in a second run is thread wake-ups (about 7,700 futex calls per calibration: idle
 OpenMP threads sleep, OMP_WAIT_POLICY=PASSIVE as `phd` sets it, and every parallel kernel
 wakes them). Letting the threads spin (OMP_WAIT_POLICY=ACTIVE) made calibration 3-4x slower
 in wall time on this 2-core machine, and libgomp's default (spin a while, then sleep) moved
