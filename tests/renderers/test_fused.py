@@ -111,7 +111,7 @@ def render_gradients(case: str, compositor: str) -> list[torch.Tensor]:
         model = random_scene(60, 2, seed=30)
         if case == "3dgs opaque":
             model.opacity_logits[:] = 30.0
-    params = [model.means, model.log_scales, model.quats, model.opacity_logits, model.sh]
+    params = list(model.tensors())                   # in field order: the names below
     for p in params:
         p.requires_grad_(True)
     if case == "2dgs":      # colour, depth, normals and the depth distortion: 8 channels and alpha
