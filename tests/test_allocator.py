@@ -1,9 +1,12 @@
 """phd_core.allocator in a fresh process: with one arena, memory a thread freed serves the
 next thread instead of staying in the first thread's arena; release_freed_memory gives the
-freed pages back (what the service's memory budget relies on between jobs)."""
+freed pages back (what the service's memory budget relies on between jobs); and importing
+phd_core applies the settings (malloc keeps freed memory, NumPy's huge pages off) unless
+PHD_KEEP_FREED_MEMORY=0."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -54,3 +57,15 @@ def test_one_arena_reuses_what_other_threads_freed_and_release_gives_it_back() -
     assert per_thread[0] > 350 << 20                 # each thread's arena kept its 200 MiB
     assert one[0] < 250 << 20                        # the second thread reused the first one's
     assert one[1] < 50 << 20 and per_thread[1] < 50 << 20     # and the freed pages went back
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt")
+def test_importing_phd_core_sets_the_allocator_and_can_be_turned_off() -> None:
+    # _set_madvise_hugepage returns NumPy's previous setting: huge pages off after phd_core's import.
+    code = ("import numpy._core.multiarray as m, phd_core.allocator as a, phd_core; "
+            "print(a.keep_freed_memory(), m._set_madvise_hugepage(True))")
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    on = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**env, "PHD_KEEP_FREED_MEMORY": "0", "NUMPY_MADVISE_HUGEPAGE": "1"})
+    assert on.stdout.split() == ["True", "False"] and off.stdout.split() == ["False", "True"]

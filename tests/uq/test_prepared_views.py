@@ -5,9 +5,6 @@ from __future__ import annotations
 
 import importlib
 import math
-import os
-import subprocess
-import sys
 
 import pytest
 import torch
@@ -77,15 +74,3 @@ def test_selection_prepares_each_view_once_per_model_for_masks_and_full_renders(
         chosen, other = (renderer_a, renderer_b) if view.choice == "a" else (renderer_b, renderer_a)
         assert torch.equal(view.image, chosen.render(cam)[0])
         assert torch.equal(view.other_image, other.render(cam)[0])
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt")
-def test_importing_phd_core_sets_the_allocator_and_can_be_turned_off() -> None:
-    # _set_madvise_hugepage returns NumPy's previous setting: huge pages off after phd_core's import.
-    code = ("import numpy._core.multiarray as m, phd_core.allocator as a, phd_core; "
-            "print(a.keep_freed_memory(), m._set_madvise_hugepage(True))")
-    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
-    on = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
-    off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env={**env, "PHD_KEEP_FREED_MEMORY": "0", "NUMPY_MADVISE_HUGEPAGE": "1"})
-    assert on.stdout.split() == ["True", "False"] and off.stdout.split() == ["False", "True"]
