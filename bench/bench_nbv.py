@@ -42,21 +42,26 @@ sys.path.insert(0, str(ROOT / "bench"))
 from nbv_experiments import EXPERIMENTS  # noqa: E402  (importing registers the strategies tried, not shipped)
 from bench_phdropout import fmt, save, svg_plot, write_doc  # noqa: E402
 from phd_core import uq as phd  # noqa: E402
-from phd_core.data import Dataset, load_blender  # noqa: E402
+from phd_core.data import Dataset, load_dataset  # noqa: E402
 from phd_core.renderers.gs3d import GaussianRenderer  # noqa: E402
-from phd_core.train.gs3d import TrainConfig, fit  # noqa: E402
+from phd_core.train.gs3d import TrainConfig, fit, training_background  # noqa: E402
 from phd_core.eval import psnr, rmse, spearman  # noqa: E402
+from phd_core.uq.rank import visibility_evidence  # noqa: E402
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results" / "nbv"
 DOC = ROOT / "docs" / "nbv.md"
 SHIPPED = ["random", "fvs", "sigma_max", "fvs_sigma", "fvs_sigma_floor"]   # the table's main rows
+# Image width per scene where it is not --resolution (square): the real capture is 4:3, 80x60 px
+# at the default resolution (as its training benchmark, docs/formats.md).
+WIDTH_SCALE = {"cup_colmap": 1.6}
 
 
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--scenes", nargs="+", default=["lego_200", "donut_200"], help="Blender scenes under --data")
+    p.add_argument("--scenes", nargs="+", default=["lego_200", "donut_200", "chain_200", "cup_colmap"],
+                   help="captures under --data (any format phd_core.data reads; COLMAP holds out every 8th image)")
     p.add_argument("--data", type=Path, default=DATA)
     p.add_argument("--resolution", type=int, default=50, help="square image size for training and testing")
     p.add_argument("--iterations", type=int, default=600)
@@ -91,7 +96,7 @@ def subset(data: Dataset, indices: list[int]) -> Dataset:
 def train(data: Dataset, indices: list[int], iterations: int, seed: int) -> GaussianRenderer:
     chosen = subset(data, indices)
     model, _ = fit(chosen, TrainConfig(iterations=iterations, seed=seed), progress=False)
-    return GaussianRenderer(model, chosen.background, chosen.cameras)
+    return GaussianRenderer(model, training_background(chosen), chosen.cameras)
 
 
 def test_errors(renderer: GaussianRenderer, test: Dataset) -> tuple[float, list[float]]:
@@ -121,10 +126,11 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     stored = json.loads(path.read_text()) if path.exists() else {}
     if stored.get("protocol") != protocol(args):
         stored = {}
-    size = load_blender(args.data / scene, "train", with_images=False).cameras[0].width
-    downscale = size / args.resolution
-    train_data = load_blender(args.data / scene, "train", downscale=downscale)
-    test = load_blender(args.data / scene, "test", downscale=downscale, views=args.test_views)
+    size = load_dataset(args.data / scene, "train", with_images=False).cameras[0].width
+    downscale = size / (args.resolution * WIDTH_SCALE.get(scene, 1.0))
+    train_data = load_dataset(args.data / scene, "train", downscale=downscale)
+    tests = len(load_dataset(args.data / scene, "test", with_images=False).cameras)
+    test = load_dataset(args.data / scene, "test", downscale=downscale, views=min(args.test_views, tests))
     init = initial_views(train_data.cameras, args.initial, seed)
     result = stored or {"scene": scene, "seed": seed, "protocol": protocol(args), "initial": init, "runs": {},
                         "spearman": {}}
@@ -137,31 +143,37 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     captured = [train_data.cameras[i] for i in init]
     ratio = calibrated_ratio(base, captured)
     test_evidence, _ = phd.candidate_evidence(base, test.cameras, ratio=ratio, samples=args.samples, seed=seed,
-                                              captured=captured)
+                                              captured=captured, visibility=True)
     result["initial_seconds"] = round(time.perf_counter() - started, 1)
     for name in todo:
         strategy = get_strategy(name)
         result["spearman"][name] = spearman(strategy.select(test_evidence, 0, seed).scores, base_rmse)
         started = time.perf_counter()
         chosen, renderer, curve, ratios = list(init), base, [base_psnr], [ratio]
+        cost = []       # seconds of each round's ranking (evidence and selection) per candidate
         for round_ in range(args.rounds):
             pool = [i for i in range(len(train_data.cameras)) if i not in chosen]
             captured = [train_data.cameras[i] for i in chosen]
             candidates = [train_data.cameras[i] for i in pool]
+            ranked_at = time.perf_counter()
             if strategy.uses_dropout:
                 ranked = phd.rank_views(renderer, candidates, ratio=ratios[-1], samples=args.samples,
                                         seed=seed + round_, top_k=args.per_round, strategy=name, captured=captured)
                 picks = [r.index for r in ranked]
             else:   # the same picks rank_views makes, without the dropout renders it would report
-                empty = torch.zeros(len(candidates), dtype=torch.float64)
-                evidence = Evidence(candidates, captured, empty, empty)
+                if strategy.uses_visibility:
+                    evidence = visibility_evidence(renderer, candidates, captured)
+                else:
+                    empty = torch.zeros(len(candidates), dtype=torch.float64)
+                    evidence = Evidence(candidates, captured, empty, empty)
                 picks = strategy.select(evidence, args.per_round, seed + round_).order[:args.per_round]
+            cost.append((time.perf_counter() - ranked_at) / len(candidates))
             chosen += [pool[i] for i in picks]
             renderer = train(train_data, chosen, args.iterations, seed)
             curve.append(test_errors(renderer, test)[0])
             if strategy.uses_dropout and round_ < args.rounds - 1:
                 ratios.append(calibrated_ratio(renderer, [train_data.cameras[i] for i in chosen]))
-        result["runs"][name] = {"psnr": curve, "chosen": chosen, "ratios": ratios,
+        result["runs"][name] = {"psnr": curve, "chosen": chosen, "ratios": ratios, "cost_per_candidate": cost,
                                 "seconds": round(time.perf_counter() - started, 1)}
         save(result, path)
         print(f"{scene} seed {seed} {name}: " + " ".join(f"{p:.2f}" for p in curve), flush=True)

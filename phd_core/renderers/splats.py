@@ -5,7 +5,7 @@ mask-independent stages that turn projected splats into per-pixel fragments.
     tile_boxes  the tiles each splat's screen box overlaps
     intersect   tile/splat pairs ordered by (tile, depth)
     fragments   the (pair, pixel) entries with alpha >= 1/255, grouped by pixel
-    untile      tile layout -> image
+    untile      tile layout -> image (tile_layout: the inverse)
     box_counts  how many pairs and fragments a view will have, before it is rasterised
 
 Stage 4, compositing the fragments once per keep-mask, is a backend (`composite`).
@@ -165,6 +165,14 @@ def untile(x: torch.Tensor, pairs: Pairs, tile: int, width: int, height: int) ->
     n, c = x.shape[0], x.shape[-1]
     x = x.reshape(n, pairs.tiles_y, pairs.tiles_x, tile, tile, c).permute(0, 1, 3, 2, 4, 5)
     return x.reshape(n, pairs.tiles_y * tile, pairs.tiles_x * tile, c)[:, :height, :width]
+
+
+def tile_layout(image: torch.Tensor, tiles_x: int, tiles_y: int, tile: int) -> torch.Tensor:
+    """[H, W] image -> [T * P] tile layout (the inverse of `untile`; pixels past the image are 0)."""
+    height, width = image.shape
+    padded = image.new_zeros(tiles_y * tile, tiles_x * tile)
+    padded[:height, :width] = image
+    return padded.reshape(tiles_y, tile, tiles_x, tile).permute(0, 2, 1, 3).reshape(-1)
 
 
 def composite_images(composite, frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,

@@ -12,6 +12,7 @@ from ..scene import Camera
 from ..errors import check_int
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
+from ..renderers.visibility import Visibility, reports_visibility
 from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, uncertainty
@@ -33,20 +34,47 @@ class RankedView:
 def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
                        samples: int = DEFAULT_SAMPLES, seed: int = 0, captured: Sequence[Camera] | None = None,
                        keep_peak: bool = False, progress: Progress | None = None,
-                       executor: Executor = LOCAL) -> tuple[Evidence, list[ViewUncertainty]]:
+                       executor: Executor = LOCAL, visibility: bool = False) -> tuple[Evidence, list[ViewUncertainty]]:
     """What a strategy sees: the candidates' PH-Dropout statistics under one draw of N
     sub-models, and the captured poses (default: the model's training cameras); with the
-    per-view measurements (keeping zeta's channel max when keep_peak)."""
+    per-view measurements (keeping zeta's channel max when keep_peak). With `visibility`
+    (and a family that reports it) also what each candidate and captured view sees of the model."""
     views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, keep_peak=keep_peak,
-                        progress=progress, executor=executor)
-    if captured is None:
-        captured = renderer.training_cameras or []
-    captured = check_cameras(captured, "captured") if captured else []
+                        progress=progress, executor=executor, keep_visibility=visibility)
+    captured = captured_cameras(renderer, captured)
 
     def stat(name: str) -> torch.Tensor:
         return torch.tensor([getattr(v, name) for v in views], dtype=torch.float64)
     evidence = Evidence(list(cameras), captured, stat("sigma_max"), stat("sigma_mean"), stat("sigma_top"), stat("area"))
+    if visibility and reports_visibility(renderer):
+        evidence.candidate_views = [v.visibility for v in views]
+        evidence.captured_views = view_visibility(renderer, captured)
     return evidence, views
+
+
+def captured_cameras(renderer: Renderer, captured: Sequence[Camera] | None) -> list[Camera]:
+    """The poses already taken: `captured`, or the model's training cameras (maybe none)."""
+    if captured is None:
+        captured = renderer.training_cameras or []
+    return check_cameras(captured, "captured") if captured else []
+
+
+def view_visibility(renderer: Renderer, cameras: Sequence[Camera]) -> list[Visibility]:
+    """What each camera sees of the model (one render of the full model each)."""
+    return [renderer.visibility(renderer.prepare(camera)) for camera in cameras]
+
+
+def visibility_evidence(renderer: Renderer, cameras: Sequence[Camera],
+                        captured: Sequence[Camera] | None = None) -> Evidence:
+    """What a strategy that ignores dropout sees: the poses and, where the family reports it,
+    each view's visibility (no dropout renders; sigma is reported as 0)."""
+    captured = captured_cameras(renderer, captured)
+    zeros = torch.zeros(len(cameras), dtype=torch.float64)
+    evidence = Evidence(list(cameras), captured, zeros, zeros)
+    if reports_visibility(renderer):
+        evidence.candidate_views = view_visibility(renderer, cameras)
+        evidence.captured_views = view_visibility(renderer, captured)
+    return evidence
 
 
 def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,
@@ -68,7 +96,7 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
         top_k = check_int(top_k, "top_k", 1)
     evidence, views = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed,
                                          captured=captured, keep_peak=keep_peak, progress=progress,
-                                         executor=executor)
+                                         executor=executor, visibility=chosen.uses_visibility)
     count = len(evidence.candidates)
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]

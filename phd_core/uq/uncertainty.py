@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -15,6 +15,7 @@ from ..scene import Camera
 from ..errors import InputError
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer, View
+from ..renderers.visibility import Visibility, reports_visibility
 from .sampling import (Progress, ProgressTicker, RunningStd, check_cameras, check_dtype, check_ratio, check_samples,
                        check_seed, dropout_uniforms, keep_masks, masked_renders, render_masks)
 
@@ -35,10 +36,12 @@ class ViewUncertainty:
     zeta: Tensor | None = None      # [H, W, 3] float32 per-pixel per-channel std (keep_maps=True)
     peak: Tensor | None = None      # [H, W] float32 zeta's max over channels, what a heat map draws (keep_peak=True)
     image: Tensor | None = None     # [H, W, 3] float32 the full model's render, from the same prepared view (keep_full)
+    visibility: Visibility | None = None   # what the view sees of the model, zeta's channel max per element
 
 
 def measure_view(view: View, keep: Tensor, ddof: int, keep_maps: bool, dtype: torch.dtype,
-                 keep_peak: bool = False, keep_full: bool = False) -> ViewUncertainty:
+                 keep_peak: bool = False, keep_full: bool = False,
+                 visibility: Callable[[View, Tensor], Visibility] | None = None) -> ViewUncertainty:
     running = RunningStd(dtype)                               # never holds all N renders
     for chunk in masked_renders(view, keep):                  # [m, H, W, 3]
         running.add(chunk)
@@ -52,14 +55,18 @@ def measure_view(view: View, keep: Tensor, ddof: int, keep_maps: bool, dtype: to
         mean=mean.to(torch.float32) if keep_maps else None,
         zeta=zeta.to(torch.float32) if keep_maps else None,
         peak=peak.to(torch.float32) if keep_peak else None,
-        image=render_masks(view, None)[0] if keep_full else None)
+        image=render_masks(view, None)[0] if keep_full else None,
+        visibility=None if visibility is None else visibility(view, peak))
 
 
 def measure_views(cameras: list[Camera], renderer: Renderer, keep: Tensor, *, ddof: int, keep_maps: bool,
-                  dtype: torch.dtype, keep_peak: bool = False, keep_full: bool = False) -> list[ViewUncertainty]:
+                  dtype: torch.dtype, keep_peak: bool = False, keep_full: bool = False,
+                  keep_visibility: bool = False) -> list[ViewUncertainty]:
     """measure_view for a chunk of cameras (what an executor runs): one `prepare` per camera
-    serves the N masked renders and, with keep_full, the full model's render."""
-    return [measure_view(renderer.prepare(camera), keep, ddof, keep_maps, dtype, keep_peak, keep_full)
+    serves the N masked renders and, with keep_full, the full model's render; with
+    keep_visibility (and a family that reports it), what the view sees of the model."""
+    visibility = renderer.visibility if keep_visibility and reports_visibility(renderer) else None
+    return [measure_view(renderer.prepare(camera), keep, ddof, keep_maps, dtype, keep_peak, keep_full, visibility)
             for camera in cameras]
 
 
@@ -78,11 +85,14 @@ def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, sample
 def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
                 samples: int = DEFAULT_SAMPLES, seed: int = 0, ddof: int = 1, keep_maps: bool = False,
                 keep_peak: bool = False, progress: Progress | None = None,
-                dtype: torch.dtype = torch.float64, executor: Executor = LOCAL) -> list[ViewUncertainty]:
+                dtype: torch.dtype = torch.float64, executor: Executor = LOCAL,
+                keep_visibility: bool = False) -> list[ViewUncertainty]:
     """view_uncertainty for every camera under the SAME N sub-models (one draw from `seed`).
 
     keep_maps keeps zeta and the mean image of every view (24 bytes a pixel); keep_peak only
     zeta's max over channels (4 bytes a pixel), enough to draw heat maps after ranking.
+    keep_visibility keeps what each view sees of the model (`Renderer.visibility`, with zeta's
+    channel max per element) where the family reports it.
     `executor` (phd_core.executors) runs chunks of cameras, anywhere; the masks are drawn
     here and shipped, so every executor gives the same numbers.
     """
@@ -94,7 +104,8 @@ def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
     keep = keep_masks(dropout_uniforms(renderer.num_units, samples, seed), ratio)
     ticker = ProgressTicker(progress, len(cameras))
     chunks = executor.split(cameras)
-    parts = executor.map(partial(measure_views, ddof=ddof, keep_maps=keep_maps, dtype=dtype, keep_peak=keep_peak), chunks,
+    parts = executor.map(partial(measure_views, ddof=ddof, keep_maps=keep_maps, dtype=dtype, keep_peak=keep_peak,
+                                 keep_visibility=keep_visibility), chunks,
                          executor.share(renderer), keep, done=lambda i: ticker.tick(len(chunks[i])))
     ticker.finish()
     return [view for part in parts for view in part]

@@ -40,8 +40,8 @@ from ...scene import Camera
 from ..composite import pick_compositor
 from ..gs3d.render import NEAR_PLANE, GaussianRenderer, RenderOutput
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
-from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, box_counts, composite_images, eval_sh, fragments,
-                      intersect, quaternion_to_rotation)
+from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Fragments, Pairs, box_counts, composite_images, eval_sh,
+                      fragments, intersect, quaternion_to_rotation)
 from .model import SurfelModel
 
 LOWPASS_INV_VAR = 2.0   # 1 / sigma^2 of the screen-space low-pass, sigma = sqrt(2)/2 px
@@ -172,6 +172,16 @@ def splat_alpha(proj: Projected, pairs: Pairs, tile: int,
     return alpha, depth.float()
 
 
+def surfel_fragments(model: SurfelModel, camera: Camera, tile: int, near: float
+                     ) -> tuple[Projected, torch.Tensor, torch.Tensor, Pairs, torch.Tensor, Fragments]:
+    """Stages 1-3: the projection, screen means of all surfels [G, 2] and their visibility [G],
+    the tile pairs, each pair's depth at each pixel of its tile [M, P], and the fragments."""
+    proj, means2d_all, visible = project(model, camera, near)
+    pairs = intersect(proj.box_centres, proj.extents, camera.width, camera.height, tile)
+    alpha, depth = splat_alpha(proj, pairs, tile, near)
+    return proj, means2d_all, visible, pairs, depth, fragments(alpha, pairs)
+
+
 def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tensor,
                       keep: torch.Tensor | None = None, *, tile: int = DEFAULT_TILE, near: float = NEAR_PLANE,
                       compositor: str | None = None, geometry: bool = False) -> SurfelOutput:
@@ -183,10 +193,7 @@ def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tens
     """
     keep = check_keep(keep, model.num_splats)
     composite = pick_compositor(compositor)
-    proj, means2d_all, visible = project(model, camera, near)
-    pairs = intersect(proj.box_centres, proj.extents, camera.width, camera.height, tile)
-    alpha, depth = splat_alpha(proj, pairs, tile, near)
-    frags = fragments(alpha, pairs)
+    proj, means2d_all, visible, pairs, depth, frags = surfel_fragments(model, camera, tile, near)
     per_tile = tile * tile
     splat = pairs.splat[frags.pair]                                     # [E] index into proj
     in_tile = frags.pixel.index_select(0, frags.row) % per_tile
@@ -255,6 +262,11 @@ class SurfelRenderer(GaussianRenderer):
     def prepare(self, camera: Camera) -> View:
         # The compiled SplatView projects 3D Gaussians; surfels render anew through their own stages.
         return CameraView(self, camera)
+
+    @torch.no_grad()
+    def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, Pairs]:
+        proj, _, _, pairs, _, frags = surfel_fragments(self.model, view.camera, self.tile, self.near)
+        return frags.row_ptr, frags.alpha, proj.ids[pairs.splat[frags.pair]], frags.pixel, pairs
 
     @torch.no_grad()
     def render_full(self, camera: Camera, keep: torch.Tensor | None = None, *,

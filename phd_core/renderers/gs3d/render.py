@@ -38,16 +38,18 @@ from typing import Any, Sequence
 import torch
 
 from ...errors import InputError
-from ...scene import Camera
+from ...scene import Camera, pixels_in_box
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR, pick_compositor
 from ..composite.fused import composite_indexed
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
+from ..visibility import Visibility, fragment_visibility, reduce_to_visibility, robust_box
 from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, box_counts, composite_images, eval_sh, fragments,
-                      intersect, quaternion_to_rotation, untile)
+                      intersect, quaternion_to_rotation, tile_layout, untile)
 from .kernels import project_splats, splat_fragments
 from .model import GaussianModel
 
 NEAR_PLANE = 0.2
+SOLID_OPACITY = 0.05    # splats at least this opaque say where the scene is (`scene_box`)
 DILATION = 0.3          # px^2 added to the 2D covariance diagonal (anti-aliasing low-pass)
 
 
@@ -320,6 +322,35 @@ class GaussianRenderer:
 
     def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
         return self.render_full(camera, keep).rgb.clamp(0.0, 1.0)
+
+    def scene_box(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The box the model's splats fill ([lo, hi] float64), ignoring nearly transparent
+        splats and the farthest floaters (`robust_box`): where empty space counts as unobserved."""
+        if getattr(self, "_box", None) is None:
+            solid = torch.sigmoid(self.model.opacity_logits.detach()) >= SOLID_OPACITY
+            self._box = robust_box(self.model.means.detach()[solid])
+        return self._box
+
+    def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, Pairs]:
+        """The full model's fragments of `view`'s camera, grouped by pixel: (row_ptr [S + 1],
+        alpha [E], splat [E], pixel [S] in tile layout, the tile grid)."""
+        if not isinstance(view, SplatView):
+            view = prepare_view(self.model, view.camera, self.background, tile=self.tile, near=self.near)
+        rows = torch.arange(len(view.row_ptr) - 1)
+        return view.row_ptr, view.alpha, view.units[view.index.long()], rows, view.pairs
+
+    @torch.no_grad()
+    def visibility(self, view: View, pixel_values: torch.Tensor | None = None) -> Visibility:
+        """What `view`'s camera sees of each splat (`phd_core.renderers.visibility`); with
+        pixel_values [H, W], each splat's weights times the values of its pixels as well."""
+        camera = view.camera
+        row_ptr, alpha, splat, pixel, grid = self.fragment_rows(view)
+        tiled = lambda image: tile_layout(image, grid.tiles_x, grid.tiles_y, self.tile)[pixel]   # noqa: E731
+        sums = fragment_visibility(row_ptr, alpha, splat, self.num_units,
+                                   None if pixel_values is None else tiled(pixel_values.double()))
+        lo, hi = self.scene_box()
+        in_box = pixels_in_box(camera, lo, hi)
+        return reduce_to_visibility(camera, sums, self.model.means.detach(), tiled(in_box), int(in_box.sum()))
 
     def describe(self) -> dict[str, Any]:
         lo, hi = self.model.bounds()

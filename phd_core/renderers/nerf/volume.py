@@ -1,4 +1,4 @@
-"""Volume rendering: camera rays, clipping to the scene box, samples, log-space compositing."""
+"""Volume rendering: samples along camera rays clipped to the scene box, log-space compositing."""
 
 from __future__ import annotations
 
@@ -7,31 +7,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ...scene import Camera
+from ...scene.rays import camera_rays, ray_box  # noqa: F401  (re-exported by renderers.nerf)
 from .config import CHUNK_ELEMENTS
 from .field import RadianceField
 
 # --------------------------------------------------------------------------- volume rendering
-
-def camera_rays(camera: Camera) -> tuple[Tensor, Tensor]:
-    """Origins and unit directions of every pixel centre, row-major: ([H*W, 3], [H*W, 3]) float32."""
-    j, i = torch.meshgrid(torch.arange(camera.height, dtype=torch.float64),
-                          torch.arange(camera.width, dtype=torch.float64), indexing="ij")
-    # OpenGL camera: +x right, +y up, looking down -z; image rows grow downwards.
-    d_cam = torch.stack([(i + 0.5 - camera.cx) / camera.fx, -(j + 0.5 - camera.cy) / camera.fy,
-                         -torch.ones_like(i)], -1).reshape(-1, 3)
-    dirs = d_cam @ camera.c2w[:3, :3].T
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-    origins = camera.center.expand_as(dirs)
-    return origins.float().contiguous(), dirs.float().contiguous()
-
-
-def ray_box(origins: Tensor, dirs: Tensor, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
-    """Entry and exit distances [R] of rays through the box [lo, hi] (entry >= exit: a miss)."""
-    safe = torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
-    t_lo, t_hi = (lo - origins) / safe, (hi - origins) / safe
-    return torch.minimum(t_lo, t_hi).amax(-1), torch.maximum(t_lo, t_hi).amin(-1)
-
 
 def composite(sigma: Tensor, rgb: Tensor, delta: Tensor, t: Tensor, background: Tensor
               ) -> tuple[Tensor, Tensor, Tensor]:

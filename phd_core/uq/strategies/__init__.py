@@ -11,6 +11,7 @@ from .base import Evidence, Selection, Strategy
 from .baselines import FVS, RANDOM
 from .hybrid import FVS_SIGMA, FVS_SIGMA_FLOOR
 from .uncertainty import SIGMA_MAX, SIGMA_MEAN
+from .visibility import VISIBILITY, VISIBILITY_SIGMA
 
 STRATEGIES: Registry[Strategy] = Registry("strategy")
 
@@ -20,7 +21,7 @@ def register(strategy: Strategy) -> Strategy:
     return STRATEGIES.add(strategy.name, strategy)
 
 
-for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR):
+for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR, VISIBILITY, VISIBILITY_SIGMA):
     register(_strategy)
 
 DEFAULT_STRATEGY = "fvs_sigma_floor"

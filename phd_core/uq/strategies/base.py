@@ -15,12 +15,15 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from ...renderers.visibility import Visibility
 from ...scene import Camera
 
 
 @dataclass
 class Evidence:
-    """What a strategy may use. Distances are between camera centres, in scene units."""
+    """What a strategy may use. Distances are between camera centres, in scene units; the
+    views' Visibility (one render of the full model each) when the strategy uses it and the
+    model's family can report it."""
 
     candidates: list[Camera]      # [C] poses to choose from
     captured: list[Camera]        # [T] poses the model was trained on (may be empty)
@@ -28,6 +31,8 @@ class Evidence:
     sigma_mean: Tensor            # [C] float64, mean of zeta over H, W, C
     sigma_top: Tensor | None = None   # [C] float64, mean of the top 10 % of pixels' zeta
     area: Tensor | None = None        # [C] float64, share of pixels with zeta above a threshold
+    candidate_views: list[Visibility] | None = None   # [C] what each candidate sees of the model (uses_visibility)
+    captured_views: list[Visibility] | None = None    # [T] what each captured view saw
 
 
 @dataclass
@@ -42,6 +47,7 @@ class Strategy:
     summary: str                  # one line for --help, the API schema and the docs
     select: Callable[[Evidence, int, int], Selection]   # (evidence, k, seed) -> Selection
     uses_dropout: bool = True     # False: the scores ignore sigma (it is still reported)
+    uses_visibility: bool = False  # True: needs each view's Visibility (families without it: a fallback order)
 
 
 def centres(cameras: list[Camera]) -> Tensor:

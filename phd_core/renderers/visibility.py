@@ -1,0 +1,115 @@
+"""What one camera sees of a model: per coverage element, how much of the image it fills.
+
+Next-best-view strategies that reason from the model (`phd_core.uq.strategies.visibility`)
+need, for each captured or candidate view, which parts of the model the view actually sees,
+occlusion included. One render of the full model gives it: an element's compositing weight
+(alpha times the transmittance in front of it) summed over the pixels. A family that can
+say this implements `Renderer.visibility(view, pixel_values=None) -> Visibility`; its
+coverage elements are its splats (3DGS, 2DGS) or its occupancy-grid cells (NeRF).
+
+`fragment_visibility` is the sum for any renderer that composites per-pixel lists of
+fragments front to back (the splat families), with the compositors' rules: transmittance
+in float64 log space, and a pixel stops at the fragment that would bring it below T_MIN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..scene import Camera
+from .splats import LOG_T_MIN
+
+
+@dataclass
+class Visibility:
+    """One render of the full model from `camera`, reduced to the coverage elements it shows.
+
+    Only the K elements with a nonzero footprint are listed. weight / footprint is the share
+    of an element that is not hidden (1: nothing in front of it, 0: fully occluded).
+    """
+
+    camera: Camera
+    elements: Tensor          # [K] long, element ids (splats; NeRF: occupancy cells), ascending
+    points: Tensor            # [K, 3] float64 world position of each element
+    weight: Tensor            # [K] float64 sum over pixels of alpha * transmittance (pixels it fills)
+    footprint: Tensor         # [K] float64 sum over pixels of alpha, occlusion ignored
+    valued: Tensor | None     # [K] float64 sum over pixels of alpha * transmittance * pixel value, when given
+    empty: float              # transmittance left at the end of the rays that cross the scene box, summed
+    in_box: int               # pixels whose ray crosses the scene box
+
+    @property
+    def visible_share(self) -> Tensor:
+        """[K] float64 in [0, 1]: how much of each element's footprint is not hidden."""
+        return (self.weight / self.footprint.clamp_min(1e-300)).clamp(0.0, 1.0)
+
+
+def reports_visibility(renderer: object) -> bool:
+    """True when the renderer's family implements `visibility(view, pixel_values=None)`."""
+    return callable(getattr(renderer, "visibility", None))
+
+
+@dataclass
+class PixelSums:
+    """Per-element and per-pixel sums of one front-to-back compositing of the full model."""
+
+    weight: Tensor            # [U] float64 alpha * transmittance summed per element
+    footprint: Tensor         # [U] float64 alpha summed per element
+    valued: Tensor | None     # [U] float64 weight * pixel value summed per element
+    left: Tensor              # [S] float64 transmittance at the end of each row's fragments
+
+
+def fragment_visibility(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_elements: int,
+                        row_values: Tensor | None = None) -> PixelSums:
+    """Sum compositing weights per element over S pixel rows of fragments.
+
+    row_ptr [S + 1]: the fragments of row s are row_ptr[s]:row_ptr[s + 1], front to back;
+    alpha [E]; element [E] long in [0, num_elements); row_values [S] (e.g. zeta) or None.
+    """
+    alpha = alpha.double()
+    counts = row_ptr[1:] - row_ptr[:-1]                                        # [S]
+    row = torch.repeat_interleave(torch.arange(len(counts)), counts)          # [E] the row of each fragment
+    log_1ma = torch.log1p(-alpha)
+    inclusive = torch.cumsum(log_1ma, 0)
+    exclusive = inclusive - log_1ma
+    first = row_ptr[:-1].clamp_max(max(len(alpha) - 1, 0))
+    base = exclusive[first][row] if len(alpha) else exclusive                  # log T before each row's first fragment
+    used = inclusive - base >= LOG_T_MIN                                       # the stop rule of the compositors
+    weight = torch.where(used, alpha * (exclusive - base).exp(), torch.zeros_like(alpha))   # [E]
+    zeros = torch.zeros(num_elements, dtype=torch.float64)
+    per_row_log = torch.zeros(len(counts), dtype=torch.float64).index_add_(0, row, torch.where(used, log_1ma, 0.0))
+    return PixelSums(weight=zeros.clone().index_add_(0, element, weight),
+                     footprint=zeros.clone().index_add_(0, element, alpha),
+                     valued=None if row_values is None else
+                     zeros.clone().index_add_(0, element, weight * row_values.double()[row]),
+                     left=per_row_log.exp())
+
+
+def reduce_to_visibility(camera: Camera, sums: PixelSums, points: Tensor, row_in_box: Tensor,
+                         in_box: int) -> Visibility:
+    """The elements with a footprint (points [U, 3] of all elements), and the transmittance left
+    on the in_box pixels whose rays cross the scene box (row_in_box [S]: which rows are such
+    pixels; a pixel with no row has nothing on it, transmittance 1)."""
+    seen = (sums.footprint > 0).nonzero().squeeze(1)
+    covered = float((1.0 - sums.left)[row_in_box].sum())
+    return Visibility(camera=camera, elements=seen, points=points[seen].double(), weight=sums.weight[seen],
+                      footprint=sums.footprint[seen],
+                      valued=None if sums.valued is None else sums.valued[seen],
+                      empty=max(0.0, in_box - covered), in_box=in_box)
+
+
+def robust_box(points: Tensor, share: float = 0.005, margin: float = 0.05) -> tuple[Tensor, Tensor]:
+    """The box [lo, hi] (float64 [3] each) holding all but `share` of points [P, 3] on each side
+    of each axis (a few far floaters do not stretch it), widened by `margin` of its size."""
+    points = points.double()
+    count = len(points)
+    if count == 0:
+        zero = torch.zeros(3, dtype=torch.float64)
+        return zero, zero
+    k = int(share * count)
+    lo = points.kthvalue(k + 1, dim=0).values
+    hi = points.kthvalue(count - k, dim=0).values
+    pad = (hi - lo) * margin
+    return lo - pad, hi + pad
