@@ -47,8 +47,11 @@ def _sh_colour(sh: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def render_reference(means, log_scales, quats, opacity_logits, sh, c2w_gl, fx, fy, cx, cy, width, height,
-                     background, keep=None, near=0.2):
-    """Returns (rgb [H, W, 3], alpha [H, W], depth [H, W]) in float64."""
+                     background, keep=None, near=0.2, per_splat=None):
+    """Returns (rgb [H, W, 3], alpha [H, W], depth [H, W]) in float64.
+
+    per_splat: a dict to fill with each splat's "weight" [G] (alpha * transmittance summed over
+    the pixels) and "footprint" [G] (alpha >= 1/255 summed over the pixels, occlusion ignored)."""
     means = np.asarray(means, np.float64)
     g = len(means)
     keep = np.ones(g, bool) if keep is None else np.asarray(keep, bool)
@@ -79,6 +82,7 @@ def render_reference(means, log_scales, quats, opacity_logits, sh, c2w_gl, fx, f
         centre = np.array([fx * p[0] / p[2] + cx, fy * p[1] / p[2] + cy])
         splats.append((p[2], i, centre, np.linalg.inv(cov), opacity, colour))
     splats.sort(key=lambda s: (s[0], s[1]))
+    weight, footprint = np.zeros(g), np.zeros(g)
     rgb = np.zeros((height, width, 3))
     alpha_out = np.zeros((height, width))
     depth_out = np.zeros((height, width))
@@ -88,18 +92,24 @@ def render_reference(means, log_scales, quats, opacity_logits, sh, c2w_gl, fx, f
             t = 1.0
             colour = np.zeros(3)
             depth = 0.0
-            for z, _, centre, conic, opacity, c in splats:
+            stopped = False
+            for z, i, centre, conic, opacity, c in splats:
                 dlt = pix - centre
                 power = -0.5 * dlt @ conic @ dlt
                 a = min(0.99, opacity * math.exp(min(power, 0.0)))
                 if a < 1.0 / 255.0:
                     continue
-                if t * (1 - a) < 1e-4:
-                    break
+                footprint[i] += a
+                if stopped or t * (1 - a) < 1e-4:
+                    stopped = True
+                    continue
+                weight[i] += a * t
                 colour += a * t * c
                 depth += a * t * z
                 t *= 1 - a
             rgb[yy, xx] = colour + t * np.asarray(background, np.float64)
             alpha_out[yy, xx] = 1 - t
             depth_out[yy, xx] = depth
+    if per_splat is not None:
+        per_splat.update(weight=weight, footprint=footprint)
     return rgb, alpha_out, depth_out

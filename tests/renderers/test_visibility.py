@@ -1,0 +1,74 @@
+"""What a camera sees of a model (`Renderer.visibility`) against a float64 per-pixel count."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from phd_core.renderers.gs2d import SurfelRenderer
+from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
+from phd_core.renderers.visibility import fragment_visibility
+from phd_core.scene import look_at
+from reference.gaussians import render_reference
+from support.surfels import random_surfels
+
+
+def random_scene(g: int, seed: int) -> GaussianModel:
+    gen = torch.Generator().manual_seed(seed)
+    return GaussianModel(means=(torch.rand(g, 3, generator=gen) * 2 - 1) * 0.8,
+                         log_scales=torch.rand(g, 3, generator=gen) * 1.5 - 3.0,
+                         quats=torch.randn(g, 4, generator=gen),
+                         opacity_logits=torch.randn(g, generator=gen) * 2 + 2,
+                         sh=torch.randn(g, 1, 3, generator=gen) * 0.4)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_splat_weights_equal_a_float64_count_by_hand(seed: int) -> None:
+    model = random_scene(40, seed)
+    camera = look_at((0.3, -3.0, 1.0), (0, 0, 0), width=20, height=14, fov_x=0.7)
+    renderer = GaussianRenderer(model)
+    values = torch.rand(camera.height, camera.width, generator=torch.Generator().manual_seed(seed))
+    vis = renderer.visibility(renderer.prepare(camera), values)
+    by_hand: dict = {}
+    _, alpha, _ = render_reference(model.means, model.log_scales, model.quats, model.opacity_logits, model.sh,
+                                   camera.c2w.numpy(), camera.fx, camera.fy, camera.cx, camera.cy, camera.width,
+                                   camera.height, (1.0, 1.0, 1.0), per_splat=by_hand)
+    weight = np.zeros(40)
+    footprint = np.zeros(40)
+    weight[vis.elements.numpy()] = vis.weight.numpy()
+    footprint[vis.elements.numpy()] = vis.footprint.numpy()
+    assert (by_hand["weight"] > 0.5).sum() >= 5          # the scene is not trivially empty or hidden
+    assert (by_hand["weight"] < 0.5 * by_hand["footprint"]).sum() >= 3   # and some splats are mostly hidden
+    np.testing.assert_allclose(weight, by_hand["weight"], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(footprint, by_hand["footprint"], rtol=1e-4, atol=1e-5)
+    # The elements' weights add up to the image's accumulated alpha; valued weighs them by pixel.
+    assert float(vis.weight.sum()) == pytest.approx(float(alpha.sum()), rel=1e-5)
+    assert torch.equal(vis.elements, torch.tensor(np.flatnonzero(by_hand["footprint"])))
+    assert torch.all(vis.visible_share <= 1.0) and torch.all(vis.visible_share >= 0.0)
+    assert float(vis.valued.sum()) < float(vis.weight.sum())        # values in [0, 1)
+
+
+def test_fragment_sums_follow_the_compositors_stop_rule() -> None:
+    # One pixel, three opaque fragments: the third would bring T below 1e-4 and is not used.
+    row_ptr = torch.tensor([0, 3, 3])                       # a second pixel with nothing on it
+    alpha = torch.tensor([0.99, 0.98, 0.99])
+    sums = fragment_visibility(row_ptr, alpha, torch.tensor([2, 0, 1]), 3, torch.tensor([2.0, 5.0]))
+    np.testing.assert_allclose(sums.weight.numpy(), [0.98 * 0.01, 0.0, 0.99], rtol=1e-6)
+    np.testing.assert_allclose(sums.footprint.numpy(), [0.98, 0.99, 0.99], rtol=1e-6)
+    np.testing.assert_allclose(sums.valued.numpy(), [2 * 0.98 * 0.01, 0.0, 2 * 0.99], rtol=1e-6)
+    np.testing.assert_allclose(sums.left.numpy(), [0.01 * 0.02, 1.0], rtol=1e-5)
+
+
+def test_surfel_weights_add_up_to_the_rendered_alpha_and_empty_space_is_counted() -> None:
+    renderer = SurfelRenderer(random_surfels(200, seed=3))
+    camera = look_at((0.0, -4.0, 1.0), (0, 0, 0), width=24, height=18, fov_x=0.8)
+    vis = renderer.visibility(renderer.prepare(camera))
+    alpha = renderer.render_full(camera).alpha
+    assert float(vis.weight.sum()) == pytest.approx(float(alpha.sum()), rel=1e-4)
+    assert 0 < vis.in_box <= camera.width * camera.height
+    assert 0.0 <= vis.empty <= vis.in_box
+    # A camera looking away from the model sees none of it, and no box.
+    away = look_at((0.0, -4.0, 1.0), (0, -8, 1), width=24, height=18, fov_x=0.8)
+    nothing = renderer.visibility(renderer.prepare(away))
+    assert len(nothing.elements) == 0 and nothing.in_box == 0 and nothing.empty == 0.0

@@ -1,0 +1,121 @@
+"""Next-best view from the model's visibility: orientation, occlusion and batches, on hand-built
+splat scenes where camera centres alone cannot give the right answer."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
+from phd_core.scene import look_at
+from phd_core.uq.rank import visibility_evidence
+from phd_core.uq.strategies import get_strategy
+from phd_core.uq.strategies.visibility import Coverage
+from support.toy_renderers import BlobRenderer, ring_cameras
+
+SIZE = 32
+
+
+def splats(points: list[torch.Tensor], scale: float) -> GaussianModel:
+    """Opaque grey splats of one size at the given points ([P, 3] each)."""
+    means = torch.cat(points).float()
+    count = len(means)
+    return GaussianModel(means=means, log_scales=torch.full((count, 3), math.log(scale)),
+                         quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(count, 1),
+                         opacity_logits=torch.full((count,), 4.0), sh=torch.full((count, 1, 3), 0.3))
+
+
+def grid(corner: tuple[float, float, float], u: tuple[float, float, float], v: tuple[float, float, float],
+         steps: int = 10) -> torch.Tensor:
+    """[steps^2, 3] points of the parallelogram corner + s u + t v, s and t in [0, 1]."""
+    s = torch.linspace(0, 1, steps, dtype=torch.float64)
+    a, b = torch.meshgrid(s, s, indexing="ij")
+    return (torch.tensor(corner, dtype=torch.float64) + a.reshape(-1, 1) * torch.tensor(u, dtype=torch.float64)
+            + b.reshape(-1, 1) * torch.tensor(v, dtype=torch.float64))
+
+
+def camera(eye, target=(0.0, 0.0, 0.0)):
+    return look_at(eye, target, width=SIZE, height=SIZE, fov_x=0.8)
+
+
+def open_box() -> GaussianRenderer:
+    """Four walls and a floor around a small cluster on the floor; open at the top (+z)."""
+    walls = [grid((-1, -1, -1), (2, 0, 0), (0, 0, 2)), grid((-1, 1, -1), (2, 0, 0), (0, 0, 2)),
+             grid((-1, -1, -1), (0, 2, 0), (0, 0, 2)), grid((1, -1, -1), (0, 2, 0), (0, 0, 2)),
+             grid((-1, -1, -1), (2, 0, 0), (0, 2, 0))]
+    inside = grid((-0.3, -0.3, -0.8), (0.6, 0, 0), (0, 0.6, 0), steps=5)
+    return GaussianRenderer(splats(walls + [inside], 0.12))
+
+
+def ranking(name: str, renderer: GaussianRenderer, candidates: list, captured: list, k: int):
+    return get_strategy(name).select(visibility_evidence(renderer, candidates, captured), k, 0)
+
+
+@pytest.mark.parametrize("name", ["visibility", "visibility_sigma"])
+def test_a_part_hidden_behind_an_occluder_from_every_captured_view_ranks_its_view_first(name: str) -> None:
+    renderer = open_box()
+    # Captured: a ring at the height of the walls; the walls hide the inside from all of them.
+    ring = [camera((5 * math.cos(a), 5 * math.sin(a), 0.2)) for a in torch.linspace(0, 2 * math.pi, 9)[:-1]]
+    top = camera((0.0, 0.3, 5.0))                                      # looks into the box
+    far = camera((15 * math.cos(0.1), 15 * math.sin(0.1), 0.6))       # farthest from every captured centre
+    between = camera((5 * math.cos(0.4), 5 * math.sin(0.4), 0.2))     # between two captured poses
+    candidates = [far, between, top]
+    order = ranking(name, renderer, candidates, ring, 1).order
+    assert order[0] == 2
+    # The centres alone say the opposite: farthest-view sampling takes the far pose.
+    assert ranking("fvs", renderer, candidates, ring, 1).order[0] == 0
+
+
+def test_cameras_at_one_centre_looking_different_ways_score_by_what_they_see() -> None:
+    # Two clusters on either side of the origin; the captured camera at the origin saw +x only.
+    east = grid((2.0, -0.5, -0.5), (0, 1, 0), (0, 0, 1))
+    west = grid((-2.0, -0.5, -0.5), (0, 1, 0), (0, 0, 1))
+    renderer = GaussianRenderer(splats([east, west], 0.1))
+    captured = [camera((0.0, 0.0, 0.0), (1.0, 0.0, 0.0))]
+    candidates = [camera((0.0, 0.0, 0.0), (1.0, 0.0, 0.0)), camera((0.0, 0.0, 0.0), (-1.0, 0.0, 0.0)),
+                  camera((0.0, 0.0, 0.0), (0.0, 1.0, 0.0))]            # the last sees nothing
+    for name in ("visibility", "visibility_sigma"):
+        selection = ranking(name, renderer, candidates, captured, 1)
+        assert selection.order[0] == 1                                 # faces the unseen cluster
+        assert selection.scores[1] > 10 * selection.scores[0]           # the seen side is worth little
+    # All three stand at the captured centre: the centre distance cannot tell them apart.
+    fvs = ranking("fvs", renderer, candidates, captured, 3)
+    assert len(set(fvs.scores)) == 1
+
+
+@pytest.mark.parametrize("name", ["visibility", "visibility_sigma"])
+def test_identical_candidates_never_share_a_batch(name: str) -> None:
+    renderer = open_box()
+    captured = [camera((5.0, 0.0, 0.2))]
+    top, back = camera((0.0, 0.3, 5.0)), camera((-5.0, 0.2, 0.2))
+    candidates = [back, top, back, camera((0.0, 5.0, 0.2))]
+    order = ranking(name, renderer, candidates, captured, 2).order
+    assert order[0] in (0, 2)                   # the side opposite the captured pose is the best single pick
+    assert not {0, 2} <= set(order[:2])
+
+
+def test_a_pick_lowers_the_value_of_candidates_that_see_the_same_parts() -> None:
+    renderer = open_box()
+    captured = [camera((5.0, 0.0, 0.2))]
+    candidates = [camera((-5.0, 0.2, 0.2)), camera((-5.0, 0.5, 0.4)), camera((0.0, 0.3, 5.0))]
+    evidence = visibility_evidence(renderer, candidates, captured)
+    coverage = Coverage(evidence.candidate_views, fragility=False)
+    for vis in evidence.captured_views:
+        coverage.capture(vis)
+    before = [c.value() for c in coverage.candidates]
+    coverage.capture(evidence.candidate_views[0])                       # pick the first
+    after = [c.value() for c in coverage.candidates]
+    assert after[0] < 0.05 * before[0]                                  # nothing left to see from there
+    assert after[1] < 0.3 * before[1]                                   # its near twin saw the same walls
+    assert after[2] > 0.7 * before[2]                                   # the inside, seen from above, barely moved
+
+
+def test_families_without_visibility_get_the_camera_centre_order() -> None:
+    renderer = BlobRenderer.random(20, seed=1)
+    ring = ring_cameras(8)
+    evidence = visibility_evidence(renderer, ring[1:], ring[:1])
+    assert evidence.candidate_views is None
+    assert (get_strategy("visibility").select(evidence, 3, 0).order
+            == get_strategy("fvs_sigma_floor").select(evidence, 3, 0).order)
