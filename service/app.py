@@ -28,7 +28,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import JSONResponse
+from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import phd_core
@@ -38,7 +38,7 @@ from phd_core.executors import make_executor
 
 from .budget import MemoryLedger
 from .deps import ServiceState
-from .errors import ServiceError, from_exception
+from .errors import ServiceError, error_body, from_exception, json_problem
 from .guard import Guard
 from .jobs import JobManager
 from .jobstore import JobStore
@@ -54,9 +54,8 @@ log = logging.getLogger("phd.service")
 # ----------------------------------------------------------------------------- errors
 
 def _error(status: int, code: str, message: str, field: str | None = None,
-           headers: dict[str, str] | None = None) -> JSONResponse:
-    return JSONResponse({"error": {"code": code, "message": message, "field": field}}, status_code=status,
-                        headers=headers)
+           headers: dict[str, str] | None = None) -> Response:
+    return Response(error_body(code, message, field), status, headers, media_type="application/json")
 
 
 def _field_from_loc(loc: tuple) -> str | None:
@@ -73,16 +72,16 @@ def _field_from_loc(loc: tuple) -> str | None:
 
 def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ServiceError)
-    async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
+    async def service_error(_: Request, exc: ServiceError) -> Response:
         return _error(exc.status, exc.code, exc.message, exc.field, exc.headers)
 
     @app.exception_handler(InputError)
-    async def input_error(_: Request, exc: InputError) -> JSONResponse:
+    async def input_error(_: Request, exc: InputError) -> Response:
         known = from_exception(exc)
         return _error(known.status, known.code, known.message, known.field)
 
     @app.exception_handler(RequestValidationError)
-    async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
+    async def validation_error(_: Request, exc: RequestValidationError) -> Response:
         errors = exc.errors()
         first = errors[0] if errors else {"loc": (), "msg": "invalid request", "type": ""}
         if first.get("type") == "json_invalid":
@@ -95,7 +94,10 @@ def install_error_handlers(app: FastAPI) -> None:
         return _error(422, "invalid_input", f"{field or 'body'}: {message}{more}", field)
 
     @app.exception_handler(StarletteHTTPException)
-    async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def http_error(_: Request, exc: StarletteHTTPException) -> Response:
+        problem = json_problem(exc.__cause__)   # FastAPI's 400 for a body json.loads refused other than by syntax
+        if exc.status_code == 400 and problem is not None:
+            return _error(400, "invalid_json", f"the body is not valid JSON: {problem}")
         codes = {404: "not_found", 405: "method_not_allowed"}
         return _error(exc.status_code, codes.get(exc.status_code, "http_error"), str(exc.detail),
                       headers=getattr(exc, "headers", None))

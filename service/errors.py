@@ -7,11 +7,30 @@ Every error answer has the body `{"error": {"code", "message", "field"}}`
 
 from __future__ import annotations
 
+import json
+
 from phd_core.errors import InputError
 from phd_core.executors import ExecutorError
 from phd_core.uq import CalibrationError
 
 from .schemas import ErrorDetail
+
+
+# What json.loads raises on text that is not JSON it can decode: bad syntax, bytes that are not
+# UTF-8/16/32, and arrays or objects nested past the interpreter's recursion limit (about 1,000).
+JSON_ERRORS = (json.JSONDecodeError, UnicodeDecodeError, RecursionError)
+
+
+def error_body(code: str, message: str, field: str | None = None) -> bytes:
+    """The body of every error answer, from the routes, the guard and the HTTP protocol alike."""
+    return json.dumps({"error": {"code": code, "message": message, "field": field}}).encode()
+
+
+def json_problem(exc: BaseException | None) -> str | None:
+    """Why json.loads refused a text, in the client's words; None if `exc` is not such a refusal."""
+    if isinstance(exc, RecursionError):
+        return "nested too deeply (arrays and objects may nest about 1,000 levels)"
+    return str(exc) if isinstance(exc, JSON_ERRORS) else None
 
 
 class ServiceError(Exception):

@@ -1,12 +1,14 @@
-"""ASGI middleware in front of every route: API keys, body size caps and timeouts, security
-headers, and the last word on unexpected errors.
+"""ASGI middleware in front of every route: API keys, header and body size caps, body timeouts,
+security headers, and the last word on unexpected errors.
 
-It sits below FastAPI so that it sees the raw byte stream: an oversized body is refused
-with 413 as soon as its Content-Length (or, without one, its running byte count) passes
-the cap, before the route buffers or parses anything; a body that pauses longer than
-`body_timeout` gets 408. After answering early it reads and discards up to `DRAIN_LIMIT`
-more bytes, so that an ordinary HTTP/1.1 client that is still sending gets to read the
-answer instead of a reset connection. The caller's `Principal` (service.keys) goes into
+It sits below FastAPI so that it sees the raw byte stream: headers past `MAX_HEADER_BYTES` get
+431 (h11 refuses those that are still incomplete at that size: service.timeouts); an oversized
+body is refused with 413 as soon as its Content-Length (or, without one, its running byte
+count) passes the cap, before the route buffers or parses anything; a body that pauses longer
+than `body_timeout`, or trickles (it may take `body_timeout` seconds plus one second per
+`min_body_rate` bytes received), gets 408. After answering early it reads and discards up to
+`DRAIN_LIMIT` more bytes, so that an ordinary HTTP/1.1 client that is still sending gets to
+read the answer instead of a reset connection. The caller's `Principal` (service.keys) goes into
 `scope["state"]["principal"]`. An exception no handler turned into an answer becomes a
 JSON 500 here, so the connection stays alive (uvicorn closes it when an exception reaches it).
 """
@@ -14,10 +16,10 @@ JSON 500 here, so the connection stays alive (uvicorn closes it when an exceptio
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from typing import Any, Awaitable, Callable
 
+from .errors import error_body
 from .keys import KeyRing
 from .settings import Settings
 
@@ -30,6 +32,7 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 DRAIN_LIMIT = 64 << 20
+MAX_HEADER_BYTES = 64 * 1024
 OPEN_PATHS = ("/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
 OPEN_PATHS += ("/", "/ui", "/ui/", "/ui/app.js", "/ui/app.css")   # the page's static files; its API calls send the key
 UPLOAD_PATH = "/v1/models"
@@ -41,10 +44,7 @@ CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' 
 SECURITY_HEADERS = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"DENY"),
                     (b"referrer-policy", b"no-referrer"), (b"cross-origin-opener-policy", b"same-origin"),
                     (b"permissions-policy", b"camera=(), microphone=(), geolocation=()")]
-
-
-def error_body(code: str, message: str, field: str | None = None) -> bytes:
-    return json.dumps({"error": {"code": code, "message": message, "field": field}}).encode()
+ANSWER_HEADERS = SECURITY_HEADERS + [(b"content-security-policy", CSP.encode())]
 
 
 class Guard:
@@ -63,8 +63,7 @@ class Guard:
             nonlocal started
             if message["type"] == "http.response.start":
                 started = True
-                extra = SECURITY_HEADERS if scope["path"] in DOC_PATHS else \
-                    SECURITY_HEADERS + [(b"content-security-policy", CSP.encode())]
+                extra = SECURITY_HEADERS if scope["path"] in DOC_PATHS else ANSWER_HEADERS
                 message = {**message, "headers": [*message.get("headers", []), *extra]}
             await send(message)
 
@@ -76,6 +75,13 @@ class Guard:
                 await _answer(secured_send, 500, error_body("internal_error", "unexpected error; see the server log"))
 
     async def guard(self, scope: Scope, receive: Receive, send: Send) -> None:
+        header_bytes = sum(len(k) + len(v) + 4 for k, v in scope["headers"])   # b"name: value\r\n"
+        if header_bytes > MAX_HEADER_BYTES:
+            largest = max(scope["headers"], key=lambda kv: len(kv[0]) + len(kv[1]))[0].decode("latin-1")
+            await _answer(send, 431, error_body("headers_too_large", f"the request headers take {header_bytes} bytes, "
+                          f"over the cap of {MAX_HEADER_BYTES}; the largest is '{largest}'", largest))
+            await _drain(receive, DRAIN_LIMIT)
+            return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         principal = self.keys.identify(headers.get("authorization"))
         if principal is None and scope["path"] not in OPEN_PATHS and scope["method"] != "OPTIONS":
@@ -98,18 +104,24 @@ class Guard:
         received = 0
         answered = False
         body_done = False
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        pause, rate = self.settings.body_timeout, self.settings.min_body_rate
 
         async def limited_receive() -> Message:
             nonlocal received, answered, body_done
             if body_done:
                 return await receive()       # after the body only a disconnect can come: no deadline
+            left = start + pause + received / rate - loop.time()     # the whole body's deadline so far
             try:
-                message = await asyncio.wait_for(receive(), self.settings.body_timeout)
+                message = await asyncio.wait_for(receive(), max(min(pause, left), 0.0))
             except asyncio.TimeoutError:
                 if not answered:
                     answered = True
-                    await _answer(send, 408, error_body("request_timeout", "the request body paused for more "
-                                  f"than {self.settings.body_timeout:g} seconds", field), {"connection": "close"})
+                    why = (f"paused for more than {pause:g} seconds" if left > pause else f"arrived slower than "
+                           f"{rate:g} bytes per second ({received} bytes in {loop.time() - start:.1f} seconds)")
+                    await _answer(send, 408, error_body("request_timeout", f"the request body {why}", field),
+                                  {"connection": "close"})
                 return {"type": "http.disconnect"}
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))

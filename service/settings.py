@@ -60,6 +60,8 @@ class Settings(BaseSettings):
     cors_origins: list[str] = []               # origins a browser page may call the API from (none by default)
     header_timeout: PositiveFloat = 10.0       # seconds a client may take to send its request headers
     body_timeout: PositiveFloat = 30.0         # seconds a client may pause between body chunks
+    min_body_rate: PositiveFloat = 1024.0      # bytes per second a body must keep up: it may take body_timeout
+                                               # seconds plus one second per min_body_rate bytes received
     executor: str = "local"                    # where jobs' rendering runs: a name in phd_core.executors
                                                # (local: the worker threads; ray: a Ray cluster, docs/scale-out.md)
     executor_address: str | None = None        # the cluster for it (ray: auto, local, host:6379, ray://host:10001)

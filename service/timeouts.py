@@ -4,9 +4,11 @@ sending nothing, or its headers a byte at a time.
 - headers: a connection must deliver a request's complete headers within
   `settings.header_timeout` seconds of connecting (or of its previous response), else it is
   closed (`SlowHeaderH11Protocol`; uvicorn itself only times idle keep-alive connections);
-- body: `service.guard` answers 408 when a body pauses longer than `settings.body_timeout`;
+- body: `service.guard` answers 408 when a body pauses longer than `settings.body_timeout` or
+  trickles slower than `settings.min_body_rate`;
 - idle keep-alive connections close after KEEP_ALIVE seconds (uvicorn's own timer);
-- headers are capped at MAX_HEADER_BYTES (h11's limit on an incomplete event).
+- headers are capped at MAX_HEADER_BYTES with 431: by h11's limit on an incomplete event while
+  they arrive (answered here), by `service.guard` once they are complete.
 """
 
 from __future__ import annotations
@@ -14,16 +16,18 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from .errors import error_body
+from .guard import ANSWER_HEADERS, MAX_HEADER_BYTES
 from .settings import Settings
 
 KEEP_ALIVE = 5
-MAX_HEADER_BYTES = 64 * 1024
 
 
 class SlowHeaderH11Protocol(H11Protocol):
-    """uvicorn's h11 protocol, plus a deadline for the headers of every request."""
+    """uvicorn's h11 protocol, plus a deadline for the headers of every request and 431 for too many."""
 
     header_timeout = 10.0
 
@@ -51,6 +55,18 @@ class SlowHeaderH11Protocol(H11Protocol):
         if self._header_timer is not None:
             self._header_timer.cancel()
             self._header_timer = None
+
+    def send_400_response(self, msg: str) -> None:
+        """uvicorn answers every request h11 refuses with 400; one whose head outgrew the cap gets 431."""
+        if len(self.conn.trailing_data[0]) <= MAX_HEADER_BYTES:   # h11's only reason to buffer that much
+            super().send_400_response(msg)
+            return
+        body = error_body("headers_too_large", f"the request headers exceed the cap of {MAX_HEADER_BYTES} bytes")
+        headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                   (b"connection", b"close"), *ANSWER_HEADERS]
+        for event in (h11.Response(status_code=431, headers=headers), h11.Data(data=body), h11.EndOfMessage()):
+            self.transport.write(self.conn.send(event))
+        self.transport.close()
 
     def _too_slow(self) -> None:
         self._header_timer = None

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from python_multipart import MultipartParser
-from python_multipart.exceptions import MultipartParseError
+from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
@@ -34,7 +34,7 @@ from phd_core.errors import InputError, check_color
 from phd_core.io import fsync_path
 from phd_core.renderers import FAMILIES, SNIFF_BYTES, model_kind
 
-from .errors import ServiceError, invalid
+from .errors import JSON_ERRORS, ServiceError, invalid, json_problem
 
 MAX_NAME_BYTES = 256
 FIELDS = ("file", "cameras", "name", "background")
@@ -124,6 +124,7 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
             raise ServiceError(413, "payload_too_large", f"the '{part.name}' field exceeds {cap} bytes", part.name)
 
     def on_part_end() -> None:
+        nonlocal part
         if part.file is not None:
             part.file.close()
             part.file = None
@@ -133,20 +134,25 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
             upload.name = part.buffer.decode("utf-8", "replace").strip() or None
         elif part.name == "background":
             upload.background = bytes(part.buffer)
+        part = _Part()                  # an error between parts is no part's (names the upload: file)
 
-    parser = MultipartParser(params[b"boundary"], {
-        "on_part_begin": on_part_begin, "on_header_field": on_header_field, "on_header_value": on_header_value,
-        "on_header_end": on_header_end, "on_headers_finished": on_headers_finished,
-        "on_part_data": on_part_data, "on_part_end": on_part_end,
-    })
+    try:
+        parser = MultipartParser(params[b"boundary"], {
+            "on_part_begin": on_part_begin, "on_header_field": on_header_field, "on_header_value": on_header_value,
+            "on_header_end": on_header_end, "on_headers_finished": on_headers_finished,
+            "on_part_data": on_part_data, "on_part_end": on_part_end,
+        })
+    except FormParserError as exc:      # e.g. a boundary past the parser's 256 characters
+        raise ServiceError(400, "invalid_multipart", f"the multipart boundary is refused: {exc}",
+                           "Content-Type") from None
     try:
         async for chunk in request.stream():
             parser.write(chunk)
         parser.finalize()
     except ClientDisconnect:
         raise ServiceError(400, "upload_incomplete", "the upload ended before the body was complete", "file") from None
-    except MultipartParseError as exc:
-        raise ServiceError(400, "invalid_multipart", f"malformed multipart body: {exc}", "file") from None
+    except FormParserError as exc:
+        raise ServiceError(400, "invalid_multipart", f"malformed multipart body: {exc}", part.name or "file") from None
     finally:
         if part.file is not None:
             part.file.close()
@@ -175,7 +181,7 @@ def parse_background(raw: bytes) -> tuple[float, float, float]:
     text = raw.decode("utf-8", "replace").strip()
     try:
         value = json.loads(text)
-    except json.JSONDecodeError:
+    except JSON_ERRORS:
         value = text
     try:
         return check_color(value, "background")
@@ -186,5 +192,5 @@ def parse_background(raw: bytes) -> tuple[float, float, float]:
 def parse_camera_json(raw: bytes) -> Any:
     try:
         return json.loads(raw)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise invalid("cameras", f"not valid JSON: {exc}") from None
+    except JSON_ERRORS as exc:
+        raise invalid("cameras", f"not valid JSON: {json_problem(exc)}") from None

@@ -1,19 +1,22 @@
-"""Property test (hypothesis) against the real server: a mutated request for any route never
-gets a 5xx, and never costs the client its keep-alive connection. bench/bench_reliability.py
-runs the same generator for 10,000 requests (docs/reliability.md)."""
+"""Property tests (hypothesis) against the real server: a mutated request for any route, and a
+damaged raw multipart upload, never gets a 5xx, and never costs the client its keep-alive
+connection. bench/bench_reliability.py runs the same generator for 10,000 requests
+(docs/reliability.md)."""
 
 from __future__ import annotations
 
 import random
+from typing import Callable
 
 import httpx
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from client import PHDClient
 from conftest import svc_cameras
-from support.fuzz import mutated_request, send
+from support.fuzz import FuzzRequest, mutated_request, mutated_upload, send
 
 EXAMPLES = 300
+UPLOAD_EXAMPLES = 200
 
 
 def test_mutated_requests_never_give_5xx_nor_drop_the_connection(svc_start, svc_model_files):
@@ -27,21 +30,35 @@ def test_mutated_requests_never_give_5xx_nor_drop_the_connection(svc_start, svc_
         phd.wait_job(job.id, timeout=60)
     ids = {"model": a.id, "model_b": b.id, "job": job.id}
     ply = svc_model_files["ply"].read_bytes()
-    client = httpx.Client(base_url=server.url, timeout=60)
+    seen = _statuses(server.url, lambda rng: mutated_request(rng, ids, ply), EXAMPLES)
+    assert {404, 422} <= seen and seen & {200, 201, 202}          # the mutations reached every kind of answer
+
+
+def test_damaged_multipart_uploads_never_give_5xx_nor_drop_the_connection(svc_start, svc_model_files):
+    server = svc_start()
+    ply = svc_model_files["ply"].read_bytes()
+    seen = _statuses(server.url, lambda rng: mutated_upload(rng, ply), UPLOAD_EXAMPLES)
+    assert {201, 400, 415, 422} <= seen       # stored, refused as multipart, as content, and as a field
+    assert not list((server.settings.data_dir / "tmp").iterdir())
+
+
+def _statuses(url: str, make: Callable[[random.Random], FuzzRequest], examples: int) -> set[int]:
+    """Send `examples` requests from `make` over one connection, asserting none is a 5xx or closes it."""
+    client = httpx.Client(base_url=url, timeout=60)
     seen: set[int] = set()
 
-    @settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+    @settings(max_examples=examples, deadline=None, suppress_health_check=list(HealthCheck), database=None)
     @given(st.randoms(use_true_random=False))
     def prop(rng: random.Random) -> None:
-        request = mutated_request(rng, ids, ply)
+        request = make(rng)
         response = send(client, request)
         seen.add(response.status_code)
-        assert response.status_code < 500, (request, response.text)
-        assert response.headers.get("connection") != "close", (request, response.text)
+        assert response.status_code < 500, (request.method, request.path, response.text)
+        assert response.headers.get("connection") != "close", (request.method, request.path, response.text)
 
     try:
         prop()
         assert len(client._transport._pool.connections) == 1      # one connection carried every request
     finally:
         client.close()
-    assert {404, 422} <= seen and seen & {200, 201, 202}          # the mutations reached every kind of answer
+    return seen

@@ -1,12 +1,15 @@
 """Issue 17's reliability suite against a real uvicorn server: the five failures found by the
 attack (server file reads via `cameras`, memory beyond the caps, ASCII PLY memory, non-finite
 numbers as 500s, jobs lost on restart) as regression tests, plus temp-file names in messages,
-slow clients, CORS, security headers and per-key ownership."""
+slow clients, CORS, security headers and per-key ownership; and issue 25's malformed bodies
+(JSON nested past the decoder, multipart boundaries the parser refuses), trickled bodies and
+oversized headers."""
 
 from __future__ import annotations
 
 import json
 import socket
+import threading
 import time
 
 import httpx
@@ -172,6 +175,48 @@ def test_an_unexpected_error_is_a_json_500_that_keeps_the_connection(svc_up, mon
         assert len(pool.connections) == 1                       # the same connection served both
 
 
+def _deep(depth: int, kind: str) -> bytes:
+    return b"[" * depth + b"]" * depth if kind == "array" else b'{"a":' * depth + b"1" + b"}" * depth
+
+
+@pytest.mark.parametrize("kind", ["array", "object"])
+def test_json_nested_past_the_decoder_is_invalid_json_or_names_the_cameras_part(svc_up, svc_model_files, kind):
+    server, model_id = svc_up
+    deep = _deep(100_000, kind)
+    headers = {"content-type": "application/json"}
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        for body in (deep, b'{"cameras": %s, "dropout_ratio": 0.1}' % deep):       # the body, or one field of it
+            response = client.post(f"/v1/models/{model_id}/rank", content=body, headers=headers)
+            error = _error(response, 400, "invalid_json")
+            assert "nested too deeply" in error["message"]
+        files = {"file": ("m.ply", svc_model_files["ply"].read_bytes()), "cameras": (None, deep)}
+        error = _error(client.post("/v1/models", files=files), 422, "invalid_input", "cameras")
+        assert "nested too deeply" in error["message"]
+        not_utf8 = client.post("/v1/select", content=b'{"model_a": "\xff"}', headers=headers)
+        assert "utf-8" in _error(not_utf8, 400, "invalid_json")["message"]
+        assert client.get("/health").status_code == 200
+        assert len(client._transport._pool.connections) == 1
+    assert len(list((server.settings.data_dir / "models").iterdir())) == 1      # svc_up's model only
+
+
+def test_multipart_boundaries_the_parser_refuses_are_400_naming_content_type(svc_start, svc_model_files):
+    server = svc_start()
+    ply = svc_model_files["ply"].read_bytes()
+
+    def upload(boundary: str, part_headers: bytes = b"") -> httpx.Response:
+        body = (f'--{boundary}\r\nContent-Disposition: form-data; name="file"; filename="m.ply"\r\n'.encode() +
+                part_headers + b"\r\n" + ply + f"\r\n--{boundary}--\r\n".encode())
+        return httpx.post(f"{server.url}/v1/models", content=body, timeout=30,
+                          headers={"content-type": f"multipart/form-data; boundary={boundary}"})
+
+    assert upload("b" * 256).status_code == 201                  # the parser's longest boundary
+    error = _error(upload("b" * 257), 400, "invalid_multipart", "Content-Type")
+    assert "257" in error["message"] and "256" in error["message"]
+    _error(upload("b" * 5000), 400, "invalid_multipart", "Content-Type")
+    _error(upload("b", b"Not A Header\r\n"), 400, "invalid_multipart", "file")
+    assert not list((server.settings.data_dir / "tmp").iterdir())
+
+
 # ----------------------------------------------------------------------------- 5. jobs survive a restart
 
 def test_jobs_and_heat_maps_survive_kill_9_and_running_jobs_report_interrupted(tmp_path, svc_model_files):
@@ -256,6 +301,61 @@ def test_slow_headers_and_slow_bodies_are_cut_off(svc_start):
     with _open(server.port) as ok:                             # a prompt client is unaffected
         ok.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
         assert ok.recv(4096).startswith(b"HTTP/1.1 200")
+
+
+def _answer(sock: socket.socket) -> bytes:
+    """Everything the server sends until it closes or an error body has arrived."""
+    answer = b""
+    while not answer.endswith(b"}}") and (chunk := sock.recv(4096)):
+        answer += chunk
+    return answer
+
+
+def _send_slowly(sock: socket.socket, body: bytes, size: int, every: float) -> threading.Thread:
+    """Send `body` in pieces of `size` bytes, one every `every` seconds, from a thread."""
+    def run() -> None:
+        for i in range(0, len(body), size):
+            try:
+                sock.sendall(body[i:i + size])
+            except OSError:                                     # the server closed the connection
+                return
+            time.sleep(every)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_a_trickled_body_is_cut_at_its_rate_deadline_and_a_slow_steady_one_is_not(svc_start):
+    server = svc_start(body_timeout=1.0, min_body_rate=100)       # a body may take 1 s + 1 s per 100 bytes
+    head = b"POST /v1/select HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n"
+    body = json.dumps({"cameras": "x" * 380}).encode()
+    with _open(server.port) as trickle:                          # 5 bytes/s, never pausing for 1 s
+        trickle.sendall(head % len(body))
+        start = time.monotonic()
+        _send_slowly(trickle, body, 1, 0.2)
+        answer = _answer(trickle)
+        assert answer.startswith(b"HTTP/1.1 408") and b"slower than 100 bytes per second" in answer
+        assert time.monotonic() - start < 3
+    with _open(server.port) as steady:                           # 250 bytes/s: 1.6 s in all, past 1 s
+        steady.sendall(head % len(body))
+        start = time.monotonic()
+        _send_slowly(steady, body, 50, 0.2)
+        answer = _answer(steady)
+        assert answer.startswith(b"HTTP/1.1 422") and time.monotonic() - start > 1.2, answer
+
+
+def test_headers_past_64_kib_are_431_naming_the_largest(svc_start):
+    server = svc_start()
+    assert httpx.get(f"{server.url}/health", headers={"x-big": "a" * 60 * 1024}).status_code == 200
+    error = _error(httpx.get(f"{server.url}/health", headers={"x-big": "a" * 70 * 1024}), 431, "headers_too_large")
+    assert error["field"] == "x-big" and "65536" in error["message"]
+    many = {f"x-h{i}": "a" * 1000 for i in range(70)}
+    assert _error(httpx.get(f"{server.url}/health", headers=many), 431, "headers_too_large")["field"].startswith("x-h")
+    with _open(server.port) as unfinished:                      # still arriving past the cap: h11 refuses them
+        unfinished.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 70 * 1024)
+        answer = _answer(unfinished)
+        assert answer.startswith(b"HTTP/1.1 431") and b'"code": "headers_too_large"' in answer
 
 
 def test_cors_is_closed_by_default_and_opens_to_configured_origins(svc_start):
