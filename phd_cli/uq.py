@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from phd_core import uq as phd
-from phd_core.data import load_cameras
+from phd_core.data import POSES, export_cameras, load_cameras, source_pose
 from phd_core.scene import Camera
 from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor, make_executor
@@ -21,6 +21,8 @@ from phd_core.io import write_heatmap, write_json_atomic
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
+
+from .options import add_background_arg, apply_background
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -84,7 +86,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_uncertainty_args(rank)
     _add_calibration_args(rank)
     _add_executor_args(rank)
-    rank.add_argument("--out", type=Path, help="write the ranking JSON here (default: print it)")
+    rank.add_argument("--out", type=Path, help="write the ranking JSON here (default: print it); every ranked "
+                      "candidate carries its camera (a transforms frame) and, when the model's cameras came from "
+                      "a known source, the same pose in that source's convention (source_pose)")
+    rank.add_argument("--export", type=Path, metavar="FILE",
+                      help="also write the ranked batch (the first --top-k, else all) for a capture tool: a *.json "
+                           "file is a nerfstudio transforms.json, a file named cameras.json the reference trainer's, "
+                           "a path without a suffix a COLMAP text model folder (or say --export-format)")
+    rank.add_argument("--export-format", choices=sorted(POSES), default=None,
+                      help="the convention of --export, instead of reading it off the name")
     rank.set_defaults(func=run_rank)
 
 
@@ -93,6 +103,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _add_model_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS or 2DGS .ply, NeRF checkpoint, "
                         "or the reference 3DGS trainer's output folder as is (cameras.json + point_cloud/iteration_*)")
+    add_background_arg(parser, "splat models: the colour to render over (default: the one the model came with: "
+                       "its sidecar's or cfg_args', else white)")
 
 
 def _add_camera_size_args(parser: argparse.ArgumentParser, sizes: bool = True) -> None:
@@ -141,10 +153,13 @@ def _executor(args: argparse.Namespace) -> Executor:
     return LOCAL if args.ray is None else make_executor("ray", args.ray)
 
 
-def _load(path: Path):
+def _load(args: argparse.Namespace):
+    """--model, rendered over --background when given."""
     from phd_core.renderers import load_model
 
-    return load_model(path)
+    renderer = load_model(args.model)
+    apply_background(renderer, args.background)
+    return renderer
 
 
 def _scaled(cameras: list[Camera], downscale: float) -> list[Camera]:
@@ -208,7 +223,7 @@ def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None
 
 def run_calibrate(args: argparse.Namespace) -> int:
     args.executor = _executor(args)
-    renderer = _load(args.model)
+    renderer = _load(args)
     if args.data is not None:
         from phd_core.data import load_dataset
 
@@ -237,7 +252,7 @@ def run_uq(args: argparse.Namespace) -> int:
     from phd_core.data import load_dataset
 
     args.executor = _executor(args)
-    renderer = _load(args.model)
+    renderer = _load(args)
     warnings: list[str] = []
     try:
         dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale)
@@ -295,10 +310,16 @@ def run_uq(args: argparse.Namespace) -> int:
     return 0
 
 
+def candidate_name(rank: int, index: int) -> str:
+    """The image a ranked candidate asks for: sorts in capture order and names the candidate."""
+    return f"rank{rank:03d}_candidate{index:04d}.png"
+
+
 def run_rank(args: argparse.Namespace) -> int:
     args.executor = _executor(args)
-    renderer = _load(args.model)
-    candidates = _scaled(_candidates(args, renderer), args.downscale)
+    renderer = _load(args)
+    poses = _candidates(args, renderer)                     # at their own size: what a capture rig is told
+    candidates = _scaled(poses, args.downscale)             # what is rendered
     ratio, calibration = _ratio(args, renderer)
     captured = None
     if args.captured is not None:
@@ -306,10 +327,17 @@ def run_rank(args: argparse.Namespace) -> int:
         captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
                             top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor)
+    convention = renderer.describe().get("camera_format")
     result = {"strategy": args.strategy, "dropout_ratio": ratio, "calibration": calibration,
               "samples": args.samples, "seed": args.seed,
-              "candidates": len(candidates), "order": [r.index for r in ranked],
-              "ranking": [r.to_dict() for r in ranked]}
+              "candidates": len(candidates), "order": [r.index for r in ranked], "camera_format": convention,
+              "ranking": [{**r.to_dict(), "camera": poses[r.index].to_frame(),
+                           "source_pose": source_pose(poses[r.index], convention)} for r in ranked]}
+    if args.export is not None:
+        written = export_cameras(args.export, [poses[r.index] for r in ranked],
+                                 [candidate_name(r.rank, r.index) for r in ranked], args.export_format)
+        print(f"exported {len(ranked)} poses as {written.writes} ({written.name}) to {args.export}",
+              file=sys.stdout if args.out is not None else sys.stderr)     # stdout may carry the JSON
     if args.out is None:
         print(json.dumps(result, indent=2, allow_nan=False))
     else:

@@ -14,7 +14,7 @@ import torch
 
 from phd_core import uq as phd
 from phd_cli import main
-from phd_core.data import load_dataset
+from phd_core.data import load_cameras, load_dataset
 from phd_core.renderers.gs3d import GaussianModel, write_ply
 from phd_core.renderers import load_model
 from phd_core.eval import image_uq_metrics
@@ -246,3 +246,41 @@ def test_rank_rejects_bad_numbers(files, capsys, extra: list[str], field: str) -
         argv += ["--dropout-ratio", "0.3"]
     code, _, err = run(capsys, *argv)
     assert code == 2 and f"{field}:" in err and "Traceback" not in err
+
+
+def test_background_flag_changes_what_calibration_sees(files, capsys) -> None:
+    """--background renders the model over that colour: the curve is the library's over it,
+    and not the one over the default white."""
+    argv = ["calibrate", "--model", files["model"], "--cameras", files["cameras"], "--epsilon", 100, "--step",
+            STEP, "--samples", 3]
+    curves = {}
+    for name, colour in (("white", (1.0, 1.0, 1.0)), ("grey", (0.5, 0.5, 0.5))):
+        out_json = files["root"] / f"calibration_{name}.json"
+        code, _, err = run(capsys, *argv, "--background", name, "--out", out_json)
+        assert code == 0, err
+        renderer = load_model(files["model"])
+        renderer.background = torch.tensor(colour)
+        expected = phd.calibrate(renderer, load_cameras(files["cameras"]), epsilon=100.0, step=STEP, samples=3)
+        curves[name] = strict_json(out_json)["errors"]
+        assert curves[name] == pytest.approx(expected.errors, abs=1e-9)
+    assert curves["white"] != pytest.approx(curves["grey"], abs=1e-6)
+    code, _, err = run(capsys, *argv, "--background", "0.5", "0.5", "0.5")
+    assert code == 0, err
+
+
+@pytest.mark.parametrize("values", [["purple"], ["0.5", "2", "0"], ["1", "1"], ["a", "b", "c"]])
+def test_a_bad_background_names_the_flag(files, capsys, values: list[str]) -> None:
+    code, _, err = run(capsys, "rank", "--model", files["model"], "--candidates", files["candidates"], "--width",
+                       SIZE, "--height", SIZE, "--dropout-ratio", 0.3, "--background", *values)
+    assert code == 2 and "background:" in err and "Traceback" not in err
+
+
+def test_train_over_a_background_records_it_and_the_capture_format(files, capsys, tmp_path) -> None:
+    out = tmp_path / "grey.ply"
+    code, _, err = run(capsys, "train", "--data", files["data"], "--views", 2, "--downscale", 1, "--iterations", 3,
+                       "--background", "grey", "--out", out, "--quiet")
+    assert code == 0, err
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["background"] == [0.5, 0.5, 0.5] and sidecar["dataset_format"] == "blender"
+    facts = load_model(out).describe()
+    assert facts["background"] == [0.5, 0.5, 0.5] and facts["camera_format"] == "blender"

@@ -24,17 +24,17 @@ def load_output_folder(folder: Path) -> GaussianRenderer | None:
     if not is_output_folder(folder):
         return None
     found = read_output_folder(folder)
-    return GaussianRenderer(read_ply(found.ply), found.background, found.cameras)
+    return GaussianRenderer(read_ply(found.ply), found.background, found.cameras, camera_format="3dgs-output")
 
 
 def with_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
-    """The renderer rebuilt with the training cameras and background of the sidecar beside
-    `path` (any splat renderer class built like `GaussianRenderer`)."""
+    """The renderer rebuilt with the training cameras, background and capture format of the
+    sidecar beside `path` (any splat renderer class built like `GaussianRenderer`)."""
     sidecar = read_sidecar(path)
     if sidecar is None:
         return renderer
     return type(renderer)(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
-                          cameras_from_json(sidecar["training_cameras"]))
+                          cameras_from_json(sidecar["training_cameras"]), camera_format=sidecar.get("dataset_format"))
 
 
 GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_3dgs_ply, _load, with_sidecar, load_output_folder,
