@@ -1,4 +1,4 @@
-"""`phd calibrate`, `phd uq` and `phd rank`: PH-Dropout from the command line.
+"""`phd calibrate`, `phd uq`, `phd rank` and `phd select`: PH-Dropout from the command line.
 
 Thin wrappers: parse arguments, load the model and cameras, call `phd_core.uq`,
 print a summary and write JSON (and heat maps) atomically.
@@ -97,6 +97,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="the convention of --export, instead of reading it off the name")
     rank.set_defaults(func=run_rank)
 
+    select = subparsers.add_parser(
+        "select", help="per view, which of two models to trust (ensemble selection)",
+        description="Render every view under --samples dropout masks of each model (each at its own ratio) "
+                    "and choose, per view, the model with the lower score under --rule. With a split's images: "
+                    "PSNR/SSIM of a, b and the selection.")
+    select.add_argument("--model-a", type=Path, required=True, help="the first model (any --model of `phd rank`)")
+    select.add_argument("--model-b", type=Path, required=True, help="the second model")
+    add_background_arg(select, "splat models: the colour both are rendered over (default: each model's own)")
+    views = select.add_mutually_exclusive_group(required=True)
+    views.add_argument("--data", type=Path, help="a capture: the views of its --split")
+    views.add_argument("--cameras", type=Path, help="the views: transforms-style JSON, a cameras.json, any capture")
+    select.add_argument("--split", default="test", help="split of --data (default test)")
+    select.add_argument("--views", type=int, default=None, help="this many evenly spaced frames of --data")
+    select.add_argument("--rule", choices=phd.SELECTION_RULES, default=phd.DEFAULT_SELECTION_RULE,
+                        help="distance_sigma (default): distance to the nearest training camera times the "
+                             "relative mean zeta; sigma_mean: the paper's rule")
+    _add_camera_size_args(select)
+    _add_uncertainty_args(select)
+    _add_calibration_args(select)
+    select.add_argument("--ratio-a", type=float, default=None, help="model a's ratio (default --dropout-ratio, "
+                        "else calibrated on its training cameras)")
+    select.add_argument("--ratio-b", type=float, default=None, help="model b's ratio (likewise)")
+    _add_executor_args(select)
+    select.add_argument("--out", type=Path, help="write the selection JSON here (default: print it)")
+    select.set_defaults(func=run_select)
+
 
 # ---------------------------------------------------------------------------------------- arguments
 
@@ -153,13 +179,30 @@ def _executor(args: argparse.Namespace) -> Executor:
     return LOCAL if args.ray is None else make_executor("ray", args.ray)
 
 
-def _load(args: argparse.Namespace):
-    """--model, rendered over --background when given."""
+def _load(path: Path, background: list[str] | None):
+    """A model, rendered over --background when given."""
     from phd_core.renderers import load_model
 
-    renderer = load_model(args.model)
-    apply_background(renderer, args.background)
+    renderer = load_model(path)
+    apply_background(renderer, background)
     return renderer
+
+
+def _views(args: argparse.Namespace, renderer, warnings: list[str]):
+    """The --data split's views with their images composited over what the model renders
+    over (so errors compare like with like), or without images (and a warning) when the
+    split has none."""
+    from phd_core.data import load_dataset
+
+    background = tuple(renderer.describe().get("background") or (1.0, 1.0, 1.0))
+    options = dict(views=args.views, downscale=args.downscale, background=background)
+    try:
+        return load_dataset(args.data, args.split, **options)
+    except InputError as exc:
+        if not exc.field.endswith("file_path"):
+            raise
+        warnings.append(f"images of split {args.split!r} not available ({exc}): no error metrics")
+        return load_dataset(args.data, args.split, with_images=False, **options)
 
 
 def _scaled(cameras: list[Camera], downscale: float) -> list[Camera]:
@@ -223,7 +266,7 @@ def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None
 
 def run_calibrate(args: argparse.Namespace) -> int:
     args.executor = _executor(args)
-    renderer = _load(args)
+    renderer = _load(args.model, args.background)
     if args.data is not None:
         from phd_core.data import load_dataset
 
@@ -252,16 +295,9 @@ def run_uq(args: argparse.Namespace) -> int:
     from phd_core.data import load_dataset
 
     args.executor = _executor(args)
-    renderer = _load(args)
+    renderer = _load(args.model, args.background)
     warnings: list[str] = []
-    try:
-        dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale)
-    except InputError as exc:
-        if not exc.field.endswith("file_path"):
-            raise
-        warnings.append(f"images of split {args.split!r} not available ({exc}): no error metrics")
-        dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale,
-                               with_images=False)
+    dataset = _views(args, renderer, warnings)
     calibration_cameras = None
     if args.dropout_ratio is None and not renderer.training_cameras:
         # No stored training poses: calibrate on the dataset's train split instead.
@@ -317,7 +353,7 @@ def candidate_name(rank: int, index: int) -> str:
 
 def run_rank(args: argparse.Namespace) -> int:
     args.executor = _executor(args)
-    renderer = _load(args)
+    renderer = _load(args.model, args.background)
     poses = _candidates(args, renderer)                     # at their own size: what a capture rig is told
     candidates = _scaled(poses, args.downscale)             # what is rendered
     ratio, calibration = _ratio(args, renderer)
@@ -344,4 +380,38 @@ def run_rank(args: argparse.Namespace) -> int:
         _write_json(args.out, result)
         print(f"ranked {len(candidates)} candidates ({args.strategy}) at dropout ratio {ratio}; first: "
               f"{result['order'][:5]}; written to {args.out}")
+    return 0
+
+
+
+def run_select(args: argparse.Namespace) -> int:
+    args.executor = _executor(args)
+    renderers = {key: _load(getattr(args, f"model_{key}"), args.background) for key in ("a", "b")}
+    warnings: list[str] = []
+    if args.data is not None:
+        dataset = _views(args, renderers["a"], warnings)
+        cameras, images = dataset.cameras, dataset.images
+    else:
+        cameras = _scaled(load_cameras(args.cameras, split="all", width=args.width, height=args.height),
+                          args.downscale)
+        images = None
+    ratios, calibrations = {}, {}
+    for key, renderer in renderers.items():
+        given = getattr(args, f"ratio_{key}")
+        ratios[key], calibrations[key] = (given, None) if given is not None else _ratio(args, renderer)
+    result = phd.select_models(renderers["a"], renderers["b"], cameras, ratio_a=ratios["a"], ratio_b=ratios["b"],
+                               samples=args.samples, seed=args.seed, images=images, rule=args.rule,
+                               executor=args.executor)
+    counts = {key: sum(v.choice == key for v in result.views) for key in ("a", "b")}
+    report = {"rule": args.rule, "ratio_a": ratios["a"], "ratio_b": ratios["b"], "calibration_a": calibrations["a"],
+              "calibration_b": calibrations["b"], "samples": args.samples, "seed": args.seed, "counts": counts,
+              **result.to_dict(), "warnings": warnings}
+    if args.out is None:
+        print(json.dumps(report, indent=2, allow_nan=False))
+    else:
+        _write_json(args.out, report)
+        print(f"{len(cameras)} views ({args.rule}): a trusted for {counts['a']}, b for {counts['b']}; "
+              f"written to {args.out}")
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     return 0

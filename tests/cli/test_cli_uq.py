@@ -284,3 +284,29 @@ def test_train_over_a_background_records_it_and_the_capture_format(files, capsys
     assert sidecar["background"] == [0.5, 0.5, 0.5] and sidecar["dataset_format"] == "blender"
     facts = load_model(out).describe()
     assert facts["background"] == [0.5, 0.5, 0.5] and facts["camera_format"] == "blender"
+
+
+def test_select_chooses_per_view_as_the_library_does_over_the_background_given(files, capsys, tmp_path) -> None:
+    """`phd select` is select_models with the same arguments; --background reaches both models."""
+    g = torch.Generator().manual_seed(8)
+    other = GaussianModel(means=(torch.rand(120, 3, generator=g) - 0.5) * 1.4,
+                          log_scales=torch.log(0.05 + 0.1 * torch.rand(120, 3, generator=g)),
+                          quats=torch.randn(120, 4, generator=g), opacity_logits=torch.rand(120, generator=g) * 4 - 1,
+                          sh=torch.randn(120, 1, 3, generator=g) * 0.5)
+    write_ply(other, tmp_path / "other.ply")
+    out_json = tmp_path / "select.json"
+    code, out, err = run(capsys, "select", "--model-a", files["model"], "--model-b", tmp_path / "other.ply",
+                         "--data", files["data"], "--split", "test", "--rule", "sigma_mean", "--samples", 4,
+                         "--dropout-ratio", 0.3, "--background", "black", "--out", out_json)
+    assert code == 0 and "views (sigma_mean)" in out, err
+    report = strict_json(out_json)
+    renderers = [load_model(files["model"]), load_model(tmp_path / "other.ply")]
+    for renderer in renderers:
+        renderer.background = torch.zeros(3)
+    dataset = load_dataset(files["data"], "test", background=(0.0, 0.0, 0.0))
+    expected = phd.select_models(*renderers, dataset.cameras, ratio_a=0.3, ratio_b=0.3, samples=4,
+                                 images=dataset.images, rule="sigma_mean")
+    assert [v["choice"] for v in report["views"]] == [v.choice for v in expected.views]
+    assert [v["score_a"] for v in report["views"]] == pytest.approx([v.score_a for v in expected.views], abs=1e-9)
+    assert report["metrics"]["psnr_a"] == pytest.approx(expected.metrics["psnr_a"], abs=1e-9)
+    assert report["counts"]["a"] + report["counts"]["b"] == len(dataset.cameras)
