@@ -13,8 +13,6 @@ import base64
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-import torch
-
 from phd_core import uq
 from phd_core.uq import Progress
 from phd_core.data import source_pose
