@@ -6,7 +6,7 @@
         model = phd.upload_model("model.ply", cameras="data/transforms_train.json")
         phd.calibrate(model.id)
         ranking = phd.rank(model.id, candidates, downscale=4, top_k=5)
-        print([(v.index, v.sigma_max) for v in ranking.views])
+        print([(v.index, v.sigma_max, v.c2w) for v in ranking.views])   # c2w: the pose to capture
 
 Results are the service's own pydantic types (`service.schemas`). Every error answer
 raises a `PHDError` subclass carrying the server's status, code, message and field. Work
