@@ -85,12 +85,12 @@ def main() -> int:
             set_field(driver, "rank-topk", "")
             driver.find_element(By.ID, "gen-elevation").click()
             WebDriverWait(driver, 60).until(
-                lambda d: d.execute_script("return state.candidates.length") == args.candidates)
-            candidates = driver.execute_script("return state.candidates")
+                lambda d: (d.execute_script("return state.spec") or {}).get("count") == args.candidates)
+            spec = driver.execute_script("return state.spec")      # the service makes the poses for both
             page_times, client_times = [], []
             for _ in range(args.repeats):
                 start = time.perf_counter()
-                result = phd.rank(a.id, candidates, samples=args.samples, downscale=1, heatmaps="files")
+                result = phd.rank(a.id, candidates=spec, samples=args.samples, downscale=1, heatmaps="files")
                 client_times.append(time.perf_counter() - start)
                 start = time.perf_counter()
                 driver.find_element(By.ID, "rank-run").click()

@@ -6,7 +6,7 @@
         model = phd.upload_model("model.ply", cameras="data/transforms_train.json")
         phd.calibrate(model.id)
         ranking = phd.rank(model.id, candidates, downscale=4, top_k=5)
-        print([(v.index, v.sigma_max) for v in ranking.views])
+        print([(v.index, v.sigma_max, v.c2w) for v in ranking.views])   # c2w: the pose to capture
 
 Results are the service's own pydantic types (`service.schemas`). Every error answer
 raises a `PHDError` subclass carrying the server's status, code, message and field. Work
@@ -195,13 +195,37 @@ def camera_frames(cameras: Cameras) -> list[dict]:
 
 # ----------------------------------------------------------------------------- the client
 
-def _sidecar_background(sidecar: Path) -> list[float] | None:
-    """The background a `phd train` sidecar records (None when it has none or is unreadable)."""
+def _sidecar(sidecar: Path) -> tuple[list[float] | None, str | None]:
+    """The background and capture format a `phd train` sidecar records (None for what it has
+    not, or when it is unreadable)."""
     try:
-        value = json.loads(sidecar.read_text()).get("background")
+        data = json.loads(sidecar.read_text())
+        value, source = data.get("background"), data.get("dataset_format")
     except (OSError, ValueError, AttributeError):
+        return None, None
+    return (list(value) if isinstance(value, (list, tuple)) and len(value) == 3 else None,
+            source if isinstance(source, str) else None)
+
+
+def _capture_format(cameras: Cameras | None) -> str | None:
+    """The format of cameras given as a capture folder or file (COLMAP, LLFF, ...), else None."""
+    if not isinstance(cameras, (str, Path)) or not (Path(cameras).is_dir() or str(cameras).lower().endswith(".npy")):
         return None
-    return list(value) if isinstance(value, (list, tuple)) and len(value) == 3 else None
+    from phd_core.data import locate
+
+    try:
+        return locate(cameras, "train")[0].name
+    except ValueError:
+        return None
+
+
+def _with_convention(name: str | None) -> str | None:
+    """A capture format found on disk, when poses can be handed back in its convention."""
+    if name is None:
+        return None
+    from phd_core.data import POSES
+
+    return name if name in POSES else None
 
 
 class PHDClient:
@@ -239,29 +263,38 @@ class PHDClient:
         return Health.model_validate(self._request("GET", "/health").json())
 
     def upload_model(self, path: str | Path, cameras: Cameras | None = None, name: str | None = None,
-                     background: str | Sequence[float] | None = None) -> ModelInfo:
+                     background: str | Sequence[float] | None = None,
+                     camera_format: str | None = None) -> ModelInfo:
         """Upload a 3DGS/2DGS PLY or NeRF checkpoint with its training cameras: `cameras`, else
         the trainer's sidecar `<stem>.json` next to a PLY when there is one (NeRF
         checkpoints carry theirs inside). `path` may be the reference 3DGS trainer's output
         folder as is: its latest point_cloud.ply goes up with its cameras.json. `background`
-        (splat models): the colour trained over, else the sidecar's or the folder's."""
+        (splat models): the colour trained over, else the sidecar's or the folder's (else the
+        service's rule, docs/service.md). `camera_format`: the pose convention of the cameras'
+        source (ranked poses come back in it), else the folder's, the sidecar's capture's or
+        that of a capture given as `cameras`."""
         path = Path(path)
         if path.is_dir():
             from phd_core.data.inria import read_output_folder
 
             folder = read_output_folder(path)
-            cameras = folder.cameras if cameras is None else cameras     # test views (eval runs) left out
+            if cameras is None:
+                cameras, camera_format = folder.cameras, camera_format or "3dgs-output"   # eval test views left out
             background = folder.background if background is None else background
             path = folder.ply
         sidecar = path.with_name(path.stem + ".json")
         if path.suffix.lower() == ".ply" and sidecar.is_file():
+            sidecar_background, sidecar_format = _sidecar(sidecar)
             if cameras is None:
-                cameras = sidecar
+                cameras, camera_format = sidecar, camera_format or _with_convention(sidecar_format)
             if background is None:
-                background = _sidecar_background(sidecar)
+                background = sidecar_background
+        camera_format = camera_format or _with_convention(_capture_format(cameras))
         data = {}
         if cameras is not None:
             data["cameras"] = json.dumps(camera_frames(cameras))
+        if camera_format is not None:
+            data["camera_format"] = camera_format
         if background is not None:
             data["background"] = json.dumps(background if isinstance(background, str) else list(background))
         if name is not None:

@@ -10,6 +10,8 @@ from pathlib import Path
 
 from phd_core.renderers import FAMILIES
 
+from .options import add_background_arg, parse_background
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("train", help="train a 3DGS, 2DGS or NeRF model on a Blender dataset",
@@ -31,6 +33,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="2DGS: depth distortion weight (default 1; 0 off)")
     p.add_argument("--normal-consistency", type=float, default=0.05,
                    help="2DGS: normal consistency weight (default 0.05; 0 off)")
+    add_background_arg(p, "the colour to train over (images with alpha are composited on it; the model is "
+                       "rendered over it). Default: white for captures with alpha masks; for real captures the "
+                       "images' mean colour (3dgs, 2dgs) or white (nerf)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -50,6 +55,9 @@ def run(args: argparse.Namespace) -> int:
     module, function = family.trainer.split(":")
     train = getattr(importlib.import_module(module), function)   # imported only to train
     options = {name: getattr(args, name) for name in family.train_options}
+    background = parse_background(args.background)
+    if background is not None:
+        options["background"] = list(background)
     renderer = train(args.data, views=views, downscale=args.downscale, iterations=args.iterations, seed=args.seed,
                      out=args.out, progress=not args.quiet, **options)
     print(f"trained {renderer.kind} with {renderer.num_units} dropout units in "

@@ -1,4 +1,4 @@
-"""`phd calibrate`, `phd uq` and `phd rank`: PH-Dropout from the command line.
+"""`phd calibrate`, `phd uq`, `phd rank` and `phd select`: PH-Dropout from the command line.
 
 Thin wrappers: parse arguments, load the model and cameras, call `phd_core.uq`,
 print a summary and write JSON (and heat maps) atomically.
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from phd_core import uq as phd
-from phd_core.data import load_cameras
+from phd_core.data import POSES, export_cameras, load_cameras, source_pose
 from phd_core.scene import Camera
 from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor, make_executor
@@ -21,6 +21,8 @@ from phd_core.io import write_heatmap, write_json_atomic
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
+
+from .options import add_background_arg, apply_background
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -84,8 +86,42 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_uncertainty_args(rank)
     _add_calibration_args(rank)
     _add_executor_args(rank)
-    rank.add_argument("--out", type=Path, help="write the ranking JSON here (default: print it)")
+    rank.add_argument("--out", type=Path, help="write the ranking JSON here (default: print it); every ranked "
+                      "candidate carries its camera (a transforms frame) and, when the model's cameras came from "
+                      "a known source, the same pose in that source's convention (source_pose)")
+    rank.add_argument("--export", type=Path, metavar="FILE",
+                      help="also write the ranked batch (the first --top-k, else all) for a capture tool: a *.json "
+                           "file is a nerfstudio transforms.json, a file named cameras.json the reference trainer's, "
+                           "a path without a suffix a COLMAP text model folder (or say --export-format)")
+    rank.add_argument("--export-format", choices=sorted(POSES), default=None,
+                      help="the convention of --export, instead of reading it off the name")
     rank.set_defaults(func=run_rank)
+
+    select = subparsers.add_parser(
+        "select", help="per view, which of two models to trust (ensemble selection)",
+        description="Render every view under --samples dropout masks of each model (each at its own ratio) "
+                    "and choose, per view, the model with the lower score under --rule. With a split's images: "
+                    "PSNR/SSIM of a, b and the selection.")
+    select.add_argument("--model-a", type=Path, required=True, help="the first model (any --model of `phd rank`)")
+    select.add_argument("--model-b", type=Path, required=True, help="the second model")
+    add_background_arg(select, "splat models: the colour both are rendered over (default: each model's own)")
+    views = select.add_mutually_exclusive_group(required=True)
+    views.add_argument("--data", type=Path, help="a capture: the views of its --split")
+    views.add_argument("--cameras", type=Path, help="the views: transforms-style JSON, a cameras.json, any capture")
+    select.add_argument("--split", default="test", help="split of --data (default test)")
+    select.add_argument("--views", type=int, default=None, help="this many evenly spaced frames of --data")
+    select.add_argument("--rule", choices=phd.SELECTION_RULES, default=phd.DEFAULT_SELECTION_RULE,
+                        help="distance_sigma (default): distance to the nearest training camera times the "
+                             "relative mean zeta; sigma_mean: the paper's rule")
+    _add_camera_size_args(select)
+    _add_uncertainty_args(select)
+    _add_calibration_args(select)
+    select.add_argument("--ratio-a", type=float, default=None, help="model a's ratio (default --dropout-ratio, "
+                        "else calibrated on its training cameras)")
+    select.add_argument("--ratio-b", type=float, default=None, help="model b's ratio (likewise)")
+    _add_executor_args(select)
+    select.add_argument("--out", type=Path, help="write the selection JSON here (default: print it)")
+    select.set_defaults(func=run_select)
 
 
 # ---------------------------------------------------------------------------------------- arguments
@@ -93,6 +129,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _add_model_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS or 2DGS .ply, NeRF checkpoint, "
                         "or the reference 3DGS trainer's output folder as is (cameras.json + point_cloud/iteration_*)")
+    add_background_arg(parser, "splat models: the colour to render over (default: the one the model came with: "
+                       "its sidecar's or cfg_args', else white)")
 
 
 def _add_camera_size_args(parser: argparse.ArgumentParser, sizes: bool = True) -> None:
@@ -141,10 +179,30 @@ def _executor(args: argparse.Namespace) -> Executor:
     return LOCAL if args.ray is None else make_executor("ray", args.ray)
 
 
-def _load(path: Path):
+def _load(path: Path, background: list[str] | None):
+    """A model, rendered over --background when given."""
     from phd_core.renderers import load_model
 
-    return load_model(path)
+    renderer = load_model(path)
+    apply_background(renderer, background)
+    return renderer
+
+
+def _views(args: argparse.Namespace, renderer, warnings: list[str]):
+    """The --data split's views with their images composited over what the model renders
+    over (so errors compare like with like), or without images (and a warning) when the
+    split has none."""
+    from phd_core.data import load_dataset
+
+    background = tuple(renderer.describe().get("background") or (1.0, 1.0, 1.0))
+    options = dict(views=args.views, downscale=args.downscale, background=background)
+    try:
+        return load_dataset(args.data, args.split, **options)
+    except InputError as exc:
+        if not exc.field.endswith("file_path"):
+            raise
+        warnings.append(f"images of split {args.split!r} not available ({exc}): no error metrics")
+        return load_dataset(args.data, args.split, with_images=False, **options)
 
 
 def _scaled(cameras: list[Camera], downscale: float) -> list[Camera]:
@@ -208,7 +266,7 @@ def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None
 
 def run_calibrate(args: argparse.Namespace) -> int:
     args.executor = _executor(args)
-    renderer = _load(args.model)
+    renderer = _load(args.model, args.background)
     if args.data is not None:
         from phd_core.data import load_dataset
 
@@ -237,16 +295,9 @@ def run_uq(args: argparse.Namespace) -> int:
     from phd_core.data import load_dataset
 
     args.executor = _executor(args)
-    renderer = _load(args.model)
+    renderer = _load(args.model, args.background)
     warnings: list[str] = []
-    try:
-        dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale)
-    except InputError as exc:
-        if not exc.field.endswith("file_path"):
-            raise
-        warnings.append(f"images of split {args.split!r} not available ({exc}): no error metrics")
-        dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale,
-                               with_images=False)
+    dataset = _views(args, renderer, warnings)
     calibration_cameras = None
     if args.dropout_ratio is None and not renderer.training_cameras:
         # No stored training poses: calibrate on the dataset's train split instead.
@@ -295,10 +346,16 @@ def run_uq(args: argparse.Namespace) -> int:
     return 0
 
 
+def candidate_name(rank: int, index: int) -> str:
+    """The image a ranked candidate asks for: sorts in capture order and names the candidate."""
+    return f"rank{rank:03d}_candidate{index:04d}.png"
+
+
 def run_rank(args: argparse.Namespace) -> int:
     args.executor = _executor(args)
-    renderer = _load(args.model)
-    candidates = _scaled(_candidates(args, renderer), args.downscale)
+    renderer = _load(args.model, args.background)
+    poses = _candidates(args, renderer)                     # at their own size: what a capture rig is told
+    candidates = _scaled(poses, args.downscale)             # what is rendered
     ratio, calibration = _ratio(args, renderer)
     captured = None
     if args.captured is not None:
@@ -306,14 +363,55 @@ def run_rank(args: argparse.Namespace) -> int:
         captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
                             top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor)
+    convention = renderer.describe().get("camera_format")
     result = {"strategy": args.strategy, "dropout_ratio": ratio, "calibration": calibration,
               "samples": args.samples, "seed": args.seed,
-              "candidates": len(candidates), "order": [r.index for r in ranked],
-              "ranking": [r.to_dict() for r in ranked]}
+              "candidates": len(candidates), "order": [r.index for r in ranked], "camera_format": convention,
+              "ranking": [{**r.to_dict(), "camera": poses[r.index].to_frame(),
+                           "source_pose": source_pose(poses[r.index], convention)} for r in ranked]}
+    if args.export is not None:
+        written = export_cameras(args.export, [poses[r.index] for r in ranked],
+                                 [candidate_name(r.rank, r.index) for r in ranked], args.export_format)
+        print(f"exported {len(ranked)} poses as {written.writes} ({written.name}) to {args.export}",
+              file=sys.stdout if args.out is not None else sys.stderr)     # stdout may carry the JSON
     if args.out is None:
         print(json.dumps(result, indent=2, allow_nan=False))
     else:
         _write_json(args.out, result)
         print(f"ranked {len(candidates)} candidates ({args.strategy}) at dropout ratio {ratio}; first: "
               f"{result['order'][:5]}; written to {args.out}")
+    return 0
+
+
+
+def run_select(args: argparse.Namespace) -> int:
+    args.executor = _executor(args)
+    renderers = {key: _load(getattr(args, f"model_{key}"), args.background) for key in ("a", "b")}
+    warnings: list[str] = []
+    if args.data is not None:
+        dataset = _views(args, renderers["a"], warnings)
+        cameras, images = dataset.cameras, dataset.images
+    else:
+        cameras = _scaled(load_cameras(args.cameras, split="all", width=args.width, height=args.height),
+                          args.downscale)
+        images = None
+    ratios, calibrations = {}, {}
+    for key, renderer in renderers.items():
+        given = getattr(args, f"ratio_{key}")
+        ratios[key], calibrations[key] = (given, None) if given is not None else _ratio(args, renderer)
+    result = phd.select_models(renderers["a"], renderers["b"], cameras, ratio_a=ratios["a"], ratio_b=ratios["b"],
+                               samples=args.samples, seed=args.seed, images=images, rule=args.rule,
+                               executor=args.executor)
+    counts = {key: sum(v.choice == key for v in result.views) for key in ("a", "b")}
+    report = {"rule": args.rule, "ratio_a": ratios["a"], "ratio_b": ratios["b"], "calibration_a": calibrations["a"],
+              "calibration_b": calibrations["b"], "samples": args.samples, "seed": args.seed, "counts": counts,
+              **result.to_dict(), "warnings": warnings}
+    if args.out is None:
+        print(json.dumps(report, indent=2, allow_nan=False))
+    else:
+        _write_json(args.out, report)
+        print(f"{len(cameras)} views ({args.rule}): a trusted for {counts['a']}, b for {counts['b']}; "
+              f"written to {args.out}")
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     return 0

@@ -57,13 +57,15 @@ def check_float(value: Any, name: str, minimum: float | None = None, maximum: fl
     return value
 
 
+NAMED_COLORS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "grey": (0.5, 0.5, 0.5), "gray": (0.5, 0.5, 0.5)}
+
+
 def check_color(value: Any, name: str) -> tuple[float, float, float]:
-    """'white', 'black' or three numbers in [0, 1] -> (r, g, b)."""
+    """'white', 'black', 'grey' (or 'gray', 0.5) or three numbers in [0, 1] -> (r, g, b)."""
     if isinstance(value, str):
-        named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-        if value not in named:
-            raise InputError(name, f"must be 'white', 'black' or three numbers in [0, 1], got {value!r}")
-        return named[value]
+        if value.strip().lower() not in NAMED_COLORS:
+            raise InputError(name, f"must be 'white', 'black', 'grey' or three numbers in [0, 1], got {value!r}")
+        return NAMED_COLORS[value.strip().lower()]
     try:
         color = [float(c) for c in value]
     except (TypeError, ValueError):

@@ -12,6 +12,7 @@ from fastapi.responses import JSONResponse
 
 from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import FAMILIES, load_model_bytes
+from phd_core.renderers.gs3d import GaussianRenderer
 from phd_core.scene import Camera
 
 from .budget import MemoryLedger, Reservation, load_bytes
@@ -22,7 +23,7 @@ from .keys import OPEN, Principal
 from .schemas import ErrorResponse, Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore
-from .upload import Upload, parse_background, parse_camera_json
+from .upload import Upload, guess_background, parse_background, parse_camera_format, parse_camera_json
 from .work import parse_cameras, set_background
 
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -93,29 +94,39 @@ class ServiceState:
 
     def ingest(self, upload: Upload, kind: str, who: Principal) -> ModelRecord:
         """Load the uploaded file fully (worker thread), then move it into the store."""
-        cameras = None
-        if upload.cameras is not None:  # the cheap check first
-            cameras = parse_cameras(parse_camera_json(upload.cameras), RenderSize(), self.settings,
-                                    field="cameras", cap=self.settings.max_training_cameras)
+        cameras = source = None
+        if upload.cameras is not None:  # the cheap checks first
+            source = parse_camera_json(upload.cameras)
+            cameras = parse_cameras(source, RenderSize(), self.settings, field="cameras",
+                                    cap=self.settings.max_training_cameras)
+        camera_format = parse_camera_format(upload.camera_format, source)
         # Parsed under the shared memory budget, which the model then stays in (if the parse's
         # bytes hold it); by content and the client's file name, so no message ever names the
         # server's temp file.
         try:
             with self.ledger.reserve(load_bytes(upload.size), timeout=self.settings.upload_wait) as parse:
-                return self._store(upload, kind, who, cameras, parse)
+                return self._store(upload, kind, who, cameras, camera_format, parse)
         except TimeoutError:
             raise busy("file", self.settings.retry_after) from None
 
     def _store(self, upload: Upload, kind: str, who: Principal, cameras: list[Camera] | None,
-               parse: Reservation) -> ModelRecord:
+               camera_format: str | None, parse: Reservation) -> ModelRecord:
         renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
+        background_source = None
         if upload.background is not None:
-            set_background(renderer, parse_background(upload.background))
+            set_background(renderer, parse_background(upload.background))    # a NeRF refuses it
+            background_source = "the upload's background field"
+        elif isinstance(renderer, GaussianRenderer):            # a bare PLY carries no background
+            color, background_source = guess_background(camera_format)
+            set_background(renderer, color)
         cameras = cameras if cameras is not None else renderer.training_cameras
         frames = None if not cameras else [c.to_frame() for c in cameras]
         name = upload.name or upload.filename or f"model{FAMILIES[kind].extension}"
         # The stored cameras are the truth about training cameras, not what the file carried.
         facts = {k: v for k, v in renderer.describe().items() if k != "has_training_cameras"}
+        facts["camera_format"] = camera_format or facts.get("camera_format")
+        if background_source is not None:
+            facts["background_source"] = background_source
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)

@@ -107,6 +107,8 @@ class ModelInfo(_Response):
     num_training_cameras: int
     has_calibration: bool
     calibration: Calibration | None = None
+    camera_format: str | None = Field(None, description="The pose convention of the source the training cameras "
+                                      "came from (phd_core.data.POSES); ranked poses come back in it too.")
 
     @field_validator("kind")
     @classmethod
@@ -224,6 +226,20 @@ class RankedCandidate(_Response):
     render_png: str | None = Field(None, description="base64 PNG of the model's render of the view (no dropout), "
                                    "to show beside the heat map (heatmaps='base64').")
     render_url: str | None = Field(None, description="Path of the render's PNG artefact (heatmaps='files').")
+    camera: dict[str, Any] | None = Field(None, description="The candidate's camera as a transforms frame, as "
+                                          "given or generated (its own size, before downscale): transform_matrix "
+                                          "(4x4 camera-to-world, OpenGL), fl_x, fl_y, cx, cy, w, h.")
+    source_pose: dict[str, Any] | None = Field(
+        None, description="The same pose in the convention of the source the model's cameras came from (the "
+        "result's camera_format), with its name in 'format': colmap {qvec [w,x,y,z], tvec (world-to-camera, "
+        "OpenCV), camera {model, width, height, params}}, 3dgs-output {position, rotation (camera-to-world, OpenCV), "
+        "fx, fy, width, height} (a cameras.json entry), nerfstudio/blender (a transforms frame). Null when the "
+        "source is unknown.")
+
+    @property
+    def c2w(self) -> list[list[float]] | None:
+        """The 4x4 camera-to-world matrix (OpenGL, as phd_core's Camera), None without a camera."""
+        return None if self.camera is None else self.camera["transform_matrix"]
 
 
 class RankResult(_Response):
@@ -237,6 +253,8 @@ class RankResult(_Response):
     height: int
     num_candidates: int
     heatmap_vmax: float | None = Field(None, description="zeta value drawn as the top colour of every heat map.")
+    camera_format: str | None = Field(None, description="The pose convention of the model's camera source "
+                                      "(colmap, 3dgs-output, nerfstudio, blender), in which source_pose is given.")
     views: list[RankedCandidate] = Field(description="In the order the strategy would capture them.")
 
 

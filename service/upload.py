@@ -8,8 +8,13 @@ Form fields of `POST /v1/models`:
   frames, as a text field or a file.
 - `name` (optional): a display name; default the uploaded file's name.
 - `background` (optional, splat models): the colour the model was trained over, JSON
-  `[r, g, b]` in [0, 1] or "white" / "black" (a trainer's sidecar or cfg_args says it);
-  default white. Stored with the model and used by every render.
+  `[r, g, b]` in [0, 1] or "white" / "black" / "grey" (a trainer's sidecar or cfg_args says
+  it). A bare PLY carries none, so without the field it is guessed by one rule
+  (`guess_background`): black when the cameras are a reference-trainer cameras.json (that
+  trainer's default), else white. Stored with the model and used by every render.
+- `camera_format` (optional): the pose convention of the cameras' source, one of
+  `phd_core.data.POSES` (colmap, 3dgs-output, nerfstudio, blender); default 3dgs-output for a
+  cameras.json, nerfstudio for frames. Ranked poses come back in it too.
 
 The body is parsed as it arrives (python-multipart's streaming parser): the model bytes go
 straight to `tmp/` in the data directory and are hashed on the way, so an upload never sits
@@ -30,6 +35,8 @@ from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
+from phd_core.data import POSES
+from phd_core.data.inria import is_inria_cameras
 from phd_core.errors import InputError, check_color
 from phd_core.io import fsync_path
 from phd_core.renderers import FAMILIES, SNIFF_BYTES, model_kind
@@ -37,7 +44,7 @@ from phd_core.renderers import FAMILIES, SNIFF_BYTES, model_kind
 from .errors import JSON_ERRORS, ServiceError, invalid, json_problem
 
 MAX_NAME_BYTES = 256
-FIELDS = ("file", "cameras", "name", "background")
+FIELDS = ("file", "cameras", "name", "background", "camera_format")
 
 
 @dataclass
@@ -47,6 +54,7 @@ class Upload:
     name: str | None = None
     cameras: bytes | None = None
     background: bytes | None = None
+    camera_format: str | None = None
     size: int = 0
     head: bytes = b""
     sha256: str = ""
@@ -134,6 +142,8 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
             upload.name = part.buffer.decode("utf-8", "replace").strip() or None
         elif part.name == "background":
             upload.background = bytes(part.buffer)
+        elif part.name == "camera_format":
+            upload.camera_format = part.buffer.decode("utf-8", "replace").strip() or None
         part = _Part()                  # an error between parts is no part's (names the upload: file)
 
     try:
@@ -177,7 +187,7 @@ def sniff_kind(head: bytes) -> str:
 
 
 def parse_background(raw: bytes) -> tuple[float, float, float]:
-    """The `background` field: a JSON colour or a bare "white" / "black"."""
+    """The `background` field: a JSON colour or a bare name ("white", "black", "grey")."""
     text = raw.decode("utf-8", "replace").strip()
     try:
         value = json.loads(text)
@@ -194,3 +204,24 @@ def parse_camera_json(raw: bytes) -> Any:
         return json.loads(raw)
     except JSON_ERRORS as exc:
         raise invalid("cameras", f"not valid JSON: {json_problem(exc)}") from None
+
+
+def guess_background(camera_format: str | None) -> tuple[tuple[float, float, float], str]:
+    """The colour a splat model without a `background` field is rendered over, and why: the
+    reference 3DGS trainer trains over black unless told otherwise, so its cameras.json says
+    black; everything else the Blender convention's white."""
+    if camera_format == "3dgs-output":
+        return (0.0, 0.0, 0.0), "guessed: black, the reference trainer's default (its cameras.json came with it)"
+    return (1.0, 1.0, 1.0), "guessed: white, the default for a model without a background"
+
+
+def parse_camera_format(name: str | None, cameras: Any) -> str | None:
+    """The `camera_format` field, checked against the registry; else read off the cameras
+    (a reference cameras.json or transforms frames); None without cameras."""
+    if name is not None:
+        if name not in POSES:
+            raise invalid("camera_format", POSES.unknown(name))
+        return name
+    if cameras is None:
+        return None
+    return "3dgs-output" if is_inria_cameras(cameras) else "nerfstudio"

@@ -13,10 +13,9 @@ import base64
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-import torch
-
 from phd_core import uq
 from phd_core.uq import Progress
+from phd_core.data import source_pose
 from phd_core.data.inria import cameras_from_entries, is_inria_cameras
 from phd_core.scene import Camera, cameras_from_json
 from phd_core.uq.candidates import candidate_cameras
@@ -24,7 +23,7 @@ from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import FAMILIES, Renderer, RenderMemory, load_model, memory_probe_bytes
-from phd_core.renderers.gs3d import GaussianRenderer
+from phd_core.renderers.gs3d import GaussianRenderer, set_background
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
 
@@ -40,14 +39,6 @@ from .store import ModelRecord, ModelStore, utc_now
 
 
 # ----------------------------------------------------------------------------- loaded models
-
-def set_background(renderer: Renderer, color: tuple[float, float, float] | list[float]) -> None:
-    """The colour a splat model (3DGS, 2DGS) is rendered over; a NeRF checkpoint carries its
-    own background, so giving one is a 422."""
-    if not isinstance(renderer, GaussianRenderer):
-        raise invalid("background", f"a {renderer.kind} model carries its own background")
-    renderer.background = torch.tensor(color, dtype=torch.float32)
-
 
 def model_loader(store: ModelStore) -> Callable[[str], Renderer]:
     """How the memory ledger loads a stored model by id (404 if it was deleted meanwhile)."""
@@ -75,8 +66,9 @@ def _camera_field(prefix: str, library_field: str) -> str:
     return f"{prefix}.{library_field}"
 
 
-def parse_cameras(source: Any, size: RenderSize, settings: Settings, *, field: str, cap: int) -> list[Camera]:
-    """Validated cameras at the requested render size, or a 422 naming the frame and key."""
+def read_cameras(source: Any, size: RenderSize, settings: Settings, *, field: str, cap: int) -> list[Camera]:
+    """Validated cameras at their own size (frames without w/h take the request's width x
+    height), or a 422 naming the frame and key."""
     frames = source.get("frames") if isinstance(source, dict) else source
     if isinstance(frames, list) and len(frames) > cap:
         raise invalid(field, f"{len(frames)} cameras exceed the cap of {cap} per request")
@@ -84,23 +76,33 @@ def parse_cameras(source: Any, size: RenderSize, settings: Settings, *, field: s
         raise invalid("width" if size.width is None else "height", "give width and height together")
     try:
         if is_inria_cameras(source):     # the reference 3DGS trainer's cameras.json, as is
-            cameras = cameras_from_entries(source, settings.max_frame_size, file="frames")
-        else:
-            cameras = cameras_from_json(source, width=size.width, height=size.height,
-                                        max_size=settings.max_frame_size)
+            return cameras_from_entries(source, settings.max_frame_size, file="frames")
+        return cameras_from_json(source, width=size.width, height=size.height, max_size=settings.max_frame_size)
+    except InputError as exc:
+        raise invalid(_camera_field(field, exc.field), exc.reason) from None
+
+
+def render_size(cameras: list[Camera], size: RenderSize, settings: Settings, *, field: str) -> list[Camera]:
+    """The cameras at the requested render size (width x height, else 1/downscale), each
+    within the render cap, or a 422 naming the field to change."""
+    try:
         if size.width is not None:
             cameras = [c.resized(size.width, size.height) for c in cameras]
         elif size.downscale is not None:
             cameras = [c.scaled(size.downscale) for c in cameras]
     except InputError as exc:
-        name = exc.field if exc.field in ("downscale", "width", "height") else _camera_field(field, exc.field)
-        raise invalid(name, exc.reason) from None
+        raise invalid(exc.field if exc.field in ("downscale", "width", "height") else field, exc.reason) from None
     for i, camera in enumerate(cameras):
         if max(camera.width, camera.height) > settings.max_image_size:
             raise invalid(f"{field}[{i}]", f"renders at {camera.width}x{camera.height}, above the cap of "
                           f"{settings.max_image_size} pixels per side (lower the resolution with downscale "
                           "or width/height)")
     return cameras
+
+
+def parse_cameras(source: Any, size: RenderSize, settings: Settings, *, field: str, cap: int) -> list[Camera]:
+    """Validated cameras at the requested render size, or a 422 naming the frame and key."""
+    return render_size(read_cameras(source, size, settings, field=field, cap=cap), size, settings, field=field)
 
 
 def stored_cameras(record: ModelRecord) -> list[Camera]:
@@ -238,7 +240,7 @@ def generated_candidates(record: ModelRecord, body: RankRequest, settings: Setti
                          ledger: MemoryLedger) -> list[Camera]:
     """The poses of a rank request's generator spec, placed around the model's training cameras
     (else its splats: the model is loaded, waiting for memory at most `upload_wait`), checked
-    like explicit cameras."""
+    like explicit cameras, at their own size."""
     spec = body.candidates
     if spec.count > settings.max_candidates:
         raise invalid("candidates.count", f"{spec.count} poses exceed the cap of {settings.max_candidates} per request")
@@ -255,16 +257,19 @@ def generated_candidates(record: ModelRecord, body: RankRequest, settings: Setti
         raise invalid(f"candidates.{exc.field}", exc.reason) from None
     except TimeoutError:
         raise busy("candidates", settings.retry_after) from None
-    return parse_cameras([c.to_frame() for c in poses], body, settings, field="candidates",
-                         cap=settings.max_candidates)
+    return read_cameras([c.to_frame() for c in poses], body, settings, field="candidates",
+                        cap=settings.max_candidates)
 
 
 def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url: Callable[[str], str],
              ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
     if body.candidates is not None:
-        cameras = generated_candidates(record, body, settings, ledger)
+        poses = generated_candidates(record, body, settings, ledger)
+        cameras = render_size(poses, body, settings, field="candidates")
     else:
-        cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
+        poses = read_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
+        cameras = render_size(poses, body, settings, field="cameras")
+    convention = record.describe.get("camera_format")        # poses go back in the source's terms too
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
     captured = (stored_cameras(record) if body.captured is None else
@@ -287,7 +292,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
                                strategy=body.strategy, captured=captured, keep_peak=heatmaps,
                                progress=_span(progress, 0.0, split), executor=executor)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
-                                 score=r.score) for r in ranked]
+                                 score=r.score, camera=poses[r.index].to_frame(),
+                                 source_pose=source_pose(poses[r.index], convention)) for r in ranked]
         artifacts: dict[str, bytes] = {}
         vmax = None
         if heatmaps:
@@ -307,7 +313,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
         result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, strategy=body.strategy,
                             samples=samples,
                             seed=body.seed, width=cameras[0].width, height=cameras[0].height,
-                            num_candidates=len(cameras), heatmap_vmax=vmax, views=views)
+                            num_candidates=len(cameras), heatmap_vmax=vmax, camera_format=convention, views=views)
         return result, artifacts
 
     return Bounded(renders, settings, ledger, work), float(estimate)

@@ -82,3 +82,46 @@ def test_each_layer_imports_only_the_layers_below_it() -> None:
 def test_no_module_is_over_500_lines() -> None:
     long = {str(p.relative_to(ROOT)): n for p in ROOT.rglob("*.py") if (n := len(p.read_text().splitlines())) > 500}
     assert long == {}
+
+
+def module_imports(path: Path) -> set[str]:
+    """The phd_core modules one module names in its imports, function-local ones included
+    ('renderers.families'); `from . import x` counts as the module x when x is one."""
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    package = parts[:-1] if parts[-1] != "__init__" else parts[:-1]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.level > 0:
+            base = list(package[:len(package) - (node.level - 1)])
+            target = base + (node.module.split(".") if node.module else [])
+            for alias in node.names:
+                as_module = ".".join(target + [alias.name])
+                found.add(as_module if (ROOT / Path(*target, alias.name)).with_suffix(".py").is_file()
+                          or (ROOT / Path(*target, alias.name)).is_dir() else ".".join(target))
+    return {name for name in found if name}
+
+
+def test_no_two_phd_core_modules_import_each_other() -> None:
+    """The dependency between modules runs one way: no circle, even one hidden by a lazy import."""
+    def name(path: Path) -> str:
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+    graph = {name(p): module_imports(p) for p in ROOT.rglob("*.py")}
+    circles = []
+
+    def walk(node: str, trail: list[str]) -> None:
+        for nxt in sorted(graph.get(node, ())):
+            if nxt in trail:
+                circles.append(trail[trail.index(nxt):] + [nxt])
+            elif nxt not in seen:
+                seen.add(nxt)
+                walk(nxt, trail + [nxt])
+
+    for start in sorted(graph):
+        seen = {start}
+        walk(start, [start])
+    # A package's __init__ re-exporting its own modules is no circle between two modules.
+    circles = [c for c in circles if not all(a.startswith(b + ".") or b.startswith(a + ".") or a == b
+                                             for a, b in zip(c, c[1:]))]
+    assert circles == []

@@ -28,9 +28,11 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..io import write_bytes_atomic
 from ..scene import Camera
 from .formats import FORMATS, DataFormat
 from .frames import Dataset, build_dataset, holdout_split
+from .poses import POSES, PoseConvention
 
 # model id -> (name, parameter names); the first parameters are the pinhole ones.
 MODELS = {
@@ -275,6 +277,56 @@ def qvec_to_rotation(qvec: Sequence[float]) -> torch.Tensor:
                          [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]], dtype=torch.float64)
 
 
+def rotation_to_qvec(rotation: torch.Tensor) -> list[float]:
+    """Rotation matrix [3, 3] -> unit quaternion [w, x, y, z] with w >= 0, the inverse of
+    `qvec_to_rotation`. Of 4w^2, 4x^2, 4y^2, 4z^2 (read off the diagonal) the largest is
+    taken first, so no component comes from a division by a small number."""
+    r = rotation.to(torch.float64).tolist()
+    trace = r[0][0] + r[1][1] + r[2][2]
+    squares = [1 + trace, 1 + 2 * r[0][0] - trace, 1 + 2 * r[1][1] - trace, 1 + 2 * r[2][2] - trace]
+    k = max(range(4), key=squares.__getitem__)
+    big = 0.5 * max(squares[k], 0.0) ** 0.5                      # the largest |component|
+    d = 4 * big
+    if k == 0:
+        q = [big, (r[2][1] - r[1][2]) / d, (r[0][2] - r[2][0]) / d, (r[1][0] - r[0][1]) / d]
+    elif k == 1:
+        q = [(r[2][1] - r[1][2]) / d, big, (r[0][1] + r[1][0]) / d, (r[0][2] + r[2][0]) / d]
+    elif k == 2:
+        q = [(r[0][2] - r[2][0]) / d, (r[0][1] + r[1][0]) / d, big, (r[1][2] + r[2][1]) / d]
+    else:
+        q = [(r[1][0] - r[0][1]) / d, (r[0][2] + r[2][0]) / d, (r[1][2] + r[2][1]) / d, big]
+    norm = sum(v * v for v in q) ** 0.5
+    sign = -1.0 if q[0] < 0 else 1.0                              # q and -q are one rotation
+    return [sign * v / norm for v in q]
+
+
+def colmap_pose(camera: Camera) -> dict[str, Any]:
+    """A camera as COLMAP writes it: world-to-camera qvec [w, x, y, z] and tvec [3] (OpenCV
+    axes), and its PINHOLE camera (params fx, fy, cx, cy)."""
+    w2c = camera.world_to_camera()                                       # [4, 4] OpenCV
+    return {"qvec": rotation_to_qvec(w2c[:3, :3]), "tvec": w2c[:3, 3].tolist(),
+            "camera": {"model": "PINHOLE", "width": camera.width, "height": camera.height,
+                       "params": [camera.fx, camera.fy, camera.cx, camera.cy]}}
+
+
+def write_colmap_text(folder: Path, cameras: Sequence[Camera], names: Sequence[str]) -> None:
+    """A COLMAP text model in `folder`: one PINHOLE camera per image (ids from 1), the images'
+    poses with no keypoints, and no points; numbers in full precision (repr)."""
+    camera_lines, image_lines = ["# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]"], [
+        "# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME", "# POINTS2D[] as (X, Y, POINT3D_ID)"]
+    for i, (camera, name) in enumerate(zip(cameras, names), start=1):
+        if not name.strip() or "\n" in name:
+            raise InputError("export", f"image name {name!r} cannot stand in images.txt")
+        pose = colmap_pose(camera)
+        numbers = " ".join(repr(float(v)) for v in pose["camera"]["params"])
+        camera_lines.append(f"{i} PINHOLE {camera.width} {camera.height} {numbers}")
+        image_lines += [f"{i} " + " ".join(repr(float(v)) for v in pose["qvec"] + pose["tvec"]) + f" {i} {name}", ""]
+    folder.mkdir(parents=True, exist_ok=True)
+    for file, lines in (("cameras.txt", camera_lines), ("images.txt", image_lines),
+                        ("points3D.txt", ["# POINT3D_ID X Y Z R G B ERROR TRACK[]"])):
+        write_bytes_atomic(folder / file, ("\n".join(lines) + "\n").encode())
+
+
 def pinhole(camera: ColmapCamera, where: str) -> tuple[float, float, float, float]:
     """(fx, fy, cx, cy) of a pinhole-type camera; distortion refused with the model named."""
     names = MODELS[MODEL_IDS[camera.model]][1]
@@ -373,3 +425,5 @@ def locate(path: Path, split: str) -> Path | None:
 
 
 FORMATS.add("colmap", DataFormat("colmap", locate, load_colmap))
+POSES.add("colmap", PoseConvention("colmap", colmap_pose, write_colmap_text,
+                                   "a COLMAP text model folder (cameras.txt, images.txt, points3D.txt)", suffix=""))

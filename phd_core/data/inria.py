@@ -31,9 +31,11 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..io import write_json_atomic
 from ..scene import DEFAULT_MAX_SIZE, Camera
 from .formats import FORMATS, DataFormat
 from .frames import HOLDOUT, Dataset, build_dataset
+from .poses import POSES, PoseConvention
 
 _GL_FLIP = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 KEYS = ("width", "height", "position", "rotation", "fx", "fy")
@@ -75,6 +77,21 @@ def camera_from_entry(entry: Any, max_size: int = DEFAULT_MAX_SIZE) -> Camera:
                       values["width"], values["height"], max_size)
     except InputError as exc:
         raise InputError("rotation" if exc.field == "transform_matrix" else exc.field, exc.reason) from None
+
+
+def camera_entry(camera: Camera) -> dict[str, Any]:
+    """A Camera as a cameras.json entry (without id and img_name), the inverse of
+    `camera_from_entry`. The format has no principal point: readers take the image centre."""
+    c2w_cv = camera.c2w @ _GL_FLIP                                        # [4, 4] OpenCV camera axes
+    return {"width": camera.width, "height": camera.height, "position": c2w_cv[:3, 3].tolist(),
+            "rotation": c2w_cv[:3, :3].tolist(), "fx": camera.fx, "fy": camera.fy}
+
+
+def write_cameras_json(path: Path, cameras: Sequence[Camera], names: Sequence[str]) -> None:
+    """A reference-trainer cameras.json: one entry per camera, ids from 0, img_name its name."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, [{"id": i, "img_name": name, **camera_entry(camera)}
+                             for i, (camera, name) in enumerate(zip(cameras, names))])
 
 
 def cameras_from_entries(entries: Any, max_size: int = DEFAULT_MAX_SIZE, file: str = "cameras.json"
@@ -183,3 +200,5 @@ def locate(path: Path, split: str) -> Path | None:
 
 
 FORMATS.add("3dgs-output", DataFormat("3dgs-output", locate, load_inria))
+POSES.add("3dgs-output", PoseConvention("3dgs-output", camera_entry, write_cameras_json,
+                                        "a reference-trainer cameras.json", file_name="cameras.json"))

@@ -1,5 +1,6 @@
 """The nerfstudio layout: one transforms.json (served as the split "all", or "train"), with
-`fl_x`, `fl_y`, `cx`, `cy`, `w`, `h` at the top level or per frame."""
+`fl_x`, `fl_y`, `cx`, `cy`, `w`, `h` at the top level or per frame. Cameras go back out as
+the same frames (`write_transforms`), which nerfstudio and this loader read."""
 
 from __future__ import annotations
 
@@ -7,8 +8,11 @@ from pathlib import Path
 from typing import Sequence
 
 from ..errors import InputError
+from ..io import write_json_atomic
+from ..scene import Camera
 from .formats import FORMATS, DataFormat
 from .frames import Dataset, load_frames
+from .poses import POSES, PoseConvention
 
 def load_nerfstudio(path: str | Path, *, downscale: float = 1, views: int | Sequence[int] | None = None,
                     background: Sequence[float] = (1, 1, 1), seed: int | None = None,
@@ -39,3 +43,18 @@ def locate(path: Path, split: str) -> Path | None:
 
 FORMATS.add("nerfstudio", DataFormat("nerfstudio", locate,
                                      lambda json_path, split, **kw: load_nerfstudio(json_path, **kw)))
+
+
+def write_transforms(path: Path, cameras: Sequence[Camera], names: Sequence[str]) -> None:
+    """A transforms.json whose frames are `cameras` (OpenGL c2w and pinhole intrinsics per
+    frame), each naming the image to capture as images/<name>."""
+    frames = [{"file_path": f"images/{name}", **camera.to_frame()} for camera, name in zip(cameras, names)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, {"camera_model": "OPENCV", "frames": frames})
+
+
+TRANSFORMS_FRAME = "a transforms.json with one frame per camera"
+POSES.add("nerfstudio", PoseConvention("nerfstudio", Camera.to_frame, write_transforms, TRANSFORMS_FRAME,
+                                       suffix=".json"))
+# A Blender frame is the same frame (OpenGL c2w; per-frame fl_x reads in both layouts).
+POSES.add("blender", PoseConvention("blender", Camera.to_frame, write_transforms, TRANSFORMS_FRAME))

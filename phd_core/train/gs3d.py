@@ -38,8 +38,8 @@ from typing import Any, Callable, Sequence
 import torch
 from tqdm import tqdm
 
-from ..data import Dataset, load_dataset
-from ..errors import InputError
+from ..data import Dataset, load_dataset, locate
+from ..errors import InputError, check_color
 from ..eval import ssim
 from ..io import write_json_atomic
 from ..renderers.gs3d import (SIDECAR_FORMAT, GaussianModel, GaussianRenderer, RenderOutput, rasterize, sidecar_path,
@@ -75,6 +75,8 @@ class TrainConfig:
     seed: int = 0
     tile: int = 4
     compositor: str = DEFAULT_COMPOSITOR   # stage 4 and its gradient: "fused" (compiled) or "reference" (torch)
+    background: str | Sequence[float] | None = None   # behind the splats: a name or [r, g, b]; None: the data's
+                                      # (alpha masks: white) or the training images' mean (a real capture)
 
     def validate(self) -> None:
         if self.iterations < 1:
@@ -84,6 +86,8 @@ class TrainConfig:
         if self.init_points < 1:
             raise InputError("init_points", f"must be at least 1, got {self.init_points}")
         COMPOSITORS.lookup(self.compositor, "compositor")
+        if self.background is not None:
+            self.background = list(check_color(self.background, "background"))
 
 
 @dataclass(frozen=True)
@@ -216,9 +220,11 @@ def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: Train
     return initial_model(points.float(), colours.float(), config.sh_degree, extent, gen, spacing, recipe)
 
 
-def training_background(data: Dataset) -> tuple[float, float, float]:
-    """The colour behind the splats: the dataset's where alpha masks define it, else the
-    training images' mean colour (a real capture has no empty background)."""
+def training_background(data: Dataset, given: Sequence[float] | None = None) -> tuple[float, float, float]:
+    """The colour behind the splats: the one given, else the dataset's where alpha masks define
+    it, else the training images' mean colour (a real capture has no empty background)."""
+    if given is not None:
+        return tuple(float(v) for v in given)
     if data.alphas is not None or data.images is None:
         return data.background
     return tuple(float(v) for v in data.images.mean(dim=(0, 1, 2)))
@@ -327,7 +333,10 @@ def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downsc
     if iterations is not None:
         config.iterations = iterations
     config.validate()
-    dataset = load_dataset(data, "train", downscale=downscale, views=views)
+    source = locate(data, "train")[0].name            # the capture's format: its pose convention
+    dataset = load_dataset(data, "train", downscale=downscale, views=views,
+                           background=config.background or (1.0, 1.0, 1.0))
+    background = training_background(dataset, config.background)
     started = time.perf_counter()
     model, history = fit(dataset, config, progress=progress, recipe=recipe)
     seconds = time.perf_counter() - started
@@ -338,10 +347,11 @@ def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downsc
         "format": SIDECAR_FORMAT,
         "model": recipe.kind,
         "dataset": str(Path(data).resolve()),
+        "dataset_format": source,
         "split": "train",
         "view_indices": dataset.indices,
         "downscale": downscale,
-        "background": list(training_background(dataset)),
+        "background": list(background),
         "training_cameras": [c.to_frame() for c in dataset.cameras],
         "settings": asdict(config),
         "num_splats": model.num_splats,
@@ -349,7 +359,8 @@ def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downsc
         "final_loss": history[-1] if history else None,
     }
     write_json_atomic(sidecar_path(out), sidecar)
-    return recipe.renderer_type(model, training_background(dataset), dataset.cameras, tile=config.tile)
+    return recipe.renderer_type(model, background, dataset.cameras, tile=config.tile,
+                                camera_format=source)
 
 
 def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True,
@@ -367,7 +378,7 @@ def fit(dataset: Dataset, config: TrainConfig, *, progress: bool = True,
     model = seed_model(dataset, centre, extent, config, gen, recipe)
     extent = training_extent(dataset, extent)
     splats = Splats(model, config, extent)
-    background = torch.tensor(training_background(dataset))
+    background = torch.tensor(training_background(dataset, config.background))
     cam0 = dataset.cameras[0]
     budget = int(config.splats_per_pixel * cam0.width * cam0.height)
     n_iter = config.iterations

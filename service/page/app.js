@@ -7,7 +7,8 @@ const state = {
   key: localStorage.getItem("phd-api-key") || "",
   models: [],
   training: [],        // frames of the chosen model's training cameras
-  candidates: [],      // frames sent as the rank request's cameras
+  candidates: [],      // the user's own frames (file mode), sent as the rank request's cameras
+  spec: null,          // generate mode: the rank request's candidates {generator, count, options}
   ranking: null,       // the last RankResult
   job: null,           // id of the running rank job (for Cancel)
   blobs: [],           // object URLs to revoke when a grid is redrawn
@@ -180,8 +181,8 @@ async function deleteModel() {
 
 // ------------------------------------------------------------------ candidates
 
-// Where the training cameras look: the point nearest to all their optical axes
-// (least squares), their mean up vector and their median distance to that point.
+// The plots' frame: where the training cameras look (the point nearest to all their optical
+// axes, least squares), their mean up vector and their median distance to that point.
 function captureFrame() {
   const frames = state.training;
   const model = currentModel();
@@ -189,7 +190,7 @@ function captureFrame() {
     const b = model && model.bounds;
     const center = b ? mul(add(b.min, b.max), 0.5) : [0, 0, 0];
     const radius = b ? Math.max(norm(sub(b.max, b.min)), 1e-3) * 1.5 : 4;
-    return { center, up: [0, 0, 1], radius, intrinsics: { camera_angle_x: 0.6911, w: 100, h: 100 } };
+    return { center, up: [0, 0, 1], radius };
   }
   const A = [[0, 0, 0], [0, 0, 0], [0, 0, 0]];
   let rhs = [0, 0, 0];
@@ -204,10 +205,7 @@ function captureFrame() {
   let center = solve3(A, rhs);
   if (!center) center = mul(frames.map(position).reduce(add, [0, 0, 0]), 1 / frames.length);
   const distances = frames.map((f) => norm(sub(position(f), center))).sort((a, b) => a - b);
-  const first = frames[0];
-  const intrinsics = {};
-  for (const key of ["fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x"]) if (key in first) intrinsics[key] = first[key];
-  return { center, up: unit(up), radius: distances[Math.floor(distances.length / 2)], intrinsics };
+  return { center, up: unit(up), radius: distances[Math.floor(distances.length / 2)] };
 }
 
 function solve3(A, b) {  // Cramer's rule; null when (nearly) singular, e.g. parallel axes
@@ -224,50 +222,35 @@ function horizontalAxes(up) {
   return [ax, cross(up, ax)];
 }
 
-function lookAtFrame(eye, target, up, intrinsics) {
-  const forward = unit(sub(target, eye));
-  let right = cross(forward, up);
-  if (norm(right) < 1e-9) right = cross(forward, [1, 0, 0]);
-  right = unit(right);
-  const trueUp = cross(right, forward);
-  const back = mul(forward, -1);
-  const m = [0, 1, 2].map((i) => [right[i], trueUp[i], back[i], eye[i]]);
-  m.push([0, 0, 0, 1]);
-  return Object.assign({ transform_matrix: m }, intrinsics);
+// The service makes generated poses (its candidate generators); the page only draws them.
+function candidateSpec() {
+  const count = Math.max(1, Math.min(1000, Number($("gen-count").value) || 1));
+  const ring = $("gen-shape").value === "ring";
+  const options = ring ? { elevation: (Number($("gen-elevation").value) || 0) * Math.PI / 180 } : {};
+  const factor = Number($("gen-radius").value) || 1;
+  if (factor !== 1 && state.training.length) options.radius = captureFrame().radius * factor;
+  return { generator: ring ? "orbit" : "hemisphere", count, options };
 }
 
-// Poses on a ring (one elevation) or spread over the upper hemisphere (Fibonacci spiral).
-function generateCandidates() {
-  const frame = captureFrame();
-  const count = Math.max(1, Math.min(1000, Number($("gen-count").value) || 1));
-  const radius = frame.radius * (Number($("gen-radius").value) || 1);
-  const elevation = (Number($("gen-elevation").value) || 0) * Math.PI / 180;
-  const [ax, ay] = horizontalAxes(frame.up);
-  const golden = Math.PI * (3 - Math.sqrt(5));
-  const frames = [];
-  for (let i = 0; i < count; i++) {
-    let elev = elevation, az = 2 * Math.PI * i / count;
-    if ($("gen-shape").value === "hemisphere") {
-      elev = Math.asin(Math.min(1, Math.sin(0.1) + (0.95 - Math.sin(0.1)) * (i + 0.5) / count));
-      az = golden * i;
-    }
-    const dir = add(add(mul(ax, Math.cos(elev) * Math.cos(az)), mul(ay, Math.cos(elev) * Math.sin(az))), mul(frame.up, Math.sin(elev)));
-    frames.push(lookAtFrame(add(frame.center, mul(dir, radius)), frame.center, frame.up, frame.intrinsics));
-  }
-  return frames;
+// The poses to draw and to select over: the user's own list, or those the last ranking returned.
+function shownCandidates() {
+  if (state.spec === null) return state.candidates.map((frame, index) => ({ index, frame }));
+  return state.ranking ? state.ranking.views.map((v) => ({ index: v.index, frame: v.camera })) : [];
 }
 
 async function updateCandidates() {
   const mode = document.querySelector("input[name=cand-mode]:checked").value;
   $("generate-options").hidden = mode !== "generate";
   $("file-options").hidden = mode !== "file";
+  state.candidates = [];
+  state.spec = null;
   if (mode === "generate") {
-    state.candidates = generateCandidates();
-    $("cand-info").textContent = state.candidates.length + " " + $("gen-shape").value + " poses generated in the page " +
-      (state.training.length ? "around the training cameras' centre" : "around the model's bounds");
+    state.spec = candidateSpec();
+    $("cand-info").textContent = state.spec.count + " " + state.spec.generator + " poses, made by the service " +
+      (state.training.length ? "around the training cameras" : "around the model's splats") +
+      " when you rank; the plots show the poses it returns";
   } else {
     const file = $("cand-file").files[0];
-    state.candidates = [];
     if (file) {
       const data = JSON.parse(await file.text());
       const frames = Array.isArray(data) ? data : data.frames || [];
@@ -314,7 +297,8 @@ function drawPlots() {
   ["plot-top", "plot-side"].forEach((id, k) => {
     const [u, w] = views[k];
     const project = (frame_) => { const p = sub(position(frame_), frame.center); return [dot(p, u), dot(p, w)]; };
-    const points = state.training.map(project).concat(state.candidates.map(project));
+    const shown = shownCandidates();
+    const points = state.training.map(project).concat(shown.map((c) => project(c.frame)));
     const extent = Math.max(1e-6, ...points.map((p) => Math.max(Math.abs(p[0]), Math.abs(p[1])))) * 1.1;
     const xy = (p) => [150 + 140 * p[0] / extent, 150 - 140 * p[1] / extent];
     const svg = $(id);
@@ -327,9 +311,9 @@ function drawPlots() {
       svg.append(mark);
     }
     // Unscored first, then scored from low to high, so the most uncertain are drawn on top.
-    const order = state.candidates.map((_, i) => i).sort((a, b) => (scored.get(a)?.score ?? -Infinity) - (scored.get(b)?.score ?? -Infinity));
-    for (const i of order) {
-      const [x, y] = xy(project(state.candidates[i]));
+    const order = [...shown].sort((a, b) => (scored.get(a.index)?.score ?? -Infinity) - (scored.get(b.index)?.score ?? -Infinity));
+    for (const { index: i, frame: pose } of order) {
+      const [x, y] = xy(project(pose));
       const view = scored.get(i);
       const dotEl = svgEl("circle", { cx: x, cy: y, r: view ? 6 : 4, class: view ? "cand" : "cand none", "data-index": i });
       if (view) dotEl.setAttribute("fill", scoreColour(hi > lo ? (view.score - lo) / (hi - lo) : 1));
@@ -366,14 +350,14 @@ async function rank(event) {
   event.preventDefault();
   const model = currentModel();
   if (!model) throw new ApiError("choose or upload a model first");
-  if (state.candidates.length === 0) throw new ApiError("no candidate poses: generate some or choose a file");
-  const body = Object.assign({
-    cameras: state.candidates, samples: Number($("rank-samples").value), seed: Number($("rank-seed").value),
-    heatmaps: "files",
-  }, sizeOptions("rank"));
+  if (state.spec === null && state.candidates.length === 0) throw new ApiError("no candidate poses: choose a file");
+  const body = Object.assign({ samples: Number($("rank-samples").value), seed: Number($("rank-seed").value),
+    heatmaps: "files" }, sizeOptions("rank"));
+  if (state.spec !== null) body.candidates = state.spec; else body.cameras = state.candidates;
   if ($("rank-strategy").value) body.strategy = $("rank-strategy").value;
   if ($("rank-topk").value) body.top_k = Number($("rank-topk").value);
-  say("ranking " + state.candidates.length + " candidates...");
+  say("ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates...");
+  state.ranking = null;
   $("rank-grid").replaceChildren();      // no stale cards while the new ranking runs
   $("rank-summary").textContent = "";
   $("rank-run").disabled = true;
@@ -433,11 +417,15 @@ async function select(event) {
   const a = currentModel(), bId = $("model-b-select").value;
   if (!a || !bId) throw new ApiError("choose two models");
   if (a.id === bId) throw new ApiError("model B must differ from model A");
-  if (state.candidates.length === 0) throw new ApiError("no candidate poses: generate some or choose a file");
-  say("selecting over " + state.candidates.length + " views...");
+  // Generated poses exist once the service made them: select over the ranked views' poses.
+  const cameras = shownCandidates().map((c) => c.frame);
+  if (cameras.length === 0) {
+    throw new ApiError(state.spec ? "rank first: the service makes the generated poses" : "no candidate poses: choose a file");
+  }
+  say("selecting over " + cameras.length + " views...");
   $("select-grid").replaceChildren();
   $("select-summary").textContent = "";
-  const body = Object.assign({ model_a: a.id, model_b: bId, cameras: state.candidates, rule: $("select-rule").value,
+  const body = Object.assign({ model_a: a.id, model_b: bId, cameras, rule: $("select-rule").value,
     samples: Number($("rank-samples").value), seed: Number($("rank-seed").value), images: "files", both_images: true },
   sizeOptions("rank"));
   const result = await runJob("/v1/select", body, $("select-progress"));

@@ -21,6 +21,10 @@ UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-dat
         "file": {"type": "string", "format": "binary", "description": "3DGS PLY or NeRF checkpoint"},
         "cameras": {"type": "string", "description": "Training cameras as JSON (transforms.json or a list of frames)"},
         "name": {"type": "string", "description": "Display name (default: the file name)"},
+        "background": {"type": "string", "description": "Splat models: the colour trained over, [r, g, b] in [0, 1] "
+                       "or white/black/grey. Default: what the file or its cameras say, else white (docs/service.md)"},
+        "camera_format": {"type": "string", "description": "The pose convention of the cameras' source (colmap, "
+                          "3dgs-output, nerfstudio, blender); default: 3dgs-output for a cameras.json, else nerfstudio"},
     }}}}}}
 
 
@@ -38,6 +42,7 @@ def model_info(record: ModelRecord) -> ModelInfo:
         num_training_cameras=len(record.training_frames or []),
         has_calibration=record.calibration is not None,
         calibration=None if record.calibration is None else Calibration(**record.calibration),
+        camera_format=facts.get("camera_format"),
         details=facts)
 
 

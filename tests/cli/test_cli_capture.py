@@ -13,6 +13,8 @@ import torch
 
 from phd_cli import main
 from phd_core import uq as phd
+from phd_core.data import load_cameras
+from phd_core.data.inria import camera_from_entry
 from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import GaussianModel
 from phd_core.scene import Camera
@@ -70,6 +72,41 @@ def test_rank_an_output_folder_with_generated_candidates_in_one_line(capture, ca
     ranked = phd.rank_views(renderer, poses, ratio=capture["r_drop"], samples=3)
     assert result["order"] == [r.index for r in ranked]
     assert [r["sigma_max"] for r in result["ranking"]] == pytest.approx([r.sigma_max for r in ranked])
+
+
+
+def test_ranked_generated_candidates_carry_their_poses_and_export_as_a_batch(capture, capsys) -> None:
+    """Each ranked pose is the generator's, in the project's convention and in the source's
+    (a reference folder: cameras.json entries); --export writes the top k as a file the
+    project's loader reads back as the same cameras, in capture order."""
+    plan = capture["root"] / "plan" / "transforms.json"
+    code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6,rings=2",
+                         "--samples", 3, "--dropout-ratio", 0.3, "--top-k", 4, "--downscale", 2, "--export", plan)
+    assert code == 0, err
+    result = json.loads(out)
+    poses = candidate_cameras("orbit", 6, renderer=capture["renderer"], rings=2)     # at the training size
+    assert result["camera_format"] == "3dgs-output" and len(result["ranking"]) == 4
+    for entry in result["ranking"]:
+        pose = poses[entry["index"]]
+        assert entry["camera"] == pose.to_frame()                   # full size, not the downscaled render
+        source = entry["source_pose"]
+        assert source["format"] == "3dgs-output"
+        assert torch.allclose(camera_from_entry(source).c2w, pose.c2w, atol=1e-12, rtol=0)
+    assert "exported 4 poses" in err and "nerfstudio" in err
+    chosen = [poses[entry["index"]] for entry in result["ranking"]]
+    for got, expected in zip(load_cameras(plan), chosen, strict=True):
+        assert got.c2w.tolist() == expected.c2w.tolist() and got.to_frame() == expected.to_frame()
+    colmap = capture["root"] / "plan" / "colmap"
+    code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6,rings=2",
+                         "--samples", 3, "--dropout-ratio", 0.3, "--top-k", 4, "--export", colmap,
+                         "--out", capture["root"] / "plan" / "r.json")
+    assert code == 0 and "COLMAP text model" in out, err
+    chosen = [poses[entry["index"]] for entry in json.loads((capture["root"] / "plan" / "r.json").read_text())["ranking"]]
+    reloaded = load_cameras(colmap, split="all")                    # sorted by name = capture order
+    assert max((a.c2w - b.c2w).abs().max().item() for a, b in zip(reloaded, chosen, strict=True)) < 1e-9
+    code, _, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6", "--samples", 3,
+                       "--dropout-ratio", 0.3, "--export", capture["root"] / "plan.yaml")
+    assert code == 2 and "export:" in err and "plan.yaml" in err
 
 
 def test_phd_candidates_writes_json_that_rank_reads(capture, capsys) -> None:

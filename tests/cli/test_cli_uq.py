@@ -14,7 +14,7 @@ import torch
 
 from phd_core import uq as phd
 from phd_cli import main
-from phd_core.data import load_dataset
+from phd_core.data import load_cameras, load_dataset
 from phd_core.renderers.gs3d import GaussianModel, write_ply
 from phd_core.renderers import load_model
 from phd_core.eval import image_uq_metrics
@@ -246,3 +246,67 @@ def test_rank_rejects_bad_numbers(files, capsys, extra: list[str], field: str) -
         argv += ["--dropout-ratio", "0.3"]
     code, _, err = run(capsys, *argv)
     assert code == 2 and f"{field}:" in err and "Traceback" not in err
+
+
+def test_background_flag_changes_what_calibration_sees(files, capsys) -> None:
+    """--background renders the model over that colour: the curve is the library's over it,
+    and not the one over the default white."""
+    argv = ["calibrate", "--model", files["model"], "--cameras", files["cameras"], "--epsilon", 100, "--step",
+            STEP, "--samples", 3]
+    curves = {}
+    for name, colour in (("white", (1.0, 1.0, 1.0)), ("grey", (0.5, 0.5, 0.5))):
+        out_json = files["root"] / f"calibration_{name}.json"
+        code, _, err = run(capsys, *argv, "--background", name, "--out", out_json)
+        assert code == 0, err
+        renderer = load_model(files["model"])
+        renderer.background = torch.tensor(colour)
+        expected = phd.calibrate(renderer, load_cameras(files["cameras"]), epsilon=100.0, step=STEP, samples=3)
+        curves[name] = strict_json(out_json)["errors"]
+        assert curves[name] == pytest.approx(expected.errors, abs=1e-9)
+    assert curves["white"] != pytest.approx(curves["grey"], abs=1e-6)
+    code, _, err = run(capsys, *argv, "--background", "0.5", "0.5", "0.5")
+    assert code == 0, err
+
+
+@pytest.mark.parametrize("values", [["purple"], ["0.5", "2", "0"], ["1", "1"], ["a", "b", "c"]])
+def test_a_bad_background_names_the_flag(files, capsys, values: list[str]) -> None:
+    code, _, err = run(capsys, "rank", "--model", files["model"], "--candidates", files["candidates"], "--width",
+                       SIZE, "--height", SIZE, "--dropout-ratio", 0.3, "--background", *values)
+    assert code == 2 and "background:" in err and "Traceback" not in err
+
+
+def test_train_over_a_background_records_it_and_the_capture_format(files, capsys, tmp_path) -> None:
+    out = tmp_path / "grey.ply"
+    code, _, err = run(capsys, "train", "--data", files["data"], "--views", 2, "--downscale", 1, "--iterations", 3,
+                       "--background", "grey", "--out", out, "--quiet")
+    assert code == 0, err
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["background"] == [0.5, 0.5, 0.5] and sidecar["dataset_format"] == "blender"
+    facts = load_model(out).describe()
+    assert facts["background"] == [0.5, 0.5, 0.5] and facts["camera_format"] == "blender"
+
+
+def test_select_chooses_per_view_as_the_library_does_over_the_background_given(files, capsys, tmp_path) -> None:
+    """`phd select` is select_models with the same arguments; --background reaches both models."""
+    g = torch.Generator().manual_seed(8)
+    other = GaussianModel(means=(torch.rand(120, 3, generator=g) - 0.5) * 1.4,
+                          log_scales=torch.log(0.05 + 0.1 * torch.rand(120, 3, generator=g)),
+                          quats=torch.randn(120, 4, generator=g), opacity_logits=torch.rand(120, generator=g) * 4 - 1,
+                          sh=torch.randn(120, 1, 3, generator=g) * 0.5)
+    write_ply(other, tmp_path / "other.ply")
+    out_json = tmp_path / "select.json"
+    code, out, err = run(capsys, "select", "--model-a", files["model"], "--model-b", tmp_path / "other.ply",
+                         "--data", files["data"], "--split", "test", "--rule", "sigma_mean", "--samples", 4,
+                         "--dropout-ratio", 0.3, "--background", "black", "--out", out_json)
+    assert code == 0 and "views (sigma_mean)" in out, err
+    report = strict_json(out_json)
+    renderers = [load_model(files["model"]), load_model(tmp_path / "other.ply")]
+    for renderer in renderers:
+        renderer.background = torch.zeros(3)
+    dataset = load_dataset(files["data"], "test", background=(0.0, 0.0, 0.0))
+    expected = phd.select_models(*renderers, dataset.cameras, ratio_a=0.3, ratio_b=0.3, samples=4,
+                                 images=dataset.images, rule="sigma_mean")
+    assert [v["choice"] for v in report["views"]] == [v.choice for v in expected.views]
+    assert [v["score_a"] for v in report["views"]] == pytest.approx([v.score_a for v in expected.views], abs=1e-9)
+    assert report["metrics"]["psnr_a"] == pytest.approx(expected.metrics["psnr_a"], abs=1e-9)
+    assert report["counts"]["a"] + report["counts"]["b"] == len(dataset.cameras)

@@ -6,6 +6,7 @@ scripts or styles; images from blob: URLs): any violation fails a test."""
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import pytest
 from client import PHDClient
 from conftest import svc_cameras
 from phd_core import uq
+from phd_core.uq.candidates import candidate_cameras
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
@@ -98,13 +100,14 @@ def _csp_violations(driver) -> list[str]:
 
 
 def _run_on_candidates(browser, count: int, job: str, fields: dict[str, int]) -> None:
-    """Generate `count` candidates, fill `fields`, press the job's button ("rank" or "select")
-    and wait until its grid shows `count` cards with every image loaded."""
+    """Ask for `count` generated candidates, fill `fields`, press the job's button ("rank" or
+    "select") and wait until its grid shows `count` cards with every image loaded."""
     _set(browser, "gen-count", count)
-    browser.find_element(By.ID, "gen-elevation").click()          # the change event regenerates candidates
+    browser.find_element(By.ID, "gen-elevation").click()          # the change event takes the new count
     for field, value in fields.items():
         _set(browser, field, value)
-    _wait(browser, lambda d: d.execute_script("return state.candidates.length") == count, what=f"{count} candidates")
+    _wait(browser, lambda d: (d.execute_script("return state.spec") or {}).get("count") == count,
+          what=f"a spec of {count} candidates")
     browser.find_element(By.ID, f"{job}-run").click()
     _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, f"#{job}-grid li.card")) == count
           and d.execute_script(f"return [...document.querySelectorAll('#{job}-grid img')].every(i => i.complete "
@@ -119,12 +122,19 @@ def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_pa
     assert browser.find_element(By.ID, "rank-strategy").get_attribute("value") == uq.DEFAULT_STRATEGY
     offered = browser.execute_script("return [...document.querySelectorAll('#strategies option')].map(o => o.value)")
     assert offered == list(uq.STRATEGIES)
+    # The page makes no poses itself: it asks the service's generator and draws what comes back.
+    assert browser.execute_script("return typeof generateCandidates") == "undefined"
     _run_on_candidates(browser, 7, "rank", {"rank-samples": 4, "rank-downscale": 1, "rank-seed": 3})
 
-    # The same request through the Python client gives the order the grid shows.
-    candidates = browser.execute_script("return state.candidates")
+    # The same request through the Python client gives the order the grid shows, and the poses.
+    spec = browser.execute_script("return state.spec")
+    assert spec["generator"] == "orbit" and spec["options"] == {"elevation": pytest.approx(math.radians(30))}
     with PHDClient(server.url, api_key=KEY) as phd:
-        expected = phd.rank(model_a.id, candidates, samples=4, seed=3, downscale=1, heatmaps="files")
+        expected = phd.rank(model_a.id, candidates=spec, samples=4, seed=3, downscale=1, heatmaps="files")
+        drawn = browser.execute_script("return shownCandidates().map(c => [c.index, c.frame])")
+        assert drawn == [[v.index, v.camera] for v in expected.views]
+        generated = candidate_cameras("orbit", 7, cameras=svc_cameras(3), elevation=spec["options"]["elevation"])
+        assert [v.camera for v in expected.views] == [generated[v.index].to_frame() for v in expected.views]
         cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
         assert [int(c.get_attribute("data-index")) for c in cards] == [v.index for v in expected.views]
         assert [int(c.get_attribute("data-rank")) for c in cards] == list(range(7))
@@ -143,10 +153,16 @@ def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_pa
         truth = iio.imread(phd.download(expected.views[0].heatmap_url))
         assert np.array_equal(np.array(shown, dtype=np.uint8).reshape(24, 24, 4)[..., :3], truth)
 
-    # The plots: one coloured dot per ranked candidate, a cross per training camera, in both views.
+    # The plots: one coloured dot per returned pose, a cross per training camera, in both views;
+    # from above, the dots sit where the returned poses' centres project (the plot's own axes).
     for plot in ("plot-top", "plot-side"):
         assert len(browser.find_elements(By.CSS_SELECTOR, f"#{plot} circle.cand[fill]")) == 7
         assert len(browser.find_elements(By.CSS_SELECTOR, f"#{plot} path.train")) == 3
+    dots = browser.execute_script(
+        "const f = captureFrame(), [u, w] = horizontalAxes(f.up); return shownCandidates().map(c => {"
+        "const p = sub(position(c.frame), f.center); return [c.index, dot(p, u), dot(p, w)]; })")
+    radii = [math.hypot(x, y) for _, x, y in dots]
+    assert max(radii) - min(radii) < 1e-6 * max(radii)          # one ring: every pose at one horizontal radius
     top = browser.find_element(By.CSS_SELECTOR, f"#plot-top circle[data-index='{expected.views[0].index}']")
     assert top.get_attribute("fill") == "rgb(253,231,37)"   # the highest score gets the top colour
     browser.save_screenshot(str(tmp_path / "page_rank.png"))
@@ -159,8 +175,18 @@ def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_p
     _open(browser, server)
     Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
     Select(browser.find_element(By.ID, "model-b-select")).select_by_value(model_b.id)
-    _run_on_candidates(browser, 4, "select", {"rank-samples": 3, "rank-downscale": 2})
-    candidates = browser.execute_script("return state.candidates")
+    # Generated poses exist once the service made them: selecting before a ranking says so.
+    _set(browser, "gen-count", 4)
+    browser.find_element(By.ID, "gen-elevation").click()
+    browser.find_element(By.ID, "select-run").click()
+    _wait(browser, lambda d: "rank first" in d_text(d, "message"), what="the rank-first message")
+    _run_on_candidates(browser, 4, "rank", {"rank-samples": 3, "rank-downscale": 2})
+    browser.find_element(By.ID, "select-run").click()             # over the 4 poses the ranking returned
+    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#select-grid li.card")) == 4
+          and d.execute_script("return [...document.querySelectorAll('#select-grid img')].every(i => i.complete "
+                               "&& i.naturalWidth > 0)"), what="the select grid and its images")
+    candidates = [v["camera"] for v in browser.execute_script("return state.ranking.views")]
+    assert len(candidates) == 4
     with PHDClient(server.url, api_key=KEY) as phd:
         expected = phd.select(model_a.id, model_b.id, candidates, samples=3, seed=0, downscale=2)
     cards = browser.find_elements(By.CSS_SELECTOR, "#select-grid li.card")

@@ -285,7 +285,7 @@ def test_occupancy_grid_cells_and_threshold():
 
 @pytest.mark.parametrize("field, value", [("encoding", "fourier"), ("width", 0), ("depth", 2.5),
                                           ("samples", -3), ("bounds", [[0, 0, 0], [1, -1, 1]]),
-                                          ("far", 0.5), ("background", "grey"), ("grid_threshold", 1.0)])
+                                          ("far", 0.5), ("background", "purple"), ("grid_threshold", 1.0)])
 def test_bad_config_names_the_field(field, value):
     with pytest.raises(InputError) as err:
         RadianceField(small_config(**{field: value}))

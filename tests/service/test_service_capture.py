@@ -16,7 +16,8 @@ from phd_core import uq as phd
 from phd_core.renderers import load_model
 from phd_core.scene import Camera
 from phd_core.uq.candidates import candidate_cameras
-from support.captures import inria_entries, write_colmap, write_llff, write_output_folder
+from phd_core.data.inria import camera_from_entry
+from support.captures import colmap_pose as written_colmap_pose, inria_entries, write_colmap, write_llff, write_output_folder
 
 
 @pytest.fixture(scope="module")
@@ -44,6 +45,13 @@ def test_upload_an_output_folder_calibrate_and_rank_generated_candidates(svc_sta
     assert ranking.num_candidates == 5 and (ranking.width, ranking.height) == (24, 24)
     assert [v.index for v in ranking.views] == [r.index for r in ranked]
     assert [v.sigma_max for v in ranking.views] == pytest.approx([r.sigma_max for r in ranked], rel=1e-5)
+    # Each ranked view carries the generator's pose, and the same pose as a cameras.json entry.
+    assert info.camera_format == ranking.camera_format == "3dgs-output"
+    for view in ranking.views:
+        assert view.camera == poses[view.index].to_frame() and view.c2w == poses[view.index].c2w.tolist()
+        assert view.source_pose["format"] == "3dgs-output"
+        assert np.allclose(camera_from_entry(view.source_pose).c2w.numpy(), poses[view.index].c2w.numpy(),
+                           atol=1e-12)
 
 
 @pytest.mark.parametrize("kind", ["raw cameras.json", "colmap", "llff"])
@@ -71,6 +79,23 @@ def test_upload_cameras_from_any_format(svc_start, output_folder, tmp_path, kind
         expected = {"raw cameras.json": 3, "colmap": 2, "llff": 7}[kind]   # train splits hold out every 8th
         assert stored.num_training_cameras == expected
         assert client.calibrate(model_id, epsilon=0.05, samples=2).num_cameras == expected
+        # Poses come back in the source's convention; LLFF has no converter, so its cameras went up
+        # as transforms frames and come back as such.
+        assert stored.camera_format == {"raw cameras.json": "3dgs-output", "colmap": "colmap",
+                                        "llff": "nerfstudio"}[kind]
+        candidates = svc_cameras(2, phase=0.3)
+        ranking = client.rank(model_id, candidates, samples=2, dropout_ratio=0.2)
+    for view in ranking.views:
+        given = candidates[view.index]
+        assert view.camera == given.to_frame()
+        if kind == "colmap":                         # COLMAP: world-to-camera qvec and tvec, as the files hold
+            qvec, tvec = written_colmap_pose(given)
+            sign = 1.0 if qvec[0] >= 0 else -1.0
+            assert np.allclose(view.source_pose["qvec"], sign * np.array(qvec), atol=1e-9)
+            assert np.allclose(view.source_pose["tvec"], tvec, atol=1e-9)
+        assert (view.source_pose or {}).get("format") == stored.camera_format
+    if kind == "raw cameras.json":                   # no background field: the reference trainer's black, said so
+        assert stored.details["background"] == [0.0, 0.0, 0.0] and "guessed" in stored.details["background_source"]
 
 
 def test_malformed_capture_input_is_a_4xx(svc_start, output_folder) -> None:
@@ -117,3 +142,24 @@ def test_generated_candidates_for_a_model_without_cameras_come_from_its_splats(s
     ranked = phd.rank_views(renderer, poses, ratio=0.2, samples=2, captured=[])
     assert [v.index for v in ranking.views] == [r.index for r in ranked]
     assert [v.sigma_max for v in ranking.views] == pytest.approx([r.sigma_max for r in ranked], rel=1e-5)
+    full_size = candidate_cameras("hemisphere", 4, renderer=renderer)     # poses at their own size, not 16x16
+    assert [v.camera for v in ranking.views] == [full_size[v.index].to_frame() for v in ranking.views]
+    assert ranking.camera_format is None and all(v.source_pose is None for v in ranking.views)
+
+
+def test_upload_fields_camera_format_and_background_are_checked(svc_start, output_folder) -> None:
+    server = svc_start()
+    ply = next(output_folder.glob("point_cloud/iteration_30000/point_cloud.ply"))
+    frames = json.dumps([c.to_frame() for c in svc_cameras(3)])
+    for data, field in (({"cameras": frames, "camera_format": "llff"}, "camera_format"),
+                        ({"cameras": frames, "background": "purple"}, "background")):
+        with open(ply, "rb") as f:
+            response = httpx.post(f"{server.url}/v1/models", files={"file": ("m.ply", f)}, data=data)
+        assert response.status_code == 422 and response.json()["error"]["field"] == field, response.text
+        assert "colmap" in response.json()["error"]["message"] or field == "background"
+    with PHDClient(server.url) as client:
+        info = client.upload_model(ply, cameras=svc_cameras(3), background="grey", camera_format="colmap")
+        assert info.details["background"] == [0.5, 0.5, 0.5] and info.camera_format == "colmap"
+        assert info.details["background_source"] == "the upload's background field"
+        bare = client.upload_model(ply)              # no cameras, no background: the stated default
+        assert bare.details["background"] == [1.0, 1.0, 1.0] and bare.camera_format is None

@@ -15,24 +15,27 @@ def _load(data: bytes, name: str, cameras: list[Camera] | None) -> GaussianRende
     return GaussianRenderer(parse_ply(data, name), training_cameras=cameras)
 
 
-def load_output_folder(folder: Path) -> GaussianRenderer:
+def load_output_folder(folder: Path) -> GaussianRenderer | None:
     """A reference 3DGS trainer's output folder as is: the latest iteration's PLY, the training
-    cameras of cameras.json and the trainer's background (`phd_core.data.inria`)."""
-    from ...data.inria import read_output_folder
+    cameras of cameras.json and the trainer's background (`phd_core.data.inria`); None for a
+    folder that is not one."""
+    from ...data.inria import is_output_folder, read_output_folder
 
+    if not is_output_folder(folder):
+        return None
     found = read_output_folder(folder)
-    return GaussianRenderer(read_ply(found.ply), found.background, found.cameras)
+    return GaussianRenderer(read_ply(found.ply), found.background, found.cameras, camera_format="3dgs-output")
 
 
 def with_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
-    """The renderer rebuilt with the training cameras and background of the sidecar beside
-    `path` (any splat renderer class built like `GaussianRenderer`)."""
+    """The renderer rebuilt with the training cameras, background and capture format of the
+    sidecar beside `path` (any splat renderer class built like `GaussianRenderer`)."""
     sidecar = read_sidecar(path)
     if sidecar is None:
         return renderer
     return type(renderer)(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
-                          cameras_from_json(sidecar["training_cameras"]))
+                          cameras_from_json(sidecar["training_cameras"]), camera_format=sidecar.get("dataset_format"))
 
 
-GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_3dgs_ply, _load, with_sidecar,
+GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_3dgs_ply, _load, with_sidecar, load_output_folder,
               trainer="phd_core.train.gs3d:train_gaussians", memory=view_memory)

@@ -37,7 +37,7 @@ from typing import Any, Sequence
 
 import torch
 
-from ...errors import InputError
+from ...errors import InputError, check_color
 from ...scene import Camera, pixels_in_box
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR, pick_compositor
 from ..composite.fused import composite_indexed
@@ -291,7 +291,7 @@ class GaussianRenderer:
 
     def __init__(self, model: GaussianModel, background: Sequence[float] = (1.0, 1.0, 1.0),
                  training_cameras: list[Camera] | None = None, *, tile: int = DEFAULT_TILE,
-                 near: float = NEAR_PLANE, compositor: str = DEFAULT_COMPOSITOR):
+                 near: float = NEAR_PLANE, compositor: str = DEFAULT_COMPOSITOR, camera_format: str | None = None):
         if not isinstance(model, self.model_type) or model.scale_axes != self.model_type.scale_axes:
             raise InputError("model", f"a {self.kind} renderer needs a {self.model_type.__name__}, "
                                       f"got {type(model).__name__}")
@@ -300,6 +300,7 @@ class GaussianRenderer:
         self.model = model
         self.background = torch.tensor(background, dtype=torch.float32)
         self.training_cameras = training_cameras
+        self.camera_format = camera_format      # the source's pose convention (phd_core.data.POSES), when known
         self.tile = tile
         self.near = near
         self.compositor = compositor
@@ -361,4 +362,13 @@ class GaussianRenderer:
             "bounds": {"min": lo, "max": hi},
             "background": self.background.tolist(),
             "has_training_cameras": self.training_cameras is not None,
+            "camera_format": self.camera_format,
         }
+
+
+def set_background(renderer: Any, color: Sequence[float] | str) -> None:
+    """Render a splat model (3DGS, 2DGS) over `color` (a name or [r, g, b] in [0, 1]): the
+    colour it was trained over. A NeRF checkpoint carries its own, so giving one is an error."""
+    if not isinstance(renderer, GaussianRenderer):
+        raise InputError("background", f"a {renderer.kind} model carries its own background (set at training)")
+    renderer.background = torch.tensor(check_color(color, "background"), dtype=torch.float32)
