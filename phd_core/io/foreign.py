@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import pickle
+import re
 from pathlib import Path
 from typing import Any
 
@@ -61,8 +62,10 @@ def read_checkpoint(path: Path) -> Any:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(path.name, f"{path} needs Python code to load (it is refused, never unpickled): "
+        # torch's message also suggests weights_only=False; keep only what the file asked for.
+        found = re.search(r"[^\n]*(unsupported|Unsupported) (GLOBAL|global|operand)[^\n]*", str(exc))
+        reason = found.group(0).strip() if found else "it holds objects other than tensors, numbers and containers"
+        raise InputError(path.name, f"{path} needs Python code to load, so it is refused (never unpickled): "
                                     f"{reason}") from None
     except (OSError, RuntimeError, EOFError, ValueError) as exc:
         raise InputError(path.name, f"cannot read torch checkpoint {path}: {str(exc).splitlines()[0]}") from None
