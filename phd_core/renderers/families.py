@@ -81,13 +81,13 @@ def load_model_bytes(data: bytes, name: str = "model",
 
 def load_model(path: str | Path) -> Renderer:
     """Load a model file, with what its family keeps next to it (a PLY's sidecar `<stem>.json`
-    from `phd train`: training cameras and background), or a reference 3DGS trainer's output
-    folder as is (point_cloud/iteration_*/point_cloud.ply with cameras.json)."""
+    from `phd train`: training cameras and background), or a trainer's output folder as is
+    (`phd_core.renderers.outputs`: the reference 3DGS trainer, nerfstudio's splatfacto, gsplat)."""
     path = Path(path)
     if path.is_dir():
-        from .gs3d.family import load_output_folder
+        from .outputs import load_output
 
-        return load_output_folder(path)
+        return load_output(path)
     try:
         data = path.read_bytes()
     except OSError as exc:

@@ -7,21 +7,12 @@ from pathlib import Path
 
 from ...scene import Camera, cameras_from_json
 from ..families import Family
-from .ply import is_3dgs_ply, parse_ply, read_ply, read_sidecar
+from .ply import is_3dgs_ply, parse_ply, read_sidecar
 from .render import GaussianRenderer, view_memory
 
 
 def _load(data: bytes, name: str, cameras: list[Camera] | None) -> GaussianRenderer:
     return GaussianRenderer(parse_ply(data, name), training_cameras=cameras)
-
-
-def load_output_folder(folder: Path) -> GaussianRenderer:
-    """A reference 3DGS trainer's output folder as is: the latest iteration's PLY, the training
-    cameras of cameras.json and the trainer's background (`phd_core.data.inria`)."""
-    from ...data.inria import read_output_folder
-
-    found = read_output_folder(folder)
-    return GaussianRenderer(read_ply(found.ply), found.background, found.cameras)
 
 
 def with_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
