@@ -25,6 +25,7 @@ from support.captures import rotation_to_quaternion, write_colmap
 # ns-process-data's applied_transform for COLMAP data: swap x and y, negate z.
 APPLIED_TRANSFORM = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0, 0, 0, 1]])
 CV = np.diag([1.0, -1.0, -1.0, 1.0])
+SH_C0 = 0.28209479177387814     # the degree-0 SH basis constant: colour = 0.5 + SH_C0 * coefficient
 
 
 def scene_cameras(count: int, *, size: int = 20, centre=(2.0, -1.0, 0.5), radius: float = 3.0) -> list[Camera]:
@@ -210,10 +211,12 @@ def write_nerfstudio_ply(path: Path, model: GaussianModel) -> None:
 
 
 def write_splatfacto_checkpoint(path: Path, model: GaussianModel) -> None:
-    """What the nerfstudio trainer saves: step, the pipeline's state dict, optimizer and scaler states."""
+    """What the nerfstudio trainer saves: step, the pipeline's state dict, optimizer and scaler
+    states. With SH degree 0 splatfacto keeps RGB logits in features_dc, not an SH coefficient."""
     prefix = "_model.gauss_params."
+    dc = model.sh[:, 0, :] if model.sh.shape[1] > 1 else torch.logit(0.5 + SH_C0 * model.sh[:, 0, :])
     pipeline = {prefix + "means": model.means, prefix + "scales": model.log_scales, prefix + "quats": model.quats,
-                prefix + "features_dc": model.sh[:, 0, :], prefix + "features_rest": model.sh[:, 1:, :],
+                prefix + "features_dc": dc, prefix + "features_rest": model.sh[:, 1:, :],
                 prefix + "opacities": model.opacity_logits[:, None],
                 "datamanager.train_dataset.cameras.camera_to_worlds": torch.zeros(2, 3, 4)}
     optimizers = {"means": {"state": {0: {"step": torch.tensor(29999.0), "exp_avg": torch.zeros_like(model.means)}},
