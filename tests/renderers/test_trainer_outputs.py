@@ -79,7 +79,8 @@ def test_splatfacto_export_renders_a_training_view_as_the_capture(splatfacto) ->
 
 
 def test_splatfacto_frame_round_trips_to_1e9(splatfacto) -> None:
-    with pytest.warns(ModelNote, match="moved from the dataparser's frame"):
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
         frame = read_output(splatfacto["folder"]).frame
     for camera in splatfacto["cameras"]:
         in_model = move_camera(camera, splatfacto["to_model"])      # where splatfacto put this camera
