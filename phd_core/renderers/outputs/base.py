@@ -97,7 +97,7 @@ def data_candidates(folder: Path, data: Path) -> list[Path]:
     return [base / data for base in (Path.cwd(), folder, *folder.resolve().parents)]
 
 
-def nearest_distances(points: torch.Tensor, targets: torch.Tensor, chunk: int = 1024) -> torch.Tensor:
+def nearest_distances(points: torch.Tensor, targets: torch.Tensor, chunk: int = 128) -> torch.Tensor:
     """For each of points [P, 3], the distance to the nearest of targets [T, 3]: [P] float64."""
     out = torch.empty(points.shape[0], dtype=torch.float64)
     for start in range(0, points.shape[0], chunk):
