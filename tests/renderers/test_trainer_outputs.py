@@ -140,13 +140,15 @@ def test_splatfacto_folder_errors_name_the_field(tmp_path) -> None:
 
 # ----------------------------------------------------------------------------- gsplat
 
-@pytest.mark.parametrize("upside_down_fix", [True, False], ids=["current gsplat", "gsplat before the upside-down fix"])
-def test_gsplat_checkpoint_renders_a_training_view_as_the_capture(tmp_path, upside_down_fix) -> None:
-    scene = gsplat_scene(tmp_path, upside_down_fix=upside_down_fix)
-    other = gsplat_scene(tmp_path / "other", upside_down_fix=not upside_down_fix)
-    assert not np.allclose(scene["to_model"], other["to_model"])         # the two versions differ on this capture
+@pytest.mark.parametrize("version", ["current gsplat", "before the upside-down fix", "normalize_world_space off"])
+def test_gsplat_checkpoint_renders_a_training_view_as_the_capture(tmp_path, version) -> None:
+    scene = gsplat_scene(tmp_path, upside_down_fix=version == "current gsplat", normalize=not version.endswith("off"))
+    other = gsplat_scene(tmp_path / "other", upside_down_fix=version != "current gsplat")
+    assert not np.allclose(scene["to_model"], other["to_model"])         # the versions differ on this capture
     renderer, notes, warned = loaded(scene["folder"])
-    assert not warned and ("upside-down" in notes[0]) == upside_down_fix
+    expected = {"current gsplat": "upside-down turn", "before the upside-down fix": "cameras and principal axes of "
+                "the points)", "normalize_world_space off": "none (normalize_world_space is off)"}[version]
+    assert not warned and expected in notes[0], notes
     residual = float(notes[0].split("residual ")[1].split()[0])
     assert residual < 1e-4                                              # the SfM points sit on splat centres
     assert renderer.num_units == 300                                    # the latest step, not step 999

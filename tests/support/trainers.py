@@ -331,7 +331,8 @@ def splatfacto_scene(root: Path, *, export_ply: bool = True, sh_coeffs: int = 1,
             "to_model": to_model, "cameras": cameras, "training": [cameras[order[k]] for k in chosen]}
 
 
-def gsplat_scene(root: Path, *, upside_down_fix: bool = True, shift: float = 0.0, app_opt: bool = False) -> dict:
+def gsplat_scene(root: Path, *, upside_down_fix: bool = True, normalize: bool = True, shift: float = 0.0,
+                 app_opt: bool = False) -> dict:
     """A COLMAP capture (data/garden) in the user's frame and a gsplat run on it (SH degree 0);
     `shift` moves the trained splats away from where the capture puts them (a mismatched model)."""
     cameras = scene_cameras(10)
@@ -340,9 +341,9 @@ def gsplat_scene(root: Path, *, upside_down_fix: bool = True, shift: float = 0.0
     write_capture(root / "data" / "garden", cameras, points)
     names = [f"IMG_{(7 * i) % len(cameras):04d}.png" for i in range(len(cameras))]
     by_name = [cameras[i] for i in sorted(range(len(cameras)), key=lambda i: names[i])]
-    to_model = gsplat_normalisation(by_name, points, upside_down_fix=upside_down_fix)
+    to_model = gsplat_normalisation(by_name, points, upside_down_fix=upside_down_fix) if normalize else np.eye(4)
     trained = move_model(user, to_model)
     trained.means[:, 0] += shift
-    folder = write_gsplat(root, "garden", trained, data_dir="data/garden", app_opt=app_opt)
+    folder = write_gsplat(root, "garden", trained, data_dir="data/garden", normalize=normalize, app_opt=app_opt)
     return {"folder": folder, "user_model": user, "trained": trained, "to_model": to_model, "points": points,
             "training": [c for i, c in enumerate(by_name) if i % 8]}

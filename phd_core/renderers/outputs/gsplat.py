@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...data.colmap import find_model, image_camera, read_model
+from ...data.colmap import find_model, load_colmap
 from ...errors import InputError
 from ...io.foreign import read_checkpoint, read_yaml, yaml_path
 from ...scene import IDENTITY, Camera, Similarity
@@ -76,8 +76,9 @@ def read(folder: Path) -> TrainerOutput:
             f"the COLMAP capture of this run was not found (cfg.yml data_dir: {config.get('data_dir')!r}, looked from "
             f"the working directory and every folder above {folder}): no training cameras, and poses are in gsplat's "
             "normalised frame"])
-    colmap = read_model(capture)
-    cameras = [image_camera(colmap, image, "images") for image in colmap.images]     # sorted by name
+    dataset = load_colmap(capture, "all", with_images=False)
+    cameras = dataset.cameras                                                          # sorted by name
+    points = None if dataset.points is None else dataset.points.numpy()               # [P, 3] float64
     test_every = config.get("test_every", 8)
     if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
         raise InputError("cfg.yml.test_every", f"must be a positive integer, got {test_every!r}")
@@ -85,8 +86,8 @@ def read(folder: Path) -> TrainerOutput:
     if config.get("normalize_world_space", True) is False:
         candidates = {"none (normalize_world_space is off)": IDENTITY}
     else:
-        candidates = normalisations(cameras, colmap.points)
-    name, frame, residual = best_frame(model, candidates, cameras, colmap.points)
+        candidates = normalisations(cameras, points)
+    name, frame, residual = best_frame(model, candidates, cameras, points)
     notes = [f"gsplat checkpoint {source.name}: world frame recomputed from {capture} ({name})"
              + ("" if residual is None else f"; residual {residual:.3g} (median distance from an SfM point to the "
                 "nearest splat, x the median camera distance)")]
