@@ -164,8 +164,16 @@ def test_gsplat_model_that_does_not_fit_its_capture_is_warned_about(tmp_path) ->
     assert any(f"of the model's {len(scene['training'])} training cameras see almost none" in w for w in warned)
 
 
-def test_gsplat_appearance_runs_are_refused_with_the_field(tmp_path) -> None:
+def test_gsplat_checkpoint_errors_name_the_field(tmp_path) -> None:
     scene = gsplat_scene(tmp_path, app_opt=True)
     with pytest.raises(InputError) as caught:
         load_model(scene["folder"])
-    assert caught.value.field == "ckpt_6999_rank0.pt.splats.features"
+    assert caught.value.field == "ckpt_6999_rank0.pt.splats.features" and "app_opt" in caught.value.reason
+    checkpoint = scene["folder"] / "ckpts" / "ckpt_6999_rank0.pt"
+    state = torch.load(checkpoint, weights_only=True)
+    del state["splats"]["features"]
+    state["splats"]["shN"] = torch.zeros(5, 3, 3)                      # rows that are not the splats'
+    torch.save(state, checkpoint)
+    with pytest.raises(InputError) as caught:
+        load_model(scene["folder"])
+    assert caught.value.field == "ckpt_6999_rank0.pt.splats.shN" and "[5, 3, 3]" in caught.value.reason

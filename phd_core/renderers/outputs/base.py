@@ -88,6 +88,17 @@ def empty_views(model: GaussianModel, cameras: list[Camera]) -> list[int]:
     return empty
 
 
+def sh_from_parts(dc: torch.Tensor, rest: torch.Tensor, field: str) -> torch.Tensor:
+    """SH coefficients [G, K, 3] from the DC term [G, 3] (or [G, 1, 3]) and the rest [G, K-1, 3],
+    as trainers store them apart; an InputError naming `field` when the shapes disagree."""
+    dc = dc[:, None, :] if dc.dim() == 2 else dc
+    if dc.dim() != 3 or rest.dim() != 3 or dc.shape[1:] != (1, 3) or rest.shape[0] != dc.shape[0] \
+            or rest.shape[2] != 3:
+        raise InputError(field, f"the DC colour must be [G, 3] or [G, 1, 3] and the higher SH terms [G, K-1, 3], got "
+                                f"{list(dc.shape)} and {list(rest.shape)}")
+    return torch.cat([dc, rest], dim=1)
+
+
 def data_candidates(folder: Path, data: Path) -> list[Path]:
     """Where the data path a trainer recorded may be now: itself when absolute, else relative
     to the working directory, the output folder or any folder above it (trainers record the

@@ -44,7 +44,7 @@ from ...errors import InputError
 from ...io.foreign import read_checkpoint, read_yaml, yaml_path
 from ...scene import IDENTITY, Camera, Similarity
 from ..gs3d import GaussianModel
-from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates, nearest_distances
+from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates, nearest_distances, sh_from_parts
 
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 CHECKPOINT = re.compile(r"ckpt_(\d+)_rank(\d+)\.pt")
@@ -113,10 +113,9 @@ def checkpoint_model(path: Path) -> GaussianModel:
         value = splats.get(key)
         if not isinstance(value, torch.Tensor) or not value.is_floating_point():
             raise InputError(f"{path.name}.splats.{key}", "missing or not a floating-point tensor")
-    sh0, sh_rest = splats["sh0"].float(), splats["shN"].float()                  # [G, 1, 3], [G, K-1, 3]
     model = GaussianModel(splats["means"].float(), splats["scales"].float(), splats["quats"].float(),
                           splats["opacities"].float(),
-                          torch.cat([sh0, sh_rest], dim=1) if sh0.dim() == sh_rest.dim() == 3 else sh0)
+                          sh_from_parts(splats["sh0"].float(), splats["shN"].float(), f"{path.name}.splats.shN"))
     try:
         model.validate()
     except InputError as exc:

@@ -47,7 +47,7 @@ from ...io.foreign import read_checkpoint, read_yaml, yaml_path
 from ...scene import Camera, Similarity
 from ..gs3d import GaussianModel, read_ply
 from ..splats import SH_C0
-from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates
+from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates, sh_from_parts
 
 FRAME_FILE = "dataparser_transforms.json"
 GAUSS_PARAMS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
@@ -136,7 +136,7 @@ def checkpoint_model(path: Path, sh_degree: Any) -> GaussianModel:
     opacities = found["opacities"]
     model = GaussianModel(found["means"], found["scales"], found["quats"],
                           opacities[:, 0] if opacities.dim() == 2 and opacities.shape[1:] == (1,) else opacities,
-                          torch.cat([dc[:, None, :], rest], dim=1) if dc.dim() == 2 and rest.dim() == 3 else dc)
+                          sh_from_parts(dc, rest, f"{path.name}.pipeline.features_rest"))
     try:
         model.validate()
     except InputError as exc:
