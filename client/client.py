@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import struct
+import tempfile
 import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence, Union
@@ -267,21 +268,32 @@ class PHDClient:
                      camera_format: str | None = None) -> ModelInfo:
         """Upload a 3DGS/2DGS PLY or NeRF checkpoint with its training cameras: `cameras`, else
         the trainer's sidecar `<stem>.json` next to a PLY when there is one (NeRF
-        checkpoints carry theirs inside). `path` may be the reference 3DGS trainer's output
-        folder as is: its latest point_cloud.ply goes up with its cameras.json. `background`
-        (splat models): the colour trained over, else the sidecar's or the folder's (else the
+        checkpoints carry theirs inside). `path` may be a trainer's output folder as is
+        (`phd_core.renderers.outputs`): the reference 3DGS trainer's (its latest
+        point_cloud.ply goes up with its cameras.json), nerfstudio splatfacto's or gsplat's
+        (read here, checkpoints without unpickling code; the splats go up as a PLY moved into
+        the user's frame, with the training cameras in that frame). `background` (splat
+        models): the colour trained over, else the sidecar's or the folder's (else the
         service's rule, docs/service.md). `camera_format`: the pose convention of the cameras'
         source (ranked poses come back in it), else the folder's, the sidecar's capture's or
         that of a capture given as `cameras`."""
         path = Path(path)
         if path.is_dir():
-            from phd_core.data.inria import read_output_folder
+            from phd_core.renderers.gs3d import write_ply
+            from phd_core.renderers.outputs import read_output
 
-            folder = read_output_folder(path)
-            if cameras is None:
-                cameras, camera_format = folder.cameras, camera_format or "3dgs-output"   # eval test views left out
-            background = folder.background if background is None else background
-            path = folder.ply
+            output = read_output(path)                    # notes and warnings are issued as Python warnings
+            if cameras is None and output.cameras:
+                cameras = output.cameras                  # training views only, in the user's frame
+                camera_format = camera_format or output.camera_format
+            background = output.background if background is None else background
+            if output.ply is None:                        # splats moved out of the trainer's frame: upload them as a PLY
+                with tempfile.TemporaryDirectory(prefix="phd-upload-") as tmp:
+                    ply = Path(tmp) / f"{path.name}.ply"
+                    write_ply(output.model, ply)
+                    return self.upload_model(ply, cameras, name if name is not None else path.name, background,
+                                             camera_format)
+            path = output.ply
         sidecar = path.with_name(path.stem + ".json")
         if path.suffix.lower() == ".ply" and sidecar.is_file():
             sidecar_background, sidecar_format = _sidecar(sidecar)

@@ -6,12 +6,13 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 
 # Idle OpenMP threads sleep instead of spinning: with spinning, torch on a busy or shared
 # 2-core machine ran 3-25x slower (docs/gaussians.md). Must be set before torch loads.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from phd_core.errors import InputError
+from phd_core.errors import InputError, ModelNote, ModelWarning
 
 # Each module defines register(subparsers) and sets `func` on its parsers.
 COMMAND_MODULES = ("train", "render", "serve", "demo", "uq", "candidates", "view")
@@ -29,10 +30,25 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", ModelNote)
+            warnings.simplefilter("always", ModelWarning)
+            warnings.showwarning = _model_messages(args.command, warnings.showwarning)
+            return int(args.func(args) or 0)
     except InputError as exc:
         print(f"phd {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def _model_messages(command: str, default):
+    """A showwarning that prints the model loaders' notes and warnings as `phd <command>: note: ...`."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, (ModelNote, ModelWarning)):
+            kind = "note" if issubclass(category, ModelNote) else "warning"
+            print(f"phd {command}: {kind}: {message}", file=sys.stderr)
+        else:
+            default(message, category, filename, lineno, file, line)
+    return show

@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Write candidate camera poses as transforms-style JSON. SPEC is NAME[:COUNT][,key=value...]; "
                     "generators: " + "; ".join(f"{name}: {g.summary}" for name, g in GENERATORS.items()))
     p.add_argument("spec", help="e.g. orbit:64, orbit:48,rings=3, spiral:30, jitter:20,angle=10")
-    p.add_argument("--model", type=Path, help="a model (file or reference-trainer output folder): its training "
+    p.add_argument("--model", type=Path, help="a model (file or trainer output folder, docs/formats.md): its training "
                    "cameras, else its splats, place the poses")
     p.add_argument("--data", type=Path, help="a capture (any format): its train split places the poses")
     p.add_argument("--cameras", type=Path, help="training cameras: transforms JSON or a reference cameras.json")

@@ -128,7 +128,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_model_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS or 2DGS .ply, NeRF checkpoint, "
-                        "or the reference 3DGS trainer's output folder as is (cameras.json + point_cloud/iteration_*)")
+                        "or a trainer's output folder as is: the reference 3DGS trainer's, nerfstudio splatfacto's "
+                        "(config.yml + dataparser_transforms.json) or gsplat's (ckpts/, with its COLMAP capture); "
+                        "poses are in the capture's frame")
     add_background_arg(parser, "splat models: the colour to render over (default: the one the model came with: "
                        "its sidecar's or cfg_args', else white)")
 

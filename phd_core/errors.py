@@ -27,6 +27,14 @@ class InputError(ValueError):
         return _rebuild_error, (type(self), self.args, self.__dict__)
 
 
+class ModelNote(UserWarning):
+    """What a model loader decided that the user should know (the frame it chose, and how well it fits)."""
+
+
+class ModelWarning(UserWarning):
+    """A loaded model that will probably not give what the user expects (its cameras miss its splats)."""
+
+
 def _rebuild_error(cls: type, args: tuple, state: dict) -> InputError:
     error = cls.__new__(cls)
     error.args = args

@@ -182,7 +182,8 @@ def sniff_kind(head: bytes) -> str:
     what = "an empty file" if not head else f"neither {known}"
     if head[:1] == b"\x80" or head[:2] == b"PK":
         what = ("a Python pickle or zip archive (e.g. a torch.save file); such files can run code when loaded "
-                "and are never opened")
+                "and are never opened (a nerfstudio or gsplat run: upload its folder with the Python client, which "
+                "reads checkpoints without running code and sends the splats as a PLY)")
     raise ServiceError(415, "unsupported_model", f"the uploaded file is {what}", "file")
 
 

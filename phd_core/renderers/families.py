@@ -9,8 +9,8 @@ a render of one camera takes (`RenderMemory`, which the service budgets with). A
 recognises (a pickle, an archive, random bytes) is refused before it is parsed, so no file
 can execute code on load. A new family is one module defining its `Family` plus one
 `register_family` call (`phd_core/renderers/__init__.py` registers the built-in ones); the
-CLI and the service take their names from here. A family that reads a trainer's output folder
-says so with `folder`: this module never imports a family (the dependency runs one way).
+CLI and the service take their names from here. Trainers' output folders are read by
+`phd_core.renderers.outputs` (one module per trainer); this module never imports a family.
 """
 
 from __future__ import annotations
@@ -37,8 +37,6 @@ class Family:
     sniff: Callable[[bytes], bool]                          # True for the first SNIFF_BYTES of its files
     load: Callable[[bytes, str, list[Camera] | None], Renderer]   # (content, name, training cameras or None)
     beside: Callable[[Path, Renderer], Renderer] | None = None    # extras stored next to a model file
-    folder: Callable[[Path], Renderer | None] | None = None       # a trainer's output folder as is
-                                                            # (None when the folder is not of this family)
     trainer: str | None = None                              # "module:function" that `phd train` calls
     train_options: tuple[str, ...] = ()                     # `phd train` flags the trainer takes
     memory: Callable[[Renderer, Camera], RenderMemory] | None = None   # bounds of one camera's render
@@ -84,17 +82,13 @@ def load_model_bytes(data: bytes, name: str = "model",
 
 def load_model(path: str | Path) -> Renderer:
     """Load a model file, with what its family keeps next to it (a PLY's sidecar `<stem>.json`
-    from `phd train`: training cameras and background), or a reference 3DGS trainer's output
-    folder as is (point_cloud/iteration_*/point_cloud.ply with cameras.json)."""
+    from `phd train`: training cameras and background), or a trainer's output folder as is
+    (`phd_core.renderers.outputs`: the reference 3DGS trainer, nerfstudio's splatfacto, gsplat)."""
     path = Path(path)
     if path.is_dir():
-        for family in FAMILIES.values():
-            renderer = None if family.folder is None else family.folder(path)
-            if renderer is not None:
-                return renderer
-        raise InputError("model", f"{path} is a folder no model family reads: give a model file, or a trainer's "
-                         "output folder as is (the reference 3DGS trainer's: cameras.json with "
-                         "point_cloud/iteration_*/point_cloud.ply)")
+        from .outputs import load_output
+
+        return load_output(path)
     try:
         data = path.read_bytes()
     except OSError as exc:

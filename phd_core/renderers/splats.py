@@ -46,12 +46,9 @@ def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
     ], dim=-1).reshape(-1, 3, 3)
 
 
-def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-    """Colour from SH coefficients sh: [G, K, 3] along unit directions dirs: [G, 3].
-
-    Same basis, signs and +0.5 offset as the reference; clamped at 0 like it.
-    """
-    k = sh.shape[1]
+def sh_basis(dirs: torch.Tensor, k: int) -> torch.Tensor:
+    """The first k real SH basis functions (the reference's order and signs) at unit
+    directions dirs: [..., 3] -> [..., k]."""
     x, y, z = dirs.unbind(-1)
     basis = [torch.full_like(x, SH_C0)]
     if k > 1:
@@ -64,8 +61,65 @@ def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         basis += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4 * zz - xx - yy),
                   SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
                   SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
-    basis_t = torch.stack(basis, dim=-1).to(sh.dtype)  # [G, K]
+    return torch.stack(basis, dim=-1)
+
+
+def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Colour from SH coefficients sh: [G, K, 3] along unit directions dirs: [G, 3].
+
+    Same basis, signs and +0.5 offset as the reference; clamped at 0 like it.
+    """
+    basis_t = sh_basis(dirs, sh.shape[1]).to(sh.dtype)  # [G, K]
     return ((basis_t[..., None] * sh).sum(dim=1) + 0.5).clamp_min(0.0)
+
+
+def sh_rotation(rotation: torch.Tensor, k: int) -> torch.Tensor:
+    """[K, K] float64 M such that M @ sh are the coefficients of the colour field turned by
+    `rotation` ([3, 3]): eval_sh(M @ sh, R d) == eval_sh(sh, d) for every direction d.
+
+    Each SH band is closed under rotation, so M is exact; it is solved by least squares from
+    the basis at 64 spiral directions and at the same directions turned back by R^T."""
+    n = 64
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (3 - math.sqrt(5)) * i
+    r = (1 - z * z).sqrt()
+    dirs = torch.stack([r * phi.cos(), r * phi.sin(), z], dim=-1)                # [64, 3]
+    rotation = torch.as_tensor(rotation, dtype=torch.float64)
+    # Coefficients c' with basis(d) @ c' = basis(R^T d) @ c for all d: basis(D) @ M = basis(D R).
+    return torch.linalg.lstsq(sh_basis(dirs, k), sh_basis(dirs @ rotation, k)).solution   # [K, K]
+
+
+def rotation_to_quaternion(rotation: torch.Tensor) -> torch.Tensor:
+    """[3, 3] rotation -> [4] float64 unit quaternion wxyz (Shepperd: from the largest of
+    the trace and the diagonal, so no division by a small number)."""
+    r = torch.as_tensor(rotation, dtype=torch.float64)
+    trace = r[0, 0] + r[1, 1] + r[2, 2]
+    k = int(torch.argmax(torch.stack([trace, r[0, 0], r[1, 1], r[2, 2]])))
+    if k == 0:
+        s = 2 * (1 + trace).sqrt()
+        q = [s / 4, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    elif k == 1:
+        s = 2 * (1 + r[0, 0] - r[1, 1] - r[2, 2]).sqrt()
+        q = [(r[2, 1] - r[1, 2]) / s, s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+    elif k == 2:
+        s = 2 * (1 + r[1, 1] - r[0, 0] - r[2, 2]).sqrt()
+        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s]
+    else:
+        s = 2 * (1 + r[2, 2] - r[0, 0] - r[1, 1]).sqrt()
+        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4]
+    q = torch.stack(q)
+    return q / q.norm()
+
+
+def quaternion_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a * b of wxyz quaternions [..., 4] (the rotation b, then a)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
+                        aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw], dim=-1)
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """Bring your own capture through the `phd` command: a reference-trainer output folder taken
-as is by calibrate and rank (with generated candidates), `phd candidates`, training cameras
-from COLMAP and LLFF files, and clean errors for malformed files."""
+as is by calibrate and rank (with generated candidates), nerfstudio splatfacto and gsplat
+folders ranked in the user's frame, `phd candidates`, training cameras from COLMAP and LLFF
+files, and clean errors for malformed files."""
 
 from __future__ import annotations
 
@@ -16,11 +17,13 @@ from phd_core import uq as phd
 from phd_core.data import load_cameras
 from phd_core.data.inria import camera_from_entry
 from phd_core.renderers import load_model
-from phd_core.renderers.gs3d import GaussianModel
+from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
+from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.scene import Camera
 from phd_core.uq.candidates import candidate_cameras
 from support.captures import write_colmap, write_llff, write_output_folder
 from support.toy_renderers import ring_cameras
+from support.trainers import gsplat_scene, splatfacto_scene
 
 SIZE, STEP = 16, 0.25
 
@@ -199,3 +202,28 @@ def test_uq_and_rank_read_colmap_and_llff_captures(capture, capsys) -> None:
         code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", data, "--samples", 3,
                              "--dropout-ratio", 0.3)
         assert code == 0 and json.loads(out)["candidates"] == 9, err
+
+
+@pytest.mark.parametrize("trainer", ["splatfacto export", "splatfacto checkpoint", "gsplat"])
+def test_rank_a_splatfacto_or_gsplat_folder_in_the_users_frame(capsys, tmp_path, trainer) -> None:
+    """The folder as the trainer left it ranks as the scene built in the user's frame does,
+    and generated candidates come out in that frame."""
+    if trainer == "gsplat":
+        scene, background = gsplat_scene(tmp_path), (0.0, 0.0, 0.0)
+    else:
+        scene, background = splatfacto_scene(tmp_path, export_ply=trainer.endswith("export")), BACKGROUNDS["random"]
+    reference = GaussianRenderer(scene["user_model"], background, scene["training"])
+    code, out, err = run(capsys, "candidates", "orbit:5,rings=1", "--model", scene["folder"],
+                         "--out", tmp_path / "c.json")
+    assert code == 0 and "note:" in err and "warning:" not in err, err
+    expected = candidate_cameras("orbit", 5, cameras=scene["training"], rings=1)
+    frames = json.loads((tmp_path / "c.json").read_text())["frames"]
+    assert np.allclose([f["transform_matrix"] for f in frames], [c.c2w.tolist() for c in expected], atol=1e-9)
+    code, out, err = run(capsys, "rank", "--model", scene["folder"], "--candidates", "orbit:5,rings=1",
+                         "--samples", 3, "--dropout-ratio", 0.2, "--out", tmp_path / "r.json")
+    assert code == 0, err
+    result = json.loads((tmp_path / "r.json").read_text())
+    ranked = phd.rank_views(reference, expected, ratio=0.2, samples=3)
+    got = {r["index"]: r["sigma_max"] for r in result["ranking"]}
+    assert max(r.sigma_max for r in ranked) > 0.01
+    assert [got[r.index] for r in ranked] == pytest.approx([r.sigma_max for r in ranked], rel=1e-3, abs=1e-5)

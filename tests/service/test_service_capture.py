@@ -1,10 +1,13 @@
 """Bring your own capture through the service and the real client: a reference-trainer output
-folder uploaded as is, cameras from COLMAP and LLFF files, rank requests that name a
+folder uploaded as is, nerfstudio splatfacto and gsplat folders uploaded with poses in the
+user's frame, cameras from COLMAP and LLFF files, rank requests that name a
 candidate generator instead of a camera list, and 4xx (never 5xx) for malformed input."""
 
 from __future__ import annotations
 
 import json
+
+import warnings
 
 import httpx
 import numpy as np
@@ -13,11 +16,15 @@ import pytest
 from client import InvalidInputError, PHDClient
 from conftest import svc_cameras, svc_random_gaussians
 from phd_core import uq as phd
+from phd_core.errors import ModelNote
 from phd_core.renderers import load_model
+from phd_core.renderers.gs3d import GaussianRenderer
+from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.scene import Camera
 from phd_core.uq.candidates import candidate_cameras
 from phd_core.data.inria import camera_from_entry
 from support.captures import colmap_pose as written_colmap_pose, inria_entries, write_colmap, write_llff, write_output_folder
+from support.trainers import gsplat_scene, splatfacto_scene
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +59,33 @@ def test_upload_an_output_folder_calibrate_and_rank_generated_candidates(svc_sta
         assert view.source_pose["format"] == "3dgs-output"
         assert np.allclose(camera_from_entry(view.source_pose).c2w.numpy(), poses[view.index].c2w.numpy(),
                            atol=1e-12)
+
+
+@pytest.mark.parametrize("trainer", ["splatfacto checkpoint", "gsplat"])
+def test_upload_a_splatfacto_or_gsplat_folder_and_rank_in_the_users_frame(svc_start, tmp_path, trainer) -> None:
+    """The client reads the folder (checkpoints without unpickling code), uploads the splats moved
+    into the user's frame with the training cameras; the service answers in that frame."""
+    if trainer == "gsplat":
+        scene, background = gsplat_scene(tmp_path), (0.0, 0.0, 0.0)
+    else:
+        scene, background = splatfacto_scene(tmp_path, export_ply=False), BACKGROUNDS["random"]
+    server = svc_start()
+    with PHDClient(server.url) as client:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            info = client.upload_model(scene["folder"])
+        assert any(w.category is ModelNote for w in caught)
+        assert info.num_units == 300 and info.num_training_cameras == len(scene["training"])
+        frames = client.training_cameras(info.id)
+        ranking = client.rank(info.id, candidates="orbit:5,rings=1", samples=3, dropout_ratio=0.2)
+    assert np.allclose([f["transform_matrix"] for f in frames], [c.c2w.tolist() for c in scene["training"]],
+                       atol=1e-9)
+    reference = GaussianRenderer(scene["user_model"], background, scene["training"])
+    poses = candidate_cameras("orbit", 5, cameras=scene["training"], rings=1)
+    ranked = phd.rank_views(reference, poses, ratio=0.2, samples=3, captured=scene["training"])
+    got = {v.index: v.sigma_max for v in ranking.views}
+    assert max(r.sigma_max for r in ranked) > 0.01
+    assert [got[r.index] for r in ranked] == pytest.approx([r.sigma_max for r in ranked], rel=1e-3, abs=1e-5)
 
 
 @pytest.mark.parametrize("kind", ["raw cameras.json", "colmap", "llff"])

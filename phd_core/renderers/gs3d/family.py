@@ -7,24 +7,12 @@ from pathlib import Path
 
 from ...scene import Camera, cameras_from_json
 from ..families import Family
-from .ply import is_3dgs_ply, parse_ply, read_ply, read_sidecar
+from .ply import is_3dgs_ply, parse_ply, read_sidecar
 from .render import GaussianRenderer, view_memory
 
 
 def _load(data: bytes, name: str, cameras: list[Camera] | None) -> GaussianRenderer:
     return GaussianRenderer(parse_ply(data, name), training_cameras=cameras)
-
-
-def load_output_folder(folder: Path) -> GaussianRenderer | None:
-    """A reference 3DGS trainer's output folder as is: the latest iteration's PLY, the training
-    cameras of cameras.json and the trainer's background (`phd_core.data.inria`); None for a
-    folder that is not one."""
-    from ...data.inria import is_output_folder, read_output_folder
-
-    if not is_output_folder(folder):
-        return None
-    found = read_output_folder(folder)
-    return GaussianRenderer(read_ply(found.ply), found.background, found.cameras, camera_format="3dgs-output")
 
 
 def with_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
@@ -37,5 +25,5 @@ def with_sidecar(path: Path, renderer: GaussianRenderer) -> GaussianRenderer:
                           cameras_from_json(sidecar["training_cameras"]), camera_format=sidecar.get("dataset_format"))
 
 
-GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_3dgs_ply, _load, with_sidecar, load_output_folder,
+GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_3dgs_ply, _load, with_sidecar,
               trainer="phd_core.train.gs3d:train_gaussians", memory=view_memory)

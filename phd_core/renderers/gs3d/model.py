@@ -12,7 +12,8 @@ import numpy as np
 import torch
 
 from ...errors import InputError
-from ..splats import SH_C0, quaternion_to_rotation
+from ...scene import Similarity
+from ..splats import SH_C0, quaternion_multiply, quaternion_to_rotation, rotation_to_quaternion, sh_rotation
 
 SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
 
@@ -72,6 +73,18 @@ class GaussianModel:
         """The splats selected by `index`: [M] integer indices or a [G] bool mask."""
         return type(self)(self.means[index], self.log_scales[index], self.quats[index],
                              self.opacity_logits[index], self.sh[index])
+
+    def transformed(self, frame: Similarity) -> "GaussianModel":
+        """The same splats in another world frame (p -> s R p + t): centres moved, rotations
+        turned, log-scales raised by log s and SH colours turned with R. A camera moved by
+        `frame` renders the new model as the old camera rendered this one. Float64 inside."""
+        rotation = frame.rotation                                                        # [3, 3]
+        turn = rotation_to_quaternion(rotation)                                          # [4]
+        sh = torch.einsum("jk,gkc->gjc", sh_rotation(rotation, self.sh.shape[1]), self.sh.double())  # [G, K, 3]
+        return type(self)(frame.points(self.means.double()).float(),
+                          (self.log_scales.double() + math.log(frame.scale)).float(),
+                          quaternion_multiply(turn, self.quats.double()).float(),
+                          self.opacity_logits.clone(), sh.float())
 
     def bounds(self, quantile: float = 0.0) -> tuple[list[float], list[float]]:
         """Per-axis (low, high) of the splat centres: the min/max for quantile 0, else the

@@ -1,0 +1,118 @@
+"""What every trainer-output reader returns, the registry they join, and the check that a
+model's cameras see its splats."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from ...errors import InputError, ModelNote, ModelWarning
+from ...registry import Registry
+from ...scene import Camera, Similarity
+from ..gs3d import GaussianModel, GaussianRenderer
+
+EMPTY_VIEW_SHARE = 0.01      # a view whose frustum holds fewer than 1% of the splat centres renders (nearly) empty
+CHECKED_SPLATS = 20_000      # the check looks at up to this many splats (every n-th)
+
+
+@dataclass
+class TrainerOutput:
+    """A trainer's output folder resolved, everything in the user's frame."""
+
+    model: GaussianModel                   # the splats, moved into the user's frame
+    cameras: list[Camera]                  # training cameras ([] when the folder does not say)
+    background: tuple[float, float, float]
+    source: Path                           # the file the splats were read from
+    ply: Path | None = None                # that file, when it holds exactly `model` (uploadable as is)
+    frame: Similarity | None = None        # user frame -> the trainer's frame (None: the same frame)
+    camera_format: str | None = None       # the pose convention of the user's capture (phd_core.data.POSES)
+    notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class OutputFormat:
+    name: str
+    title: str                                   # for messages: "a nerfstudio splatfacto output folder"
+    detect: Callable[[Path], bool]               # True when a folder is this trainer's output
+    read: Callable[[Path], TrainerOutput]
+
+
+OUTPUTS: Registry[OutputFormat] = Registry("trainer output folder")   # detected in registration order
+
+
+def read_output(path: str | Path) -> TrainerOutput:
+    """The first registered trainer output that recognises the folder, read; its notes and
+    warnings are also issued as Python warnings (ModelNote, ModelWarning)."""
+    path = Path(path)
+    for output_format in OUTPUTS.values():
+        if output_format.detect(path):
+            output = output_format.read(path)
+            empty = empty_views(output.model, output.cameras)
+            if output.cameras and len(empty) * 2 > len(output.cameras):
+                output.warnings.append(
+                    f"{len(empty)} of the model's {len(output.cameras)} training cameras see almost none of its "
+                    f"splats (fewer than {EMPTY_VIEW_SHARE:.0%} of the centres in view): the cameras and the splats "
+                    "are probably in different frames, so renders will be empty and rankings meaningless")
+            for note in output.notes:
+                warnings.warn(note, ModelNote, stacklevel=2)
+            for warning in output.warnings:
+                warnings.warn(warning, ModelWarning, stacklevel=2)
+            return output
+    known = "; ".join(f.title for f in OUTPUTS.values())
+    raise InputError("model", f"{path} is a folder but no trainer output this project reads ({known})")
+
+
+def load_output(path: str | Path) -> GaussianRenderer:
+    """A trainer's output folder as a renderer with its training cameras and background."""
+    output = read_output(path)
+    return GaussianRenderer(output.model, output.background, output.cameras or None,
+                            camera_format=output.camera_format)
+
+
+def empty_views(model: GaussianModel, cameras: list[Camera]) -> list[int]:
+    """Indices of the cameras whose frustum holds fewer than EMPTY_VIEW_SHARE of the splat centres."""
+    if not cameras or model.num_splats == 0:
+        return []
+    step = max(1, model.num_splats // CHECKED_SPLATS)
+    means = model.means[::step].double()                                  # [S, 3]
+    empty = []
+    for i, camera in enumerate(cameras):
+        pixels, depth = camera.project(means)                             # [S, 2], [S]
+        inside = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] <= camera.width)
+                  & (pixels[:, 1] >= 0) & (pixels[:, 1] <= camera.height))
+        if inside.double().mean() < EMPTY_VIEW_SHARE:
+            empty.append(i)
+    return empty
+
+
+def sh_from_parts(dc: torch.Tensor, rest: torch.Tensor, field: str) -> torch.Tensor:
+    """SH coefficients [G, K, 3] from the DC term [G, 3] (or [G, 1, 3]) and the rest [G, K-1, 3],
+    as trainers store them apart; an InputError naming `field` when the shapes disagree."""
+    dc = dc[:, None, :] if dc.dim() == 2 else dc
+    if dc.dim() != 3 or rest.dim() != 3 or dc.shape[1:] != (1, 3) or rest.shape[0] != dc.shape[0] \
+            or rest.shape[2] != 3:
+        raise InputError(field, f"the DC colour must be [G, 3] or [G, 1, 3] and the higher SH terms [G, K-1, 3], got "
+                                f"{list(dc.shape)} and {list(rest.shape)}")
+    return torch.cat([dc, rest], dim=1)
+
+
+def data_candidates(folder: Path, data: Path) -> list[Path]:
+    """Where the data path a trainer recorded may be now: itself when absolute, else relative
+    to the working directory, the output folder or any folder above it (trainers record the
+    path as they were given it, relative to where they ran)."""
+    if data.is_absolute():
+        return [data]
+    return [base / data for base in (Path.cwd(), folder, *folder.resolve().parents)]
+
+
+def nearest_distances(points: torch.Tensor, targets: torch.Tensor, chunk: int = 128) -> torch.Tensor:
+    """For each of points [P, 3], the distance to the nearest of targets [T, 3]: [P] float64."""
+    out = torch.empty(points.shape[0], dtype=torch.float64)
+    for start in range(0, points.shape[0], chunk):
+        out[start:start + chunk] = torch.cdist(points[start:start + chunk].double(), targets.double()).amin(dim=1)
+    return out

@@ -1,0 +1,221 @@
+"""nerfstudio's splatfacto output folder, as `ns-train splatfacto` leaves it:
+
+    outputs/<experiment>/splatfacto/<timestamp>/
+      config.yml                           the TrainerConfig, YAML with Python tags (read as plain data)
+      dataparser_transforms.json           {"transform": [3 x 4], "scale": s}
+      nerfstudio_models/step-000029999.ckpt   torch checkpoint; the splats are in its pipeline state
+      exports/splat/splat.ply              `ns-export gaussian-splat` (any .ply inside the folder)
+
+The splats come from a PLY inside the folder when there is one (the newest), else from the
+latest checkpoint, loaded with weights_only (tensors only: a checkpoint that needs code is
+refused). Keys `*.gauss_params.{means, scales, quats, features_dc, features_rest,
+opacities}` (older versions: `_model.means`, ...): log-scales, wxyz quaternions, opacity
+logits, SH coefficients; with `sh_degree: 0` features_dc holds RGB logits instead.
+
+Frames. splatfacto trains in its dataparser's frame. The nerfstudio dataparser sorts the
+frames of transforms.json by file name, turns and centres them (transform T, 3x4) and scales
+them (s): p_model = s (T [p; 1]), camera rotations R -> T[:, :3] R. dataparser_transforms.json
+stores that map from the *original* data frame: when transforms.json carries an
+`applied_transform` A (ns-process-data writes one; the dataparser assumes a default one when
+the data folder has colmap/sparse/0) the stored T is T_orient A and the stored scale includes
+`applied_scale`. The user's frame is transforms.json's, so user -> model is the stored
+similarity after A^-1, divided by applied_scale. The splats are moved into the user's frame on
+loading (`GaussianModel.transformed`), so cameras given and returned are the user's.
+
+Training cameras: transforms.json from config.yml's data path (absolute, or relative to the
+working directory or to any folder above the output folder), split as the dataparser splits it
+(`eval_mode` fraction (default, train_split_fraction 0.9), interval, filename, all; or the
+file's own `train_filenames`). Background: `background_color` white or black; "random"
+(splatfacto's default) renders over (0.149, 0.1647, 0.2157), what splatfacto evaluates over.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ...data.frames import read_transforms
+from ...data.nerfstudio import load_nerfstudio
+from ...errors import InputError
+from ...io.foreign import read_checkpoint, read_yaml, yaml_path
+from ...scene import Camera, Similarity
+from ..gs3d import GaussianModel, read_ply
+from ..splats import SH_C0
+from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates, sh_from_parts
+
+FRAME_FILE = "dataparser_transforms.json"
+GAUSS_PARAMS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "random": (0.1490, 0.1647, 0.2157)}
+# The applied_transform the dataparser assumes for data with colmap/sparse/0 and no such key.
+COLMAP_APPLIED_TRANSFORM = [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]
+
+
+def detect(path: Path) -> bool:
+    return path.is_dir() and (path / "config.yml").is_file() and (path / FRAME_FILE).is_file()
+
+
+def read(folder: Path) -> TrainerOutput:
+    config = read_yaml(folder / "config.yml")
+    if not isinstance(config, dict):
+        raise InputError("config.yml", "must be a mapping (nerfstudio's TrainerConfig)")
+    method = config.get("method_name")
+    if not (isinstance(method, str) and method.startswith("splatfacto")):
+        raise InputError("config.yml.method_name", f"{method!r} is not splatfacto: only nerfstudio's Gaussian "
+                         "splatting outputs are read (a NeRF such as nerfacto is not)")
+    model_config = _section(config, "pipeline", "model")
+    stored = read_frame(folder / FRAME_FILE)                      # nerfstudio's original data frame -> model frame
+    model, source = read_splats(folder, model_config.get("sh_degree", 3))
+    cameras, frame, notes = training_cameras(folder, config, stored)
+    background = model_config.get("background_color", "random")
+    if background not in BACKGROUNDS:
+        raise InputError("config.yml.background_color", f"must be one of {', '.join(BACKGROUNDS)}, got {background!r}")
+    notes.insert(0, f"nerfstudio {method}: splats from {source.relative_to(folder)}, moved from the dataparser's "
+                    f"frame (the user's scaled by {frame.scale:.6g}, turned and centred) into the user's")
+    return TrainerOutput(model.transformed(frame.inverse()), cameras, BACKGROUNDS[background], source,
+                         frame=frame, notes=notes, camera_format="nerfstudio")
+
+
+def read_frame(path: Path) -> Similarity:
+    """dataparser_transforms.json as the similarity p -> scale * (transform @ [p; 1])."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path.name, f"cannot parse {path}: {exc}") from None
+    if not isinstance(data, dict) or "transform" not in data or "scale" not in data:
+        raise InputError(path.name, "must be an object with 'transform' (3x4) and 'scale'")
+    scale = data["scale"]
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
+        raise InputError(f"{path.name}.scale", f"must be a positive finite number, got {scale!r}")
+    transform = Similarity.from_matrix(data["transform"], f"{path.name}.transform")
+    return transform.then(Similarity.make(scale, torch.eye(3), torch.zeros(3)))
+
+
+# ----------------------------------------------------------------------------- splats
+
+def read_splats(folder: Path, sh_degree: Any) -> tuple[GaussianModel, Path]:
+    """(model in the trainer's frame, the file it came from)."""
+    plys = [p for p in folder.rglob("*.ply") if p.is_file()]
+    if plys:
+        ply = max(plys, key=lambda p: (p.stat().st_mtime, str(p)))
+        return read_ply(ply), ply
+    steps = {int(m.group(1)): p for p in (folder / "nerfstudio_models").glob("step-*.ckpt")
+             if (m := re.fullmatch(r"step-(\d+)\.ckpt", p.name))}
+    if not steps:
+        raise InputError("model", f"{folder} has neither an exported .ply (ns-export gaussian-splat) nor "
+                                  "nerfstudio_models/step-*.ckpt")
+    path = steps[max(steps)]
+    return checkpoint_model(path, sh_degree), path
+
+
+def checkpoint_model(path: Path, sh_degree: Any) -> GaussianModel:
+    """The splats of a splatfacto checkpoint's pipeline state."""
+    data = read_checkpoint(path)
+    state = data.get("pipeline") if isinstance(data, dict) else None
+    if not isinstance(state, dict):
+        raise InputError(f"{path.name}.pipeline", "missing: a nerfstudio checkpoint is a dict whose 'pipeline' "
+                                                  "holds the model's state")
+    found = {}
+    for name in GAUSS_PARAMS:
+        keys = [k for k in state if k.endswith(f"gauss_params.{name}")] or [k for k in state if k == f"_model.{name}"]
+        if len(keys) != 1:
+            raise InputError(f"{path.name}.pipeline", f"needs one '*gauss_params.{name}' tensor (splatfacto's state), "
+                                                      f"found {len(keys)}")
+        value = state[keys[0]]
+        if not isinstance(value, torch.Tensor) or not value.is_floating_point():
+            raise InputError(f"{path.name}.pipeline.{keys[0]}", "must be a floating-point tensor")
+        found[name] = value.detach().float()
+    dc, rest = found["features_dc"], found["features_rest"]           # [G, 3], [G, K-1, 3]
+    if sh_degree == 0:                                                # colours are RGB logits, not SH
+        dc = (torch.sigmoid(dc) - 0.5) / SH_C0
+    opacities = found["opacities"]
+    model = GaussianModel(found["means"], found["scales"], found["quats"],
+                          opacities[:, 0] if opacities.dim() == 2 and opacities.shape[1:] == (1,) else opacities,
+                          sh_from_parts(dc, rest, f"{path.name}.pipeline.features_rest"))
+    try:
+        model.validate()
+    except InputError as exc:
+        raise InputError(f"{path.name}.pipeline.{exc.field}", exc.reason) from None
+    return model
+
+
+# ----------------------------------------------------------------------------- cameras and frame
+
+def training_cameras(folder: Path, config: dict, stored: Similarity) -> tuple[list[Camera], Similarity, list[str]]:
+    """(training cameras in transforms.json's frame, user frame -> model frame, notes)."""
+    parser = _section(config, "pipeline", "datamanager", "dataparser")
+    data = yaml_path(parser.get("data")) or yaml_path(config.get("data"))
+    json_path = _find_transforms(folder, data)
+    if json_path is None:
+        return [], stored, [f"no transforms.json found for config.yml's data path {data} (looked from the working "
+                            f"directory and every folder above {folder}): the model has no training cameras, and "
+                            f"poses are in the frame {FRAME_FILE} maps from"]
+    frames, meta = read_transforms(json_path)
+    applied = meta.get("applied_transform")
+    if applied is None and (json_path.parent / "colmap" / "sparse" / "0").is_dir():
+        applied = COLMAP_APPLIED_TRANSFORM
+    frame = stored
+    if applied is not None:
+        frame = Similarity.from_matrix(applied, f"{json_path.name}.applied_transform").inverse().then(frame)
+    applied_scale = meta.get("applied_scale", 1.0)
+    if isinstance(applied_scale, bool) or not isinstance(applied_scale, (int, float)) or not applied_scale > 0:
+        raise InputError(f"{json_path.name}.applied_scale", f"must be a positive number, got {applied_scale!r}")
+    frame = frame.then(Similarity.make(1.0 / applied_scale, torch.eye(3), torch.zeros(3)))
+    views = train_frames(frames, meta, parser)
+    cameras = load_nerfstudio(json_path, views=views, with_images=False).cameras
+    return cameras, frame, [f"training cameras: {len(cameras)} of the {len(frames)} frames of {json_path}"]
+
+
+def train_frames(frames: list, meta: dict, parser: dict) -> list[int]:
+    """Indices (into `frames`) of the training frames, as the nerfstudio dataparser splits them:
+    frames sorted by file name, then `train_filenames` or the config's eval_mode."""
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
+            raise InputError(f"frames[{i}].file_path", "missing or not a string")
+    order = sorted(range(len(frames)), key=lambda i: Path(frames[i]["file_path"]))
+    names = [Path(frames[i]["file_path"]) for i in order]
+    count = len(order)
+    if isinstance(meta.get("train_filenames"), list):
+        wanted = {Path(name) for name in meta["train_filenames"] if isinstance(name, str)}
+        chosen = [k for k, name in enumerate(names) if name in wanted]
+    else:
+        mode = parser.get("eval_mode", "fraction")
+        if mode == "fraction":
+            fraction = parser.get("train_split_fraction", 0.9)
+            chosen = np.linspace(0, count - 1, math.ceil(count * fraction), dtype=int).tolist()
+        elif mode == "interval":
+            interval = parser.get("eval_interval", 8)
+            chosen = [k for k in range(count) if k % interval]
+        elif mode == "filename":
+            chosen = [k for k, name in enumerate(names) if "train" in name.name]
+        elif mode == "all":
+            chosen = list(range(count))
+        else:
+            raise InputError("config.yml.eval_mode", f"must be fraction, interval, filename or all, got {mode!r}")
+    if not chosen:
+        raise InputError("transforms.json", "the dataparser's split leaves no training frame")
+    return [order[k] for k in chosen]
+
+
+def _find_transforms(folder: Path, data: Path | None) -> Path | None:
+    for candidate in [] if data is None else data_candidates(folder, data):
+        json_path = candidate if candidate.suffix == ".json" else candidate / "transforms.json"
+        if json_path.is_file():
+            return json_path
+    return None
+
+
+def _section(config: dict, *keys: str) -> dict:
+    """config[k1][k2]... as a dict ({} when any level is missing)."""
+    for key in keys:
+        config = config.get(key) if isinstance(config, dict) else None
+    return config if isinstance(config, dict) else {}
+
+
+OUTPUTS.add("nerfstudio", OutputFormat("nerfstudio", "a nerfstudio splatfacto output folder (config.yml + "
+                                       f"{FRAME_FILE})", detect, read))

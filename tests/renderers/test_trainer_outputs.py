@@ -1,0 +1,179 @@
+"""Trainers' output folders as they are: nerfstudio splatfacto (exported splat.ply or the
+checkpoint) and gsplat (checkpoint with its COLMAP capture), written the way those trainers
+write them (tests/support/trainers.py) from a scene in the user's frame. Loaded, a model
+renders each training view as the scene rendered directly does, with the training cameras
+in the user's frame; frames round-trip; what needs code or does not fit is refused or warned."""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from phd_core.errors import InputError, ModelNote, ModelWarning
+from phd_core.renderers import load_model
+from phd_core.renderers.gs3d import GaussianRenderer
+from phd_core.renderers.outputs import read_output
+from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
+from phd_core.renderers.splats import eval_sh, quaternion_to_rotation, sh_rotation
+from phd_core.scene import Camera
+from support.trainers import gsplat_scene, move_camera, splatfacto_scene
+
+GREY = BACKGROUNDS["random"]
+
+
+def loaded(folder) -> tuple[GaussianRenderer, list[str], list[str]]:
+    """The renderer load_model gives, with the notes and warnings it issued."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        renderer = load_model(folder)
+    return (renderer, [str(w.message) for w in caught if w.category is ModelNote],
+            [str(w.message) for w in caught if w.category is ModelWarning])
+
+
+def assert_same_cameras(got: list[Camera], expected: list[Camera]) -> None:
+    assert len(got) == len(expected)
+    for a, b in zip(got, expected):
+        assert torch.allclose(a.c2w, b.c2w, atol=1e-9)
+        assert (a.fx, a.fy, a.cx, a.cy, a.width, a.height) == (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
+
+
+def assert_renders_match(renderer: GaussianRenderer, reference: GaussianRenderer, cameras: list[Camera],
+                         reference_cameras: list[Camera] | None = None) -> None:
+    for camera, seen_as in zip(cameras, reference_cameras or cameras):
+        got, expected = renderer.render(camera), reference.render(seen_as)
+        assert (expected - reference.background).abs().amax() > 0.3          # the view shows the scene
+        assert torch.allclose(got, expected, atol=2e-5), float((got - expected).abs().max())
+
+
+# ----------------------------------------------------------------------------- the frame maths
+
+def test_sh_rotation_turns_the_colour_field_with_the_splat() -> None:
+    g = torch.Generator().manual_seed(0)
+    rotation = quaternion_to_rotation(torch.randn(1, 4, generator=g, dtype=torch.float64))[0]
+    sh = torch.randn(6, 16, 3, generator=g, dtype=torch.float64)
+    dirs = torch.nn.functional.normalize(torch.randn(6, 3, generator=g, dtype=torch.float64), dim=-1)
+    turned = torch.einsum("jk,gkc->gjc", sh_rotation(rotation, 16), sh)
+    # The turned field seen along the turned direction is the old field seen along the old one.
+    assert torch.allclose(eval_sh(turned, dirs @ rotation.T), eval_sh(sh, dirs), atol=1e-12)
+    assert not torch.allclose(eval_sh(turned, dirs), eval_sh(sh, dirs), atol=1e-3)
+
+
+# ----------------------------------------------------------------------------- nerfstudio splatfacto
+
+@pytest.fixture(scope="module")
+def splatfacto(tmp_path_factory) -> dict:
+    return splatfacto_scene(tmp_path_factory.mktemp("splatfacto"))
+
+
+def test_splatfacto_export_renders_a_training_view_as_the_capture(splatfacto) -> None:
+    renderer, notes, warned = loaded(splatfacto["folder"])
+    assert not warned and "exports/splat/splat.ply" in notes[0]
+    # nerfstudio's sort by name and 90% split, in transforms.json's frame (not the dataparser's).
+    assert_same_cameras(renderer.training_cameras, splatfacto["training"])
+    assert renderer.background.tolist() == pytest.approx(GREY)          # background_color: random
+    assert_renders_match(renderer, GaussianRenderer(splatfacto["user_model"], GREY), splatfacto["training"][:3])
+
+
+def test_splatfacto_frame_round_trips_to_1e9(splatfacto) -> None:
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        frame = read_output(splatfacto["folder"]).frame
+    for camera in splatfacto["cameras"]:
+        in_model = move_camera(camera, splatfacto["to_model"])      # where splatfacto put this camera
+        assert torch.allclose(frame.camera(camera).c2w, in_model.c2w, atol=1e-9)
+        back = frame.camera(frame.inverse().camera(in_model))        # model frame -> user frame -> model frame
+        assert torch.allclose(back.c2w, in_model.c2w, atol=1e-9)
+        assert torch.allclose(frame.inverse().camera(in_model).c2w, camera.c2w, atol=1e-9)
+
+
+def test_splatfacto_checkpoint_with_view_dependent_colour(tmp_path) -> None:
+    scene = splatfacto_scene(tmp_path, export_ply=False, sh_coeffs=16, background="white", applied=False)
+    renderer, notes, _ = loaded(scene["folder"])
+    assert "nerfstudio_models/step-000029999.ckpt" in notes[0] and renderer.model.sh_degree == 3
+    assert renderer.background.tolist() == [1.0, 1.0, 1.0]
+    # The trained model seen by the camera where splatfacto had it: its SH colours are defined in that frame.
+    trained = GaussianRenderer(scene["trained"], (1.0, 1.0, 1.0))
+    assert_renders_match(renderer, trained, scene["training"][:3],
+                         [move_camera(c, scene["to_model"]) for c in scene["training"][:3]])
+
+
+def test_a_checkpoint_that_needs_code_is_refused_unopened(tmp_path) -> None:
+    scene = splatfacto_scene(tmp_path, export_ply=False)
+    checkpoint = scene["folder"] / "nerfstudio_models" / "step-000029999.ckpt"
+    marker = tmp_path / "ran"
+    state = torch.load(checkpoint, weights_only=True)
+    state["optimizers"] = RunsCode(str(marker))
+    torch.save(state, checkpoint)
+    with pytest.raises(InputError, match="needs Python code to load") as caught:
+        load_model(scene["folder"])
+    assert caught.value.field == "step-000029999.ckpt" and not marker.exists()
+
+
+class RunsCode:
+    """Unpickling this runs `touch`: a loader that unpickles code leaves the marker file."""
+
+    def __init__(self, marker: str):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_splatfacto_folder_errors_name_the_field(tmp_path) -> None:
+    scene = splatfacto_scene(tmp_path)
+    config = scene["folder"] / "config.yml"
+    config.write_text(config.read_text().replace("method_name: splatfacto", "method_name: nerfacto"))
+    with pytest.raises(InputError) as caught:
+        load_model(scene["folder"])
+    assert caught.value.field == "config.yml.method_name" and "nerfacto" in caught.value.reason
+    config.write_text(config.read_text().replace("method_name: nerfacto", "method_name: splatfacto"))
+    (scene["folder"] / "dataparser_transforms.json").write_text('{"transform": [[1, 0, 0, 0], [0, 1, 0, 0], '
+                                                                '[0, 0, -1, 0]], "scale": 0.5}')
+    with pytest.raises(InputError) as caught:
+        load_model(scene["folder"])
+    assert caught.value.field == "dataparser_transforms.json.transform" and "determinant" in caught.value.reason
+
+
+# ----------------------------------------------------------------------------- gsplat
+
+@pytest.mark.parametrize("version", ["current gsplat", "before the upside-down fix", "normalize_world_space off"])
+def test_gsplat_checkpoint_renders_a_training_view_as_the_capture(tmp_path, version) -> None:
+    scene = gsplat_scene(tmp_path, upside_down_fix=version == "current gsplat", normalize=not version.endswith("off"))
+    other = gsplat_scene(tmp_path / "other", upside_down_fix=version != "current gsplat")
+    assert not np.allclose(scene["to_model"], other["to_model"])         # the versions differ on this capture
+    renderer, notes, warned = loaded(scene["folder"])
+    expected = {"current gsplat": "upside-down turn", "before the upside-down fix": "cameras and principal axes of "
+                "the points)", "normalize_world_space off": "none (normalize_world_space is off)"}[version]
+    assert not warned and expected in notes[0], notes
+    residual = float(notes[0].split("residual ")[1].split()[0])
+    assert residual < 1e-4                                              # the SfM points sit on splat centres
+    assert renderer.num_units == 300                                    # the latest step, not step 999
+    assert_same_cameras(renderer.training_cameras, scene["training"])   # every 8th image by name held out
+    assert renderer.background.tolist() == [0.0, 0.0, 0.0]
+    assert_renders_match(renderer, GaussianRenderer(scene["user_model"], (0.0, 0.0, 0.0)), scene["training"][:3])
+
+
+def test_gsplat_model_that_does_not_fit_its_capture_is_warned_about(tmp_path) -> None:
+    scene = gsplat_scene(tmp_path, shift=25.0)
+    _, notes, warned = loaded(scene["folder"])
+    assert any("no normalisation of gsplat's fits" in w for w in warned)
+    assert any(f"of the model's {len(scene['training'])} training cameras see almost none" in w for w in warned)
+
+
+def test_gsplat_checkpoint_errors_name_the_field(tmp_path) -> None:
+    scene = gsplat_scene(tmp_path, app_opt=True)
+    with pytest.raises(InputError) as caught:
+        load_model(scene["folder"])
+    assert caught.value.field == "ckpt_6999_rank0.pt.splats.features" and "app_opt" in caught.value.reason
+    checkpoint = scene["folder"] / "ckpts" / "ckpt_6999_rank0.pt"
+    state = torch.load(checkpoint, weights_only=True)
+    del state["splats"]["features"]
+    state["splats"]["shN"] = torch.zeros(5, 3, 3)                      # rows that are not the splats'
+    torch.save(state, checkpoint)
+    with pytest.raises(InputError) as caught:
+        load_model(scene["folder"])
+    assert caught.value.field == "ckpt_6999_rank0.pt.splats.shN" and "[5, 3, 3]" in caught.value.reason
