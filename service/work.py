@@ -24,8 +24,10 @@ from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import FAMILIES, Renderer, RenderMemory, load_model, memory_probe_bytes
 from phd_core.renderers.gs3d import GaussianRenderer, set_background
+from phd_core.renderers.visibility import VISIBILITY_PIXEL_BYTES
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
+from phd_core.uq.strategies import get_strategy
 
 from .budget import (DEFAULT_MASK_PIXEL_BYTES, PNG_PIXEL_BYTES, MemoryLedger, MemoryPlan, ModelSize, model_bytes,
                      plan_work)
@@ -283,6 +285,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     # known, then each returned view's two PNGs (at most PNG_PIXEL_BYTES a pixel each).
     kept = 4 * pixels(cameras) + 2 * PNG_PIXEL_BYTES * returned * max(c.width * c.height for c in cameras)
     kept = kept if heatmaps else 0
+    if get_strategy(body.strategy).uses_visibility:     # every candidate's and captured view's Visibility
+        kept += VISIBILITY_PIXEL_BYTES * (pixels(cameras) + pixels(captured or []))
     renders = Renders([(record, "model_id", cameras)], samples, kept_bytes=kept, kept_field="heatmaps")
     renders.plan(settings)
 

@@ -23,12 +23,20 @@ from ..scene import Camera
 from .splats import LOG_T_MIN
 
 
+ELEMENTS_PER_PIXEL = 4     # a Visibility lists at most this many elements per image pixel
+# What one view's Visibility and a strategy's working copy of it hold, per image pixel at most:
+# per element, id, point, weight, footprint, value (56 bytes) and the strategy's index, weight,
+# share and novelty (40 bytes).
+VISIBILITY_PIXEL_BYTES = ELEMENTS_PER_PIXEL * 96
+
+
 @dataclass
 class Visibility:
     """One render of the full model from `camera`, reduced to the coverage elements it shows.
 
-    Only the K elements with a nonzero footprint are listed. weight / footprint is the share
-    of an element that is not hidden (1: nothing in front of it, 0: fully occluded).
+    Only the K elements with a weight are listed (`reduce_to_visibility`). weight / footprint
+    is the share of an element that is not hidden (1: nothing in front of it, near 0: mostly
+    occluded).
     """
 
     camera: Camera
@@ -89,10 +97,17 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_ele
 
 def reduce_to_visibility(camera: Camera, sums: PixelSums, points: Tensor, row_in_box: Tensor,
                          in_box: int) -> Visibility:
-    """The elements with a footprint (points [U, 3] of all elements), and the transmittance left
+    """The elements the view shows (points [U, 3] of all elements), and the transmittance left
     on the in_box pixels whose rays cross the scene box (row_in_box [S]: which rows are such
-    pixels; a pixel with no row has nothing on it, transmittance 1)."""
-    seen = (sums.footprint > 0).nonzero().squeeze(1)
+    pixels; a pixel with no row has nothing on it, transmittance 1).
+
+    Only elements with a weight are listed, at most ELEMENTS_PER_PIXEL per pixel of the image
+    (the heaviest): fully hidden elements change no strategy's answer, and the bound makes a
+    Visibility's size known from the image size alone (VISIBILITY_PIXEL_BYTES)."""
+    seen = (sums.weight > 0).nonzero().squeeze(1)
+    limit = ELEMENTS_PER_PIXEL * camera.width * camera.height
+    if len(seen) > limit:
+        seen = seen[sums.weight[seen].topk(limit).indices].sort().values
     covered = float((1.0 - sums.left)[row_in_box].sum())
     return Visibility(camera=camera, elements=seen, points=points[seen].double(), weight=sums.weight[seen],
                       footprint=sums.footprint[seen],

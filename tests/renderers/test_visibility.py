@@ -8,6 +8,7 @@ import torch
 
 from phd_core.renderers.gs2d import SurfelRenderer
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
+from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField
 from phd_core.renderers.visibility import fragment_visibility
 from phd_core.scene import look_at
 from reference.gaussians import render_reference
@@ -35,16 +36,14 @@ def test_splat_weights_equal_a_float64_count_by_hand(seed: int) -> None:
                                    camera.c2w.numpy(), camera.fx, camera.fy, camera.cx, camera.cy, camera.width,
                                    camera.height, (1.0, 1.0, 1.0), per_splat=by_hand)
     weight = np.zeros(40)
-    footprint = np.zeros(40)
     weight[vis.elements.numpy()] = vis.weight.numpy()
-    footprint[vis.elements.numpy()] = vis.footprint.numpy()
     assert (by_hand["weight"] > 0.5).sum() >= 5          # the scene is not trivially empty or hidden
     assert (by_hand["weight"] < 0.5 * by_hand["footprint"]).sum() >= 3   # and some splats are mostly hidden
     np.testing.assert_allclose(weight, by_hand["weight"], rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(footprint, by_hand["footprint"], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(vis.footprint.numpy(), by_hand["footprint"][vis.elements.numpy()], rtol=1e-4, atol=1e-5)
     # The elements' weights add up to the image's accumulated alpha; valued weighs them by pixel.
     assert float(vis.weight.sum()) == pytest.approx(float(alpha.sum()), rel=1e-5)
-    assert torch.equal(vis.elements, torch.tensor(np.flatnonzero(by_hand["footprint"])))
+    assert torch.equal(vis.elements, torch.tensor(np.flatnonzero(by_hand["weight"])))
     assert torch.all(vis.visible_share <= 1.0) and torch.all(vis.visible_share >= 0.0)
     assert float(vis.valued.sum()) < float(vis.weight.sum())        # values in [0, 1)
 
@@ -72,3 +71,25 @@ def test_surfel_weights_add_up_to_the_rendered_alpha_and_empty_space_is_counted(
     away = look_at((0.0, -4.0, 1.0), (0, -8, 1), width=24, height=18, fov_x=0.8)
     nothing = renderer.visibility(renderer.prepare(away))
     assert len(nothing.elements) == 0 and nothing.in_box == 0 and nothing.empty == 0.0
+
+
+def test_nerf_cell_weights_add_up_to_the_rendered_alpha_and_follow_the_samples() -> None:
+    model = RadianceField(NeRFConfig(depth=3, width=16, color_width=8, pos_freqs=3, dir_freqs=2, samples=24, near=1.0,
+                                     far=7.0, bounds=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], grid_resolution=8))
+    gen = torch.Generator().manual_seed(1)
+    with torch.no_grad():                                  # a field with structure, not a flat fog
+        for p in model.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen) * (1.0 if p.dim() == 1 else 1.5 / p.shape[-1] ** 0.5))
+    renderer = NeRFRenderer(model)
+    camera = look_at((2.5, -3.0, 2.0), (0.0, 0.0, 0.0), width=12, height=10, fov_x=0.8)
+    vis = renderer.visibility(renderer.prepare(camera), torch.ones(10, 12))
+    alpha = renderer.render_full(camera).alpha
+    assert float(vis.weight.sum()) == pytest.approx(float(alpha.sum()), rel=1e-4)
+    assert float(vis.valued.sum()) == pytest.approx(float(vis.weight.sum()), rel=1e-9)   # values of 1
+    assert torch.all(vis.weight <= vis.footprint + 1e-12)
+    # Cells are the occupancy grid's; their points lie inside the scene box.
+    assert int(vis.elements.max()) < 8 ** 3 and bool((vis.points.abs() < 1.0).all())
+    # Empty the grid: nothing is seen, and every ray through the box keeps its light.
+    model.grid.set_density(torch.zeros(8 ** 3))
+    empty = renderer.visibility(renderer.prepare(camera))
+    assert len(empty.elements) == 0 and empty.empty == pytest.approx(empty.in_box) and empty.in_box > 0

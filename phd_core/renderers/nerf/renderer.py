@@ -9,10 +9,11 @@ import torch
 from torch import Tensor
 
 from ...scene import Camera
-from ..protocol import CameraView, RenderMemory, check_keep
+from ..protocol import CameraView, RenderMemory, View, check_keep
+from ..visibility import PixelSums, Visibility, reduce_to_visibility
 from .config import CHUNK_ELEMENTS, CHUNK_SAMPLES, NeRFConfig
 from .field import RadianceField
-from .volume import camera_rays, render_rays
+from .volume import camera_rays, ray_box, ray_samples, render_rays
 
 # --------------------------------------------------------------------------- memory
 
@@ -99,6 +100,40 @@ class NeRFRenderer:
         """Every NeRF sample goes through the masked trunk, so there is no mask-independent
         state worth keeping beyond the rays (cheap to recompute): renders run anew."""
         return CameraView(self, camera)
+
+    @torch.no_grad()
+    def visibility(self, view: View, pixel_values: Tensor | None = None) -> Visibility:
+        """What `view`'s camera sees of the field, per occupancy-grid cell
+        (`phd_core.renderers.visibility`): each sample's weight (transmittance times alpha) and
+        alpha summed into its cell; with pixel_values [H, W], the weights times the values too."""
+        camera, grid = view.camera, self.model.grid
+        cells = grid.resolution ** 3
+        origins, dirs = camera_rays(camera)
+        values = None if pixel_values is None else pixel_values.reshape(-1).double()
+        zeros = torch.zeros(cells, dtype=torch.float64)
+        weight, footprint = zeros.clone(), zeros.clone()
+        valued = None if values is None else zeros.clone()
+        left = torch.ones(len(origins), dtype=torch.float64)
+        rays_per_chunk = max(1, CHUNK_SAMPLES // self.config.samples)
+        for start in range(0, len(origins), rays_per_chunk):
+            o, d = origins[start:start + rays_per_chunk], dirs[start:start + rays_per_chunk]
+            _, delta, points, valid = ray_samples(self.model, o, d, use_grid=self.use_grid)
+            sigma = render_rays(self.model, o, d, use_grid=self.use_grid, with_sigma=True).sigma[0]   # [R, S]
+            tau = (sigma * delta).double() * valid                                                  # [R, S]
+            total = tau.cumsum(-1)
+            alpha = -torch.expm1(-tau)
+            w = torch.exp(tau - total) * alpha                                                      # [R, S]
+            cell = grid.cells(points.reshape(-1, 3))
+            weight.index_add_(0, cell, w.reshape(-1))
+            footprint.index_add_(0, cell, alpha.reshape(-1))
+            if valued is not None:
+                valued.index_add_(0, cell, (w * values[start:start + rays_per_chunk, None]).reshape(-1))
+            left[start:start + rays_per_chunk] = torch.exp(-total[:, -1])
+        t_in, t_out = ray_box(origins, dirs, grid.lo, grid.lo + grid.size)
+        in_box = (t_out > t_in) & (t_out > 0)
+        centres = grid.cell_points(torch.full((1, 3), 0.5))
+        return reduce_to_visibility(camera, PixelSums(weight, footprint, valued, left), centres, in_box,
+                                    int(in_box.sum()))
 
     def describe(self) -> dict[str, Any]:
         c = self.config
