@@ -52,7 +52,8 @@ from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_s
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results" / "nbv"
 DOC = ROOT / "docs" / "nbv.md"
-SHIPPED = ["random", "fvs", "sigma_max", "fvs_sigma", "fvs_sigma_floor"]   # the table's main rows
+SHIPPED = ["random", "fvs", "sigma_max", "fvs_sigma", "fvs_sigma_floor", "visibility", "visibility_sigma"]
+PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma"]   # curves per round
 # Image width per scene where it is not --resolution (square): the real capture is 4:3, 80x60 px
 # at the default resolution (as its training benchmark, docs/formats.md).
 WIDTH_SCALE = {"cup_colmap": 1.6}
@@ -216,53 +217,107 @@ def summary(tasks: list[dict], name: str) -> dict | None:
     overall = [sum(r["psnr"][1:]) / (len(r["psnr"]) - 1) for r in runs]
     curve = [statistics.mean(values) for values in zip(*(r["psnr"] for r in runs))]
     rhos = [t["spearman"][name] for t in tasks if t["spearman"].get(name) is not None]
+    costs = [c for r in runs for c in r.get("cost_per_candidate", [])]
     return {"seeds": len(runs), "final": statistics.mean(finals),
             "final_sd": statistics.stdev(finals) if len(finals) > 1 else 0.0,
             "rounds": statistics.mean(overall), "curve": curve, "finals": finals,
-            "spearman": statistics.mean(rhos) if rhos else None}
+            "spearman": statistics.mean(rhos) if rhos else None,
+            "cost": statistics.median(costs) if costs else None}
+
+
+def label(name: str) -> str:
+    return (f"**{name}** (default)" if name == DEFAULT_STRATEGY else
+            f"{name} (tried, bench/nbv_experiments.py)" if name in EXPERIMENTS else name)
+
+
+def cost_text(row: dict) -> str:
+    """Seconds of ranking per candidate (median over rounds and seeds): evidence and selection."""
+    return "" if row["cost"] is None else f"{row['cost'] * 1000:.1f} ms"
+
+
+def overview(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]]) -> list[str]:
+    """One row per strategy run on every scene: the mean over scenes, and each scene against FVS."""
+    scenes = sorted(by_scene)
+    rows = {scene: {n: summary(tasks, n) for n in {n for t in tasks for n in t["runs"]}}
+            for scene, tasks in by_scene.items()}
+    names = [n for n in sorted({n for r in rows.values() for n in r}) if all(rows[s].get(n) for s in scenes)]
+    if not names or not all(rows[s].get("fvs") for s in scenes):
+        return []
+    lines = ["### All scenes", "",
+             "Mean over the scenes of each scene's mean (final PSNR after the last round, and over rounds 1..R); "
+             "then each scene's final PSNR minus FVS's, seed by seed where both ran (mean, and on how many seeds "
+             "the strategy is ahead).", "",
+             "| strategy | mean final | mean rounds | " + " | ".join(f"{s} final vs FVS" for s in scenes)
+             + " | cost per candidate |", "|---|---|---|" + "---|" * len(scenes) + "---|"]
+    ordered = sorted(names, key=lambda n: -statistics.mean(rows[s][n]["final"] for s in scenes))
+    for name in ordered:
+        deltas = []
+        for scene in scenes:
+            pairs = [t["runs"][name]["psnr"][-1] - t["runs"]["fvs"]["psnr"][-1] for t in every_seed.get(scene, [])
+                     if name in t["runs"] and "fvs" in t["runs"]]
+            deltas.append(f"{statistics.mean(pairs):+.2f} ({sum(d > 0 for d in pairs)}/{len(pairs)})" if pairs else "")
+        costs = [rows[s][name]["cost"] for s in scenes if rows[s][name]["cost"] is not None]
+        lines.append(f"| {label(name)} | {statistics.mean(rows[s][name]['final'] for s in scenes):.2f} | "
+                     f"{statistics.mean(rows[s][name]['rounds'] for s in scenes):.2f} | " + " | ".join(deltas)
+                     + f" | {f'{statistics.mean(costs) * 1000:.1f} ms' if costs else ''} |")
+    return lines + [""]
 
 
 def markdown(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]], args: argparse.Namespace) -> str:
-    lines = [f"Commands: `.venv/bin/python bench/bench_nbv.py --jobs 2` (the shipped strategies), then the "
+    lines = [f"Commands: `OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 .venv/bin/python bench/bench_nbv.py --jobs 2` "
+             "(all four scenes; the strategies and seeds run are in the tables), then the "
              "line for the tried ones in the script's docstring (one seed), then `--report` "
-             f"({platform.machine()}, {os.cpu_count()} cores, one thread per task). Protocol: {args.resolution}x{args.resolution} px, "
-             f"{args.iterations} iterations, {args.initial} initial views (one by the seed, then FVS), "
+             f"({platform.machine()}, {os.cpu_count()} cores, one thread per task). Protocol: {args.resolution}x{args.resolution} px "
+             f"(cup_colmap {round(args.resolution * WIDTH_SCALE['cup_colmap'])}x"
+             f"{round(args.resolution * WIDTH_SCALE['cup_colmap'] * 3 / 4)}, its SfM points as the start, every 8th "
+             f"image held out), {args.iterations} iterations, {args.initial} initial views (one by the seed, then FVS), "
              f"{args.per_round} views per round, {args.rounds} rounds, PSNR on {args.test_views} evenly spaced "
-             f"test views, N = {args.samples} masks, r_drop calibrated every round.", "",
+             f"test views (cup_colmap: its 10), N = {args.samples} masks, r_drop calibrated every round.", "",
              "Final = mean test PSNR after the last round over the seeds (with the standard deviation and each "
              "seed's value); rounds = mean PSNR over rounds 1..R; vs FVS = difference of the means (rows with fewer "
              "seeds than FVS compare with FVS's mean over all of its seeds; the paired line below each table "
              "compares seed by seed); "
-             "Spearman = per held-out view, the strategy's score against the true RMSE on the initial model.", ""]
+             "Spearman = per held-out view, the strategy's score against the true RMSE on the initial model; "
+             "cost = wall seconds of one round's ranking per candidate (median; the evidence the strategy needs "
+             "and its selection: no renders for random and FVS, one render per candidate and captured view for "
+             "visibility, N masked renders per candidate for the dropout strategies; calibration not included; "
+             "two tasks ran at once on the 2 cores).", ""]
+    lines += overview(by_scene, every_seed)
     for scene, tasks in sorted(by_scene.items()):
         rows = {name: summary(tasks, name) for name in sorted({n for t in tasks for n in t["runs"]})}
         fvs = rows.get("fvs")
         lines += [f"### {scene}", "",
                   "| strategy | seeds | final PSNR | per seed | rounds mean | final vs FVS | rounds vs FVS | "
-                  "Spearman(score, RMSE) |", "|---|---|---|---|---|---|---|---|"]
+                  "Spearman(score, RMSE) | cost per candidate |", "|---|---|---|---|---|---|---|---|---|"]
         for name, row in sorted(((n, r) for n, r in rows.items() if r), key=lambda item: -item[1]["final"]):
-            label = (f"**{name}** (default)" if name == DEFAULT_STRATEGY else
-                     f"{name} (tried, bench/nbv_experiments.py)" if name in EXPERIMENTS else name)
             delta = (f"{row['final'] - fvs['final']:+.2f}", f"{row['rounds'] - fvs['rounds']:+.2f}") if fvs \
                 else ("", "")
-            lines.append(f"| {label} | {row['seeds']} | {row['final']:.2f} ± {row['final_sd']:.2f} | "
+            lines.append(f"| {label(name)} | {row['seeds']} | {row['final']:.2f} ± {row['final_sd']:.2f} | "
                          f"{' / '.join(f'{v:.2f}' for v in row['finals'])} | {row['rounds']:.2f} | {delta[0]} | "
-                         f"{delta[1]} | {fmt(row['spearman'], 2)} |")
-        common = [t["seed"] for t in tasks if all(name in t["runs"] for name in SHIPPED)]
-        lines += ["", paired(every_seed.get(scene, []), DEFAULT_STRATEGY), "",
+                         f"{delta[1]} | {fmt(row['spearman'], 2)} | {cost_text(row)} |")
+        plotted, common = plotted_runs(tasks)
+        lines += [""] + [paired(every_seed.get(scene, []), name) for name in (DEFAULT_STRATEGY, "fvs_sigma_floor")
+                         if name in rows and name != "fvs"] + ["",
                   f"![PSNR per round on {scene}](nbv_{scene}.svg)",
-                  f"(mean test PSNR per round over seeds {', '.join(map(str, common))}, which every shipped "
-                  "strategy ran)", ""]
+                  f"(mean test PSNR per round of {', '.join(plotted)} over seeds {', '.join(map(str, common))}, "
+                  "which each of them ran)", ""]
     return "\n".join(lines)
 
 
+def plotted_runs(tasks: list[dict]) -> tuple[list[str], list[int]]:
+    """The PLOTTED strategies a scene ran, and the seeds every one of them ran."""
+    names = [n for n in PLOTTED if any(n in t["runs"] for t in tasks)]
+    return names, [t["seed"] for t in tasks if all(n in t["runs"] for n in names)]
+
+
 def plots(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> None:
-    """PSNR per round of the shipped strategies, over the seeds every one of them ran (so the
+    """PSNR per round of the plotted strategies, over the seeds every one of them ran (so the
     curves share their starting models)."""
     for scene, tasks in by_scene.items():
-        tasks = [t for t in tasks if all(name in t["runs"] for name in SHIPPED)]
+        names, common = plotted_runs(tasks)
+        tasks = [t for t in tasks if t["seed"] in common]
         series = {}
-        for name in SHIPPED:
+        for name in names:
             row = summary(tasks, name)
             if row:
                 views = [args.initial + args.per_round * r for r in range(len(row["curve"]))]

@@ -343,16 +343,19 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     images = body.images != "none"
     estimate = pixels(cameras) * (2 * samples + 2 * images)
     levels: dict[str, list[Camera]] = {"model_a": [], "model_b": []}
-    if body.rule == "distance_sigma":
+    kept = 0
+    if body.rule != "sigma_mean":
         for name, record in (("model_a", record_a), ("model_b", record_b)):
             if not record.training_frames:
-                raise invalid(name, "the model has no training cameras, which rule 'distance_sigma' needs: upload "
+                raise invalid(name, f"the model has no training cameras, which rule '{body.rule}' needs: upload "
                               "it with its cameras, or use rule 'sigma_mean'")
             levels[name] = level_views(stored_cameras(record))     # rendered at their own size
+            if body.rule == "coverage_sigma":   # what each view and each training view sees of the model
+                kept += VISIBILITY_PIXEL_BYTES * (pixels(cameras) + pixels(stored_cameras(record)))
         estimate += 2 * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples   # each model's own zeta level
     # With images, both models' full render of every view ([H, W, 3] float32) is kept until the
     # choice, then the PNGs of the chosen one (and of the other with both_images).
-    kept = (2 * 12 + (1 + body.both_images) * PNG_PIXEL_BYTES) * pixels(cameras) if images else 0
+    kept += (2 * 12 + (1 + body.both_images) * PNG_PIXEL_BYTES) * pixels(cameras) if images else 0
     renders = Renders([(record_a, "model_a", cameras + levels["model_a"]),
                        (record_b, "model_b", cameras + levels["model_b"])], samples, kept_bytes=kept,
                       kept_field="images")

@@ -1,5 +1,6 @@
 """Ensemble selection (Section 5.4): per view, the model with the lower score: the paper's
-mean zeta, or (default) distance to the model's training views times its relative zeta."""
+mean zeta, or distance to the model's training views times its relative zeta (default), or
+what of the view the model's training views did not see times its relative zeta."""
 
 from __future__ import annotations
 
@@ -16,8 +17,10 @@ from ..errors import InputError
 from ..eval import ensemble_efficiency, psnr, ssim
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
+from ..renderers.visibility import reports_visibility
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_ratio, check_samples, check_seed,
                        dropout_uniforms, keep_masks)
+from .strategies.visibility import uncovered_share
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, measure_views
 
 
@@ -43,8 +46,9 @@ class SelectionResult:
         return {"views": [v.to_dict() for v in self.views], "metrics": self.metrics}
 
 
-SELECTION_RULES = ("distance_sigma", "sigma_mean")
+SELECTION_RULES = ("distance_sigma", "coverage_sigma", "sigma_mean")
 DEFAULT_SELECTION_RULE = "distance_sigma"
+UNCOVERED_FLOOR = 0.05             # coverage_sigma: a fully covered view still counts its zeta
 SELECTION_TRAINING_VIEWS = 8       # training views (evenly spaced) that set a model's own zeta level
 
 
@@ -78,6 +82,9 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     default, docs/nbv.md): the distance from the view to the model's nearest training
     camera times the view's mean zeta relative to the model's mean zeta on its own
     training views, so two models of different size and r_drop are compared like with like.
+    Rule "coverage_sigma": in place of the distance, UNCOVERED_FLOOR plus the share of the
+    view's image of the model that its training views did not see from a nearby direction
+    (`phd_core.uq.strategies.visibility`; families without visibility use the distance).
     training_a / training_b: each model's training cameras (default: the renderer's own).
     Ties go to model a. With ground-truth `images` [V, H, W, 3], `metrics` holds the
     mean PSNR and SSIM of a, b and the selection, E_ME (mean over views of
@@ -98,7 +105,7 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     renderers = {"a": renderer_a, "b": renderer_b}
     keeps = {"a": keep_masks(dropout_uniforms(renderer_a.num_units, samples, seed), ratio_a),
              "b": keep_masks(dropout_uniforms(renderer_b.num_units, samples, seed), ratio_b)}
-    if rule == "distance_sigma":
+    if rule != "sigma_mean":
         given = {"a": training_a, "b": training_b}
         training = {key: _training_views(renderers[key], given[key], f"model_{key}") for key in renderers}
         levels = {key: level_views(training[key]) for key in renderers}
@@ -114,21 +121,29 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         """Each view under model `key`'s masks, on the executor."""
         chunks = executor.split(views)
         parts = executor.map(partial(measure_views, ddof=1, keep_maps=False, dtype=torch.float64,
-                                     keep_full=keep_full), chunks,
+                                     keep_full=keep_full, keep_visibility=rule == "coverage_sigma"), chunks,
                              executor.share(renderers[key]), keeps[key], done=lambda i: ticker.tick(len(chunks[i])))
         return [view for part in parts for view in part]
 
     measured = {key: measure(key, cameras, keep_full=both or bool(keep_images)) for key in renderers}
     sigmas = {key: [view.sigma_mean for view in measured[key]] for key in renderers}
-    if rule == "distance_sigma":
+    if rule != "sigma_mean":
         own = {}
         for key in renderers:
             means = [view.sigma_mean for view in measure(key, levels[key])]
             own[key] = max(sum(means) / len(means), 1e-12)
+    uncovered = {}
+    if rule == "coverage_sigma":
+        for key, renderer in renderers.items():
+            if reports_visibility(renderer):
+                seen = [renderer.visibility(renderer.prepare(camera)) for camera in training[key]]
+                uncovered[key] = uncovered_share([view.visibility for view in measured[key]], seen)
 
     def score(key: str, i: int) -> float:
         if rule == "sigma_mean":
             return sigmas[key][i]
+        if key in uncovered:
+            return (UNCOVERED_FLOOR + float(uncovered[key][i])) * sigmas[key][i] / own[key]
         return _nearest_distance(cameras[i], training[key]) * sigmas[key][i] / own[key]
 
     views, scores = [], {"a": [], "b": [], "selected": []}

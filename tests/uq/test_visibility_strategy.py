@@ -10,6 +10,7 @@ import torch
 
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.scene import look_at
+from phd_core.uq import select_models
 from phd_core.uq.rank import visibility_evidence
 from phd_core.uq.strategies import get_strategy
 from phd_core.uq.strategies.visibility import Coverage
@@ -119,3 +120,18 @@ def test_families_without_visibility_get_the_camera_centre_order() -> None:
     assert evidence.candidate_views is None
     assert (get_strategy("visibility").select(evidence, 3, 0).order
             == get_strategy("fvs_sigma_floor").select(evidence, 3, 0).order)
+
+
+def test_coverage_selection_trusts_the_model_whose_training_views_saw_the_view_not_the_nearest_centre() -> None:
+    renderer = open_box()
+    # Model a's training views: a ring around the walls and one camera just below the test view
+    # looking up, away from the box (nearest centre, sees nothing). Model b's: one camera looking in.
+    ring = [camera((5 * math.cos(a), 5 * math.sin(a), 0.2)) for a in torch.linspace(0, 2 * math.pi, 7)[:-1]]
+    training_a = ring + [camera((0.0, 0.3, 11.0), (0.0, 0.3, 20.0))]
+    training_b = [camera((0.2, 0.3, 5.0))]
+    view = camera((0.0, 0.3, 12.0))                                      # looks into the box from above
+    choose = lambda rule: select_models(renderer, renderer, [view], ratio_a=0.1, ratio_b=0.1, samples=4,  # noqa: E731
+                                        rule=rule, training_a=training_a, training_b=training_b).views[0]
+    assert choose("distance_sigma").choice == "a"                        # fooled by the centre one unit away
+    chosen = choose("coverage_sigma")
+    assert chosen.choice == "b" and chosen.score_b < chosen.score_a

@@ -147,6 +147,18 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool) -> Selection:
     return Selection(order + [i for _, i in sorted(rest, key=lambda item: (-item[0], item[1]))], scores)
 
 
+def uncovered_share(views: list[Visibility], captured: list[Visibility]) -> Tensor:
+    """[V] float64 in [0, 1]: the share of each view's image of the model that the captured views
+    did not see from a nearby direction (0 when a view shows none of the model)."""
+    if not views:
+        return torch.zeros(0, dtype=torch.float64)
+    coverage = Coverage(views, fragility=False)
+    for vis in captured:
+        coverage.capture(vis)
+    return torch.tensor([float((c.weight * c.novelty).sum() / c.weight.sum()) if c.weight.sum() > 0 else 0.0
+                         for c in coverage.candidates], dtype=torch.float64)
+
+
 def _visibility(evidence: Evidence, k: int, seed: int) -> Selection:
     return coverage_select(evidence, k, fragility=False)
 
