@@ -46,7 +46,7 @@ from phd_core.data import Dataset, load_dataset  # noqa: E402
 from phd_core.renderers.gs3d import GaussianRenderer  # noqa: E402
 from phd_core.train.gs3d import TrainConfig, fit, training_background  # noqa: E402
 from phd_core.eval import psnr, rmse, spearman  # noqa: E402
-from phd_core.uq.rank import visibility_evidence  # noqa: E402
+from phd_core.uq.rank import add_fisher, visibility_evidence  # noqa: E402
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
@@ -144,7 +144,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     captured = [train_data.cameras[i] for i in init]
     ratio = calibrated_ratio(base, captured)
     test_evidence, _ = phd.candidate_evidence(base, test.cameras, ratio=ratio, samples=args.samples, seed=seed,
-                                              captured=captured, visibility=True)
+                                              captured=captured, visibility=True,
+                                              fisher=any(get_strategy(n).uses_fisher for n in todo))
     result["initial_seconds"] = round(time.perf_counter() - started, 1)
     for name in todo:
         strategy = get_strategy(name)
@@ -167,6 +168,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
                 else:
                     empty = torch.zeros(len(candidates), dtype=torch.float64)
                     evidence = Evidence(candidates, captured, empty, empty)
+                if strategy.uses_fisher:
+                    add_fisher(evidence, renderer, seed + round_)
                 picks = strategy.select(evidence, args.per_round, seed + round_).order[:args.per_round]
             cost.append((time.perf_counter() - ranked_at) / len(candidates))
             chosen += [pool[i] for i in picks]

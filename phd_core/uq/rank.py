@@ -34,11 +34,13 @@ class RankedView:
 def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
                        samples: int = DEFAULT_SAMPLES, seed: int = 0, captured: Sequence[Camera] | None = None,
                        keep_peak: bool = False, progress: Progress | None = None,
-                       executor: Executor = LOCAL, visibility: bool = False) -> tuple[Evidence, list[ViewUncertainty]]:
+                       executor: Executor = LOCAL, visibility: bool = False,
+                       fisher: bool = False) -> tuple[Evidence, list[ViewUncertainty]]:
     """What a strategy sees: the candidates' PH-Dropout statistics under one draw of N
     sub-models, and the captured poses (default: the model's training cameras); with the
     per-view measurements (keeping zeta's channel max when keep_peak). With `visibility`
-    (and a family that reports it) also what each candidate and captured view sees of the model."""
+    (and a family that reports it) also what each candidate and captured view sees of the model;
+    with `fisher`, each view's Fisher information (`add_fisher`)."""
     views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, keep_peak=keep_peak,
                         progress=progress, executor=executor, keep_visibility=visibility)
     captured = captured_cameras(renderer, captured)
@@ -49,6 +51,8 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
     if visibility and reports_visibility(renderer):
         evidence.candidate_views = [v.visibility for v in views]
         evidence.captured_views = view_visibility(renderer, captured)
+    if fisher:
+        add_fisher(evidence, renderer, seed)
     return evidence, views
 
 
@@ -77,6 +81,17 @@ def visibility_evidence(renderer: Renderer, cameras: Sequence[Camera],
     return evidence
 
 
+def add_fisher(evidence: Evidence, renderer: Renderer, seed: int = 0) -> Evidence:
+    """Each candidate's and the captured views' Fisher information, where the family computes it
+    (`Renderer.fisher`; FisherRF's quantity by random projections)."""
+    if callable(getattr(renderer, "fisher", None)):
+        evidence.candidate_fisher = torch.stack([renderer.fisher(c, seed=seed) for c in evidence.candidates])
+        held = [renderer.fisher(c, seed=seed) for c in evidence.captured]
+        evidence.captured_fisher = (torch.stack(held).sum(0) if held else
+                                    torch.zeros_like(evidence.candidate_fisher[0]))
+    return evidence
+
+
 def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,
                seed: int = 0, top_k: int | None = None, strategy: str = DEFAULT_STRATEGY,
                captured: Sequence[Camera] | None = None, keep_peak: bool = False,
@@ -96,7 +111,8 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
         top_k = check_int(top_k, "top_k", 1)
     evidence, views = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed,
                                          captured=captured, keep_peak=keep_peak, progress=progress,
-                                         executor=executor, visibility=chosen.uses_visibility)
+                                         executor=executor, visibility=chosen.uses_visibility,
+                                         fisher=chosen.uses_fisher)
     count = len(evidence.candidates)
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]

@@ -11,7 +11,7 @@ import torch
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.scene import look_at
 from phd_core.uq import select_models
-from phd_core.uq.rank import visibility_evidence
+from phd_core.uq.rank import add_fisher, visibility_evidence
 from phd_core.uq.strategies import get_strategy
 from phd_core.uq.strategies.visibility import Coverage
 from support.toy_renderers import BlobRenderer, ring_cameras
@@ -135,3 +135,31 @@ def test_coverage_selection_trusts_the_model_whose_training_views_saw_the_view_n
     assert choose("distance_sigma").choice == "a"                        # fooled by the centre one unit away
     chosen = choose("coverage_sigma")
     assert chosen.choice == "b" and chosen.score_b < chosen.score_a
+
+
+def test_fisher_diagonal_by_random_projections_matches_the_jacobian() -> None:
+    east = grid((0.0, -0.3, -0.3), (0, 0.6, 0), (0, 0, 0.6), steps=2)     # 4 splats, partly overlapping
+    renderer = GaussianRenderer(splats([east], 0.25))
+    view = look_at((3.0, 0.2, 0.1), (0.0, 0.0, 0.0), width=7, height=6, fov_x=0.5)
+    leaves = [t.detach().clone() for t in renderer.model.tensors()]
+
+    def image(*tensors):
+        return renderer.rasterizer(type(renderer.model)(*tensors), view, renderer.background).rgb[0].reshape(-1)
+
+    jacobians = torch.autograd.functional.jacobian(image, tuple(leaves))   # per tensor [pixels, *shape]
+    exact = torch.stack([j.double().square().sum(0).reshape(4, -1).sum(1) for j in jacobians], 1)   # [G, 5]
+    estimate = renderer.fisher(view, probes=400, seed=1)         # relative error per entry about sqrt(2 / 400)
+    assert exact.sum() > 0
+    torch.testing.assert_close(estimate, exact, rtol=0.25, atol=1e-3 * float(exact.max()))
+
+
+def test_fisher_prefers_the_view_that_informs_what_the_captured_views_left_unconstrained() -> None:
+    east = grid((2.0, -0.5, -0.5), (0, 1, 0), (0, 0, 1), steps=6)
+    west = grid((-2.0, -0.5, -0.5), (0, 1, 0), (0, 0, 1), steps=6)
+    renderer = GaussianRenderer(splats([east, west], 0.1))
+    captured = [camera((6.0, 0.0, 0.0))]                                   # sees the east cluster only
+    candidates = [camera((6.0, 0.3, 0.2)), camera((-6.0, 0.0, 0.0))]
+    evidence = add_fisher(visibility_evidence(renderer, candidates, captured), renderer)
+    ranked = get_strategy("fisher").select(evidence, 2, 0)
+    assert ranked.order[0] == 1
+    assert ranked.scores[1] > 10 * ranked.scores[0]

@@ -258,6 +258,7 @@ class SurfelRenderer(GaussianRenderer):
 
     kind = "2dgs"
     model_type = SurfelModel
+    rasterizer = staticmethod(rasterize_surfels)
 
     def prepare(self, camera: Camera) -> View:
         # The compiled SplatView projects 3D Gaussians; surfels render anew through their own stages.

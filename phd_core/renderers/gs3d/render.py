@@ -50,6 +50,7 @@ from .model import GaussianModel
 
 NEAR_PLANE = 0.2
 SOLID_OPACITY = 0.05    # splats at least this opaque say where the scene is (`scene_box`)
+FISHER_PROBES = 4       # random projections per view in `GaussianRenderer.fisher`
 DILATION = 0.3          # px^2 added to the 2D covariance diagonal (anti-aliasing low-pass)
 
 
@@ -288,6 +289,7 @@ class GaussianRenderer:
 
     kind = "3dgs"
     model_type = GaussianModel
+    rasterizer = staticmethod(rasterize)    # the differentiable renderer (training, Fisher information)
 
     def __init__(self, model: GaussianModel, background: Sequence[float] = (1.0, 1.0, 1.0),
                  training_cameras: list[Camera] | None = None, *, tile: int = DEFAULT_TILE,
@@ -323,6 +325,25 @@ class GaussianRenderer:
 
     def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
         return self.render_full(camera, keep).rgb.clamp(0.0, 1.0)
+
+    def fisher(self, camera: Camera, probes: int = FISHER_PROBES, seed: int = 0) -> torch.Tensor:
+        """[G, 5] float64: the diagonal of J^T J of this view's render (J: d pixels / d parameters),
+        summed per splat over each parameter group (means, scales, rotation, opacity, colour).
+
+        Estimated without forming J: for v with independent +-1 entries over the image,
+        E[(J^T v)^2] = diag(J^T J), so each probe is one backward pass of the differentiable
+        rasteriser (FisherRF's quantity, Jiang et al. 2024, by random projections)."""
+        leaves = [t.detach().clone().requires_grad_(True) for t in self.model.tensors()]
+        generator = torch.Generator().manual_seed(seed)
+        total = torch.zeros(self.num_units, len(leaves), dtype=torch.float64)
+        with torch.enable_grad():
+            rgb = self.rasterizer(type(self.model)(*leaves), camera, self.background, tile=self.tile,
+                                  near=self.near).rgb[0]                                       # [H, W, 3]
+            for probe in range(probes):
+                signs = torch.randint(0, 2, rgb.shape, generator=generator).float() * 2 - 1
+                grads = torch.autograd.grad((rgb * signs).sum(), leaves, retain_graph=probe < probes - 1)
+                total += torch.stack([g.double().square().reshape(self.num_units, -1).sum(1) for g in grads], 1)
+        return total / probes
 
     def scene_box(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The box the model's splats fill ([lo, hi] float64), ignoring nearly transparent

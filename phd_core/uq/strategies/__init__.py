@@ -9,6 +9,7 @@ from __future__ import annotations
 from ...registry import Registry
 from .base import Evidence, Selection, Strategy
 from .baselines import FVS, RANDOM
+from .fisher import FISHER
 from .hybrid import FVS_SIGMA, FVS_SIGMA_FLOOR
 from .uncertainty import SIGMA_MAX, SIGMA_MEAN
 from .visibility import VISIBILITY, VISIBILITY_SIGMA
@@ -21,7 +22,8 @@ def register(strategy: Strategy) -> Strategy:
     return STRATEGIES.add(strategy.name, strategy)
 
 
-for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR, VISIBILITY, VISIBILITY_SIGMA):
+for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR, VISIBILITY, VISIBILITY_SIGMA,
+                  FISHER):
     register(_strategy)
 
 DEFAULT_STRATEGY = "fvs_sigma_floor"

@@ -33,6 +33,8 @@ class Evidence:
     area: Tensor | None = None        # [C] float64, share of pixels with zeta above a threshold
     candidate_views: list[Visibility] | None = None   # [C] what each candidate sees of the model (uses_visibility)
     captured_views: list[Visibility] | None = None    # [T] what each captured view saw
+    candidate_fisher: Tensor | None = None   # [C, G, P] float64 each candidate's diag(J^T J) per splat and group
+    captured_fisher: Tensor | None = None    # [G, P] float64 the captured views' sum (uses_fisher)
 
 
 @dataclass
@@ -48,6 +50,7 @@ class Strategy:
     select: Callable[[Evidence, int, int], Selection]   # (evidence, k, seed) -> Selection
     uses_dropout: bool = True     # False: the scores ignore sigma (it is still reported)
     uses_visibility: bool = False  # True: needs each view's Visibility (families without it: a fallback order)
+    uses_fisher: bool = False      # True: needs each view's Fisher information (`Renderer.fisher`)
 
 
 def centres(cameras: list[Camera]) -> Tensor:
