@@ -26,7 +26,7 @@ for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR
                   FISHER):
     register(_strategy)
 
-DEFAULT_STRATEGY = "fvs_sigma_floor"
+DEFAULT_STRATEGY = "visibility"
 
 
 def get_strategy(name: str) -> Strategy:
