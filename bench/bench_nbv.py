@@ -77,6 +77,8 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--results", type=Path, default=RESULTS)
     p.add_argument("--doc", type=Path, default=DOC)
     p.add_argument("--report", action="store_true", help="only rewrite the doc from the stored results")
+    p.add_argument("--costs", action="store_true", help="time rank_views per candidate for every strategy on one "
+                   "model (the first scene and seed), one run, to bench/results/nbv/costs.json")
     return p.parse_args()
 
 
@@ -285,7 +287,7 @@ def markdown(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]],
              "and its selection: no renders for random and FVS, one render per candidate and captured view for "
              "visibility, N masked renders per candidate for the dropout strategies; calibration not included; "
              "two tasks ran at once on the 2 cores).", ""]
-    lines += overview(by_scene, every_seed)
+    lines += overview(by_scene, every_seed) + cost_table(args)
     for scene, tasks in sorted(by_scene.items()):
         rows = {name: summary(tasks, name) for name in sorted({n for t in tasks for n in t["runs"]})}
         fvs = rows.get("fvs")
@@ -328,8 +330,55 @@ def plots(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> None:
         svg_plot(args.doc.parent / f"nbv_{scene}.svg", series, "captured views", "test PSNR (dB)", log_x=False)
 
 
+def measure_costs(args: argparse.Namespace) -> dict:
+    """Seconds per candidate of the product's `rank_views` (dropout statistics for every candidate,
+    plus what the strategy needs), every strategy on one initial model, in one run."""
+    scene, seed = args.scenes[0], args.seeds[0]
+    size = load_dataset(args.data / scene, "train", with_images=False).cameras[0].width
+    train_data = load_dataset(args.data / scene, "train", downscale=size / (args.resolution * WIDTH_SCALE.get(scene, 1.0)))
+    init = initial_views(train_data.cameras, args.initial, seed)
+    renderer = train(train_data, init, args.iterations, seed)
+    captured = [train_data.cameras[i] for i in init]
+    candidates = [c for i, c in enumerate(train_data.cameras) if i not in init]
+    ratio = calibrated_ratio(renderer, captured)
+    phd.rank_views(renderer, candidates[:2], ratio=ratio, samples=args.samples, strategy="fisher", captured=captured)
+    costs = {}
+    for name in args.strategies:
+        started = time.perf_counter()
+        phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=seed, top_k=args.per_round,
+                       strategy=name, captured=captured)
+        costs[name] = (time.perf_counter() - started) / len(candidates)
+        print(f"{name}: {costs[name] * 1000:.1f} ms per candidate", flush=True)
+    result = {"scene": scene, "seed": seed, "candidates": len(candidates), "captured": len(captured),
+              "splats": renderer.num_units, "samples": args.samples, "resolution": args.resolution,
+              "machine": platform.machine(), "cores": os.cpu_count(), "seconds_per_candidate": costs}
+    save(result, args.results / "costs.json")
+    return result
+
+
+def cost_table(args: argparse.Namespace) -> list[str]:
+    path = args.results / "costs.json"
+    if not path.exists():
+        return []
+    costs = json.loads(path.read_text())
+    base = costs["seconds_per_candidate"].get("fvs")
+    lines = ["### What ranking costs", "",
+             f"Command: `.venv/bin/python bench/bench_nbv.py --costs --scenes {costs['scene']} --seeds {costs['seed']} "
+             f"--strategies {' '.join(costs['seconds_per_candidate'])}`: one {costs['scene']} model from "
+             f"{costs['captured']} views ({costs['splats']} splats), {costs['candidates']} candidates at "
+             f"{costs['resolution']} px, N = {costs['samples']}, the product's `rank_views` (which reports sigma_max "
+             "and sigma_mean for every candidate whatever the strategy), in one run.", "",
+             "| strategy | seconds per candidate | vs fvs |", "|---|---|---|"]
+    for name, value in sorted(costs["seconds_per_candidate"].items(), key=lambda item: item[1]):
+        lines.append(f"| {name} | {value:.4f} | {value / base:.2f}x |" if base else f"| {name} | {value:.4f} | |")
+    return lines + [""]
+
+
 def main() -> None:
     args = parse_args()
+    if args.costs:
+        measure_costs(args)
+        return
     if not args.report:
         tasks = [(scene, seed) for seed in args.seeds for scene in args.scenes]
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
