@@ -33,7 +33,8 @@ RESULTS = ROOT / "bench" / "results" / "select.json"
 # (scene, views per model, image size, iterations, how the two view sets are drawn, test views)
 CASES = [("lego_200", 16, 100, 500, "demo", 100), ("lego_200", 8, 50, 600, "random", 40),
          ("lego_200", 16, 50, 600, "random", 40), ("donut_200", 8, 50, 600, "random", 40),
-         ("donut_200", 16, 50, 600, "random", 40)]
+         ("donut_200", 16, 50, 600, "random", 40), ("chain_200", 8, 50, 600, "random", 40),
+         ("chain_200", 16, 50, 600, "random", 40)]
 
 
 def view_sets(total: int, count: int, how: str, seed: int) -> tuple[list[int], list[int]]:
