@@ -21,7 +21,7 @@ import torch
 
 from ..composite.fused import LAUNCH_LOCK
 from ...scene import Camera
-from ..splats import ALPHA_MAX, ALPHA_MIN
+from ..splats import ALPHA_MAX, ALPHA_MIN, SH_C0, SH_C1, SH_C2, SH_C3
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -100,6 +100,62 @@ def project_splats(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.T
     return means2d, conics, opacities, extents, p_cam[:, 2], visible
 
 
+SH_BLOCK = 256      # visible splats per parallel work item of `_sh_values` (one scratch basis each)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _sh_values(ids, means, sh, center, depths, values):  # pragma: no cover
+    """values[v] = (SH colour of splat ids[v] seen from `center`, its depth), for the V
+    visible splats only: `splats.eval_sh` (its tested twin) per splat, in float64."""
+    k = sh.shape[1]
+    count = ids.shape[0]
+    for block in numba.prange((count + SH_BLOCK - 1) // SH_BLOCK):
+        basis = np.empty(16)
+        for v in range(block * SH_BLOCK, min(count, (block + 1) * SH_BLOCK)):
+            g = ids[v]
+            x = np.float64(means[g, 0]) - center[0]
+            y = np.float64(means[g, 1]) - center[1]
+            z = np.float64(means[g, 2]) - center[2]
+            norm = max(math.sqrt(x * x + y * y + z * z), 1e-12)
+            x /= norm
+            y /= norm
+            z /= norm
+            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+            basis[0] = SH_C0
+            basis[1] = -SH_C1 * y
+            basis[2] = SH_C1 * z
+            basis[3] = -SH_C1 * x
+            basis[4] = SH_C2[0] * xy
+            basis[5] = SH_C2[1] * yz
+            basis[6] = SH_C2[2] * (2 * zz - xx - yy)
+            basis[7] = SH_C2[3] * xz
+            basis[8] = SH_C2[4] * (xx - yy)
+            basis[9] = SH_C3[0] * y * (3 * xx - yy)
+            basis[10] = SH_C3[1] * xy * z
+            basis[11] = SH_C3[2] * y * (4 * zz - xx - yy)
+            basis[12] = SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy)
+            basis[13] = SH_C3[4] * x * (4 * zz - xx - yy)
+            basis[14] = SH_C3[5] * z * (xx - yy)
+            basis[15] = SH_C3[6] * x * (xx - 3 * yy)
+            for c in range(3):
+                total = 0.5
+                for j in range(k):
+                    total += basis[j] * np.float64(sh[g, j, c])
+                values[v, c] = max(total, 0.0)
+            values[v, 3] = depths[g]
+
+
+def splat_values(means: torch.Tensor, sh: torch.Tensor, ids: torch.Tensor, camera: Camera,
+                 depths: torch.Tensor) -> torch.Tensor:
+    """[V, 4] float32: the SH colour (`render.splat_colors`) and camera depth of the splats
+    `ids` ([V] long into the model's G; means [G, 3], sh [G, K, 3], depths [G])."""
+    values = torch.empty(len(ids), 4, dtype=torch.float32)
+    with LAUNCH_LOCK:
+        _sh_values(ids.numpy(), means.detach().float().contiguous().numpy(), sh.detach().float().contiguous().numpy(),
+                   camera.center.numpy(), depths.double().contiguous().numpy(), values.numpy())
+    return values
+
+
 @numba.njit(cache=True, nogil=True)
 def _tile_lists(means2d, extents, tiles_x, tiles_y, tile):  # pragma: no cover
     """Pairs ordered by (tile, depth): (start [T + 1] int64, splat [M] int32). Each splat's
@@ -132,57 +188,69 @@ def _tile_lists(means2d, extents, tiles_x, tiles_y, tile):  # pragma: no cover
 
 
 @numba.njit(inline="always")
-def _alpha(means2d, conics, opacities, v, px, py, cutoff):  # pragma: no cover
-    """alpha of splat v at pixel (px, py); 0 without an exp where the exponent is below
-    `cutoff` (a bound under which alpha < ALPHA_MIN for sure)."""
+def _power(means2d, conics, v, px, py):  # pragma: no cover
+    """The Gaussian exponent -d^T conic d / 2 of splat v at the centre of pixel (px, py)."""
     dx = px + 0.5 - means2d[v, 0]
     dy = py + 0.5 - means2d[v, 1]
-    power = -0.5 * (conics[v, 0] * dx * dx + conics[v, 2] * dy * dy) - conics[v, 1] * dx * dy
-    if power < cutoff:
-        return 0.0
-    return min(ALPHA_MAX, opacities[v] * math.exp(power))
+    return -0.5 * (conics[v, 0] * dx * dx + conics[v, 2] * dy * dy) - conics[v, 1] * dx * dy
+
+
+@numba.njit(inline="always")
+def _kept(power, opacity, level):  # pragma: no cover
+    """alpha = min(ALPHA_MAX, opacity exp(power)) >= ALPHA_MIN, where level = log(ALPHA_MIN /
+    opacity): decided from the exponent alone unless it lies within 1e-9 of the level, where
+    the float64 alpha itself decides."""
+    if power < level - 1e-9:
+        return False
+    if power > level + 1e-9:
+        return True
+    return min(ALPHA_MAX, opacity * math.exp(power)) >= ALPHA_MIN
+
+
+@numba.njit(inline="always")
+def _pixel_span(means2d, extents, v, k, origin, size):  # pragma: no cover
+    """The pixels [first, last) of one tile axis (k: 0 = x, 1 = y; the tile's pixels
+    origin..origin + size) whose centres lie in splat v's alpha >= 1/255 box, one pixel wider
+    on each side against rounding: alpha is evaluated only there."""
+    first = math.ceil(means2d[v, k] - extents[v, k] - 1.5) - origin
+    last = math.floor(means2d[v, k] + extents[v, k] + 0.5) - origin + 1
+    return max(0, first), min(size, last)
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha,
-                row_ptr):  # pragma: no cover
-    """pair_alpha[k, p]: alpha of pair k at pixel p of its tile (0 below ALPHA_MIN or outside
-    the image); row_ptr[1 + q]: number of fragments of pixel q (tile layout)."""
+def _fragment_pass(start, splat, means2d, conics, opacities, extents, tiles_x, tile, width, height, row_ptr,
+                   alpha, index, write):  # pragma: no cover
+    """One pass over each tile's pairs, front to back, evaluating every pair's alpha at the
+    pixels of its box within the tile. write = False: row_ptr[1 + q] = the number of
+    fragments of pixel q (tile layout). write = True (row_ptr now the offsets): each
+    fragment's alpha and splat go to its pixel's next free entry, so no [pairs, pixels]
+    array is ever held."""
     pixels = tile * tile
     for t in numba.prange(start.shape[0] - 1):
         x0 = (t % tiles_x) * tile
         y0 = (t // tiles_x) * tile
         cols = min(tile, width - x0)
         rows = min(tile, height - y0)
-        for p in range(pixels):
-            row_ptr[1 + t * pixels + p] = 0
+        cursor = np.zeros(pixels, np.int64)             # count (first pass) or next free entry
+        if write:
+            cursor[:] = row_ptr[t * pixels:(t + 1) * pixels]
         for k in range(start[t], start[t + 1]):
             v = splat[k]
-            pair_alpha[k, :] = 0.0
-            cutoff = math.log(ALPHA_MIN / opacities[v]) - 1e-6     # alpha >= ALPHA_MIN needs power above it
-            for oy in range(rows):
-                for ox in range(cols):
-                    a = _alpha(means2d, conics, opacities, v, x0 + ox, y0 + oy, cutoff)
-                    if a >= ALPHA_MIN:
-                        pair_alpha[k, oy * tile + ox] = a
-                        row_ptr[1 + t * pixels + oy * tile + ox] += 1
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _gather(start, splat, pair_alpha, row_ptr, alpha, index):  # pragma: no cover
-    """The nonzero pair_alpha entries, pixel by pixel, front to back: one pass over a tile's
-    pairs (in depth order) appends each pair's fragments at its pixels' cursors."""
-    pixels = pair_alpha.shape[1]
-    for t in numba.prange(start.shape[0] - 1):
-        cursor = row_ptr[t * pixels:(t + 1) * pixels].copy()     # next free entry of each pixel
-        for k in range(start[t], start[t + 1]):
-            for p in range(pixels):
-                a = pair_alpha[k, p]
-                if a > 0.0:
-                    e = cursor[p]
-                    alpha[e] = a
-                    index[e] = splat[k]
-                    cursor[p] = e + 1
+            opacity = opacities[v]
+            level = math.log(ALPHA_MIN / opacity)
+            ox0, ox1 = _pixel_span(means2d, extents, v, 0, x0, cols)
+            oy0, oy1 = _pixel_span(means2d, extents, v, 1, y0, rows)
+            for oy in range(oy0, oy1):
+                for ox in range(ox0, ox1):
+                    power = _power(means2d, conics, v, x0 + ox, y0 + oy)
+                    if _kept(power, opacity, level):
+                        p = oy * tile + ox
+                        if write:
+                            alpha[cursor[p]] = min(ALPHA_MAX, opacity * math.exp(power))
+                            index[cursor[p]] = v
+                        cursor[p] += 1
+        if not write:
+            row_ptr[1 + t * pixels:1 + (t + 1) * pixels] = cursor
 
 
 def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, extents: torch.Tensor,
@@ -192,6 +260,8 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
 
     Returns (row_ptr [T * P + 1] int64, alpha [E] float32, index [E] int32 into the V splats,
     tiles_x, tiles_y); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1].
+    Two passes over the pairs, count then write: the count needs no exp, and no [pairs,
+    pixels] array of alphas is held and scanned.
     """
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
     means2d, conics, opacities, extents = (t.detach().double().contiguous().numpy()
@@ -199,10 +269,12 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     row_ptr = np.zeros(tiles_x * tiles_y * tile * tile + 1, np.int64)
     with LAUNCH_LOCK:
         start, splat = _tile_lists(means2d, extents, tiles_x, tiles_y, tile)
-        pair_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P]
-        _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha, row_ptr)
+        empty_alpha, empty_index = np.empty(0, np.float32), np.empty(0, np.int32)
+        _fragment_pass(start, splat, means2d, conics, opacities, extents, tiles_x, tile, width, height, row_ptr,
+                       empty_alpha, empty_index, False)
         np.cumsum(row_ptr, out=row_ptr)
         alpha = np.empty(row_ptr[-1], np.float32)
         index = np.empty(row_ptr[-1], np.int32)
-        _gather(start, splat, pair_alpha, row_ptr, alpha, index)
+        _fragment_pass(start, splat, means2d, conics, opacities, extents, tiles_x, tile, width, height, row_ptr,
+                       alpha, index, True)
     return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index), tiles_x, tiles_y
