@@ -187,44 +187,32 @@ def _tile_lists(means2d, extents, tiles_x, tiles_y, tile):  # pragma: no cover
     return start, splat
 
 
-@numba.njit(inline="always")
-def _power(means2d, conics, v, px, py):  # pragma: no cover
-    """The Gaussian exponent -d^T conic d / 2 of splat v at the centre of pixel (px, py)."""
-    dx = px + 0.5 - means2d[v, 0]
-    dy = py + 0.5 - means2d[v, 1]
-    return -0.5 * (conics[v, 0] * dx * dx + conics[v, 2] * dy * dy) - conics[v, 1] * dx * dy
+# The columns of one splat's record in the fragment pass: one 64-byte row per splat, because
+# a tile's pairs name splats all over the depth order and each array read there is a cache miss.
+MX, MY, CA, CB, CC, OPACITY, LEVEL = range(7)
+RECORD = 8
 
 
 @numba.njit(inline="always")
 def _kept(power, opacity, level):  # pragma: no cover
     """alpha = min(ALPHA_MAX, opacity exp(power)) >= ALPHA_MIN, where level = log(ALPHA_MIN /
     opacity): decided from the exponent alone unless it lies within 1e-9 of the level, where
-    the float64 alpha itself decides."""
-    if power < level - 1e-9:
-        return False
-    if power > level + 1e-9:
-        return True
-    return min(ALPHA_MAX, opacity * math.exp(power)) >= ALPHA_MIN
-
-
-@numba.njit(inline="always")
-def _pixel_span(means2d, extents, v, k, origin, size):  # pragma: no cover
-    """The pixels [first, last) of one tile axis (k: 0 = x, 1 = y; the tile's pixels
-    origin..origin + size) whose centres lie in splat v's alpha >= 1/255 box, one pixel wider
-    on each side against rounding: alpha is evaluated only there."""
-    first = math.ceil(means2d[v, k] - extents[v, k] - 1.5) - origin
-    last = math.floor(means2d[v, k] + extents[v, k] + 0.5) - origin + 1
-    return max(0, first), min(size, last)
+    the float64 alpha itself decides. No branch but a rarely taken one, so the pixel loops
+    run without mispredictions."""
+    kept = power >= level
+    if abs(power - level) <= 1e-9:
+        kept = min(ALPHA_MAX, opacity * math.exp(power)) >= ALPHA_MIN
+    return kept
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _fragment_pass(start, splat, means2d, conics, opacities, extents, tiles_x, tile, width, height, row_ptr,
-                   alpha, index, write):  # pragma: no cover
-    """One pass over each tile's pairs, front to back, evaluating every pair's alpha at the
-    pixels of its box within the tile. write = False: row_ptr[1 + q] = the number of
-    fragments of pixel q (tile layout). write = True (row_ptr now the offsets): each
-    fragment's alpha and splat go to its pixel's next free entry, so no [pairs, pixels]
-    array is ever held."""
+def _fragment_pass(start, splat, records, tiles_x, tile, width, height, row_ptr, alpha, index,
+                   write):  # pragma: no cover
+    """One pass over each tile's pairs, front to back, evaluating each pair at every pixel of
+    the tile. write = False: row_ptr[1 + q] = the number of fragments of pixel q (tile layout),
+    counted without an exp or a branch. write = True (row_ptr now the offsets): each
+    fragment's alpha and splat go to its pixel's next free entry, so no [pairs, pixels] array
+    is ever held. records [V, RECORD]: the splats' MX..LEVEL columns."""
     pixels = tile * tile
     for t in numba.prange(start.shape[0] - 1):
         x0 = (t % tiles_x) * tile
@@ -236,19 +224,19 @@ def _fragment_pass(start, splat, means2d, conics, opacities, extents, tiles_x, t
             cursor[:] = row_ptr[t * pixels:(t + 1) * pixels]
         for k in range(start[t], start[t + 1]):
             v = splat[k]
-            opacity = opacities[v]
-            level = math.log(ALPHA_MIN / opacity)
-            ox0, ox1 = _pixel_span(means2d, extents, v, 0, x0, cols)
-            oy0, oy1 = _pixel_span(means2d, extents, v, 1, y0, rows)
-            for oy in range(oy0, oy1):
-                for ox in range(ox0, ox1):
-                    power = _power(means2d, conics, v, x0 + ox, y0 + oy)
-                    if _kept(power, opacity, level):
-                        p = oy * tile + ox
-                        if write:
-                            alpha[cursor[p]] = min(ALPHA_MAX, opacity * math.exp(power))
-                            index[cursor[p]] = v
-                        cursor[p] += 1
+            mx, my, ca, cb, cc = records[v, MX], records[v, MY], records[v, CA], records[v, CB], records[v, CC]
+            opacity, level = records[v, OPACITY], records[v, LEVEL]
+            for oy in range(rows):
+                dy = y0 + oy + 0.5 - my
+                for ox in range(cols):
+                    dx = x0 + ox + 0.5 - mx
+                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    kept = _kept(power, opacity, level)
+                    p = oy * tile + ox
+                    if write and kept:
+                        alpha[cursor[p]] = min(ALPHA_MAX, opacity * math.exp(power))
+                        index[cursor[p]] = v
+                    cursor[p] += kept
         if not write:
             row_ptr[1 + t * pixels:1 + (t + 1) * pixels] = cursor
 
@@ -260,21 +248,23 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
 
     Returns (row_ptr [T * P + 1] int64, alpha [E] float32, index [E] int32 into the V splats,
     tiles_x, tiles_y); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1].
-    Two passes over the pairs, count then write: the count needs no exp, and no [pairs,
+    Two passes over the pairs, count then write (the count needs no exp), so no [pairs,
     pixels] array of alphas is held and scanned.
     """
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
     means2d, conics, opacities, extents = (t.detach().double().contiguous().numpy()
                                            for t in (means2d, conics, opacities, extents))
     row_ptr = np.zeros(tiles_x * tiles_y * tile * tile + 1, np.int64)
+    records = np.zeros((len(opacities), RECORD))
+    records[:, MX:MY + 1], records[:, CA:CC + 1], records[:, OPACITY] = means2d, conics, opacities
+    records[:, LEVEL] = np.log(ALPHA_MIN / opacities)
     with LAUNCH_LOCK:
         start, splat = _tile_lists(means2d, extents, tiles_x, tiles_y, tile)
         empty_alpha, empty_index = np.empty(0, np.float32), np.empty(0, np.int32)
-        _fragment_pass(start, splat, means2d, conics, opacities, extents, tiles_x, tile, width, height, row_ptr,
-                       empty_alpha, empty_index, False)
+        _fragment_pass(start, splat, records, tiles_x, tile, width, height, row_ptr, empty_alpha, empty_index,
+                       False)
         np.cumsum(row_ptr, out=row_ptr)
         alpha = np.empty(row_ptr[-1], np.float32)
         index = np.empty(row_ptr[-1], np.int32)
-        _fragment_pass(start, splat, means2d, conics, opacities, extents, tiles_x, tile, width, height, row_ptr,
-                       alpha, index, True)
+        _fragment_pass(start, splat, records, tiles_x, tile, width, height, row_ptr, alpha, index, True)
     return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index), tiles_x, tiles_y
