@@ -215,7 +215,8 @@ def test_compiled_fragments_match_torch(tile: int) -> None:
     pairs = intersect(proj.means2d, proj.extents, cam.width, cam.height, tile)
     frags = fragments(splat_alpha(proj, pairs, tile), pairs)
     expected = fragment_lists(frags.row_ptr, frags.alpha, pairs.splat[frags.pair], frags.pixel)
-    t, p = torch.tensor(list(expected)).div(tile * tile, rounding_mode="floor"), torch.tensor(list(expected)) % (tile * tile)
+    q = torch.tensor(list(expected))
+    t, p = q.div(tile * tile, rounding_mode="floor"), q % (tile * tile)
     x, y = (t % pairs.tiles_x) * tile + p % tile, (t // pairs.tiles_x) * tile + p // tile
     inside = ((x < cam.width) & (y < cam.height)).tolist()          # the torch stage also lists pixels past the edge
     expected = {q: rows for q, keep in zip(list(expected), inside) if keep for rows in [expected[q]]}

@@ -196,8 +196,9 @@ def test_coarse_to_fine_ranks_the_best_again_at_full_size(name: str) -> None:
                                               coarse=0.5)] == [True] * 2 + [False] * 8
 
 
-@pytest.mark.parametrize("coarse, refine, field", [(0.0, None, "coarse"), (1.0, None, "coarse"), (float("nan"), None, "coarse"),
-                                                   (0.5, 0, "refine"), (None, 3, "refine")])
+@pytest.mark.parametrize("coarse, refine, field", [
+    (0.0, None, "coarse"), (1.0, None, "coarse"), (float("nan"), None, "coarse"), (0.5, 0, "refine"), (None, 3, "refine"),
+])
 def test_bad_coarse_settings_name_the_field(coarse, refine, field: str) -> None:
     renderer, _ = blob_scene()
     with pytest.raises(InputError) as info:
