@@ -202,9 +202,9 @@ def fragment_lists(row_ptr: torch.Tensor, alpha: torch.Tensor, splat: torch.Tens
 
 @pytest.mark.parametrize("tile", [1, 4, 16])
 def test_compiled_fragments_match_torch(tile: int) -> None:
-    """Stages 2-3 compiled (alpha evaluated in each pair's pixel box, counted then written)
-    against the torch stages: the same fragments of every pixel, in the same order; alpha at
-    1e-5 of the float64 formula (the torch stage evaluates it in float32, off by 2e-5 at tile 16)."""
+    """Stages 2-3 compiled against the torch stages: the same fragments of every pixel, in the
+    same order; alpha at 1e-5 of the float64 formula (the torch stage evaluates it in float32,
+    off by 2e-5 at tile 16)."""
     model = random_scene(150, 0, seed=5, spread=1.2)
     model.log_scales[:10] = math.log(1e-4)                                      # sub-pixel splats
     model.log_scales[10:20, 0] = 0.3                                            # long thin ones

@@ -187,58 +187,58 @@ def _tile_lists(means2d, extents, tiles_x, tiles_y, tile):  # pragma: no cover
     return start, splat
 
 
-# The columns of one splat's record in the fragment pass: one 64-byte row per splat, because
-# a tile's pairs name splats all over the depth order and each array read there is a cache miss.
-MX, MY, CA, CB, CC, OPACITY, LEVEL = range(7)
-RECORD = 8
-
-
 @numba.njit(inline="always")
-def _kept(power, opacity, level):  # pragma: no cover
-    """alpha = min(ALPHA_MAX, opacity exp(power)) >= ALPHA_MIN, where level = log(ALPHA_MIN /
-    opacity): decided from the exponent alone unless it lies within 1e-9 of the level, where
-    the float64 alpha itself decides. No branch but a rarely taken one, so the pixel loops
-    run without mispredictions."""
-    kept = power >= level
-    if abs(power - level) <= 1e-9:
-        kept = min(ALPHA_MAX, opacity * math.exp(power)) >= ALPHA_MIN
-    return kept
+def _alpha(means2d, conics, opacities, v, px, py, cutoff):  # pragma: no cover
+    """alpha of splat v at pixel (px, py); 0 without an exp where the exponent is below
+    `cutoff` (a bound under which alpha < ALPHA_MIN for sure)."""
+    dx = px + 0.5 - means2d[v, 0]
+    dy = py + 0.5 - means2d[v, 1]
+    power = -0.5 * (conics[v, 0] * dx * dx + conics[v, 2] * dy * dy) - conics[v, 1] * dx * dy
+    if power < cutoff:
+        return 0.0
+    return min(ALPHA_MAX, opacities[v] * math.exp(power))
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _fragment_pass(start, splat, records, tiles_x, tile, width, height, row_ptr, alpha, index,
-                   write):  # pragma: no cover
-    """One pass over each tile's pairs, front to back, evaluating each pair at every pixel of
-    the tile. write = False: row_ptr[1 + q] = the number of fragments of pixel q (tile layout),
-    counted without an exp or a branch. write = True (row_ptr now the offsets): each
-    fragment's alpha and splat go to its pixel's next free entry, so no [pairs, pixels] array
-    is ever held. records [V, RECORD]: the splats' MX..LEVEL columns."""
+def _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha,
+                row_ptr):  # pragma: no cover
+    """pair_alpha[k, p]: alpha of pair k at pixel p of its tile (0 below ALPHA_MIN or outside
+    the image); row_ptr[1 + q]: number of fragments of pixel q (tile layout)."""
     pixels = tile * tile
     for t in numba.prange(start.shape[0] - 1):
         x0 = (t % tiles_x) * tile
         y0 = (t // tiles_x) * tile
         cols = min(tile, width - x0)
         rows = min(tile, height - y0)
-        cursor = np.zeros(pixels, np.int64)             # count (first pass) or next free entry
-        if write:
-            cursor[:] = row_ptr[t * pixels:(t + 1) * pixels]
+        for p in range(pixels):
+            row_ptr[1 + t * pixels + p] = 0
         for k in range(start[t], start[t + 1]):
             v = splat[k]
-            mx, my, ca, cb, cc = records[v, MX], records[v, MY], records[v, CA], records[v, CB], records[v, CC]
-            opacity, level = records[v, OPACITY], records[v, LEVEL]
+            pair_alpha[k, :] = 0.0
+            cutoff = math.log(ALPHA_MIN / opacities[v]) - 1e-6     # alpha >= ALPHA_MIN needs power above it
             for oy in range(rows):
-                dy = y0 + oy + 0.5 - my
                 for ox in range(cols):
-                    dx = x0 + ox + 0.5 - mx
-                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                    kept = _kept(power, opacity, level)
-                    p = oy * tile + ox
-                    if write and kept:
-                        alpha[cursor[p]] = min(ALPHA_MAX, opacity * math.exp(power))
-                        index[cursor[p]] = v
-                    cursor[p] += kept
-        if not write:
-            row_ptr[1 + t * pixels:1 + (t + 1) * pixels] = cursor
+                    a = _alpha(means2d, conics, opacities, v, x0 + ox, y0 + oy, cutoff)
+                    if a >= ALPHA_MIN:
+                        pair_alpha[k, oy * tile + ox] = a
+                        row_ptr[1 + t * pixels + oy * tile + ox] += 1
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _gather(start, splat, pair_alpha, row_ptr, alpha, index):  # pragma: no cover
+    """The nonzero pair_alpha entries, pixel by pixel, front to back: one pass over a tile's
+    pairs (in depth order) appends each pair's fragments at its pixels' cursors."""
+    pixels = pair_alpha.shape[1]
+    for t in numba.prange(start.shape[0] - 1):
+        cursor = row_ptr[t * pixels:(t + 1) * pixels].copy()     # next free entry of each pixel
+        for k in range(start[t], start[t + 1]):
+            for p in range(pixels):
+                a = pair_alpha[k, p]
+                if a > 0.0:
+                    e = cursor[p]
+                    alpha[e] = a
+                    index[e] = splat[k]
+                    cursor[p] = e + 1
 
 
 def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, extents: torch.Tensor,
@@ -248,23 +248,17 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
 
     Returns (row_ptr [T * P + 1] int64, alpha [E] float32, index [E] int32 into the V splats,
     tiles_x, tiles_y); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1].
-    Two passes over the pairs, count then write (the count needs no exp), so no [pairs,
-    pixels] array of alphas is held and scanned.
     """
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
     means2d, conics, opacities, extents = (t.detach().double().contiguous().numpy()
                                            for t in (means2d, conics, opacities, extents))
     row_ptr = np.zeros(tiles_x * tiles_y * tile * tile + 1, np.int64)
-    records = np.zeros((len(opacities), RECORD))
-    records[:, MX:MY + 1], records[:, CA:CC + 1], records[:, OPACITY] = means2d, conics, opacities
-    records[:, LEVEL] = np.log(ALPHA_MIN / opacities)
     with LAUNCH_LOCK:
         start, splat = _tile_lists(means2d, extents, tiles_x, tiles_y, tile)
-        empty_alpha, empty_index = np.empty(0, np.float32), np.empty(0, np.int32)
-        _fragment_pass(start, splat, records, tiles_x, tile, width, height, row_ptr, empty_alpha, empty_index,
-                       False)
+        pair_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P]
+        _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha, row_ptr)
         np.cumsum(row_ptr, out=row_ptr)
         alpha = np.empty(row_ptr[-1], np.float32)
         index = np.empty(row_ptr[-1], np.int32)
-        _fragment_pass(start, splat, records, tiles_x, tile, width, height, row_ptr, alpha, index, True)
+        _gather(start, splat, pair_alpha, row_ptr, alpha, index)
     return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index), tiles_x, tiles_y
