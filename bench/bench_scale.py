@@ -315,6 +315,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--profile", action="store_true",
                         help="also cProfile prepare + render (N = 16) of 4 cameras, 1M splats SH 3, 200x150 "
                              "(and of --baseline's code)")
+    parser.add_argument("--profile-name", default="now", help="the profile's label in the JSON and the docs")
     parser.add_argument("--coarse-scales", type=float, nargs="+", default=[0.5, 0.25])
     parser.add_argument("--coarse-refines", type=int, nargs="+", default=[10, 20])
     parser.add_argument("--coarse-candidates", type=int, default=100)
@@ -349,9 +350,10 @@ def main() -> None:
                                                                 args.baseline)
         write_json_atomic(args.json, results)
     if args.profile:
-        runs = {"now": None} if args.baseline is None else {"before": args.baseline, "now": None}
-        results["profile"] = {name: in_child("profile", baseline=path, copies=22, sh=3, width=200, samples=16,
-                                             cameras=4, ratio=args.ratio) for name, path in runs.items()}
+        runs = {args.profile_name: None} if args.baseline is None else {"before": args.baseline, args.profile_name: None}
+        results.setdefault("profile", {}).update(
+            {name: in_child("profile", baseline=path, copies=22, sh=3, width=200, samples=16, cameras=4,
+                            ratio=args.ratio) for name, path in runs.items()})
         write_json_atomic(args.json, results)
     if args.coarse:
         results["coarse"] = in_child("coarse_trade", copies=22, sh=3, candidates=args.coarse_candidates, width=200,
@@ -439,12 +441,14 @@ splats get small boxes. Only the survivors are sorted, coloured and rasterised. 
   a dozen [V] temporaries: half of a camera's time at 1M splats SH 3, see the profile below).
   It is compiled now (`kernels.splat_values`, float64, one visible splat per step), with
   `render.splat_colors` (`splats.eval_sh`) as its tested twin at 1e-5.
-- Fragments: the alpha of every tile/splat pair at each pixel of its tile was compiled, but
-  written to a [pairs, 16] array that a second kernel scanned. `kernels._fragment_pass` now
-  counts each pixel's fragments (no exp, no branch except for an alpha within 1e-9 of 1/255),
-  then writes each fragment's alpha into its slot, reading a splat's numbers from one
-  64-byte record. Tested against the torch stages: the same fragments per pixel in the same
-  order, alpha within 1e-5 of the float64 formula (tests/renderers/test_fused.py).
+- Fragments: the alpha of every tile/splat pair at each pixel of its tile is compiled
+  (`kernels._pair_alpha`) into a [pairs, 16] array that a second kernel (`_gather`) scans.
+  Fusing the two (count each pixel's fragments, then write each alpha into its slot, no
+  [pairs, 16] array) was tried and measured: it cost 0.50 CPU s per camera against 0.34 for
+  the two kernels (1M splats, 200x150, one thread, the same 5.1M fragments, three rounds), as
+  every pair is evaluated twice; so the two kernels stay. **The grid tables of this section
+  were measured with that fused pass in** (commit 54f002c, reverted after): their "fragments"
+  column overstates today's stage by about 1.45x; the profile below has both.
 
 What is left grows with the fragments: every visible splat at every pixel where its alpha
 reaches 1/255, hidden ones included. They cannot be cut at `prepare`: a keep-mask may drop
@@ -452,6 +456,7 @@ the splats in front, and a prepared view serves any masks.
 
 ![seconds per candidate against splats](scale_time.svg)
 
+{missing_note(models)}
 ### Load and memory
 
 | splats | SH | PLY MB | load s | RSS after load MB | peak RSS MB |
@@ -485,6 +490,14 @@ the candidates.
     return text + "\n" + SECTION_END + "\n"
 
 
+def missing_note(models: list[dict]) -> str:
+    """A line naming the default grid's models this run did not measure."""
+    done = {(x["copies"], x["sh"]) for x in models}
+    missing = [f"{copies * 45_624:,} splats SH {sh}" for copies in (1, 6, 22, 66) for sh in (0, 3)
+               if (copies, sh) not in done]
+    return f"\nNot measured in this run: {', '.join(missing)}.\n" if missing else ""
+
+
 def target_report(t: dict) -> str:
     runs = [(name, t[name]) for name in ("before", "now") if name in t]
     rows = [f"| {name} | {x['wall_s']:.1f} | {x['user_s']:.1f} | {x['system_s']:.1f} | "
@@ -496,8 +509,9 @@ def target_report(t: dict) -> str:
 ### The issue's case: `phd rank`, {t['candidates']} candidates, {t['copies'] * 45_624:,} splats SH {t['sh']}
 
 {t['width']}x{t['height']}, N = {t['samples']}, --dropout-ratio {t['ratio']}, whole process (start-up and load
-included), "before" is the code before issue 24 (the merge base, run from a `git archive`
-of it), "now" this branch, in the same run. Target: < 30 s for 100 candidates.
+included); "before", where present, is the code before issue 24 (the merge base, run from a
+`git archive` of it), "now" this branch, in the same run. Target: < 30 s for 100 candidates.
+On a shared machine the CPU seconds are the fairer figure.
 
 | code | wall s | user s | system s | CPU s / 2 cores | peak RSS MB |
 |---|---|---|---|---|---|
@@ -517,12 +531,17 @@ def profile_report(runs: dict) -> str:
 ### Where a camera's time goes: {first['splats']:,} splats SH {first['sh']}, {size}, N = {first['samples']}
 
 cProfile of `prepare` and one render of N masks for {first['cameras']} ring poses (`profile` in the
-benchmark; "before" is the code before issue 24, from a `git archive` of it, in the same run).
+benchmark; "before" is the code before issue 24, from a `git archive` of it). The runs were
+minutes apart on a machine whose load changed (the wall times say how much): compare CPU seconds.
 
 """ + "\n".join(parts)
 
 
 def coarse_report(c: dict) -> str:
+    best = max((x for x in c["rows"] if x["coarse"] is not None), key=lambda x: x["speed_up"], default=None)
+    verdict = ("no setting was measured" if best is None else
+               f"the best setting measured here, scale {best['coarse']} with {best['refine']} re-scored, ran at "
+               f"{best['speed_up']:.2f}x the speed of full size (CPU) and kept {best['top5_overlap']:.0%} of its top 5")
     rows = []
     for x in c["rows"]:
         if x["coarse"] is None:
@@ -544,6 +563,10 @@ Kendall's tau-b of the two orders over all candidates.
 | strategy | coarse scale | re-scored m | CPU s | speed-up | top-1 | top-5 | top-10 | Kendall tau |
 |---|---|---|---|---|---|---|---|---|
 {chr(10).join(rows)}
+
+Coarse to fine stays off by default: {verdict}. A coarse render saves only what grows with the
+pixels (fragments, compositing); projection, depth order and SH colour of every visible splat
+cost the same at any size, and the re-scored candidates are prepared a second time.
 """
 
 
