@@ -437,8 +437,10 @@ alpha >= 1/255 ellipse misses the image; that box is opacity-aware (half-sizes
 sqrt(2 ln(255 opacity) cov_xx) and sqrt(2 ln(255 opacity) cov_yy), not 3 sigma), so faint
 splats get small boxes. Only the survivors are sorted, coloured and rasterised. Changed:
 
-- SH colour was already evaluated for the survivors only, but in torch (a [V, 16, 3] gather and
-  a dozen [V] temporaries: half of a camera's time at 1M splats SH 3, see the profile below).
+- SH colour was already evaluated for the survivors only, but in torch: a [V, 16, 3] gather and
+  some 30 small ops, each a parallel region that waits for both threads. On this shared machine
+  that was half of a 1M-splat SH-3 camera's wall time (an early cProfile: 1.0 of 2.3 s), though
+  only about 15 % of its CPU time (the profile below).
   It is compiled now (`kernels.splat_values`, float64, one visible splat per step), with
   `render.splat_colors` (`splats.eval_sh`) as its tested twin at 1e-5.
 - Fragments: the alpha of every tile/splat pair at each pixel of its tile is compiled
