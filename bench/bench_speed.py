@@ -77,11 +77,12 @@ def donut_model(splats: int = SPLATS, seed: int = 0) -> GaussianModel:
                          ((colour - 0.5) / SH_C0)[:, None, :].float())
 
 
-def child(args: list[str], env: dict[str, str] | None = None) -> dict:
-    """Run `phd`; its wall, user and system seconds (os.wait4) and peak RSS (its VmHWM)."""
+def child(args: list[str], env: dict[str, str] | None = None, cwd: Path = ROOT) -> dict:
+    """Run `phd` in `cwd` (its phd_core is the one found there first); its wall, user and
+    system seconds (os.wait4) and peak RSS (its VmHWM)."""
     with tempfile.TemporaryFile() as err:
         start = time.perf_counter()
-        proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT,
+        proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=err, cwd=cwd,
                                 env={**os.environ, **(env or {})})
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - start

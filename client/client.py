@@ -350,13 +350,16 @@ class PHDClient:
              samples: int | None = None, seed: int = 0,
              dropout_ratio: float | None = None, top_k: int | None = None, strategy: str | None = None,
              captured: Cameras | None = None, heatmaps: str = "none", downscale: float | None = None,
-             width: int | None = None, height: int | None = None, run_async: bool = False, wait: bool = True,
+             width: int | None = None, height: int | None = None, coarse: float | None = None,
+             refine: int | None = None, run_async: bool = False, wait: bool = True,
              progress: ProgressCallback | None = None, poll_interval: float = 0.2,
              timeout: float | None = None) -> RankResult | Job:
         """Candidate poses in the order to capture them (the service's default strategy unless `strategy`
         names another). The first `top_k` are a batch meant to be captured together. `captured`: poses
         already taken, default the model's training cameras. Instead of `cameras`, `candidates` lets the
-        service make the poses: a spec "orbit:64,rings=2" or {"generator": ..., "count": ..., "options": ...}."""
+        service make the poses: a spec "orbit:64,rings=2" or {"generator": ..., "count": ..., "options": ...}.
+        `coarse` (a scale in (0, 1)) ranks every candidate that much smaller first and re-ranks the best
+        `refine` at full size."""
         if isinstance(candidates, str):
             from phd_core.uq.candidates import parse_spec
 
@@ -365,7 +368,7 @@ class PHDClient:
         body = {"cameras": None if cameras is None else camera_frames(cameras), "candidates": candidates,
                 "samples": samples, "seed": seed, "dropout_ratio": dropout_ratio,
                 "top_k": top_k, "strategy": strategy, "heatmaps": heatmaps, "downscale": downscale,
-                "width": width, "height": height, "async": run_async,
+                "width": width, "height": height, "coarse": coarse, "refine": refine, "async": run_async,
                 "captured": None if captured is None else camera_frames(captured)}
         return self._work(f"/v1/models/{model_id}/rank", body, RankResult, wait, progress, poll_interval, timeout)
 

@@ -82,6 +82,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="JSON of the poses already captured (default: the model's training cameras)")
     rank.add_argument("--top-k", type=int, default=None,
                       help="keep only the first k: a batch meant to be captured together")
+    rank.add_argument("--coarse", type=float, default=None, metavar="SCALE",
+                      help="coarse to fine: rank every candidate at SCALE (0-1) times its size first, then re-rank "
+                           "the best --refine at full size (price and agreement: docs/performance.md)")
+    rank.add_argument("--refine", type=int, default=None,
+                      help="with --coarse: candidates re-ranked at full size (default 20 %% of them, at least --top-k)")
     _add_camera_size_args(rank)
     _add_uncertainty_args(rank)
     _add_calibration_args(rank)
@@ -365,10 +370,11 @@ def run_rank(args: argparse.Namespace) -> int:
         # Only the poses matter here: frames without w/h get a placeholder size.
         captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
-                            top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor)
+                            top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor,
+                            coarse=args.coarse, refine=args.refine)
     convention = renderer.describe().get("camera_format")
     result = {"strategy": args.strategy, "dropout_ratio": ratio, "calibration": calibration,
-              "samples": args.samples, "seed": args.seed,
+              "samples": args.samples, "seed": args.seed, "coarse": args.coarse,
               "candidates": len(candidates), "order": [r.index for r in ranked], "camera_format": convention,
               "ranking": [{**r.to_dict(), "camera": poses[r.index].to_frame(),
                            "source_pose": source_pose(poses[r.index], convention)} for r in ranked]}

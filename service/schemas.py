@@ -180,6 +180,11 @@ class RankRequest(RenderSize):
                                         "training cameras. " + _CAMERAS_DOC)
     heatmaps: HeatmapMode = Field("none", description="zeta heat maps of the returned views: inline base64 PNG, "
                                   "or PNG files to download from the job's artefacts.")
+    coarse: FiniteFloat | None = Field(None, gt=0, lt=1, description="Coarse to fine: rank every candidate at this "
+                                       "scale of its size first, then re-rank the best `refine` at full size "
+                                       "(faster for many candidates; agreement and price in docs/performance.md).")
+    refine: int | None = Field(None, ge=1, description="With coarse: how many candidates are re-ranked at full "
+                               "size (default 20 % of them, at least top_k).")
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
 
     @field_validator("strategy")
@@ -222,6 +227,8 @@ class RankedCandidate(_Response):
     sigma_max: float
     sigma_mean: float
     score: float = Field(description="The strategy's score of this candidate when it was ranked.")
+    refined: bool = Field(True, description="False: ranked at the coarse size only (request field coarse); its "
+                          "statistics and heat map are the coarse render's.")
     heatmap_png: str | None = Field(None, description="base64 PNG of zeta (heatmaps='base64').")
     heatmap_url: str | None = Field(None, description="Path of the PNG artefact (heatmaps='files').")
     render_png: str | None = Field(None, description="base64 PNG of the model's render of the view (no dropout), "

@@ -294,9 +294,10 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
         renderer = renderers[record.id]
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
                                strategy=body.strategy, captured=captured, keep_peak=heatmaps,
-                               progress=_span(progress, 0.0, split), executor=executor)
+                               progress=_span(progress, 0.0, split), executor=executor, coarse=body.coarse,
+                               refine=body.refine)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
-                                 score=r.score, camera=poses[r.index].to_frame(),
+                                 score=r.score, refined=r.refined, camera=poses[r.index].to_frame(),
                                  source_pose=source_pose(poses[r.index], convention)) for r in ranked]
         artifacts: dict[str, bytes] = {}
         vmax = None

@@ -19,7 +19,7 @@ Everything public is importable from here: `from phd_core import uq`.
 from .calibrate import (DEFAULT_CALIBRATION_SAMPLES, DEFAULT_EPSILON, DEFAULT_SSIM_MARGIN, DEFAULT_STEP, LOOKAHEAD,
                         CalibrationError, CalibrationResult, calibrate, calibrate_ssim)
 from .candidates import GENERATORS
-from .rank import RankedView, candidate_evidence, rank_views
+from .rank import RankedView, candidate_evidence, coarse_cameras, rank_views
 from .sampling import (MAX_MASKS_PER_RENDER, Progress, RunningStd, dropout_uniforms, keep_masks, limit_mask_batch,
                        sample_std)
 from .select import (DEFAULT_SELECTION_RULE, SELECTION_RULES, SELECTION_TRAINING_VIEWS, SelectionResult,
@@ -32,6 +32,6 @@ __all__ = [
     "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "GENERATORS", "LOOKAHEAD", "MAX_MASKS_PER_RENDER",
     "SELECTION_RULES", "SELECTION_TRAINING_VIEWS", "STRATEGIES", "CalibrationError", "CalibrationResult",
     "Progress", "RankedView", "RunningStd", "SelectionResult", "ViewSelection", "ViewUncertainty", "calibrate", "calibrate_ssim",
-    "candidate_evidence", "dropout_uniforms", "keep_masks", "limit_mask_batch", "rank_views", "sample_std", "select_models",
+    "candidate_evidence", "coarse_cameras", "dropout_uniforms", "keep_masks", "limit_mask_batch", "rank_views", "sample_std", "select_models",
     "sigma_max_bar", "uncertainty", "view_uncertainty",
 ]

@@ -3,13 +3,14 @@ paper's sigma_max is one; the default won the active-learning benchmark, docs/nb
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+import math
+from dataclasses import asdict, dataclass, field, replace
 from typing import Sequence
 
 import torch
 
 from ..scene import Camera
-from ..errors import check_int
+from ..errors import InputError, check_float, check_int
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
 from ..renderers.visibility import Visibility, reports_visibility
@@ -25,6 +26,7 @@ class RankedView:
     sigma_mean: float
     score: float        # the strategy's score when the candidate was ranked
     rank: int           # 0 = capture first; ranks 0..k-1 are a batch to capture together
+    refined: bool = True  # False: scored only at the coarse resolution (rank_views' coarse pass)
     peak: torch.Tensor | None = field(default=None, repr=False)  # [H, W] zeta max over channels (keep_peak=True)
 
     def to_dict(self) -> dict:
@@ -92,10 +94,33 @@ def add_fisher(evidence: Evidence, renderer: Renderer, seed: int = 0) -> Evidenc
     return evidence
 
 
+COARSE_REFINE_SHARE = 0.2     # coarse-to-fine: re-score this share of the candidates at full size (at least top_k)
+
+
+def check_coarse(coarse: float | None, refine: int | None) -> tuple[float | None, int | None]:
+    """The coarse pass's scale (0 < coarse < 1, or None: no coarse pass) and the number of
+    candidates to re-score at full size (None: the default share)."""
+    if coarse is not None:
+        coarse = check_float(coarse, "coarse")
+        if not 0 < coarse < 1:
+            raise InputError("coarse", f"must lie strictly between 0 and 1 (a scale of the image size), got {coarse}")
+    if refine is not None:
+        if coarse is None:
+            raise InputError("refine", "re-scoring needs a coarse pass: give coarse too")
+        refine = check_int(refine, "refine", 1)
+    return coarse, refine
+
+
+def coarse_cameras(cameras: Sequence[Camera], scale: float) -> list[Camera]:
+    """The cameras at `scale` times their size (at least 1 x 1 pixels), intrinsics scaled."""
+    return [c.resized(max(1, round(c.width * scale)), max(1, round(c.height * scale))) for c in cameras]
+
+
 def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,
                seed: int = 0, top_k: int | None = None, strategy: str = DEFAULT_STRATEGY,
                captured: Sequence[Camera] | None = None, keep_peak: bool = False,
-               progress: Progress | None = None, executor: Executor = LOCAL) -> list[RankedView]:
+               progress: Progress | None = None, executor: Executor = LOCAL,
+               coarse: float | None = None, refine: int | None = None) -> list[RankedView]:
     """Candidates in the order the strategy would capture them; ties go to the lower index.
 
     top_k keeps the first k, a batch meant to be captured together (all when k exceeds the
@@ -105,10 +130,21 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     (4 bytes a pixel for every candidate until the ranking is known).
     `executor` (phd_core.executors) renders the candidates in chunks, anywhere: the same
     masks go to every chunk, so the ranking is the local one.
+
+    Coarse to fine (`coarse`, a scale in (0, 1)): every candidate is ranked at `coarse`
+    times its size, then the best `refine` (default: COARSE_REFINE_SHARE of them, at least
+    top_k) are ranked again at full size under the same masks and come first; the others
+    follow in their coarse order with their coarse statistics and peaks (refined=False). The price
+    and the agreement with the full-size ranking are in docs/performance.md.
     """
     chosen = get_strategy(strategy)
     if top_k is not None:
         top_k = check_int(top_k, "top_k", 1)
+    coarse, refine = check_coarse(coarse, refine)
+    if coarse is not None:
+        return coarse_to_fine(renderer, cameras, coarse, refine, ratio=ratio, samples=samples, seed=seed,
+                              top_k=top_k, strategy=strategy, captured=captured, keep_peak=keep_peak,
+                              progress=progress, executor=executor)
     evidence, views = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed,
                                          captured=captured, keep_peak=keep_peak, progress=progress,
                                          executor=executor, visibility=chosen.uses_visibility,
@@ -118,3 +154,21 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     order = selection.order if top_k is None else selection.order[:top_k]
     return [RankedView(index=i, sigma_max=float(evidence.sigma_max[i]), sigma_mean=float(evidence.sigma_mean[i]),
                        score=selection.scores[i], rank=rank, peak=views[i].peak) for rank, i in enumerate(order)]
+
+
+def coarse_to_fine(renderer: Renderer, cameras: Sequence[Camera], coarse: float, refine: int | None, *,
+                   top_k: int | None, keep_peak: bool, progress: Progress | None, **rank_args) -> list[RankedView]:
+    """`rank_views` with a coarse pass (see there): all candidates at `coarse` times their
+    size, then the best `refine` again at full size."""
+    cameras = check_cameras(cameras, "cameras")
+    count = len(cameras)
+    if refine is None:
+        refine = max(math.ceil(COARSE_REFINE_SHARE * count), top_k or 1)
+    refine = min(refine, count)
+    half = (lambda start: (lambda done: progress(start + done / 2))) if progress is not None else (lambda start: None)
+    first = rank_views(renderer, coarse_cameras(cameras, coarse), keep_peak=keep_peak, progress=half(0.0), **rank_args)
+    best = [v.index for v in first[:refine]]
+    fine = rank_views(renderer, [cameras[i] for i in best], keep_peak=keep_peak, progress=half(0.5), **rank_args)
+    ranked = [replace(v, index=best[v.index]) for v in fine]
+    ranked += [replace(v, rank=len(ranked) + j, refined=False) for j, v in enumerate(first[refine:])]
+    return ranked if top_k is None else ranked[:top_k]

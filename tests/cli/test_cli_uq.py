@@ -211,6 +211,13 @@ def test_rank_orders_candidates(files, capsys) -> None:
                        "--width", SIZE, "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5, "--top-k", 2)
     assert code == 0 and strict_json(out)["order"] == result["order"][:2]
 
+    code, out, _ = run(capsys, "rank", "--model", files["model"], "--candidates", files["candidates"],
+                       "--width", SIZE, "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5, "--coarse", 0.5,
+                       "--refine", 2)
+    coarse = phd.rank_views(load_model(files["model"]), candidates, ratio=0.4, samples=5, coarse=0.5, refine=2)
+    assert code == 0 and strict_json(out)["order"] == [r.index for r in coarse]
+    assert [r["refined"] for r in strict_json(out)["ranking"]] == [True, True, False, False, False]
+
 
 def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
     argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
@@ -237,7 +244,7 @@ def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
 
 @pytest.mark.parametrize("extra, field", [
     (["--samples", "1"], "samples"), (["--dropout-ratio", "1.5"], "ratio"), (["--top-k", "0"], "top_k"),
-    (["--downscale", "0"], "downscale"),
+    (["--downscale", "0"], "downscale"), (["--coarse", "1.5"], "coarse"), (["--refine", "3"], "refine"),
 ])
 def test_rank_rejects_bad_numbers(files, capsys, extra: list[str], field: str) -> None:
     argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE,

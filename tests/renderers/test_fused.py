@@ -17,9 +17,9 @@ import torch
 from phd_core.renderers.composite import COMPOSITORS
 from phd_core.renderers.gs2d import rasterize_surfels
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
-from phd_core.renderers.gs3d.kernels import project_splats
-from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, project, rasterize, splat_alpha
-from phd_core.renderers.splats import fragments, intersect
+from phd_core.renderers.gs3d.kernels import project_splats, splat_fragments, splat_values
+from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, project, rasterize, splat_alpha, splat_colors
+from phd_core.renderers.splats import ALPHA_MIN, fragments, intersect
 from renderers.test_gaussian_render import assert_close, camera, random_scene, reference
 from renderers.test_surfel_render import random_surfels
 
@@ -163,6 +163,74 @@ def test_compiled_projection_matches_torch() -> None:
     for ours, theirs in ((conics[ids], proj.conics), (opacities[ids], proj.opacities),
                          (extents[ids], proj.extents), (depths[ids], proj.depths)):
         assert torch.allclose(ours, theirs, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_compiled_sh_colours_match_torch(degree: int) -> None:
+    """The compiled SH stage of the visible splats against `splat_colors` (its pure-torch twin):
+    every basis function alone and random mixtures, a splat at the camera centre, clamped colours."""
+    cam = camera()
+    k = (degree + 1) ** 2
+    gen = torch.Generator().manual_seed(degree)
+    dirs = torch.nn.functional.normalize(torch.randn(40, 3, generator=gen, dtype=torch.float64), dim=-1)
+    means = torch.cat([cam.center + 2.0 * dirs, cam.center[None]]).float()      # the last one: no direction
+    g = len(means)
+    single = torch.eye(k).repeat_interleave(3, 0)[:, :, None].expand(-1, -1, 3)  # basis j alone, 3 splats each
+    sh = torch.cat([single[:g], torch.randn(g, k, 3, generator=gen)])[:g].contiguous() * 1.5
+    model = GaussianModel(means, torch.zeros(g, 3), torch.tensor([[1.0, 0, 0, 0]]).repeat(g, 1), torch.zeros(g), sh)
+    ids = torch.randperm(g, generator=gen)[:g - 3]
+    ids = torch.cat([ids[ids != g - 1], torch.tensor([g - 1])])
+    depths = torch.rand(g, generator=gen, dtype=torch.float64) * 5
+    values = splat_values(model.means, model.sh, ids, cam, depths)
+    expected = splat_colors(model, ids, cam)
+    assert (values[:, :3] - expected).abs().max() <= TOL
+    assert (expected == 0).any() and (expected > 0.5).any()                     # clamped and bright ones
+    assert torch.equal(values[:, 3], depths[ids].float())
+
+
+def fragment_lists(row_ptr: torch.Tensor, alpha: torch.Tensor, splat: torch.Tensor, pixel: torch.Tensor) -> dict:
+    """{pixel: [(splat, alpha), ...] front to back}, fragments within 1e-5 of ALPHA_MIN left out
+    (float32 and float64 may decide those either way)."""
+    out = {}
+    for s, q in enumerate(pixel.tolist()):
+        rows = [(int(splat[e]), float(alpha[e])) for e in range(int(row_ptr[s]), int(row_ptr[s + 1]))]
+        rows = [r for r in rows if r[1] >= ALPHA_MIN + TOL]
+        if rows:
+            out[q] = rows
+    return out
+
+
+@pytest.mark.parametrize("tile", [1, 4, 16])
+def test_compiled_fragments_match_torch(tile: int) -> None:
+    """Stages 2-3 compiled against the torch stages: the same fragments of every pixel, in the
+    same order; alpha at 1e-5 of the float64 formula (the torch stage evaluates it in float32,
+    off by 2e-5 at tile 16)."""
+    model = random_scene(150, 0, seed=5, spread=1.2)
+    model.log_scales[:10] = math.log(1e-4)                                      # sub-pixel splats
+    model.log_scales[10:20, 0] = 0.3                                            # long thin ones
+    model.log_scales[10:20, 1:] = -4.0
+    model.opacity_logits[20:30] = -5.3                                          # alpha about 1/255 at the centre
+    cam = camera(37, 23)
+    proj, _, _ = project(model, cam)
+    pairs = intersect(proj.means2d, proj.extents, cam.width, cam.height, tile)
+    frags = fragments(splat_alpha(proj, pairs, tile), pairs)
+    expected = fragment_lists(frags.row_ptr, frags.alpha, pairs.splat[frags.pair], frags.pixel)
+    q = torch.tensor(list(expected))
+    t, p = q.div(tile * tile, rounding_mode="floor"), q % (tile * tile)
+    x, y = (t % pairs.tiles_x) * tile + p % tile, (t // pairs.tiles_x) * tile + p // tile
+    inside = ((x < cam.width) & (y < cam.height)).tolist()          # the torch stage also lists pixels past the edge
+    expected = {q: rows for q, keep in zip(list(expected), inside) if keep for rows in [expected[q]]}
+    row_ptr, alpha, index, _, _ = splat_fragments(proj.means2d, proj.conics, proj.opacities, proj.extents,
+                                                 cam.width, cam.height, tile)
+    ours = fragment_lists(row_ptr, alpha, index, torch.arange(len(row_ptr) - 1))
+    assert ours.keys() == expected.keys() and len(ours) > 100
+    for q, rows, x_, y_ in zip(expected, expected.values(), x[inside].tolist(), y[inside].tolist()):
+        assert [v for v, _ in ours[q]] == [v for v, _ in rows], f"pixel {q}: other splats or order"
+        for v, a in ours[q]:
+            d = torch.tensor([x_ + 0.5, y_ + 0.5], dtype=torch.float64) - proj.means2d[v]
+            con = proj.conics[v]
+            power = -0.5 * (con[0] * d[0] ** 2 + con[2] * d[1] ** 2) - con[1] * d[0] * d[1]
+            assert abs(a - min(0.99, float(proj.opacities[v] * power.exp()))) <= TOL
 
 
 @pytest.mark.parametrize("degree", [0, 3])

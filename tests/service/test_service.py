@@ -73,6 +73,10 @@ def test_ply_upload_calibrate_rank_equal_the_library(svc_start, svc_model_files)
         _assert_ranking_equal(moved, uq.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6,
                                                    seed=2, captured=candidates[:2], top_k=2))
         assert not {0, 1} & {v.index for v in moved.views}   # captured poses are not worth capturing again
+        coarse = phd.rank(info.id, candidates, samples=6, seed=2, coarse=0.5, refine=2)
+        _assert_ranking_equal(coarse, uq.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6, seed=2,
+                                                    coarse=0.5, refine=2))
+        assert [v.refined for v in coarse.views] == [True] * 2 + [False] * 4
         assert ranking.heatmap_vmax == pytest.approx(max(r.sigma_max for r in expected), rel=1e-6)
         for view in ranking.views[:2]:  # the PNG is zeta of that view on the shared colour scale
             zeta = uq.view_uncertainty(renderer, candidates[view.index], ratio=direct.r_drop, samples=6,

@@ -163,3 +163,44 @@ def test_distance_sigma_selection_needs_training_cameras() -> None:
     with pytest.raises(InputError) as info:
         phd.select_models(renderer, bare, ring_cameras(2), ratio_a=0.3, ratio_b=0.3, rule="best")
     assert info.value.field == "rule"
+
+
+@pytest.mark.parametrize("name", ["sigma_max", DEFAULT_STRATEGY])
+def test_coarse_to_fine_ranks_the_best_again_at_full_size(name: str) -> None:
+    """Coarse to fine: all candidates ranked at the coarse size, the best m again at full size
+    (first, with their full-size statistics), the rest after them in their coarse order."""
+    renderer, _ = blob_scene()
+    candidates = ring_cameras(10, size=16)
+    coarse = phd.coarse_cameras(candidates, 0.5)
+    assert [(c.width, c.height) for c in coarse[:1]] == [(8, 8)] and coarse[0].fx == candidates[0].fx / 2
+    first = phd.rank_views(renderer, coarse, ratio=0.3, samples=6, seed=2, strategy=name)
+    ranked = phd.rank_views(renderer, candidates, ratio=0.3, samples=6, seed=2, strategy=name, coarse=0.5, refine=4)
+    best = [v.index for v in first[:4]]
+    fine = phd.rank_views(renderer, [candidates[i] for i in best], ratio=0.3, samples=6, seed=2, strategy=name)
+    assert [v.index for v in ranked] == [best[v.index] for v in fine] + [v.index for v in first[4:]]
+    assert [v.rank for v in ranked] == list(range(10))
+    assert [v.refined for v in ranked] == [True] * 4 + [False] * 6
+    full = phd.uncertainty(renderer, candidates, ratio=0.3, samples=6, seed=2)
+    small = phd.uncertainty(renderer, coarse, ratio=0.3, samples=6, seed=2)
+    for v in ranked:
+        assert v.sigma_max == (full if v.refined else small)[v.index].sigma_max
+    assert full[ranked[0].index].sigma_max != small[ranked[0].index].sigma_max   # the sizes do differ
+    # Re-scoring every candidate is the full-size ranking (distinct statistics: no ties to break).
+    every = phd.rank_views(renderer, candidates, ratio=0.3, samples=6, seed=2, strategy=name, coarse=0.5, refine=10)
+    plain = phd.rank_views(renderer, candidates, ratio=0.3, samples=6, seed=2, strategy=name)
+    assert [v.index for v in every] == [v.index for v in plain] and all(v.refined for v in every)
+    # The default m is 20 % of the candidates, at least top_k; top_k keeps the first k.
+    top = phd.rank_views(renderer, candidates, ratio=0.3, samples=6, seed=2, strategy=name, coarse=0.5, top_k=3)
+    assert len(top) == 3 and all(v.refined for v in top)
+    assert [v.refined for v in phd.rank_views(renderer, candidates, ratio=0.3, samples=6, seed=2, strategy=name,
+                                              coarse=0.5)] == [True] * 2 + [False] * 8
+
+
+@pytest.mark.parametrize("coarse, refine, field", [
+    (0.0, None, "coarse"), (1.0, None, "coarse"), (float("nan"), None, "coarse"), (0.5, 0, "refine"), (None, 3, "refine"),
+])
+def test_bad_coarse_settings_name_the_field(coarse, refine, field: str) -> None:
+    renderer, _ = blob_scene()
+    with pytest.raises(InputError) as info:
+        phd.rank_views(renderer, ring_cameras(3), ratio=0.3, samples=2, coarse=coarse, refine=refine)
+    assert info.value.field == field

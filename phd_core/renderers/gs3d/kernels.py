@@ -21,7 +21,7 @@ import torch
 
 from ..composite.fused import LAUNCH_LOCK
 from ...scene import Camera
-from ..splats import ALPHA_MAX, ALPHA_MIN
+from ..splats import ALPHA_MAX, ALPHA_MIN, SH_C0, SH_C1, SH_C2, SH_C3
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -98,6 +98,62 @@ def project_splats(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.T
              rot_wc.numpy(), camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, near, dilation,
              means2d.numpy(), conics.numpy(), opacities.numpy(), extents.numpy(), visible.numpy())
     return means2d, conics, opacities, extents, p_cam[:, 2], visible
+
+
+SH_BLOCK = 256      # visible splats per parallel work item of `_sh_values` (one scratch basis each)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _sh_values(ids, means, sh, center, depths, values):  # pragma: no cover
+    """values[v] = (SH colour of splat ids[v] seen from `center`, its depth), for the V
+    visible splats only: `splats.eval_sh` (its tested twin) per splat, in float64."""
+    k = sh.shape[1]
+    count = ids.shape[0]
+    for block in numba.prange((count + SH_BLOCK - 1) // SH_BLOCK):
+        basis = np.empty(16)
+        for v in range(block * SH_BLOCK, min(count, (block + 1) * SH_BLOCK)):
+            g = ids[v]
+            x = np.float64(means[g, 0]) - center[0]
+            y = np.float64(means[g, 1]) - center[1]
+            z = np.float64(means[g, 2]) - center[2]
+            norm = max(math.sqrt(x * x + y * y + z * z), 1e-12)
+            x /= norm
+            y /= norm
+            z /= norm
+            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+            basis[0] = SH_C0
+            basis[1] = -SH_C1 * y
+            basis[2] = SH_C1 * z
+            basis[3] = -SH_C1 * x
+            basis[4] = SH_C2[0] * xy
+            basis[5] = SH_C2[1] * yz
+            basis[6] = SH_C2[2] * (2 * zz - xx - yy)
+            basis[7] = SH_C2[3] * xz
+            basis[8] = SH_C2[4] * (xx - yy)
+            basis[9] = SH_C3[0] * y * (3 * xx - yy)
+            basis[10] = SH_C3[1] * xy * z
+            basis[11] = SH_C3[2] * y * (4 * zz - xx - yy)
+            basis[12] = SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy)
+            basis[13] = SH_C3[4] * x * (4 * zz - xx - yy)
+            basis[14] = SH_C3[5] * z * (xx - yy)
+            basis[15] = SH_C3[6] * x * (xx - 3 * yy)
+            for c in range(3):
+                total = 0.5
+                for j in range(k):
+                    total += basis[j] * np.float64(sh[g, j, c])
+                values[v, c] = max(total, 0.0)
+            values[v, 3] = depths[g]
+
+
+def splat_values(means: torch.Tensor, sh: torch.Tensor, ids: torch.Tensor, camera: Camera,
+                 depths: torch.Tensor) -> torch.Tensor:
+    """[V, 4] float32: the SH colour (`render.splat_colors`) and camera depth of the splats
+    `ids` ([V] long into the model's G; means [G, 3], sh [G, K, 3], depths [G])."""
+    values = torch.empty(len(ids), 4, dtype=torch.float32)
+    with LAUNCH_LOCK:
+        _sh_values(ids.numpy(), means.detach().float().contiguous().numpy(), sh.detach().float().contiguous().numpy(),
+                   camera.center.numpy(), depths.double().contiguous().numpy(), values.numpy())
+    return values
 
 
 @numba.njit(cache=True, nogil=True)

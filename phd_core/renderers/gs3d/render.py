@@ -45,7 +45,7 @@ from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check
 from ..visibility import Visibility, fragment_visibility, reduce_to_visibility, robust_box
 from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, box_counts, composite_images, eval_sh, fragments,
                       intersect, quaternion_to_rotation, tile_layout, untile)
-from .kernels import project_splats, splat_fragments
+from .kernels import project_splats, splat_fragments, splat_values
 from .model import GaussianModel
 
 NEAR_PLANE = 0.2
@@ -222,7 +222,7 @@ class SplatView:
 @torch.no_grad()
 def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor, *, tile: int = DEFAULT_TILE,
                  near: float = NEAR_PLANE) -> SplatView:
-    """Stages 1-3 for `camera`, compiled (`kernels.py`); the SH colours in torch."""
+    """Stages 1-3 for `camera`, compiled (`kernels.py`); SH colours of the visible splats only."""
     means2d, conics, opacities, extents, depths, visible = project_splats(
         model.means, model.quats, model.log_scales, model.opacity_logits, camera, near, DILATION)
     ids = front_to_back(visible, depths)
@@ -230,9 +230,9 @@ def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor,
                                                               extents[ids], camera.width, camera.height, tile)
     empty = torch.empty(0, dtype=torch.long)
     grid = Pairs(tile=empty, splat=empty, tile_start=empty, tiles_x=tiles_x, tiles_y=tiles_y)
-    values = torch.cat([splat_colors(model, ids, camera).float(), depths[ids].float()[:, None]], dim=-1)
+    values = splat_values(model.means, model.sh, ids, camera, depths)
     return SplatView(camera=camera, background=background.float(), num_units=model.num_splats, units=ids,
-                     values=values.contiguous(), row_ptr=row_ptr, alpha=alpha, log_1ma=torch.log1p(-alpha),
+                     values=values, row_ptr=row_ptr, alpha=alpha, log_1ma=torch.log1p(-alpha),
                      index=index, pairs=grid, tile=tile,
                      means2d=means2d.float(), visible=visible)
 
