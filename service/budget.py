@@ -112,8 +112,6 @@ def plan_work(models: Sequence[ModelSize], pixels: int, samples: int, kept_bytes
     fixed = sum(MASK_SAMPLE_UNIT_BYTES * samples * m.units for m in models) + pixels * ACCUMULATOR_PIXEL_BYTES
     # Before the renders are known, the projection that will bound them.
     fixed += renders.fixed if renders is not None else max(memory_probe_bytes(m.units) for m in models)
-    if fixed > room:            # the renders alone do not fit, whatever the job keeps
-        raise over_budget(size_field, resident + fixed, budget, "a lower resolution (downscale, or width/height)")
     if fixed + kept_bytes > room and kept_bytes:
         raise over_budget(kept_field, resident + fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
     # A batch's renderer temporaries are gone once its images reach the engine's float64 copies.

@@ -287,8 +287,9 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     kept = kept if heatmaps else 0
     if get_strategy(body.strategy).uses_visibility:     # every candidate's and captured view's Visibility
         kept += VISIBILITY_PIXEL_BYTES * (pixels(cameras) + pixels(captured or []))
+    # What is kept grows with the candidates' pixels: heat maps name themselves, visibility the size.
     renders = Renders([(record, "model_id", cameras)], samples, kept_bytes=kept,
-                      kept_field="heatmaps" if heatmaps else "strategy")
+                      kept_field="heatmaps" if heatmaps else "downscale")
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[RankResult, dict[str, bytes]]:

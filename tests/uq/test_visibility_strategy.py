@@ -80,7 +80,9 @@ def test_cameras_at_one_centre_looking_different_ways_score_by_what_they_see() -
     for name in ("visibility", "visibility_sigma"):
         selection = ranking(name, renderer, candidates, captured, 1)
         assert selection.order[0] == 1                                 # faces the unseen cluster
-        assert selection.scores[1] > 10 * selection.scores[0]           # the seen side is worth little
+        # The seen side is worth little: only what the captured view saw less than a quarter of
+        # (SEEN_SHARE) still counts, in part.
+        assert selection.scores[1] > 5 * selection.scores[0]
     # All three stand at the captured centre: the centre distance cannot tell them apart.
     fvs = ranking("fvs", renderer, candidates, captured, 3)
     assert len(set(fvs.scores)) == 1
