@@ -23,6 +23,16 @@ MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds rend
 _MASK_BATCH: ContextVar[int] = ContextVar("mask_batch", default=MAX_MASKS_PER_RENDER)
 VIEW_CACHE_BYTES = 256 << 20       # prepared views a computation keeps for re-use (PreparedViews)
 
+# What the engine holds for each keep-mask and pixel of a batch, beside the renderer's own work
+# (service.budget adds these to a family's RenderMemory). While a batch renders, the loop that
+# consumes `masked_renders` still holds the previous batch's images: [m, H, W, 3] float32, 12 bytes.
+# Once a batch is rendered, the most alive at once: its images (12) with `RunningStd.add`'s float64
+# copy and offsets (24 + 24), or calibration's float64 copy, difference and absolute value (at most
+# two of the three at once: 24 + 24); `_checked`'s finite test holds less (|x|, two comparisons and
+# their `and`: 12 + 3 x 3, beside both batches: 45).
+CHUNK_PIXEL_BYTES = 12
+ENGINE_PIXEL_BYTES = 60
+
 Progress = Callable[[float], None]
 
 

@@ -241,13 +241,17 @@ def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor,
 # every splat), per visible splat (depth order, gathered projection) and per SH coefficient of a
 # visible splat (its colour), per tile/splat pair and per pixel of its tile (the pair list, stage 3's
 # [M, P] alphas), per fragment (alpha, index, log(1 - alpha)), per pixel of the tile grid (fragment
-# offsets); and per keep-mask: its flags by splat (1 byte each) and the images it composites, per grid pixel.
+# offsets); and per keep-mask: its flags by splat (the kernel's [G, m] copy, 1 byte each) and, per grid
+# pixel, what `SplatView.render` holds at its worst moment: the untiled values and alpha [m, H, W, 4 + 1]
+# float32 (20 bytes; the tiled ones, 20 more, are freed as each is untiled), the background term and the
+# sum it joins (12 + 12), then the same sum and its clamp (12 + 12) while the output still holds the
+# untiled values: 44.
 SPLAT_BYTES = 128
 VISIBLE_BYTES, SH_COEFF_BYTES = 64, 32
 PAIR_BYTES, PAIR_PIXEL_BYTES = 4, 4
 FRAGMENT_BYTES = 16
 GRID_PIXEL_BYTES = 24
-MASK_GRID_PIXEL_BYTES = 80
+MASK_GRID_PIXEL_BYTES = 44
 
 
 def splat_counts(renderer: "GaussianRenderer", camera: Camera) -> tuple[int, int, int]:
