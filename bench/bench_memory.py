@@ -256,6 +256,8 @@ SWEEP = [
         views=2, body={"images": "files", "both_images": True, "rule": "sigma_mean"}),
     Row("3dgs select distance_sigma 2x400", "select", ["3dgs-50k-small", "3dgs-50k-large"], 400, 8, views=2,
         training=8),
+    Row("3dgs 50k small visibility_sigma 4 candidates x400, 8 captured", "rank", ["3dgs-50k-small"], 400, 16,
+        views=4, training=8, body={"strategy": "visibility_sigma"}),
     Row("donut 45k 400 N=64 heatmaps=base64 2x", "rank", ["3dgs-45k-donut"], 400, 64, views=2,
         body={"heatmaps": "base64"}),
     Row("donut 45k 800 N=128", "rank", ["3dgs-45k-donut"], 800, 128),

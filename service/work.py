@@ -10,7 +10,7 @@ library's numbers.
 from __future__ import annotations
 
 import base64
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 from phd_core import uq
@@ -26,6 +26,8 @@ from phd_core.renderers import FAMILIES, Renderer, RenderMemory, load_model, mem
 from phd_core.renderers.gs3d import GaussianRenderer, set_background
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
+from phd_core.uq.strategies import get_strategy
+from phd_core.renderers.visibility import KEPT_ELEMENT_BYTES, PASS_FRAGMENT_BYTES, PASS_UNIT_BYTES
 
 from .budget import (DEFAULT_MASK_PIXEL_BYTES, PNG_PIXEL_BYTES, MemoryLedger, MemoryPlan, ModelSize, model_bytes,
                      plan_work)
@@ -142,6 +144,7 @@ class Renders:
     kept_bytes: int = 0
     kept_field: str = "cameras"
     keeps_views: bool = False       # calibration keeps prepared views for re-use (up to VIEW_CACHE_BYTES)
+    visibility: bool = False        # a visibility pass follows each render (rank strategies that use it)
     sizes: dict[str, int] = field(init=False)    # file bytes by model id
 
     def __post_init__(self) -> None:
@@ -163,9 +166,13 @@ class Renders:
             memory = FAMILIES[renderer.kind].memory
             for camera in cameras:
                 progress(0.0)                     # a cancelled job stops here too
-                found.append(RenderMemory(0, 0, DEFAULT_MASK_PIXEL_BYTES * camera.width * camera.height)
-                             if memory is None else memory(renderer, camera))
-                kept += found[-1].kept
+                bound = (RenderMemory(0, 0, DEFAULT_MASK_PIXEL_BYTES * camera.width * camera.height)
+                         if memory is None else memory(renderer, camera))
+                if self.visibility:
+                    bound = replace(bound, fixed=bound.fixed + PASS_FRAGMENT_BYTES * bound.fragments
+                                    + PASS_UNIT_BYTES * record.num_units)
+                found.append(bound)
+                kept += bound.kept
         return RenderMemory.largest(found), min(kept, VIEW_CACHE_BYTES) if self.keeps_views else 0
 
 
@@ -283,7 +290,13 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     # known, then each returned view's two PNGs (at most PNG_PIXEL_BYTES a pixel each).
     kept = 4 * pixels(cameras) + 2 * PNG_PIXEL_BYTES * returned * max(c.width * c.height for c in cameras)
     kept = kept if heatmaps else 0
-    renders = Renders([(record, "model_id", cameras)], samples, kept_bytes=kept, kept_field="heatmaps")
+    # A strategy that uses visibility also renders the captured poses (at their own size) and keeps
+    # what every candidate and captured view sees: at most every splat.
+    visibility = get_strategy(body.strategy).uses_visibility
+    seen = KEPT_ELEMENT_BYTES * record.num_units * (len(cameras) + len(captured)) if visibility else 0
+    renders = Renders([(record, "model_id", cameras + (captured if visibility else []))], samples,
+                      kept_bytes=kept + seen, kept_field="heatmaps" if kept >= seen else "strategy",
+                      visibility=visibility)
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[RankResult, dict[str, bytes]]:

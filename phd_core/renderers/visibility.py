@@ -46,6 +46,18 @@ class Visibility:
         return (self.weight / self.footprint.clamp_min(1e-300)).clamp(0.0, 1.0)
 
 
+# What a visibility pass holds (a memory plan adds it to the view's render bounds), in bytes:
+# per fragment, `fragment_visibility`'s float64 alpha, log(1 - alpha), both cumulative sums, the
+# base, the weight's three terms and its zeros, the int64 row and the used flag (9 x 8 + 1), the
+# weighted values and their gather (3 x 8), and the caller's int64 splat of each fragment (2 x 8):
+# 113; per unit of the model, the four float64 sums and what `reduce_to_visibility` gathers of
+# them (ids, points: 8 + 24); and what a Visibility keeps per element it lists (ids, points,
+# weight, footprint, valued: 8 + 24 + 3 x 8).
+PASS_FRAGMENT_BYTES = 128
+PASS_UNIT_BYTES = 64
+KEPT_ELEMENT_BYTES = 56
+
+
 def reports_visibility(renderer: object) -> bool:
     """True when the renderer's family implements `visibility(view, pixel_values=None)`."""
     return callable(getattr(renderer, "visibility", None))

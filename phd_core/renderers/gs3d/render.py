@@ -279,7 +279,7 @@ def view_memory(renderer: "GaussianRenderer", camera: Camera) -> RenderMemory:
     fixed = (SPLAT_BYTES * units + (VISIBLE_BYTES + SH_COEFF_BYTES * renderer.model.sh.shape[1]) * visible
              + pairs * (PAIR_BYTES + PAIR_PIXEL_BYTES * tile * tile) + FRAGMENT_BYTES * fragments_
              + GRID_PIXEL_BYTES * grid)
-    return RenderMemory(fixed=fixed, kept=kept, per_mask=units + MASK_GRID_PIXEL_BYTES * grid)
+    return RenderMemory(fixed=fixed, kept=kept, per_mask=units + MASK_GRID_PIXEL_BYTES * grid, fragments=fragments_)
 
 
 class GaussianRenderer:
