@@ -20,11 +20,14 @@ camera: how many splats cover each pixel decides most of it, and no request size
     + batch x max(the largest render's per-mask part + pixels x CHUNK_PIXEL_BYTES,
                   pixels x ENGINE_PIXEL_BYTES)
 
-Every term is a sum of the shapes alive at a job's worst moment (the constants beside the code
-that allocates them: phd_core.uq.sampling, each family's `memory`), and resident memory is what
-is alive because the service unmaps large blocks as they are freed (`phd_core.allocator.
-bounded_heap`) and trims the heap when a reservation ends: the same request peaks the same in
-a fresh server and after a hundred jobs.
+The masks, accumulators, kept bytes, the engine's per-mask terms and 3DGS's are sums of the
+shapes alive at a job's worst moment (the constants beside the code that allocates them:
+phd_core.uq.sampling, gs3d/render.py); the families' mask-independent parts, 2DGS's per-mask
+term and NeRF's bounds are still measured envelopes (docs/reliability.md, Limits). Resident
+memory is what is alive because the service unmaps large blocks as they are freed
+(`phd_core.allocator.bounded_heap`) and trims the heap when a reservation ends: the same
+request peaks the same in a fresh server and after earlier jobs (bench_memory.py runs one 10
+times in a server).
 
 The std is streamed over mask batches (`phd_core.uq.limit_mask_batch`), so N enters through the
 masks only: the plan picks the largest batch (<= 64 masks) that fits. It is made twice: before
