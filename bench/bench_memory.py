@@ -195,9 +195,20 @@ def plan_of(row: Row, data_dir: Path, ids: list[str], path: str, body: dict) -> 
             "fragments_per_pixel_bound": None if depth is None else round(depth, 1)}
 
 
+def serve(data_dir: Path, **env: str) -> SvcProcess:
+    """`phd serve` on `data_dir`; tried three times (a start under a full machine can pass
+    SvcProcess's one minute)."""
+    for _ in range(2):
+        try:
+            return SvcProcess(data_dir, **env)
+        except RuntimeError:
+            pass
+    return SvcProcess(data_dir, **env)
+
+
 def measure(row: Row, root: Path) -> dict:
     data_dir = Path(tempfile.mkdtemp(dir=root))
-    server = SvcProcess(data_dir, PHD_MEMORY_BUDGET_BYTES=str(row.budget))
+    server = serve(data_dir, PHD_MEMORY_BUDGET_BYTES=str(row.budget))
     try:
         with PHDClient(server.url, timeout=600) as phd:
             cameras = svc_cameras(row.training, size=row.size) if row.training else None
@@ -316,7 +327,7 @@ CROWDS = [
 def concurrent(root: Path, budget: int, crowd: Crowd) -> dict:
     """A crowd's jobs and uploads at once under one small budget and a cache of 4 models."""
     data_dir = Path(tempfile.mkdtemp(dir=root))
-    server = SvcProcess(data_dir, PHD_MEMORY_BUDGET_BYTES=str(budget), PHD_WORKERS=str(crowd.workers),
+    server = serve(data_dir, PHD_MEMORY_BUDGET_BYTES=str(budget), PHD_WORKERS=str(crowd.workers),
                         PHD_CACHE_SIZE="4", PHD_QUEUE_SIZE="32")
     names = sorted({name for row in crowd.requests for name in row.models})
     try:
