@@ -396,6 +396,16 @@ def table(rows: list[dict]) -> str:
 COMMAND = "OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/bench_memory.py"
 
 
+def save(rows: dict[str, dict]) -> list[dict]:
+    """Write the rows to OUT (after every row: a sweep stopped half way keeps what it measured)."""
+    ordered = sorted((r for r in rows.values() if "states" not in r), key=lambda r: r["budget_bytes"])
+    ordered += [r for r in rows.values() if "states" in r]
+    write_json_atomic(OUT, {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                                        "python": platform.python_version(), "load_average": os.getloadavg()},
+                            "command": COMMAND, "rows": ordered})
+    return ordered
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", nargs="*", help="rows whose name contains one of these ('concurrent': the crowds)")
@@ -412,19 +422,15 @@ def main() -> None:
             if args.only and not any(word in row.name for word in args.only):
                 continue
             rows[row.name] = measure(row, root)
+            save(rows)
             print(json.dumps({k: v for k, v in rows[row.name].items() if k != "options"}), flush=True)
         for crowd in CROWDS:
             if not args.only or any(word in crowd.name for word in args.only):
                 result = concurrent(root, args.concurrent_budget, crowd)
                 rows[result["name"]] = result
+                save(rows)
                 print(json.dumps(result), flush=True)
-    ordered = sorted((r for r in rows.values() if "states" not in r), key=lambda r: r["budget_bytes"])
-    ordered += [r for r in rows.values() if "states" in r]
-    results = {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                           "python": platform.python_version(), "load_average": os.getloadavg()},
-               "command": COMMAND, "rows": ordered}
-    write_json_atomic(OUT, results)
-    print(table(ordered))
+    print(table(save(rows)))
     print(f"wrote {OUT}")
 
 
