@@ -80,11 +80,10 @@ def tiled(model: GaussianModel, copies: int, scale: float = 0.25, spacing: float
     whose splats are those of a real-looking one, as bench_speed tiles its donut)."""
     grid = torch.tensor([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)],
                         dtype=torch.float32)[:copies] * spacing
-    n = model.num_splats
     return GaussianModel(means=(model.means[None] * scale + grid[:, None]).reshape(-1, 3),
                          log_scales=(model.log_scales + math.log(scale)).repeat(copies, 1),
                          quats=model.quats.repeat(copies, 1), opacity_logits=model.opacity_logits.repeat(copies),
-                         sh=model.sh.repeat(copies, 1, 1)) if n else model
+                         sh=model.sh.repeat(copies, 1, 1))
 
 
 def nerf(encoding: str) -> NeRFRenderer:
