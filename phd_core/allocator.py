@@ -15,7 +15,7 @@ PHD_KEEP_FREED_MEMORY=0 to leave malloc and NumPy alone. Elsewhere than glibc th
 part does nothing.
 
 A process that runs large work on several threads and bounds its memory (the service) also
-wants `one_arena` and `release_freed_memory` (below).
+wants `one_arena`, `bounded_heap` and `release_freed_memory` (below).
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ M_ARENA_MAX = -8
 MMAP_THRESHOLD_MAX = 32 << 20      # glibc's ceiling on 64-bit (larger values are refused)
 TRIM_THRESHOLD = (1 << 31) - 1     # mallopt takes an int: about 2 GiB, i.e. never trim in practice
 TOP_PAD = 1 << 30                  # grow the heap 1 GiB at a time (address space; pages fault in on use)
+BOUNDED_MMAP_THRESHOLD = 1 << 20   # `bounded_heap`: blocks from 1 MiB up get their own mapping
+BOUNDED_TOP_PAD = 128 << 10        # and the heap grows by glibc's default step
 
 
 def _libc() -> ctypes.CDLL | None:
@@ -61,6 +63,21 @@ def one_arena() -> bool:
     1 GiB budget: 1.6 GB over its idle RSS with an arena per thread, 0.77 GB with one;
     bench/bench_memory.py). True when glibc accepted it."""
     return _mallopt((M_ARENA_MAX, 1))
+
+
+def bounded_heap() -> bool:
+    """Serve every block of BOUNDED_MMAP_THRESHOLD or more by its own mapping, unmapped when it
+    is freed, and keep the heap for small blocks: resident memory is then the blocks alive plus
+    a small heap, so a memory plan that adds up the tensors alive at a job's worst moment bounds
+    it. malloc serves a block from free heap space before it maps one, so the heap must grow in
+    small steps (not `keep_freed_memory`'s 1 GiB) and its padding is trimmed here. Otherwise
+    freed batches stay in the heap and the next ones land beside them: a rank at 400x400 with 64
+    masks a batch held 113 bytes a pixel and mask where its live tensors peak at 61, and peaked
+    differently from run to run (985 to 1,183 MiB, bench/bench_memory.py). Costs page faults on
+    every large block (the CLI and library keep `keep_freed_memory`). True when glibc accepted it."""
+    accepted = _mallopt((M_MMAP_THRESHOLD, BOUNDED_MMAP_THRESHOLD), (M_TOP_PAD, BOUNDED_TOP_PAD))
+    release_freed_memory()
+    return accepted
 
 
 def release_freed_memory() -> bool:

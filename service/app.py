@@ -32,7 +32,7 @@ from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import phd_core
-from phd_core.allocator import one_arena
+from phd_core.allocator import bounded_heap, one_arena
 from phd_core.errors import InputError
 from phd_core.executors import make_executor
 
@@ -111,6 +111,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """The service on `settings.data_dir` (swept of unfinished uploads before serving)."""
     settings = settings or Settings.from_env()
     one_arena()             # workers and request threads reuse each other's freed memory (phd_core.allocator)
+    bounded_heap()          # large blocks are unmapped when freed: resident memory follows the live tensors
     store = ModelStore(settings.data_dir)
     swept = store.sweep()
     if swept:

@@ -17,13 +17,23 @@ camera: how many splats cover each pixel decides most of it, and no request size
     + kept         what the job keeps across views (references, heat-map peaks, images, and the
                    prepared views calibration re-uses, at most VIEW_CACHE_BYTES)
     + the largest render's fixed part (projection, tile and fragment lists)
-    + batch x max(the largest render's per-mask part, pixels x STREAM_PIXEL_BYTES)
+    + batch x max(the largest render's per-mask part + pixels x CHUNK_PIXEL_BYTES,
+                  pixels x ENGINE_PIXEL_BYTES)
+
+The masks, accumulators, kept bytes, the engine's per-mask terms and 3DGS's are sums of the
+shapes alive at a job's worst moment (the constants beside the code that allocates them:
+phd_core.uq.sampling, gs3d/render.py); the families' mask-independent parts, 2DGS's per-mask
+term and NeRF's bounds are still measured envelopes (docs/reliability.md, Limits). Resident
+memory is what is alive because the service unmaps large blocks as they are freed
+(`phd_core.allocator.bounded_heap`) and trims the heap when a reservation ends: the same
+request peaks the same in a fresh server and after earlier jobs (bench_memory.py runs one 10
+times in a server).
 
 The std is streamed over mask batches (`phd_core.uq.limit_mask_batch`), so N enters through the
 masks only: the plan picks the largest batch (<= 64 masks) that fits. It is made twice: before
 the job is queued, without the renders (a lower bound: over the budget is a 413 naming the field
 to lower), and when a worker takes the job, with them (over the budget: the job fails with that
-413). The constants are upper envelopes of peaks measured by bench/bench_memory.py.
+413). bench/bench_memory.py checks the peaks against the plans.
 """
 
 from __future__ import annotations
@@ -38,6 +48,7 @@ from typing import Callable, Iterable, Iterator, Sequence
 from phd_core.allocator import release_freed_memory
 from phd_core.renderers import Renderer, RenderMemory, memory_probe_bytes
 from phd_core.uq import MAX_MASKS_PER_RENDER
+from phd_core.uq.sampling import CHUNK_PIXEL_BYTES, ENGINE_PIXEL_BYTES
 
 from .errors import ServiceError
 
@@ -45,9 +56,9 @@ MODEL_BYTES_PER_FILE_BYTE = 1       # a loaded model over its file (tensors <= t
 MODEL_BYTES_OVERHEAD = 1 << 20      # and the objects around them
 LOAD_BYTES_PER_FILE_BYTE = 4        # loading: the file read and its parse (ASCII PLY measured 2.5x)
 MASK_SAMPLE_UNIT_BYTES = 5          # a float32 uniform and a keep flag per sample and unit
-ACCUMULATOR_PIXEL_BYTES = 192       # float64 shift, mean, M2 and one batch's merge terms; the maps from them
-STREAM_PIXEL_BYTES = 96             # per mask and pixel once rendered: the batch's images, the float64
-                                    # copies the std or the calibration error takes of them, their check
+ACCUMULATOR_PIXEL_BYTES = 192       # RunningStd's float64 shift, mean, M2 [H, W, 3] (72) and at most five
+                                    # [H, W, 3] float64 merge terms at once (120); then zeta, the mean and
+                                    # the maps measured from them, less
 DEFAULT_MASK_PIXEL_BYTES = 8192     # a family that gives no RenderMemory: per mask and pixel, assumed
 PNG_PIXEL_BYTES = 8                 # a result image kept as PNG (<= 3 bytes a pixel stored) or its base64 text
 
@@ -114,8 +125,10 @@ def plan_work(models: Sequence[ModelSize], pixels: int, samples: int, kept_bytes
     fixed += renders.fixed if renders is not None else max(memory_probe_bytes(m.units) for m in models)
     if fixed + kept_bytes > room and kept_bytes:
         raise over_budget(kept_field, resident + fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
-    # A batch's renderer temporaries are gone once its images reach the engine's float64 copies.
-    per_mask = max(pixels * STREAM_PIXEL_BYTES, renders.per_mask if renders is not None else 0)
+    # While a batch renders the engine still holds the previous one's images; its renderer
+    # temporaries are gone once its images reach the engine's float64 terms.
+    per_mask = max(pixels * ENGINE_PIXEL_BYTES,
+                   (renders.per_mask if renders is not None else 0) + pixels * CHUNK_PIXEL_BYTES)
     batch = min(MAX_MASKS_PER_RENDER, samples, (room - fixed - kept_bytes) // per_mask)
     if batch < 1:
         raise over_budget(size_field, resident + fixed + kept_bytes + per_mask, budget,

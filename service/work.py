@@ -10,7 +10,7 @@ library's numbers.
 from __future__ import annotations
 
 import base64
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 from phd_core import uq
@@ -24,7 +24,7 @@ from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import FAMILIES, Renderer, RenderMemory, load_model, memory_probe_bytes
 from phd_core.renderers.gs3d import GaussianRenderer, set_background
-from phd_core.renderers.visibility import VISIBILITY_PIXEL_BYTES
+from phd_core.renderers.visibility import PASS_FRAGMENT_BYTES, PASS_UNIT_BYTES, visibility_bytes
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
 from phd_core.uq.strategies import get_strategy
@@ -144,6 +144,7 @@ class Renders:
     kept_bytes: int = 0
     kept_field: str = "cameras"
     keeps_views: bool = False       # calibration keeps prepared views for re-use (up to VIEW_CACHE_BYTES)
+    visibility: bool = False        # a visibility pass follows each render (rank strategies that use it)
     sizes: dict[str, int] = field(init=False)    # file bytes by model id
 
     def __post_init__(self) -> None:
@@ -165,9 +166,13 @@ class Renders:
             memory = FAMILIES[renderer.kind].memory
             for camera in cameras:
                 progress(0.0)                     # a cancelled job stops here too
-                found.append(RenderMemory(0, 0, DEFAULT_MASK_PIXEL_BYTES * camera.width * camera.height)
-                             if memory is None else memory(renderer, camera))
-                kept += found[-1].kept
+                bound = (RenderMemory(0, 0, DEFAULT_MASK_PIXEL_BYTES * camera.width * camera.height)
+                         if memory is None else memory(renderer, camera))
+                if self.visibility:
+                    bound = replace(bound, fixed=bound.fixed + PASS_FRAGMENT_BYTES * bound.fragments
+                                    + PASS_UNIT_BYTES * record.num_units)
+                found.append(bound)
+                kept += bound.kept
         return RenderMemory.largest(found), min(kept, VIEW_CACHE_BYTES) if self.keeps_views else 0
 
 
@@ -285,11 +290,13 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     # known, then each returned view's two PNGs (at most PNG_PIXEL_BYTES a pixel each).
     kept = 4 * pixels(cameras) + 2 * PNG_PIXEL_BYTES * returned * max(c.width * c.height for c in cameras)
     kept = kept if heatmaps else 0
-    if get_strategy(body.strategy).uses_visibility:     # every candidate's and captured view's Visibility
-        kept += VISIBILITY_PIXEL_BYTES * (pixels(cameras) + pixels(captured or []))
-    # What is kept grows with the candidates' pixels: heat maps name themselves, visibility the size.
-    renders = Renders([(record, "model_id", cameras)], samples, kept_bytes=kept,
-                      kept_field="heatmaps" if heatmaps else "downscale")
+    # A strategy that uses visibility also renders the captured poses (at their own size) and keeps
+    # what every candidate and captured view sees (`visibility_bytes`).
+    visibility = get_strategy(body.strategy).uses_visibility
+    seen = sum(visibility_bytes(record.num_units, c) for c in cameras + captured) if visibility else 0
+    renders = Renders([(record, "model_id", cameras + (captured if visibility else []))], samples,
+                      kept_bytes=kept + seen, kept_field="heatmaps" if kept >= seen else "downscale",
+                      visibility=visibility)
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
@@ -353,15 +360,16 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
                 raise invalid(name, f"the model has no training cameras, which rule '{body.rule}' needs: upload "
                               "it with its cameras, or use rule 'sigma_mean'")
             levels[name] = level_views(stored_cameras(record))     # rendered at their own size
-            if body.rule == "coverage_sigma":   # what each view and each training view sees of the model
-                kept += VISIBILITY_PIXEL_BYTES * (pixels(cameras) + pixels(stored_cameras(record)))
+            if body.rule == "coverage_sigma":   # every training view is rendered too, and what each view sees kept
+                levels[name] = stored_cameras(record)
+                kept += sum(visibility_bytes(record.num_units, c) for c in cameras + levels[name])
         estimate += 2 * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples   # each model's own zeta level
     # With images, both models' full render of every view ([H, W, 3] float32) is kept until the
     # choice, then the PNGs of the chosen one (and of the other with both_images).
     kept += (2 * 12 + (1 + body.both_images) * PNG_PIXEL_BYTES) * pixels(cameras) if images else 0
     renders = Renders([(record_a, "model_a", cameras + levels["model_a"]),
                        (record_b, "model_b", cameras + levels["model_b"])], samples, kept_bytes=kept,
-                      kept_field="images")
+                      kept_field="images", visibility=body.rule == "coverage_sigma")
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:

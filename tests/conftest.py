@@ -91,7 +91,7 @@ def svc_start(tmp_path):
 class SvcProcess:
     """`phd serve` as a separate process (for tests that kill it)."""
 
-    def __init__(self, data_dir: Path, **env: str):
+    def __init__(self, data_dir: Path, start_timeout: float = 60, **env: str):
         self.port = svc_free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         # `phd serve` through its own CLI module (independent of the other commands' modules).
@@ -104,7 +104,7 @@ class SvcProcess:
         self.proc = subprocess.Popen([sys.executable, "-c", code, *argv],
                                      env={**{k: v for k, v in os.environ.items() if not k.startswith("PHD_")}, **env},
                                      stdout=subprocess.DEVNULL, stderr=self.log)
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + start_timeout
         while True:
             try:
                 if httpx.get(self.url + "/health", timeout=1).status_code == 200:

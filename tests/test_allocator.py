@@ -2,7 +2,8 @@
 next thread instead of staying in the first thread's arena; release_freed_memory gives the
 freed pages back (what the service's memory budget relies on between jobs); and importing
 phd_core applies the settings (malloc keeps freed memory, NumPy's huge pages off) unless
-PHD_KEEP_FREED_MEMORY=0."""
+PHD_KEEP_FREED_MEMORY=0; bounded_heap (the service's) maps every large block on its own, so
+resident memory is the blocks alive."""
 
 from __future__ import annotations
 
@@ -69,3 +70,38 @@ def test_importing_phd_core_sets_the_allocator_and_can_be_turned_off() -> None:
     off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**env, "PHD_KEEP_FREED_MEMORY": "0", "NUMPY_MADVISE_HUGEPAGE": "1"})
     assert on.stdout.split() == ["True", "False"] and off.stdout.split() == ["False", "True"]
+
+
+HEAP = """
+import sys
+from pathlib import Path
+import phd_core.allocator as allocator          # importing phd_core keeps freed memory (a 1 GiB heap pad)
+
+def status(key):
+    line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith(key + ":"))
+    return int(line.split()[1]) * 1024
+
+if sys.argv[1] == "bounded":
+    assert allocator.bounded_heap()
+start, pins = status("VmRSS"), []
+Path("/proc/self/clear_refs").write_text("5")     # VmHWM from here
+for mib in range(20, 32, 2):                      # batches that grow a little, one alive at a time
+    block = bytearray(mib << 20)
+    block[::4096] = bytes(len(range(0, mib << 20, 4096)))     # touched, as tensors are
+    pins.append(bytearray(4096))                  # a small object malloc places above it, kept
+    del block
+print(status("VmHWM") - start, status("VmRSS") - start)
+"""
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/clear_refs"), reason="glibc malloc and Linux peak RSS")
+def test_bounded_heap_holds_the_live_block_and_unmaps_it_when_freed() -> None:
+    def run(mode: str) -> tuple[int, int]:
+        out = subprocess.run([sys.executable, "-c", HEAP, mode], capture_output=True, text=True, check=True)
+        peak, left = out.stdout.split()
+        return int(peak), int(left)
+
+    kept, bounded = run("kept"), run("bounded")
+    assert kept[1] > 28 << 20                     # the heap kept the last freed block resident
+    assert bounded[0] < 32 << 20                  # the largest block (30 MiB) and little more
+    assert bounded[1] < 8 << 20                   # and nothing left once it is freed

@@ -24,12 +24,6 @@ from .splats import LOG_T_MIN
 
 
 ELEMENTS_PER_PIXEL = 4     # a Visibility lists at most this many elements per image pixel
-# What one view's Visibility and a strategy's working copy of it hold, per image pixel at most:
-# per element, id, point, weight, footprint, value (56 bytes) and the strategy's index, weight,
-# share and novelty (40 bytes).
-VISIBILITY_PIXEL_BYTES = ELEMENTS_PER_PIXEL * 96
-
-
 @dataclass
 class Visibility:
     """One render of the full model from `camera`, reduced to the coverage elements it shows.
@@ -52,6 +46,27 @@ class Visibility:
     def visible_share(self) -> Tensor:
         """[K] float64 in [0, 1]: how much of each element's footprint is not hidden."""
         return (self.weight / self.footprint.clamp_min(1e-300)).clamp(0.0, 1.0)
+
+
+# What a visibility pass holds (a memory plan adds it to the view's render bounds), in bytes:
+# per fragment, `fragment_visibility`'s float64 alpha, log(1 - alpha), both cumulative sums, the
+# base, the weight's three terms and its zeros, the int64 row and the used flag (9 x 8 + 1), the
+# weighted values and their gather (3 x 8), and the caller's int64 splat of each fragment (2 x 8):
+# 113; per unit of the model, the four float64 sums and what `reduce_to_visibility` gathers of
+# them (ids, points: 8 + 24); and what a Visibility keeps per element it lists (ids, points,
+# weight, footprint, valued: 8 + 24 + 3 x 8).
+PASS_FRAGMENT_BYTES = 128
+PASS_UNIT_BYTES = 64
+KEPT_ELEMENT_BYTES = 56
+# A strategy's working copy of an element (`phd_core.uq.strategies.visibility.Candidate`): index,
+# direction, weight, share, novelty (8 + 24 + 3 x 8).
+COVERAGE_ELEMENT_BYTES = 56
+
+
+def visibility_bytes(num_units: int, camera: Camera) -> int:
+    """The most one view's Visibility and a strategy's copy of it hold: at most ELEMENTS_PER_PIXEL
+    elements a pixel, and never more than the model's units."""
+    return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
 
 
 def reports_visibility(renderer: object) -> bool:
@@ -103,7 +118,7 @@ def reduce_to_visibility(camera: Camera, sums: PixelSums, points: Tensor, row_in
 
     Only elements with a weight are listed, at most ELEMENTS_PER_PIXEL per pixel of the image
     (the heaviest): fully hidden elements change no strategy's answer, and the bound makes a
-    Visibility's size known from the image size alone (VISIBILITY_PIXEL_BYTES)."""
+    Visibility's size known from the image size alone (`visibility_bytes`)."""
     seen = (sums.weight > 0).nonzero().squeeze(1)
     limit = ELEMENTS_PER_PIXEL * camera.width * camera.height
     if len(seen) > limit:

@@ -162,7 +162,7 @@ def dropout_errors(chunk: CalibrationChunk, renderer: Renderer, keep: Tensor, sa
     views = chunk.views(renderer)
     errors = []
     for i, reference in enumerate(chunk.references):
-        per_mask = torch.cat([(part.double() - reference.double()).abs().sum(dim=(1, 2, 3))   # [m] per chunk
+        per_mask = torch.cat([part.to(torch.float64, copy=True).sub_(reference).abs_().sum(dim=(1, 2, 3))  # [m]
                               for part in masked_renders(views[i], keep)])
         errors.append((per_mask.view(-1, samples).sum(dim=1) / (samples * reference.numel())).tolist())
     return errors

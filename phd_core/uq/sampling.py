@@ -23,6 +23,15 @@ MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds rend
 _MASK_BATCH: ContextVar[int] = ContextVar("mask_batch", default=MAX_MASKS_PER_RENDER)
 VIEW_CACHE_BYTES = 256 << 20       # prepared views a computation keeps for re-use (PreparedViews)
 
+# What the engine holds for each keep-mask and pixel of a batch, beside the renderer's own work
+# (service.budget adds these to a family's RenderMemory). While a batch renders, the loop that
+# consumes `masked_renders` still holds the previous batch's images: [m, H, W, 3] float32, 12 bytes.
+# Once a batch is rendered: its images (12) and one float64 copy that both `RunningStd.add` (the
+# offsets) and calibration (the absolute differences) work on in place (24). `_checked` takes only
+# the batch's minimum and maximum.
+CHUNK_PIXEL_BYTES = 12
+ENGINE_PIXEL_BYTES = 36
+
 Progress = Callable[[float], None]
 
 
@@ -149,7 +158,8 @@ def _checked(images: Tensor, count: int, camera: Camera) -> Tensor:
     shape = (count, camera.height, camera.width, 3)
     if tuple(images.shape) != shape:
         raise RuntimeError(f"renderer returned shape {list(images.shape)}, expected {list(shape)}")
-    if not torch.isfinite(images).all():
+    low, high = torch.aminmax(images)                       # NaN and +-inf reach them; no [N, H, W, 3] temporary
+    if not (torch.isfinite(low) and torch.isfinite(high)):
         raise RuntimeError("renderer returned NaN or infinite pixel values")
     return images.to(torch.float32)
 
@@ -177,7 +187,7 @@ class RunningStd:
         m = chunk.shape[0]
         if m == 0:
             return
-        offsets = chunk.to(self.dtype) - self.shift           # [m, ...]
+        offsets = chunk.to(self.dtype, copy=True).sub_(self.shift)   # [m, ...], the only copy of the chunk
         chunk_mean = offsets.mean(0)
         offsets -= chunk_mean
         chunk_m2 = offsets.square_().sum(0)

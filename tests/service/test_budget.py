@@ -12,6 +12,7 @@ from conftest import svc_random_gaussians
 from phd_core.errors import InputError
 from phd_core.renderers import RenderMemory
 from phd_core.renderers.gs3d import GaussianRenderer
+from phd_core.renderers.visibility import KEPT_ELEMENT_BYTES, PASS_FRAGMENT_BYTES
 from service.budget import MemoryLedger, ModelSize, load_bytes, model_bytes, plan_work
 from service.errors import ServiceError
 
@@ -26,7 +27,9 @@ def plan(pixels: int, samples: int, budget: int, *, models=MODEL, kept: int = 0,
 def test_plan_fits_the_budget_and_batches_masks_instead_of_growing_with_samples():
     small = plan(800 * 800, 256, 256 << 20)
     assert 1 <= small.mask_batch < 64 and small.bytes + load_bytes(20_000) <= 256 << 20
-    assert plan(800 * 800, 4096, 256 << 20).mask_batch == small.mask_batch   # the std is streamed
+    tiny = [ModelSize("a", 1, 20_000, "model_id")]             # masks of next to no bytes: only the std could grow
+    assert plan(800 * 800, 4096, 256 << 20, models=tiny).mask_batch == plan(800 * 800, 256, 256 << 20,
+                                                                             models=tiny).mask_batch   # it is streamed
     assert plan(100 * 100, 256, 4 << 30).mask_batch == 64
     assert plan(100 * 100, 3, 4 << 30).mask_batch == 3
     with pytest.raises(ServiceError) as exc:
@@ -237,3 +240,29 @@ def test_every_built_in_family_loads_within_its_model_bytes(svc_model_files, tmp
         assert FAMILIES[renderer.kind].memory is not None        # and it bounds its renders
     assert {load_model(p).kind for p in (svc_model_files["ply"], svc_model_files["nerf"], tmp_path / "surfels.ply")} \
         == set(FAMILIES)
+
+
+def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(svc_start, svc_model_files):
+    from client import PHDClient
+    from conftest import svc_cameras
+    from service.schemas import RankRequest
+    from service.work import rank_job
+
+    server = svc_start()
+    service = server.app.state.service
+    with PHDClient(server.url) as phd:      # captured poses rendered at 300x300, candidates at 40x40
+        model_id = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(3, size=300)).id
+    record, renderers = service.store.get(model_id), {model_id: service.ledger.load(model_id)}
+
+    def plan(strategy: str):
+        body = RankRequest(cameras=[c.to_frame() for c in svc_cameras(2, size=40, phase=0.5)], samples=8,
+                           dropout_ratio=0.1, strategy=strategy)
+        work, _ = rank_job(record, body, service.settings, lambda name: name, service.ledger)
+        return work.renders, work.plan(renderers, lambda fraction: None)
+
+    plain, plain_plan = plan("sigma_max")
+    seen, seen_plan = plan("visibility_sigma")
+    assert len(seen.models[0][2]) == len(plain.models[0][2]) + 3          # the captured poses are rendered too
+    assert seen.kept_bytes - plain.kept_bytes == KEPT_ELEMENT_BYTES * 300 * (2 + 3)
+    # The 300x300 captured views' fragments, walked by the visibility pass, outweigh the 40x40 renders.
+    assert seen_plan.bytes > plain_plan.bytes + PASS_FRAGMENT_BYTES * 300 * 300

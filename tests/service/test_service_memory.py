@@ -1,16 +1,24 @@
 """Memory through a real uvicorn server and the real client: models in memory hold their bytes
 in the same budget as jobs and are evicted for a job that needs the room; a model the budget
-cannot hold and a view whose fragments it cannot hold are 413s naming the field to lower."""
+cannot hold and a view whose fragments it cannot hold are 413s naming the field to lower; the
+same request run again and again in one server peaks the same each time, within its plan."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import httpx
+import pytest
 import torch
 
 from client import PHDClient
-from conftest import svc_cameras
+from conftest import SvcProcess, svc_cameras
 from phd_core.renderers.gs3d import GaussianModel, write_ply
-from service.budget import model_bytes
+from service.budget import MemoryLedger, model_bytes
+from service.schemas import RankRequest
+from service.settings import Settings
+from service.store import ModelStore
+from service.work import model_loader, rank_job
 from test_service_errors import _error
 
 
@@ -83,3 +91,43 @@ def test_a_finished_job_keeps_its_result_and_images_on_disk_not_in_memory(svc_st
         assert sorted(served.artifacts) == sorted([f"heatmap_{i:04d}.png" for i in range(2)]
                                                   + [f"render_{i:04d}.png" for i in range(2)])
         assert phd.download(served.result.views[0].heatmap_url).startswith(b"\x89PNG")
+
+
+def _vm(pid: int, key: str) -> int:
+    """A /proc/<pid>/status figure in bytes (VmRSS, VmHWM)."""
+    line = next(line for line in Path(f"/proc/{pid}/status").read_text().splitlines() if line.startswith(key + ":"))
+    return int(line.split()[1]) * 1024
+
+
+@pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc peak-RSS reset")
+def test_the_same_request_peaks_the_same_each_time_within_its_plan(svc_model_files, tmp_path):
+    # A separate `phd serve`, so its peak RSS (VmHWM, restarted before each run) is the service's
+    # alone. Under a 256 MiB budget the rank takes batches of 64 masks of 200x200 (~150 MiB
+    # of float64 terms at once): with freed batches kept in the heap it went past its plan and
+    # grew with the server's age; each run now frees what it took and peaks within its plan.
+    budget = 256 << 20
+    server = SvcProcess(tmp_path / "data", PHD_MEMORY_BUDGET_BYTES=str(budget), OMP_NUM_THREADS="1")
+    try:
+        with PHDClient(server.url) as phd:
+            model = phd.upload_model(svc_model_files["ply"])
+        assert rank(server, model.id).status_code == 200                    # every code path warmed up
+        body = {"cameras": [svc_cameras(1, size=200)[0].to_frame()], "samples": 64}
+        idle = _vm(server.proc.pid, "VmRSS")
+        peaks = []
+        for _ in range(5):
+            Path(f"/proc/{server.proc.pid}/clear_refs").write_text("5")      # VmHWM starts again from VmRSS
+            response = rank(server, model.id, **body)
+            assert response.status_code == 200, response.text
+            peaks.append(_vm(server.proc.pid, "VmHWM") - idle)
+    finally:
+        server.kill()
+    store = ModelStore(tmp_path / "data")
+    record = store.get(model.id)
+    settings = Settings(data_dir=tmp_path / "data", memory_budget_bytes=budget)
+    ledger = MemoryLedger(budget, 1, model_loader(store))
+    work, _ = rank_job(record, RankRequest(**body, dropout_ratio=0.1), settings, lambda name: name, ledger)
+    plan = work.plan({model.id: ledger.load(model.id)}, lambda fraction: None)
+    assert plan.mask_batch == 64
+    assert max(peaks) <= plan.bytes <= budget
+    assert min(peaks) >= plan.bytes // 2                     # the runs did the work planned
+    assert max(peaks) - min(peaks) <= 8 << 20, peaks         # no run inherits what an earlier one left

@@ -250,7 +250,8 @@ def surfel_memory(renderer: "SurfelRenderer", camera: Camera) -> RenderMemory:
     fixed = (SURFEL_BYTES * model.num_splats + (VISIBLE_BYTES + SH_COEFF_BYTES * model.sh.shape[1]) * visible
              + pairs * (PAIR_BYTES + PAIR_PIXEL_BYTES * tile * tile) + FRAGMENT_BYTES * fragments_
              + GRID_PIXEL_BYTES * grid)
-    return RenderMemory(fixed=fixed, kept=0, per_mask=MASK_FRAGMENT_BYTES * fragments_ + MASK_GRID_PIXEL_BYTES * grid)
+    return RenderMemory(fixed=fixed, kept=0, per_mask=MASK_FRAGMENT_BYTES * fragments_ + MASK_GRID_PIXEL_BYTES * grid,
+                        fragments=fragments_)
 
 
 class SurfelRenderer(GaussianRenderer):

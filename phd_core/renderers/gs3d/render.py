@@ -212,11 +212,12 @@ class SplatView:
         cam = self.camera
         acc_v = untile(acc_v, self.pairs, self.tile, cam.width, cam.height)                     # [N, H, W, 4]
         acc_a = untile(acc_a[..., None], self.pairs, self.tile, cam.width, cam.height)[..., 0]  # [N, H, W]
-        rgb = acc_v[..., :3] + (1.0 - acc_a)[..., None].clamp_min(0.0) * self.background
+        rgb = (1.0 - acc_a)[..., None].clamp_min(0.0) * self.background      # [N, H, W, 3], then in place
+        rgb += acc_v[..., :3]
         return RenderOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=self.means2d, visible=self.visible)
 
     def render(self, keep: torch.Tensor | None = None) -> torch.Tensor:
-        return self.render_full(keep).rgb.clamp(0.0, 1.0)
+        return self.render_full(keep).rgb.clamp_(0.0, 1.0)
 
 
 @torch.no_grad()
@@ -242,13 +243,16 @@ def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor,
 # every splat), per visible splat (depth order, gathered projection) and per SH coefficient of a
 # visible splat (its colour), per tile/splat pair and per pixel of its tile (the pair list, stage 3's
 # [M, P] alphas), per fragment (alpha, index, log(1 - alpha)), per pixel of the tile grid (fragment
-# offsets); and per keep-mask: its flags by splat (1 byte each) and the images it composites, per grid pixel.
+# offsets); and per keep-mask: its flags by splat (the kernel's [G, m] copy, 1 byte each) and, per grid
+# pixel, what `SplatView.render` holds at its worst moment: the tiled values and alpha [m, S, 4 + 1] float32
+# (20 bytes) while the values are untiled (16), or the untiled ones (20) with the background weight (4) and
+# the image it starts (12; the values are added and the image clamped in place): 36.
 SPLAT_BYTES = 128
 VISIBLE_BYTES, SH_COEFF_BYTES = 64, 32
 PAIR_BYTES, PAIR_PIXEL_BYTES = 4, 4
 FRAGMENT_BYTES = 16
 GRID_PIXEL_BYTES = 24
-MASK_GRID_PIXEL_BYTES = 80
+MASK_GRID_PIXEL_BYTES = 36
 
 
 def splat_counts(renderer: "GaussianRenderer", camera: Camera) -> tuple[int, int, int]:
@@ -276,7 +280,7 @@ def view_memory(renderer: "GaussianRenderer", camera: Camera) -> RenderMemory:
     fixed = (SPLAT_BYTES * units + (VISIBLE_BYTES + SH_COEFF_BYTES * renderer.model.sh.shape[1]) * visible
              + pairs * (PAIR_BYTES + PAIR_PIXEL_BYTES * tile * tile) + FRAGMENT_BYTES * fragments_
              + GRID_PIXEL_BYTES * grid)
-    return RenderMemory(fixed=fixed, kept=kept, per_mask=units + MASK_GRID_PIXEL_BYTES * grid)
+    return RenderMemory(fixed=fixed, kept=kept, per_mask=units + MASK_GRID_PIXEL_BYTES * grid, fragments=fragments_)
 
 
 class GaussianRenderer:
