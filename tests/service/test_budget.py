@@ -12,7 +12,8 @@ from conftest import svc_random_gaussians
 from phd_core.errors import InputError
 from phd_core.renderers import RenderMemory
 from phd_core.renderers.gs3d import GaussianRenderer
-from phd_core.renderers.visibility import KEPT_ELEMENT_BYTES, PASS_FRAGMENT_BYTES
+from phd_core.renderers.visibility import (COVERAGE_ELEMENT_BYTES, KEPT_ELEMENT_BYTES, PASS_FRAGMENT_BYTES,
+                                          visibility_bytes)
 from service.budget import MemoryLedger, ModelSize, load_bytes, model_bytes, plan_work
 from service.errors import ServiceError
 
@@ -263,6 +264,10 @@ def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(
     plain, plain_plan = plan("sigma_max")
     seen, seen_plan = plan("visibility_sigma")
     assert len(seen.models[0][2]) == len(plain.models[0][2]) + 3          # the captured poses are rendered too
-    assert seen.kept_bytes - plain.kept_bytes == KEPT_ELEMENT_BYTES * 300 * (2 + 3)
+    # What each view sees: at most every splat of the model (300), and at most 4 a pixel.
+    views = svc_cameras(2, size=40, phase=0.5) + svc_cameras(3, size=300)
+    assert seen.kept_bytes - plain.kept_bytes == sum(visibility_bytes(300, c) for c in views)
+    assert visibility_bytes(300, views[0]) == (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * 300
+    assert visibility_bytes(10**6, views[0]) == (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * 4 * 40 * 40
     # The 300x300 captured views' fragments, walked by the visibility pass, outweigh the 40x40 renders.
     assert seen_plan.bytes > plain_plan.bytes + PASS_FRAGMENT_BYTES * 300 * 300

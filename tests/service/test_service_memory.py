@@ -23,9 +23,11 @@ from test_service_errors import _error
 
 
 def rank(server, model_id: str, **body) -> httpx.Response:
+    """A rank by the paper's rule: these tests are about the dropout renders' memory (the
+    visibility strategies' own terms: tests/service/test_budget.py)."""
     frames = [c.to_frame() for c in svc_cameras(1)]
     return httpx.post(f"{server.url}/v1/models/{model_id}/rank", timeout=120,
-                      json={"cameras": frames, "samples": 2, "dropout_ratio": 0.1, **body})
+                      json={"cameras": frames, "samples": 2, "dropout_ratio": 0.1, "strategy": "sigma_max", **body})
 
 
 def test_a_job_evicts_idle_models_for_its_room_instead_of_exceeding_the_budget(svc_start, svc_model_files):
@@ -111,7 +113,7 @@ def test_the_same_request_peaks_the_same_each_time_within_its_plan(svc_model_fil
         with PHDClient(server.url) as phd:
             model = phd.upload_model(svc_model_files["ply"])
         assert rank(server, model.id).status_code == 200                    # every code path warmed up
-        body = {"cameras": [svc_cameras(1, size=200)[0].to_frame()], "samples": 64}
+        body = {"cameras": [svc_cameras(1, size=200)[0].to_frame()], "samples": 64, "strategy": "sigma_max"}
         idle = _vm(server.proc.pid, "VmRSS")
         peaks = []
         for _ in range(5):
