@@ -59,8 +59,8 @@ PASS_FRAGMENT_BYTES = 128
 PASS_UNIT_BYTES = 64
 KEPT_ELEMENT_BYTES = 56
 # A strategy's working copy of an element (`phd_core.uq.strategies.visibility.Candidate`): index,
-# direction, weight, share, novelty (8 + 24 + 3 x 8).
-COVERAGE_ELEMENT_BYTES = 56
+# direction, weight, novelty (8 + 24 + 2 x 8).
+COVERAGE_ELEMENT_BYTES = 48
 
 
 def visibility_bytes(num_units: int, camera: Camera) -> int:
@@ -75,7 +75,7 @@ def reports_visibility(renderer: object) -> bool:
 
 
 @dataclass
-class PixelSums:
+class FragmentSums:
     """Per-element and per-pixel sums of one front-to-back compositing of the full model."""
 
     weight: Tensor            # [U] float64 alpha * transmittance summed per element
@@ -85,7 +85,7 @@ class PixelSums:
 
 
 def fragment_visibility(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_elements: int,
-                        row_values: Tensor | None = None) -> PixelSums:
+                        row_values: Tensor | None = None) -> FragmentSums:
     """Sum compositing weights per element over S pixel rows of fragments.
 
     row_ptr [S + 1]: the fragments of row s are row_ptr[s]:row_ptr[s + 1], front to back;
@@ -103,14 +103,14 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_ele
     weight = torch.where(used, alpha * (exclusive - base).exp(), torch.zeros_like(alpha))   # [E]
     zeros = torch.zeros(num_elements, dtype=torch.float64)
     per_row_log = torch.zeros(len(counts), dtype=torch.float64).index_add_(0, row, torch.where(used, log_1ma, 0.0))
-    return PixelSums(weight=zeros.clone().index_add_(0, element, weight),
+    return FragmentSums(weight=zeros.clone().index_add_(0, element, weight),
                      footprint=zeros.clone().index_add_(0, element, alpha),
                      valued=None if row_values is None else
                      zeros.clone().index_add_(0, element, weight * row_values.double()[row]),
                      left=per_row_log.exp())
 
 
-def reduce_to_visibility(camera: Camera, sums: PixelSums, points: Tensor, row_in_box: Tensor,
+def reduce_to_visibility(camera: Camera, sums: FragmentSums, points: Tensor, row_in_box: Tensor,
                          in_box: int) -> Visibility:
     """The elements the view shows (points [U, 3] of all elements), and the transmittance left
     on the in_box pixels whose rays cross the scene box (row_in_box [S]: which rows are such

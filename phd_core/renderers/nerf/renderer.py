@@ -10,7 +10,7 @@ from torch import Tensor
 
 from ...scene import Camera
 from ..protocol import CameraView, RenderMemory, View, check_keep
-from ..visibility import PixelSums, Visibility, reduce_to_visibility
+from ..visibility import FragmentSums, Visibility, reduce_to_visibility
 from .config import CHUNK_ELEMENTS, CHUNK_SAMPLES, NeRFConfig
 from .field import RadianceField
 from .volume import camera_rays, ray_box, ray_samples, render_rays
@@ -132,7 +132,7 @@ class NeRFRenderer:
         t_in, t_out = ray_box(origins, dirs, grid.lo, grid.lo + grid.size)
         in_box = (t_out > t_in) & (t_out > 0)
         centres = grid.cell_points(torch.full((1, 3), 0.5))
-        return reduce_to_visibility(camera, PixelSums(weight, footprint, valued, left), centres, in_box,
+        return reduce_to_visibility(camera, FragmentSums(weight, footprint, valued, left), centres, in_box,
                                     int(in_box.sum()))
 
     def describe(self) -> dict[str, Any]:

@@ -66,7 +66,6 @@ class Candidate:
     index: Tensor       # [K_c] long
     dirs: Tensor        # [K_c, 3] element -> camera directions
     weight: Tensor      # [K_c] pixels each fills, times its fragility
-    seen: Tensor        # [K_c] how fully it sees each (min(1, share / SEEN_SHARE))
     novelty: Tensor     # [K_c] what the captured (and picked) views left unseen, updated by each pick
     empty: float
     axis: Tensor        # [3]
@@ -92,16 +91,16 @@ class Coverage:
             if fragility and reference > 0 and vis.valued is not None:
                 weight *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
             self.candidates.append(Candidate(index, directions(vis.points, vis.camera.center), weight,
-                                             seen_share(vis), torch.ones(len(index), dtype=torch.float64),
+                                             torch.ones(len(index), dtype=torch.float64),
                                              vis.empty, viewing_axis(vis), 1.0))
         self.union = union
 
-    def capture(self, vis: Visibility, seen: Tensor | None = None) -> None:
+    def capture(self, vis: Visibility) -> None:
         """Count `vis` as captured: every candidate's novelty of the elements it saw falls."""
         index = torch.searchsorted(self.union, vis.elements).clamp_max(max(self.size - 1, 0))
         known = self.union[index] == vis.elements if self.size else torch.zeros(0, dtype=torch.bool)
         dense = torch.zeros(self.size, dtype=torch.float64)
-        dense[index[known]] = (seen_share(vis) if seen is None else seen)[known]
+        dense[index[known]] = seen_share(vis)[known]
         centre, axis = vis.camera.center, viewing_axis(vis)
         for cand in self.candidates:
             s = dense[cand.index]
