@@ -263,6 +263,15 @@ def _write_json(path: Path, data: Any) -> None:
     write_json_atomic(path, data)
 
 
+def _emit(out: Path | None, data: Any, summary: str) -> None:
+    """The result as JSON on stdout, or written to `out` with a one-line summary."""
+    if out is None:
+        print(json.dumps(data, indent=2, allow_nan=False))
+    else:
+        _write_json(out, data)
+        print(f"{summary}; written to {out}")
+
+
 def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None) -> None:
     file = file or sys.stdout
     print("  ratio   error", file=file)
@@ -383,14 +392,9 @@ def run_rank(args: argparse.Namespace) -> int:
                                  [candidate_name(r.rank, r.index) for r in ranked], args.export_format)
         print(f"exported {len(ranked)} poses as {written.writes} ({written.name}) to {args.export}",
               file=sys.stdout if args.out is not None else sys.stderr)     # stdout may carry the JSON
-    if args.out is None:
-        print(json.dumps(result, indent=2, allow_nan=False))
-    else:
-        _write_json(args.out, result)
-        print(f"ranked {len(candidates)} candidates ({args.strategy}) at dropout ratio {ratio}; first: "
-              f"{result['order'][:5]}; written to {args.out}")
+    _emit(args.out, result, f"ranked {len(candidates)} candidates ({args.strategy}) at dropout ratio {ratio}; "
+                            f"first: {result['order'][:5]}")
     return 0
-
 
 
 def run_select(args: argparse.Namespace) -> int:
@@ -415,12 +419,7 @@ def run_select(args: argparse.Namespace) -> int:
     report = {"rule": args.rule, "ratio_a": ratios["a"], "ratio_b": ratios["b"], "calibration_a": calibrations["a"],
               "calibration_b": calibrations["b"], "samples": args.samples, "seed": args.seed, "counts": counts,
               **result.to_dict(), "warnings": warnings}
-    if args.out is None:
-        print(json.dumps(report, indent=2, allow_nan=False))
-    else:
-        _write_json(args.out, report)
-        print(f"{len(cameras)} views ({args.rule}): a trusted for {counts['a']}, b for {counts['b']}; "
-              f"written to {args.out}")
+    _emit(args.out, report, f"{len(cameras)} views ({args.rule}): a trusted for {counts['a']}, b for {counts['b']}")
     for warning in warnings:
         print(f"warning: {warning}", file=sys.stderr)
     return 0
