@@ -165,3 +165,11 @@ def test_fisher_prefers_the_view_that_informs_what_the_captured_views_left_uncon
     ranked = get_strategy("fisher").select(evidence, 2, 0)
     assert ranked.order[0] == 1
     assert ranked.scores[1] > 10 * ranked.scores[0]
+
+
+def test_candidates_that_see_nothing_of_the_model_rank_without_error() -> None:
+    renderer = open_box()
+    captured = [camera((5.0, 0.0, 0.2))]
+    away = [camera((5.0, 0.0, 0.2), (12.0, 0.0, 0.2)), camera((0.0, 5.0, 0.2), (0.0, 12.0, 0.2))]
+    selection = get_strategy("visibility").select(visibility_evidence(renderer, away, captured), 2, 0)
+    assert sorted(selection.order) == [0, 1] and selection.scores == [0.0, 0.0]

@@ -98,7 +98,7 @@ class Coverage:
     def capture(self, vis: Visibility) -> None:
         """Count `vis` as captured: every candidate's novelty of the elements it saw falls."""
         index = torch.searchsorted(self.union, vis.elements).clamp_max(max(self.size - 1, 0))
-        known = self.union[index] == vis.elements if self.size else torch.zeros(0, dtype=torch.bool)
+        known = self.union[index] == vis.elements if self.size else torch.zeros(len(index), dtype=torch.bool)
         dense = torch.zeros(self.size, dtype=torch.float64)
         dense[index[known]] = seen_share(vis)[known]
         centre, axis = vis.camera.center, viewing_axis(vis)
