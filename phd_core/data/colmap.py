@@ -30,6 +30,7 @@ import torch
 from ..errors import InputError
 from ..io import write_bytes_atomic
 from ..scene import Camera
+from ..scene.rotations import quaternion_to_rotation, rotation_to_quaternion
 from .formats import FORMATS, DataFormat
 from .frames import Dataset, build_dataset, holdout_split
 from .poses import POSES, PoseConvention
@@ -269,35 +270,14 @@ def _model_files(model_dir: Path) -> str | None:
 
 def qvec_to_rotation(qvec: Sequence[float]) -> torch.Tensor:
     """Unit quaternion (w, x, y, z) -> rotation matrix [3, 3] float64 (normalised first)."""
-    q = torch.tensor(qvec, dtype=torch.float64)
-    q = q / q.norm()
-    w, x, y, z = q.tolist()
-    return torch.tensor([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]], dtype=torch.float64)
+    return quaternion_to_rotation(torch.tensor(qvec, dtype=torch.float64)[None])[0]
 
 
 def rotation_to_qvec(rotation: torch.Tensor) -> list[float]:
-    """Rotation matrix [3, 3] -> unit quaternion [w, x, y, z] with w >= 0, the inverse of
-    `qvec_to_rotation`. Of 4w^2, 4x^2, 4y^2, 4z^2 (read off the diagonal) the largest is
-    taken first, so no component comes from a division by a small number."""
-    r = rotation.to(torch.float64).tolist()
-    trace = r[0][0] + r[1][1] + r[2][2]
-    squares = [1 + trace, 1 + 2 * r[0][0] - trace, 1 + 2 * r[1][1] - trace, 1 + 2 * r[2][2] - trace]
-    k = max(range(4), key=squares.__getitem__)
-    big = 0.5 * max(squares[k], 0.0) ** 0.5                      # the largest |component|
-    d = 4 * big
-    if k == 0:
-        q = [big, (r[2][1] - r[1][2]) / d, (r[0][2] - r[2][0]) / d, (r[1][0] - r[0][1]) / d]
-    elif k == 1:
-        q = [(r[2][1] - r[1][2]) / d, big, (r[0][1] + r[1][0]) / d, (r[0][2] + r[2][0]) / d]
-    elif k == 2:
-        q = [(r[0][2] - r[2][0]) / d, (r[0][1] + r[1][0]) / d, big, (r[1][2] + r[2][1]) / d]
-    else:
-        q = [(r[1][0] - r[0][1]) / d, (r[0][2] + r[2][0]) / d, (r[1][2] + r[2][1]) / d, big]
-    norm = sum(v * v for v in q) ** 0.5
-    sign = -1.0 if q[0] < 0 else 1.0                              # q and -q are one rotation
-    return [sign * v / norm for v in q]
+    """Rotation matrix [3, 3] -> unit quaternion [w, x, y, z] with w >= 0 (q and -q are one
+    rotation), the inverse of `qvec_to_rotation`."""
+    q = rotation_to_quaternion(rotation)
+    return (q if q[0] >= 0 else -q).tolist()
 
 
 def colmap_pose(camera: Camera) -> dict[str, Any]:

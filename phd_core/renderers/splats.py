@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
+
 # Reference constants (Kerbl et al. 2023 rasteriser).
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -33,17 +34,6 @@ DEFAULT_TILE = 4        # pixels per tile side; see bench/bench_gaussians.py
 # Upper bound on elements of one [masks, fragments] compositing chunk (about 1 GB of temporaries).
 CHUNK_ELEMENTS = 1 << 24
 BOX_MARGIN = 0.5        # px added to each side of a splat box when bounding its fragments (box_counts)
-
-
-def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
-    """[G, 4] wxyz (any norm) -> [G, 3, 3]. A zero quaternion gives the identity."""
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(-1, 3, 3)
 
 
 def sh_basis(dirs: torch.Tensor, k: int) -> torch.Tensor:
@@ -88,38 +78,6 @@ def sh_rotation(rotation: torch.Tensor, k: int) -> torch.Tensor:
     rotation = torch.as_tensor(rotation, dtype=torch.float64)
     # Coefficients c' with basis(d) @ c' = basis(R^T d) @ c for all d: basis(D) @ M = basis(D R).
     return torch.linalg.lstsq(sh_basis(dirs, k), sh_basis(dirs @ rotation, k)).solution   # [K, K]
-
-
-def rotation_to_quaternion(rotation: torch.Tensor) -> torch.Tensor:
-    """[3, 3] rotation -> [4] float64 unit quaternion wxyz (Shepperd: from the largest of
-    the trace and the diagonal, so no division by a small number)."""
-    r = torch.as_tensor(rotation, dtype=torch.float64)
-    trace = r[0, 0] + r[1, 1] + r[2, 2]
-    k = int(torch.argmax(torch.stack([trace, r[0, 0], r[1, 1], r[2, 2]])))
-    if k == 0:
-        s = 2 * (1 + trace).sqrt()
-        q = [s / 4, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-    elif k == 1:
-        s = 2 * (1 + r[0, 0] - r[1, 1] - r[2, 2]).sqrt()
-        q = [(r[2, 1] - r[1, 2]) / s, s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
-    elif k == 2:
-        s = 2 * (1 + r[1, 1] - r[0, 0] - r[2, 2]).sqrt()
-        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s]
-    else:
-        s = 2 * (1 + r[2, 2] - r[0, 0] - r[1, 1]).sqrt()
-        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4]
-    q = torch.stack(q)
-    return q / q.norm()
-
-
-def quaternion_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product a * b of wxyz quaternions [..., 4] (the rotation b, then a)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
-                        aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx,
-                        aw * bz + ax * by - ay * bx + az * bw], dim=-1)
 
 
 @dataclass

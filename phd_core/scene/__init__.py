@@ -1,6 +1,6 @@
 """The scene's geometry: pinhole cameras and their one world-to-pixel projection (`camera`),
 cameras from Blender / nerfstudio frames (`frames`), where the scene is (`bounds`) and
-what the training views' masks leave of it (`hull`), pixel rays (`rays`),
+what the training views' masks leave of it (`hull`), pixel rays (`rays`), quaternions (`rotations`),
 similarities between world frames (`similarity`)."""
 
 from .bounds import frustum_bounds, scene_bounds

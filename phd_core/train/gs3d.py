@@ -45,7 +45,8 @@ from ..io import write_json_atomic
 from ..renderers.gs3d import (SIDECAR_FORMAT, GaussianModel, GaussianRenderer, RenderOutput, rasterize, sidecar_path,
                                write_ply)
 from ..renderers.composite import COMPOSITORS, DEFAULT_COMPOSITOR
-from ..renderers.splats import SH_C0, quaternion_to_rotation
+from ..renderers.splats import SH_C0
+from ..scene.rotations import quaternion_to_rotation
 from ..scene import Camera, footprint, scene_bounds, visual_hull
 
 

@@ -12,7 +12,7 @@ from phd_core.errors import InputError
 from phd_core.renderers import FAMILIES, SNIFF_BYTES, load_model, load_model_bytes, model_kind
 from phd_core.renderers.gs2d import SurfelModel, SurfelRenderer, parse_surfel_ply, read_surfel_ply, write_surfel_ply
 from phd_core.renderers.gs3d import SIDECAR_FORMAT, GaussianModel, GaussianRenderer, parse_ply, sidecar_path, write_ply
-from phd_core.renderers.splats import quaternion_to_rotation
+from phd_core.scene.rotations import quaternion_to_rotation
 from support.surfels import random_surfels, reference_layout_ply
 
 

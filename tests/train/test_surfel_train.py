@@ -81,7 +81,7 @@ def test_surfel_splats_densify_in_their_plane() -> None:
     model.log_scales[:] = math.log(0.5)                                            # large: split
     splats = Splats(model, TrainConfig(), extent=1.0)
     normals = torch.nn.functional.normalize(model.quats, dim=-1)
-    from phd_core.renderers.splats import quaternion_to_rotation
+    from phd_core.scene.rotations import quaternion_to_rotation
     axes = quaternion_to_rotation(normals)[:, :, 2]
     means = model.means.clone()
     densify(splats, torch.ones(6), TrainConfig(), extent=1.0, budget=100, gen=gen)

@@ -37,11 +37,12 @@ from dataclasses import dataclass
 import torch
 
 from ...scene import Camera
+from ...scene.rotations import quaternion_to_rotation
 from ..composite import pick_compositor
 from ..gs3d.render import NEAR_PLANE, GaussianRenderer, RenderOutput
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
 from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Fragments, Pairs, box_counts, composite_images, eval_sh,
-                      fragments, intersect, quaternion_to_rotation)
+                      fragments, intersect)
 from .model import SurfelModel
 
 LOWPASS_INV_VAR = 2.0   # 1 / sigma^2 of the screen-space low-pass, sigma = sqrt(2)/2 px

@@ -13,7 +13,8 @@ import torch
 
 from ...errors import InputError
 from ...scene import Similarity
-from ..splats import SH_C0, quaternion_multiply, quaternion_to_rotation, rotation_to_quaternion, sh_rotation
+from ...scene.rotations import quaternion_multiply, quaternion_to_rotation, rotation_to_quaternion
+from ..splats import SH_C0, sh_rotation
 
 SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
 

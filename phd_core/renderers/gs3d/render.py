@@ -39,12 +39,13 @@ import torch
 
 from ...errors import InputError, check_color
 from ...scene import Camera, pixels_in_box
+from ...scene.rotations import quaternion_to_rotation
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR, pick_compositor
 from ..composite.fused import composite_indexed
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
 from ..visibility import Visibility, fragment_visibility, reduce_to_visibility, robust_box
 from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, box_counts, composite_images, eval_sh, fragments,
-                      intersect, quaternion_to_rotation, tile_layout, untile)
+                      intersect, tile_layout, untile)
 from .kernels import project_splats, splat_fragments, splat_values
 from .model import GaussianModel
 
