@@ -47,14 +47,16 @@ hold.set()
 """
 
 
+def two_numbers(code: str, mode: str) -> tuple[int, int]:
+    """Run `code` with argument `mode` in a fresh interpreter; the two numbers it prints (bytes)."""
+    out = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True, check=True)
+    first, second = out.stdout.split()
+    return int(first), int(second)
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc")
 def test_one_arena_reuses_what_other_threads_freed_and_release_gives_it_back() -> None:
-    def run(mode: str) -> tuple[int, int]:
-        out = subprocess.run([sys.executable, "-c", CODE, mode], capture_output=True, text=True, check=True)
-        held, released = out.stdout.split()
-        return int(held), int(released)
-
-    per_thread, one = run("per-thread"), run("one")
+    per_thread, one = two_numbers(CODE, "per-thread"), two_numbers(CODE, "one")
     assert per_thread[0] > 350 << 20                 # each thread's arena kept its 200 MiB
     assert one[0] < 250 << 20                        # the second thread reused the first one's
     assert one[1] < 50 << 20 and per_thread[1] < 50 << 20     # and the freed pages went back
@@ -96,12 +98,7 @@ print(status("VmHWM") - start, status("VmRSS") - start)
 
 @pytest.mark.skipif(not os.path.exists("/proc/self/clear_refs"), reason="glibc malloc and Linux peak RSS")
 def test_bounded_heap_holds_the_live_block_and_unmaps_it_when_freed() -> None:
-    def run(mode: str) -> tuple[int, int]:
-        out = subprocess.run([sys.executable, "-c", HEAP, mode], capture_output=True, text=True, check=True)
-        peak, left = out.stdout.split()
-        return int(peak), int(left)
-
-    kept, bounded = run("kept"), run("bounded")
+    kept, bounded = two_numbers(HEAP, "kept"), two_numbers(HEAP, "bounded")
     assert kept[1] > 28 << 20                     # the heap kept the last freed block resident
     assert bounded[0] < 32 << 20                  # the largest block (30 MiB) and little more
     assert bounded[1] < 8 << 20                   # and nothing left once it is freed
