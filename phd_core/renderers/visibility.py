@@ -24,6 +24,8 @@ from .splats import LOG_T_MIN
 
 
 ELEMENTS_PER_PIXEL = 4     # a Visibility lists at most this many elements per image pixel
+
+
 @dataclass
 class Visibility:
     """One render of the full model from `camera`, reduced to the coverage elements it shows.
@@ -66,7 +68,8 @@ COVERAGE_ELEMENT_BYTES = 48
 def visibility_bytes(num_units: int, camera: Camera) -> int:
     """The most one view's Visibility and a strategy's copy of it hold: at most ELEMENTS_PER_PIXEL
     elements a pixel, and never more than the model's units."""
-    return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
+    elements = min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
+    return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * elements
 
 
 def reports_visibility(renderer: object) -> bool:
@@ -104,10 +107,10 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_ele
     zeros = torch.zeros(num_elements, dtype=torch.float64)
     per_row_log = torch.zeros(len(counts), dtype=torch.float64).index_add_(0, row, torch.where(used, log_1ma, 0.0))
     return FragmentSums(weight=zeros.clone().index_add_(0, element, weight),
-                     footprint=zeros.clone().index_add_(0, element, alpha),
-                     valued=None if row_values is None else
-                     zeros.clone().index_add_(0, element, weight * row_values.double()[row]),
-                     left=per_row_log.exp())
+                        footprint=zeros.clone().index_add_(0, element, alpha),
+                        valued=None if row_values is None else
+                        zeros.clone().index_add_(0, element, weight * row_values.double()[row]),
+                        left=per_row_log.exp())
 
 
 def reduce_to_visibility(camera: Camera, sums: FragmentSums, points: Tensor, row_in_box: Tensor,

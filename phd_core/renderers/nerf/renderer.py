@@ -13,7 +13,7 @@ from ..protocol import CameraView, RenderMemory, View, check_keep
 from ..visibility import FragmentSums, Visibility, reduce_to_visibility
 from .config import CHUNK_ELEMENTS, CHUNK_SAMPLES, NeRFConfig
 from .field import RadianceField
-from .volume import camera_rays, ray_box, ray_samples, render_rays
+from .volume import camera_rays, ray_box, ray_samples, render_rays, segment_weights
 
 # --------------------------------------------------------------------------- memory
 
@@ -120,9 +120,8 @@ class NeRFRenderer:
             _, delta, points, valid = ray_samples(self.model, o, d, use_grid=self.use_grid)
             sigma = render_rays(self.model, o, d, use_grid=self.use_grid, with_sigma=True).sigma[0]   # [R, S]
             tau = (sigma * delta).double() * valid                                                  # [R, S]
-            total = tau.cumsum(-1)
+            w, total = segment_weights(tau)                                                         # [R, S]
             alpha = -torch.expm1(-tau)
-            w = torch.exp(tau - total) * alpha                                                      # [R, S]
             cell = grid.cells(points.reshape(-1, 3))
             weight.index_add_(0, cell, w.reshape(-1))
             footprint.index_add_(0, cell, alpha.reshape(-1))

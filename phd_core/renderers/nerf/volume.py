@@ -13,6 +13,13 @@ from .field import RadianceField
 
 # --------------------------------------------------------------------------- volume rendering
 
+def segment_weights(tau: Tensor) -> tuple[Tensor, Tensor]:
+    """Compositing weights of segments with optical depths tau [..., S] (transmittance in front,
+    in log space, times alpha = 1 - exp(-tau)), and the optical depth up to each segment's end."""
+    total = tau.cumsum(-1)
+    return torch.exp(tau - total) * -torch.expm1(-tau), total      # tau - total: -(sum over the previous)
+
+
 def composite(sigma: Tensor, rgb: Tensor, delta: Tensor, t: Tensor, background: Tensor
               ) -> tuple[Tensor, Tensor, Tensor]:
     """Alpha compositing of S segments per ray.
@@ -22,10 +29,7 @@ def composite(sigma: Tensor, rgb: Tensor, delta: Tensor, t: Tensor, background: 
     (divide by alpha for the mean depth). alpha_i = 1 - exp(-sigma_i delta_i); the
     transmittance before segment i is exp(-sum_{j<i} sigma_j delta_j), summed in log space.
     """
-    tau = sigma * delta                                     # optical depth of each segment
-    total = tau.cumsum(-1)
-    log_t = tau - total                                     # -(sum over the previous segments)
-    weights = torch.exp(log_t) * -torch.expm1(-tau)        # [..., S]
+    weights, total = segment_weights(sigma * delta)         # [..., S]
     acc = weights.sum(-1)
     color = (weights[..., None] * rgb).sum(-2) + torch.exp(-total[..., -1:]) * background
     return color, acc, (weights * t).sum(-1)
