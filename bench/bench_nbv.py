@@ -119,6 +119,12 @@ def initial_views(cameras: list, count: int, seed: int) -> list[int]:
     return [start] + [pool[i] for i in order[:count - 1]]
 
 
+def load_split(args: argparse.Namespace, scene: str, split: str, **kw) -> Dataset:
+    """A split of a scene at the protocol's size (--resolution wide; WIDTH_SCALE for 4:3 captures)."""
+    size = load_dataset(args.data / scene, "train", with_images=False).cameras[0].width
+    return load_dataset(args.data / scene, split, downscale=size / (args.resolution * WIDTH_SCALE.get(scene, 1.0)), **kw)
+
+
 def calibrated_ratio(renderer: GaussianRenderer, captured: list) -> float:
     return phd.calibrate(renderer, captured).r_drop
 
@@ -129,11 +135,9 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     stored = json.loads(path.read_text()) if path.exists() else {}
     if stored.get("protocol") != protocol(args):
         stored = {}
-    size = load_dataset(args.data / scene, "train", with_images=False).cameras[0].width
-    downscale = size / (args.resolution * WIDTH_SCALE.get(scene, 1.0))
-    train_data = load_dataset(args.data / scene, "train", downscale=downscale)
+    train_data = load_split(args, scene, "train")
     tests = len(load_dataset(args.data / scene, "test", with_images=False).cameras)
-    test = load_dataset(args.data / scene, "test", downscale=downscale, views=min(args.test_views, tests))
+    test = load_split(args, scene, "test", views=min(args.test_views, tests))
     init = initial_views(train_data.cameras, args.initial, seed)
     result = stored or {"scene": scene, "seed": seed, "protocol": protocol(args), "initial": init, "runs": {},
                         "spearman": {}}
@@ -334,8 +338,7 @@ def measure_costs(args: argparse.Namespace) -> dict:
     """Seconds per candidate of the product's `rank_views` (dropout statistics for every candidate,
     plus what the strategy needs), every strategy on one initial model, in one run."""
     scene, seed = args.scenes[0], args.seeds[0]
-    size = load_dataset(args.data / scene, "train", with_images=False).cameras[0].width
-    train_data = load_dataset(args.data / scene, "train", downscale=size / (args.resolution * WIDTH_SCALE.get(scene, 1.0)))
+    train_data = load_split(args, scene, "train")
     init = initial_views(train_data.cameras, args.initial, seed)
     renderer = train(train_data, init, args.iterations, seed)
     captured = [train_data.cameras[i] for i in init]
