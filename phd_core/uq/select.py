@@ -20,6 +20,7 @@ from ..renderers import Renderer
 from ..renderers.visibility import reports_visibility
 from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_ratio, check_samples, check_seed,
                        dropout_uniforms, keep_masks)
+from .rank import view_visibility
 from .strategies.visibility import uncovered_share
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, measure_views
 
@@ -136,8 +137,8 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     if rule == "coverage_sigma":
         for key, renderer in renderers.items():
             if reports_visibility(renderer):
-                seen = [renderer.visibility(renderer.prepare(camera)) for camera in training[key]]
-                uncovered[key] = uncovered_share([view.visibility for view in measured[key]], seen)
+                uncovered[key] = uncovered_share([view.visibility for view in measured[key]],
+                                                 view_visibility(renderer, training[key]))
 
     def score(key: str, i: int) -> float:
         if rule == "sigma_mean":
