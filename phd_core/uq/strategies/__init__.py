@@ -12,7 +12,7 @@ from .baselines import FVS, RANDOM
 from .fisher import FISHER
 from .hybrid import FVS_SIGMA, FVS_SIGMA_FLOOR
 from .uncertainty import SIGMA_MAX, SIGMA_MEAN
-from .visibility import VISIBILITY, VISIBILITY_POOL, VISIBILITY_SIGMA
+from .visibility import VISIBILITY, VISIBILITY_SIGMA
 
 STRATEGIES: Registry[Strategy] = Registry("strategy")
 
@@ -23,7 +23,7 @@ def register(strategy: Strategy) -> Strategy:
 
 
 for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR, VISIBILITY, VISIBILITY_SIGMA,
-                  VISIBILITY_POOL, FISHER):
+                  FISHER):
     register(_strategy)
 
 DEFAULT_STRATEGY = "visibility"

@@ -66,7 +66,6 @@ class Candidate:
     index: Tensor       # [K_c] long
     dirs: Tensor        # [K_c, 3] element -> camera directions
     weight: Tensor      # [K_c] pixels each fills, times its fragility
-    seen: Tensor        # [K_c] how fully the candidate would see each (`seen_share`)
     novelty: Tensor     # [K_c] what the captured (and picked) views left unseen, updated by each pick
     empty: float
     axis: Tensor        # [3]
@@ -92,7 +91,7 @@ class Coverage:
             if fragility and reference > 0 and vis.valued is not None:
                 weight *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
             self.candidates.append(Candidate(index, directions(vis.points, vis.camera.center), weight,
-                                             seen_share(vis), torch.ones(len(index), dtype=torch.float64),
+                                             torch.ones(len(index), dtype=torch.float64),
                                              vis.empty, viewing_axis(vis), 1.0))
         self.union = union
 
@@ -112,47 +111,6 @@ class Coverage:
             cand.axis_novelty *= 1.0 - float(near(cand.axis, axis))
 
 
-    def pool_gain(self, pairs_per_chunk: int = 1 << 20) -> Tensor:
-        """[C] float64: how much each candidate, once captured, would lower what the whole pool
-        leaves unseen (the sum over pool views p and elements u of the pixels u fills in p times
-        its novelty there, times seen(u, c) * near(dir(u, c), dir(u, p))), plus the same for the
-        empty box along viewing axes. The pool (every candidate) stands for the views the
-        reconstruction will be looked at from, so a candidate that serves many of them gains.
-
-        Computed over pairs of candidates that see one element, in chunks of elements so the
-        pair list stays below `pairs_per_chunk`.
-        """
-        cands = self.candidates
-        view = torch.cat([torch.full((len(c.index),), i, dtype=torch.long) for i, c in enumerate(cands)])
-        element = torch.cat([c.index for c in cands])
-        order = torch.argsort(element, stable=True)
-        view, element = view[order], element[order]
-        dirs = torch.cat([c.dirs for c in cands])[order]                     # [E, 3]
-        seen = torch.cat([c.seen for c in cands])[order]                     # [E] as the capturing view
-        unseen = torch.cat([c.weight * c.novelty for c in cands])[order]     # [E] as a pool view
-        counts = torch.unique_consecutive(element, return_counts=True)[1]    # [U'] entries per element
-        starts = torch.cumsum(counts, 0) - counts
-        gain = torch.zeros(len(cands), dtype=torch.float64)
-        ends = torch.cumsum(counts * counts, 0)                              # pairs up to each element
-        limits = range(pairs_per_chunk, int(ends[-1]) if len(ends) else 0, pairs_per_chunk)
-        cuts = torch.searchsorted(ends, torch.tensor(list(limits), dtype=torch.long), right=True).tolist()
-        for lo, hi in zip([0, *cuts], [*cuts, len(counts)]):
-            if hi <= lo:
-                continue
-            k, s = counts[lo:hi], starts[lo:hi]
-            first = torch.repeat_interleave(s, k)                            # each entry i, as capturing view ...
-            i = first + torch.arange(len(first)) - torch.repeat_interleave(torch.cumsum(k, 0) - k, k)
-            n = torch.repeat_interleave(k, k)
-            a = torch.repeat_interleave(i, n)                                # ... paired with every entry j
-            b = torch.repeat_interleave(first, n) + torch.arange(len(a)) - torch.repeat_interleave(
-                torch.cumsum(n, 0) - n, n)                                   # of the same element
-            gain.index_add_(0, view[a], seen[a] * unseen[b] * near(dirs[a], dirs[b]))
-        axes = torch.stack([c.axis for c in cands])                          # [C, 3]
-        empty = torch.tensor([c.empty * c.axis_novelty for c in cands], dtype=torch.float64)
-        closeness = torch.exp(-(1.0 - axes @ axes.T) / ANGLE_SCALE)          # [C, C]
-        return gain + EMPTY_WEIGHT * closeness @ empty
-
-
 def seen_share(vis: Visibility) -> Tensor:
     """[K] how fully the view saw each of its elements: min(1, visible share / SEEN_SHARE)."""
     return (vis.visible_share / SEEN_SHARE).clamp_max(1.0)
@@ -165,9 +123,8 @@ def _mean_zeta(views: list[Visibility]) -> float:
     return valued / weight if weight > 0 else 0.0
 
 
-def coverage_select(evidence: Evidence, k: int, fragility: bool, pool: bool = False) -> Selection:
-    """Greedy batch by coverage (module docstring); the rest follow by their value after it.
-    pool: value a candidate by what its capture covers of every candidate's view (`pool_gain`)."""
+def coverage_select(evidence: Evidence, k: int, fragility: bool) -> Selection:
+    """Greedy batch by coverage (module docstring); the rest follow by their value after it."""
     count = len(evidence.candidates)
     if evidence.candidate_views is None or evidence.captured_views is None:
         return FVS_SIGMA_FLOOR.select(evidence, k, 0)
@@ -176,20 +133,14 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, pool: bool = Fa
         coverage.capture(vis)
     taken = [False] * count
     order, scores = [], [0.0] * count
-    def value_of_each() -> list[float]:
-        if pool:
-            return coverage.pool_gain().tolist()
-        return [c.value() for c in coverage.candidates]
-
     for _ in range(min(k, count)):
-        values = [-float("inf") if taken[i] else v for i, v in enumerate(value_of_each())]
+        values = [-float("inf") if taken[i] else c.value() for i, c in enumerate(coverage.candidates)]
         i = max(range(count), key=lambda j: (values[j], -j))         # the first maximum: lower index on ties
         order.append(i)
         scores[i] = values[i]
         taken[i] = True
         coverage.capture(evidence.candidate_views[i])
-    last = value_of_each()
-    rest = [(last[i], i) for i in range(count) if not taken[i]]
+    rest = [(coverage.candidates[i].value(), i) for i in range(count) if not taken[i]]
     for value, i in rest:
         scores[i] = value
     return Selection(order + [i for _, i in sorted(rest, key=lambda item: (-item[0], item[1]))], scores)
@@ -211,10 +162,6 @@ def _visibility(evidence: Evidence, k: int, seed: int) -> Selection:
     return coverage_select(evidence, k, fragility=False)
 
 
-def _visibility_pool(evidence: Evidence, k: int, seed: int) -> Selection:
-    return coverage_select(evidence, k, fragility=False, pool=True)
-
-
 def _visibility_sigma(evidence: Evidence, k: int, seed: int) -> Selection:
     return coverage_select(evidence, k, fragility=True)
 
@@ -225,6 +172,3 @@ VISIBILITY = Strategy("visibility", "the candidate showing most of what no captu
 VISIBILITY_SIGMA = Strategy("visibility_sigma", "as visibility, each part weighted by its PH-Dropout fragility "
                             "(zeta on its pixels), so fragile parts count even when seen", _visibility_sigma,
                             uses_visibility=True)
-VISIBILITY_POOL = Strategy("visibility_pool", "the candidate whose capture most lowers what the whole candidate "
-                           "pool leaves unseen (visibility summed over the views it would serve), picked greedily",
-                           _visibility_pool, uses_dropout=False, uses_visibility=True)
