@@ -378,8 +378,8 @@ class PHDClient:
                downscale: float | None = None, width: int | None = None, height: int | None = None,
                run_async: bool = False, wait: bool = True, progress: ProgressCallback | None = None,
                poll_interval: float = 0.2, timeout: float | None = None) -> SelectResult | Job:
-        """Per view, which of two models to trust (rule: the service's default 'distance_sigma', or the
-        paper's 'sigma_mean')."""
+        """Per view, which of two models to trust (rule: the service's default 'coverage_checked', or
+        'coverage_sigma', 'distance_sigma', the paper's 'sigma_mean')."""
         body = {"model_a": model_a, "model_b": model_b, "cameras": camera_frames(cameras), "samples": samples,
                 "seed": seed, "ratio_a": ratio_a, "ratio_b": ratio_b, "rule": rule, "images": images,
                 "both_images": both_images or None, "downscale": downscale,

@@ -116,9 +116,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     select.add_argument("--split", default="test", help="split of --data (default test)")
     select.add_argument("--views", type=int, default=None, help="this many evenly spaced frames of --data")
     select.add_argument("--rule", choices=phd.SELECTION_RULES, default=phd.DEFAULT_SELECTION_RULE,
-                        help="distance_sigma (default): distance to the nearest training camera times the "
-                             "relative mean zeta; coverage_sigma: the share of the view its training views did "
-                             "not see in place of the distance; sigma_mean: the paper's rule")
+                        help="per view, the model with the lower score; " + phd.rule_help())
     _add_camera_size_args(select)
     _add_uncertainty_args(select)
     _add_calibration_args(select)

@@ -352,24 +352,30 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
     images = body.images != "none"
     estimate = pixels(cameras) * (2 * samples + 2 * images)
-    levels: dict[str, list[Camera]] = {"model_a": [], "model_b": []}
+    levels: dict[str, list[Camera]] = {"model_a": [], "model_b": []}      # rendered at their own size
     kept = 0
     if body.rule != "sigma_mean":
         for name, record in (("model_a", record_a), ("model_b", record_b)):
             if not record.training_frames:
                 raise invalid(name, f"the model has no training cameras, which rule '{body.rule}' needs: upload "
                               "it with its cameras, or use rule 'sigma_mean'")
-            levels[name] = level_views(stored_cameras(record))     # rendered at their own size
-            if body.rule == "coverage_sigma":   # every training view is rendered too, and what each view sees kept
+        own = {"model_a": level_views(stored_cameras(record_a)), "model_b": level_views(stored_cameras(record_b))}
+        for name, other, record in (("model_a", "model_b", record_a), ("model_b", "model_a", record_b)):
+            levels[name] = own[name]
+            if body.rule in uq.COVERAGE_RULES:   # every training view is rendered too, and what each view sees kept
                 levels[name] = stored_cameras(record)
                 kept += sum(visibility_bytes(record.num_units, c) for c in cameras + levels[name])
-        estimate += 2 * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples   # each model's own zeta level
+            if body.rule == "coverage_checked":  # also at the other's level views; both full renders kept there
+                levels[name] = levels[name] + own[other]
+                kept += 2 * 12 * pixels(own[other])
+        levels_rendered = 2 if body.rule == "coverage_checked" else 1   # its own, and the other's
+        estimate += 2 * levels_rendered * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples
     # With images, both models' full render of every view ([H, W, 3] float32) is kept until the
     # choice, then the PNGs of the chosen one (and of the other with both_images).
     kept += (2 * 12 + (1 + body.both_images) * PNG_PIXEL_BYTES) * pixels(cameras) if images else 0
     renders = Renders([(record_a, "model_a", cameras + levels["model_a"]),
                        (record_b, "model_b", cameras + levels["model_b"])], samples, kept_bytes=kept,
-                      kept_field="images", visibility=body.rule == "coverage_sigma")
+                      kept_field="images", visibility=body.rule in uq.COVERAGE_RULES)
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:

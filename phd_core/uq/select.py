@@ -1,6 +1,8 @@
 """Ensemble selection (Section 5.4): per view, the model with the lower score: the paper's
-mean zeta, or distance to the model's training views times its relative zeta (default), or
-what of the view the model's training views did not see times its relative zeta."""
+mean zeta; distance to the model's training views times its relative zeta; what of the view
+the model's training views did not see times its relative zeta; or (the default) that last
+score turned into an error estimate per model by checking each model against the other where
+the other was trained."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError
-from ..eval import ensemble_efficiency, psnr, ssim
+from ..eval import ensemble_efficiency, psnr, rmse, ssim
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
 from ..renderers.visibility import reports_visibility
@@ -47,28 +49,46 @@ class SelectionResult:
         return {"views": [v.to_dict() for v in self.views], "metrics": self.metrics}
 
 
-SELECTION_RULES = ("distance_sigma", "coverage_sigma", "sigma_mean")
-DEFAULT_SELECTION_RULE = "distance_sigma"
+SELECTION_RULE_SUMMARIES = {     # name -> one line for --help and the API schema
+    "coverage_checked": "the share of the view its training views did not see times its relative mean zeta, "
+                        "scaled to an error by checking each model against the other's renders where the other "
+                        "was trained (needs both models' training cameras)",
+    "coverage_sigma": "the share of the view its training views did not see times its relative mean zeta",
+    "distance_sigma": "the distance to its nearest training camera times its relative mean zeta",
+    "sigma_mean": "the paper's rule: the lower mean zeta",
+}
+SELECTION_RULES = tuple(SELECTION_RULE_SUMMARIES)
+DEFAULT_SELECTION_RULE = "coverage_checked"   # at or above the better model on every pair (docs/nbv.md)
+COVERAGE_RULES = ("coverage_sigma", "coverage_checked")   # the rules that need each view's visibility
 UNCOVERED_FLOOR = 0.05             # coverage_sigma: a fully covered view still counts its zeta
+# coverage_checked: renders closer than this count as equal (below 8-bit quantisation), so two
+# models that agree where each was trained keep their scores' order instead of all tying at 0
+CHECKED_RMSE_FLOOR = 1e-4
 SELECTION_TRAINING_VIEWS = 8       # training views (evenly spaced) that set a model's own zeta level
+
+
+def rule_help() -> str:
+    """Every selection rule with its summary, the default marked (CLI help, API schema)."""
+    return "; ".join(f"{name}{' (default)' if name == DEFAULT_SELECTION_RULE else ''}: {summary}"
+                     for name, summary in SELECTION_RULE_SUMMARIES.items())
 
 
 def _nearest_distance(camera: Camera, training: Sequence[Camera]) -> float:
     return float(torch.stack([c.center for c in training]).sub(camera.center).norm(dim=1).min())
 
 
-def _training_views(renderer: Renderer, training: Sequence[Camera] | None, name: str) -> list[Camera]:
-    """A model's training cameras (default: the renderer's), which `distance_sigma` needs."""
+def _training_views(renderer: Renderer, training: Sequence[Camera] | None, name: str, rule: str) -> list[Camera]:
+    """A model's training cameras (default: the renderer's), which every rule but `sigma_mean` needs."""
     training = list((renderer.training_cameras or []) if training is None else training)
     if not training:
-        raise InputError(name, "the model carries no training cameras, which rule 'distance_sigma' needs: "
+        raise InputError(name, f"the model carries no training cameras, which rule '{rule}' needs: "
                                "give them with the model, or use rule 'sigma_mean'")
     return training
 
 
 def level_views(training: list[Camera]) -> list[Camera]:
     """Up to 8 evenly spaced training views: their mean zeta is the level a model's uncertainty
-    has where it was trained, which `distance_sigma` divides by."""
+    has where it was trained, which the rules but `sigma_mean` divide by."""
     return training[::max(1, len(training) // SELECTION_TRAINING_VIEWS)][:SELECTION_TRAINING_VIEWS]
 
 
@@ -79,13 +99,19 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
                   progress: Progress | None = None, executor: Executor = LOCAL) -> SelectionResult:
     """Per view, pick the model with the lower score (each at its own dropout ratio).
 
-    rule "sigma_mean" (the paper): the mean zeta of the view. Rule "distance_sigma" (the
-    default, docs/nbv.md): the distance from the view to the model's nearest training
-    camera times the view's mean zeta relative to the model's mean zeta on its own
-    training views, so two models of different size and r_drop are compared like with like.
-    Rule "coverage_sigma": in place of the distance, UNCOVERED_FLOOR plus the share of the
-    view's image of the model that its training views did not see from a nearby direction
-    (`phd_core.uq.strategies.visibility`; families without visibility use the distance).
+    rule "sigma_mean" (the paper): the mean zeta of the view. Rule "distance_sigma": the
+    distance from the view to the model's nearest training camera times the view's mean zeta
+    relative to the model's mean zeta on its own training views, so two models of different
+    size and r_drop are compared like with like. Rule "coverage_sigma": in place of the
+    distance, UNCOVERED_FLOOR plus the share of the view's image of the model that its
+    training views did not see from a nearby direction (`phd_core.uq.strategies.visibility`;
+    families without visibility use the distance). Rule "coverage_checked" (the default,
+    docs/nbv.md): the coverage_sigma score times each model's error per unit of score where
+    the OTHER model was trained: there the other model's render stands in for the image it
+    was fitted to, so RMSE(this model's render, the other's) summed over the other's level
+    views, divided by this model's summed score on them, turns scores into errors. A model
+    that is worse everywhere (which its relative zeta cannot say) then loses the views it
+    would have won.
     training_a / training_b: each model's training cameras (default: the renderer's own).
     Ties go to model a. With ground-truth `images` [V, H, W, 3], `metrics` holds the
     mean PSNR and SSIM of a, b and the selection, E_ME (mean over views of
@@ -108,11 +134,12 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
              "b": keep_masks(dropout_uniforms(renderer_b.num_units, samples, seed), ratio_b)}
     if rule != "sigma_mean":
         given = {"a": training_a, "b": training_b}
-        training = {key: _training_views(renderers[key], given[key], f"model_{key}") for key in renderers}
+        training = {key: _training_views(renderers[key], given[key], f"model_{key}", rule) for key in renderers}
         levels = {key: level_views(training[key]) for key in renderers}
     else:
         levels = {"a": [], "b": []}
-    ticker = ProgressTicker(progress, 2 * len(cameras) + len(levels["a"]) + len(levels["b"]))
+    checked = rule == "coverage_checked"      # each model also measured at the other's level views
+    ticker = ProgressTicker(progress, 2 * len(cameras) + (1 + checked) * (len(levels["a"]) + len(levels["b"])))
 
     # Full renders: both models when scoring against ground truth, else only the chosen one (made
     # from the prepared view that served the masks, for both models, before the choice is known).
@@ -122,34 +149,42 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         """Each view under model `key`'s masks, on the executor."""
         chunks = executor.split(views)
         parts = executor.map(partial(measure_views, ddof=1, keep_maps=False, dtype=torch.float64,
-                                     keep_full=keep_full, keep_visibility=rule == "coverage_sigma"), chunks,
+                                     keep_full=keep_full, keep_visibility=rule in COVERAGE_RULES), chunks,
                              executor.share(renderers[key]), keeps[key], done=lambda i: ticker.tick(len(chunks[i])))
         return [view for part in parts for view in part]
 
     measured = {key: measure(key, cameras, keep_full=both or bool(keep_images)) for key in renderers}
-    sigmas = {key: [view.sigma_mean for view in measured[key]] for key in renderers}
     if rule != "sigma_mean":
-        own = {}
+        own, at_own = {}, {}
         for key in renderers:
-            means = [view.sigma_mean for view in measure(key, levels[key])]
+            at_own[key] = measure(key, levels[key], keep_full=checked)
+            means = [view.sigma_mean for view in at_own[key]]
             own[key] = max(sum(means) / len(means), 1e-12)
-    uncovered = {}
-    if rule == "coverage_sigma":
-        for key, renderer in renderers.items():
-            if reports_visibility(renderer):
-                uncovered[key] = uncovered_share([view.visibility for view in measured[key]],
-                                                 view_visibility(renderer, training[key]))
+    visible = {key: view_visibility(renderer, training[key]) for key, renderer in renderers.items()
+               if rule in COVERAGE_RULES and reports_visibility(renderer)}
 
-    def score(key: str, i: int) -> float:
+    def scores_of(key: str, views: list[Camera], measured_views: list[ViewUncertainty]) -> list[float]:
+        """Model `key`'s score of each view (lower: trust it more)."""
+        sigma = [view.sigma_mean for view in measured_views]
         if rule == "sigma_mean":
-            return sigmas[key][i]
-        if key in uncovered:
-            return (UNCOVERED_FLOOR + float(uncovered[key][i])) * sigmas[key][i] / own[key]
-        return _nearest_distance(cameras[i], training[key]) * sigmas[key][i] / own[key]
+            return sigma
+        if key in visible:
+            uncovered = uncovered_share([view.visibility for view in measured_views], visible[key])
+            return [(UNCOVERED_FLOOR + float(u)) * s / own[key] for u, s in zip(uncovered, sigma)]
+        return [_nearest_distance(c, training[key]) * s / own[key] for c, s in zip(views, sigma)]
+
+    view_scores = {key: scores_of(key, cameras, measured[key]) for key in renderers}
+    if checked:
+        for key, other in (("a", "b"), ("b", "a")):
+            at_other = measure(key, levels[other], keep_full=True)
+            error = sum(max(rmse(mine.image, theirs.image), CHECKED_RMSE_FLOOR)
+                        for mine, theirs in zip(at_other, at_own[other]))
+            per_score = error / max(sum(scores_of(key, levels[other], at_other)), 1e-12)
+            view_scores[key] = [score * per_score for score in view_scores[key]]
 
     views, scores = [], {"a": [], "b": [], "selected": []}
     for i in range(len(cameras)):
-        score_a, score_b = score("a", i), score("b", i)
+        score_a, score_b = view_scores["a"][i], view_scores["b"][i]
         choice, other = ("a", "b") if score_a <= score_b else ("b", "a")
         image = measured[choice][i].image
         if images is not None:

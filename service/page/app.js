@@ -425,7 +425,7 @@ async function select(event) {
   say("selecting over " + cameras.length + " views...");
   $("select-grid").replaceChildren();
   $("select-summary").textContent = "";
-  const body = Object.assign({ model_a: a.id, model_b: bId, cameras, rule: $("select-rule").value,
+  const body = Object.assign({ model_a: a.id, model_b: bId, cameras, rule: $("select-rule").value || undefined,
     samples: Number($("rank-samples").value), seed: Number($("rank-seed").value), images: "files", both_images: true },
   sizeOptions("rank"));
   const result = await runJob("/v1/select", body, $("select-progress"));
@@ -450,13 +450,19 @@ async function select(event) {
 
 // ------------------------------------------------------------------ start
 
-async function readStrategies() {
+async function readChoices() {
   try {
-    const schema = (await (await fetch("/openapi.json")).json()).components.schemas.RankRequest.properties.strategy;
-    $("rank-strategy").value = schema.default || "";
-    $("rank-strategy").title = schema.description || "";
-    $("strategies").replaceChildren(...(schema.examples || []).map((n) => el("option", { value: n })));
-  } catch (_) { /* the field stays free text; the server names the known strategies on a typo */ }
+    const schemas = (await (await fetch("/openapi.json")).json()).components.schemas;
+    const strategy = schemas.RankRequest.properties.strategy;
+    $("rank-strategy").value = strategy.default || "";
+    $("rank-strategy").title = strategy.description || "";
+    $("strategies").replaceChildren(...(strategy.examples || []).map((n) => el("option", { value: n })));
+    const rule = schemas.SelectRequest.properties.rule;
+    $("select-rule").replaceChildren(...(rule.enum || []).map((n) =>
+      el("option", { value: n, text: n === rule.default ? `${n} (default)` : n })));
+    $("select-rule").value = rule.default || "";
+    $("select-rule").title = rule.description || "";
+  } catch (_) { /* the strategy stays free text, the rule list empty: the server's defaults apply */ }
 }
 
 function start() {
@@ -477,7 +483,7 @@ function start() {
   $("rank-form").addEventListener("submit", (e) => guarded(() => rank(e)));
   $("rank-cancel").addEventListener("click", () => guarded(cancelRank));
   $("select-form").addEventListener("submit", (e) => guarded(() => select(e)));
-  readStrategies();
+  readChoices();
   guarded(() => loadModels());
 }
 

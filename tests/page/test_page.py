@@ -175,6 +175,9 @@ def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_p
     _open(browser, server)
     Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
     Select(browser.find_element(By.ID, "model-b-select")).select_by_value(model_b.id)
+    rules = Select(browser.find_element(By.ID, "select-rule"))          # the service's rules, its default chosen
+    assert [o.get_attribute("value") for o in rules.options] == list(uq.SELECTION_RULES)
+    assert rules.first_selected_option.get_attribute("value") == uq.DEFAULT_SELECTION_RULE
     # Generated poses exist once the service made them: selecting before a ranking says so.
     _set(browser, "gen-count", 4)
     browser.find_element(By.ID, "gen-elevation").click()

@@ -52,7 +52,7 @@ def test_a_hand_made_2dgs_ply_calibrates_ranks_and_selects(svc_start, svc_model_
                                   rule="sigma_mean")
         assert [v.choice for v in result.views] == [v.choice for v in chosen.views]
         assert [v.score_a for v in result.views] == pytest.approx([v.score_a for v in chosen.views], rel=1e-6)
-        default = phd.select(info.id, other.id, candidates, samples=4, seed=5, ratio_b=0.3)   # distance_sigma
+        default = phd.select(info.id, other.id, candidates, samples=4, seed=5, ratio_b=0.3)   # coverage_checked
         assert len(default.views) == 5 and {v.model_id for v in default.views} <= {info.id, other.id}
 
 

@@ -139,14 +139,15 @@ def test_a_new_strategy_is_one_registry_entry() -> None:
 
 # ---------------------------------------------------------------------------------------- selection
 
-def test_distance_sigma_selection_prefers_the_model_trained_near_the_view() -> None:
+@pytest.mark.parametrize("rule", ["distance_sigma", "coverage_checked"])
+def test_selection_prefers_the_model_trained_near_the_view(rule: str) -> None:
     renderer, _ = blob_scene()
     ring = ring_cameras(8, size=16)
     near_a = BlobRenderer(renderer.means, renderer.colors, renderer.opacities, renderer.scales,
                           training_cameras=ring[:2])
     near_b = BlobRenderer(renderer.means, renderer.colors, renderer.opacities, renderer.scales,
                           training_cameras=ring[4:6])
-    result = phd.select_models(near_a, near_b, [ring[0], ring[5]], ratio_a=0.3, ratio_b=0.3, samples=6)
+    result = phd.select_models(near_a, near_b, [ring[0], ring[5]], ratio_a=0.3, ratio_b=0.3, samples=6, rule=rule)
     assert [v.choice for v in result.views] == ["a", "b"]
     assert result.views[0].score_a == 0.0                     # the view is a training camera of a
 

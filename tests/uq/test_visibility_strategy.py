@@ -139,6 +139,37 @@ def test_coverage_selection_trusts_the_model_whose_training_views_saw_the_view_n
     assert chosen.choice == "b" and chosen.score_b < chosen.score_a
 
 
+def test_checked_coverage_selection_finds_the_model_that_is_only_right_where_it_was_trained() -> None:
+    # One ball of splats, two models. Model b's colour has a view-dependent error (an SH degree-1
+    # term along x) that vanishes for views along z, where its training cameras are; model a is
+    # the truth and was trained on a ring around the equator. Views from between see parts b's
+    # cameras covered from a nearby direction, so coverage alone trusts b there.
+    points = torch.randn(300, 3, generator=torch.Generator().manual_seed(0))
+    ball = splats([0.8 * points / points.norm(dim=1, keepdim=True)], 0.15)
+
+    def with_error(error: float) -> GaussianRenderer:
+        sh = torch.zeros(len(ball.means), 4, 3)
+        sh[:, 0] = torch.rand(len(ball.means), 3, generator=torch.Generator().manual_seed(1)) - 0.5
+        sh[:, 3] = error                                                 # basis -C1 x of the view direction
+        return GaussianRenderer(GaussianModel(ball.means, ball.log_scales, ball.quats, ball.opacity_logits, sh))
+
+    truth, wrong = with_error(0.0), with_error(1.0)
+    ring = [camera((4 * math.cos(t), 4 * math.sin(t), 0.3)) for t in torch.linspace(0, 2 * math.pi, 9)[:-1].tolist()]
+    top = [camera((0.3 * math.cos(t), 0.3 * math.sin(t), 4.0)) for t in (0.0, 2.0, 4.0)]
+    views = [camera((4 * math.sin(e) * math.cos(t), 4 * math.sin(e) * math.sin(t), 4 * math.cos(e)))
+             for e in (0.35, 0.6, 0.9) for t in (0.3, 1.9, 3.5, 5.0)]
+
+    def choices(rule: str) -> list[str]:
+        result = select_models(truth, wrong, views, ratio_a=0.1, ratio_b=0.1, samples=8, rule=rule,
+                               training_a=ring, training_b=top)
+        return [view.choice for view in result.views]
+
+    assert choices("coverage_sigma").count("b") >= 4                    # trusts b where its cameras looked
+    # Checked against each other where each was trained: b's renders differ from a's on a's ring,
+    # a's equal b's on b's cameras (b is right there), so a's error per unit of score is about 0.
+    assert choices("coverage_checked") == ["a"] * len(views)
+
+
 def test_fisher_diagonal_by_random_projections_matches_the_jacobian() -> None:
     east = grid((0.0, -0.3, -0.3), (0, 0.6, 0), (0, 0, 0.6), steps=2)     # 4 splats, partly overlapping
     renderer = GaussianRenderer(splats([east], 0.25))
