@@ -74,12 +74,18 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--strategies", nargs="+", default=SHIPPED, choices=list(STRATEGIES))
     p.add_argument("--samples", type=int, default=phd.DEFAULT_SAMPLES)
     p.add_argument("--jobs", type=int, default=1, help="(scene, seed) tasks run in parallel, one thread each")
-    p.add_argument("--results", type=Path, default=RESULTS)
+    p.add_argument("--results", type=Path, default=None, help="default: bench/results/nbv, or nbv_<R>px for a "
+                   "--resolution R other than 50 (its own doc section and plots)")
     p.add_argument("--doc", type=Path, default=DOC)
     p.add_argument("--report", action="store_true", help="only rewrite the doc from the stored results")
     p.add_argument("--costs", action="store_true", help="time rank_views per candidate for every strategy on one "
                    "model (the first scene and seed), one run, to bench/results/nbv/costs.json")
     return p.parse_args()
+
+
+def tag(args: argparse.Namespace) -> str:
+    """What names this resolution's results, doc section and plots apart from the default 50 px."""
+    return "" if args.resolution == 50 else f"_{args.resolution}px"
 
 
 def protocol(args: argparse.Namespace) -> dict:
@@ -307,7 +313,7 @@ def markdown(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]],
         plotted, common = plotted_runs(tasks)
         lines += [""] + [paired(every_seed.get(scene, []), name) for name in (DEFAULT_STRATEGY, "fvs_sigma_floor")
                          if name in rows and name != "fvs"] + ["",
-                  f"![PSNR per round on {scene}](nbv_{scene}.svg)",
+                  f"![PSNR per round on {scene}](nbv_{scene}{tag(args)}.svg)",
                   f"(mean test PSNR per round of {', '.join(plotted)} over seeds {', '.join(map(str, common))}, "
                   "which each of them ran)", ""]
     return "\n".join(lines)
@@ -331,7 +337,8 @@ def plots(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> None:
             if row:
                 views = [args.initial + args.per_round * r for r in range(len(row["curve"]))]
                 series[name] = list(zip(views, row["curve"]))
-        svg_plot(args.doc.parent / f"nbv_{scene}.svg", series, "captured views", "test PSNR (dB)", log_x=False)
+        svg_plot(args.doc.parent / f"nbv_{scene}{tag(args)}.svg", series, "captured views", "test PSNR (dB)",
+                 log_x=False)
 
 
 def measure_costs(args: argparse.Namespace) -> dict:
@@ -379,6 +386,7 @@ def cost_table(args: argparse.Namespace) -> list[str]:
 
 def main() -> None:
     args = parse_args()
+    args.results = args.results or RESULTS.parent / f"nbv{tag(args)}"
     if args.costs:
         measure_costs(args)
         return
@@ -388,7 +396,7 @@ def main() -> None:
             for message in pool.map(run_task, *zip(*tasks), [args] * len(tasks)):
                 print(message, flush=True)
     by_scene = load_results(args)
-    write_doc(args.doc, markdown(by_scene, load_results(args, every_seed=True), args), section="nbv")
+    write_doc(args.doc, markdown(by_scene, load_results(args, every_seed=True), args), section=f"nbv{tag(args)}")
     plots(by_scene, args)
     print(f"wrote {args.doc}")
 
