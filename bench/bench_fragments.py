@@ -1,0 +1,93 @@
+"""Stages 2-3 of a splat render (fragments) on a real-size model, this code against an earlier
+commit's, in one process, alternating, with the outputs compared bit for bit.
+
+    python bench/bench_fragments.py --before 852c250
+
+The earlier `gs3d/kernels.py` is read from git and loaded beside the current one (its relative
+imports resolve against today's package, which holds for any revision whose kernels import the
+same names). Model: bench_scale's 1,003,728-splat SH-3 tiling of the donut; cameras: donut_200's
+ring poses. Writes bench/results/fragments.json and the table between the `bench:fragments`
+markers of docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import statistics
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numba
+import torch
+
+from bench_phdropout import save, write_doc
+from bench_scale import candidate_cameras, tiled_model
+from phd_core.renderers.gs3d import kernels
+from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, front_to_back
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def kernels_at(revision: str):
+    """`phd_core.renderers.gs3d.kernels` as it was at `revision`, as a module of today's package."""
+    source = subprocess.run(["git", "show", f"{revision}:phd_core/renderers/gs3d/kernels.py"], cwd=ROOT,
+                            check=True, capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp()) / "kernels_before.py"
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location("phd_core.renderers.gs3d.kernels_before", path)
+    module = importlib.util.module_from_spec(spec)
+    module.__package__ = "phd_core.renderers.gs3d"
+    spec.loader.exec_module(module)
+    return module
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--before", required=True, help="the git revision to compare with")
+    p.add_argument("--copies", type=int, default=22, help="donut copies (22: 1,003,728 splats)")
+    p.add_argument("--widths", type=int, nargs="+", default=[200, 400], help="image widths (height 3/4)")
+    p.add_argument("--cameras", type=int, default=4)
+    p.add_argument("--repeats", type=int, default=3, help="timed calls per camera and version (after one warm-up)")
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    before = kernels_at(args.before)
+    model = tiled_model(args.copies, 3)
+    rows = []
+    for width in args.widths:
+        height = width * 3 // 4
+        seconds: dict[str, list[float]] = {"before": [], "now": []}
+        for camera in candidate_cameras(width, height, args.cameras):
+            means2d, conics, opacities, extents, depths, visible = kernels.project_splats(
+                model.means, model.quats, model.log_scales, model.opacity_logits, camera, NEAR_PLANE, DILATION)
+            ids = front_to_back(visible, depths)
+            inputs = (means2d[ids], conics[ids], opacities[ids], extents[ids], width, height, 16)
+            outputs = {}
+            for repeat in range(1 + args.repeats):
+                for name, module in (("before", before), ("now", kernels)):
+                    started = time.perf_counter()
+                    outputs[name] = module.splat_fragments(*inputs)
+                    if repeat:
+                        seconds[name].append(time.perf_counter() - started)
+            for old, new in zip(outputs["before"][:3], outputs["now"][:3]):
+                assert torch.equal(old, new), "the fragments differ"
+        row = {"size": f"{width}x{height}", "fragments": len(outputs["now"][1]),
+               "before_s": statistics.median(seconds["before"]), "now_s": statistics.median(seconds["now"])}
+        rows.append(row)
+        print(row, flush=True)
+    save({"before": args.before, "splats": model.num_splats, "rows": rows}, ROOT / "bench" / "results" /
+         "fragments.json")
+    lines = [f"Command: `.venv/bin/python bench/bench_fragments.py --before {args.before}` ({model.num_splats:,} "
+             f"splats, SH 3, {args.cameras} ring cameras, median of {args.repeats} calls each, one thread, both "
+             "versions alternating in one process; the fragments are identical bit for bit).", "",
+             "| size | fragments | before s | now s | speed-up |", "|---|---|---|---|---|"]
+    lines += [f"| {r['size']} | {r['fragments']:,} | {r['before_s']:.3f} | {r['now_s']:.3f} | "
+              f"{r['before_s'] / r['now_s']:.2f}x |" for r in rows]
+    write_doc(ROOT / "docs" / "performance.md", "\n".join(lines), section="fragments")
+
+
+if __name__ == "__main__":
+    main()
