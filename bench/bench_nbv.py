@@ -242,7 +242,8 @@ def summary(tasks: list[dict], name: str) -> dict | None:
 
 def label(name: str) -> str:
     return (f"**{name}** (default)" if name == DEFAULT_STRATEGY else
-            f"{name} (tried, bench/nbv_experiments.py)" if name in EXPERIMENTS else name)
+            f"{name} (tried, bench/nbv_experiments.py)" if name in EXPERIMENTS
+            else name if name in STRATEGIES else f"{name} (tried, removed; docs/nbv.md says where its code is)")
 
 
 def cost_text(row: dict) -> str:
