@@ -37,7 +37,6 @@ from phd_core.errors import InputError
 from phd_core.executors import make_executor
 
 from .budget import MemoryLedger
-from .deps import ServiceState
 from .errors import ServiceError, error_body, from_exception, json_problem
 from .guard import Guard
 from .jobs import JobManager
@@ -45,6 +44,7 @@ from .jobstore import JobStore
 from .keys import KeyRing
 from .routes import ROUTERS
 from .settings import Settings
+from .state import ServiceState
 from .store import ModelStore
 from .work import model_loader
 
