@@ -387,7 +387,7 @@ compiles stage 4 and its gradient only (see "Training step").
   (`LOOKAHEAD`: one batch of 16 masks per view instead of four of 4; ratios past the first
   failure are dropped from the curve, so the result equals a one-by-one scan); uncertainty
   and selection prepare each view once for all mask chunks and the full render.
-- Importing `phd_core` sets glibc's malloc to keep freed memory (`phd_core/allocator.py`,
+- The `phd` command and the service set glibc's malloc to keep freed memory (`phd_core/allocator.py`,
   mallopt through ctypes: mmap threshold 32 MiB, no trimming, 1 GiB top pad) and stops
   NumPy's transparent-huge-page advice (the kernels' scratch arrays were faulted in as 2 MiB
   pages, zeroed whole: calibration's system time 0.73 -> 0.36 s, median of 5).

@@ -32,7 +32,7 @@ from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import phd_core
-from phd_core.allocator import bounded_heap, one_arena
+from phd_core.allocator import bounded_heap, keep_freed_memory, one_arena
 from phd_core.errors import InputError
 from phd_core.executors import make_executor
 
@@ -110,6 +110,7 @@ def install_error_handlers(app: FastAPI) -> None:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The service on `settings.data_dir` (swept of unfinished uploads before serving)."""
     settings = settings or Settings.from_env()
+    keep_freed_memory()     # what the `phd` command sets (phd_core.allocator); bounded_heap then narrows it
     one_arena()             # workers and request threads reuse each other's freed memory (phd_core.allocator)
     bounded_heap()          # large blocks are unmapped when freed: resident memory follows the live tensors
     store = ModelStore(settings.data_dir)

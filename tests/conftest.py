@@ -8,6 +8,9 @@ import os
 
 # Before torch loads: idle OpenMP threads sleep instead of spinning (see phd_cli).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from phd_core.allocator import keep_freed_memory  # noqa: E402
+
+keep_freed_memory()     # as the `phd` command and the service do (phd_core.allocator)
 import socket
 import subprocess
 import sys
