@@ -11,26 +11,26 @@ the other 67. Each initialisation is one run of the same trainer:
                 mean-colour background, camera-spread extent
     sfm+shell   the same plus a far shell of 2000 background splats (TrainConfig.background_splats)
 
-    OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/bench_capture.py --out bench/results/capture.json
+    OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.bench_capture --out bench/results/capture.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
 
 import torch
 
+from bench import _harness
 from phd_core.data import load_dataset
 from phd_core.eval import psnr
 from phd_core.renderers.gs3d import rasterize
 from phd_core.train.gs3d import TrainConfig, fit, training_background
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "cup_colmap"
+DATA = _harness.DATA / "cup_colmap"
 
 
 def run(views: int, mode: str, iterations: int, downscale: float, seed: int, before=None) -> dict:
@@ -79,10 +79,9 @@ def main() -> None:
             rows.append(row)
             print(json.dumps(row), flush=True)
     result = {"data": "cup_colmap", "downscale": args.downscale, "iterations": args.iterations, "seed": args.seed,
-              "machine": f"{platform.machine()}, {torch.get_num_threads()} torch threads", "runs": rows}
+              "machine": _harness.machine(), "runs": rows}
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=1) + "\n")
+        _harness.write_result(args.out, result)
 
 
 if __name__ == "__main__":

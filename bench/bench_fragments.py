@@ -1,7 +1,7 @@
 """Stages 2-3 of a splat render (fragments) on a real-size model, this code against an earlier
 commit's, in one process, alternating, with the outputs compared bit for bit.
 
-    python bench/bench_fragments.py --before 852c250
+    .venv/bin/python -m bench.bench_fragments --before 852c250
 
 The earlier `gs3d/kernels.py` is read from git and loaded beside the current one (its relative
 imports resolve against today's package, which holds for any revision whose kernels import the
@@ -23,12 +23,10 @@ from pathlib import Path
 import numba
 import torch
 
-from bench_phdropout import save, write_doc
-from bench_scale import candidate_cameras, tiled_model
+from bench._harness import DOCS, RESULTS, ROOT, write_doc, write_result
+from bench.bench_scale import candidate_cameras, tiled_model
 from phd_core.renderers.gs3d import kernels
 from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, front_to_back
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def kernels_at(revision: str):
@@ -78,15 +76,14 @@ def main() -> None:
                "before_s": statistics.median(seconds["before"]), "now_s": statistics.median(seconds["now"])}
         rows.append(row)
         print(row, flush=True)
-    save({"before": args.before, "splats": model.num_splats, "rows": rows}, ROOT / "bench" / "results" /
-         "fragments.json")
-    lines = [f"Command: `.venv/bin/python bench/bench_fragments.py --before {args.before}` ({model.num_splats:,} "
+    write_result(RESULTS / "fragments.json", {"before": args.before, "splats": model.num_splats, "rows": rows})
+    lines = [f"Command: `.venv/bin/python -m bench.bench_fragments --before {args.before}` ({model.num_splats:,} "
              f"splats, SH 3, {args.cameras} ring cameras, median of {args.repeats} calls each, one thread, both "
              "versions alternating in one process; the fragments are identical bit for bit).", "",
              "| size | fragments | before s | now s | speed-up |", "|---|---|---|---|---|"]
     lines += [f"| {r['size']} | {r['fragments']:,} | {r['before_s']:.3f} | {r['now_s']:.3f} | "
               f"{r['before_s'] / r['now_s']:.2f}x |" for r in rows]
-    write_doc(ROOT / "docs" / "performance.md", "\n".join(lines), section="fragments")
+    write_doc(DOCS / "performance.md", "\n".join(lines), section="fragments")
 
 
 if __name__ == "__main__":

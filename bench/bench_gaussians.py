@@ -1,6 +1,6 @@
 """3DGS and 2DGS on lego_200 at 100x100: training quality and time, render time, batched keep-masks.
 
-    python bench/bench_gaussians.py [--iterations 5000] [--skip-train] [--model 2dgs] [--views 16]
+    python -m bench.bench_gaussians [--iterations 5000] [--skip-train] [--model 2dgs] [--views 16]
 
 Trains with 100 and with 16 training views, scores 25 evenly spaced test views (PSNR,
 SSIM), times single renders at 100x100 and 200x200, and compares one batched render of
@@ -14,30 +14,17 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import torch
 
+from bench._harness import DATA, RESULTS, ROOT, machine, timed, write_result
 from phd_core.data import load_blender
-from phd_core.io import write_json_atomic
 from phd_core.eval import psnr, ssim
 from phd_core.renderers import FAMILIES, load_model
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "lego_200"
-
-
-def best_of(fn, repeats: int = 3) -> float:
-    """Best wall time of `repeats` calls (the least disturbed by other load)."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
+LEGO = DATA / "lego_200"
 
 
 def evaluate(model_path: Path, test) -> dict:
@@ -49,14 +36,14 @@ def evaluate(model_path: Path, test) -> dict:
 
 def speed(model_path: Path, masks: int) -> dict:
     renderer = load_model(model_path)
-    test = load_blender(DATA, "test", downscale=1, views=[0], with_images=False)
+    test = load_blender(LEGO, "test", downscale=1, views=[0], with_images=False)
     out = {}
     for size in (100, 200):
         cam = test.cameras[0].resized(size, size)
         keep = torch.rand(masks, renderer.num_units, generator=torch.Generator().manual_seed(0)) >= 0.2
-        single = best_of(lambda: renderer.render(cam))
-        batched = best_of(lambda: renderer.render(cam, keep))
-        separate = best_of(lambda: [renderer.render(cam, keep[i:i + 1]) for i in range(masks)], repeats=1)
+        single = timed(lambda: renderer.render(cam), 3).best
+        batched = timed(lambda: renderer.render(cam, keep), 3).best
+        separate = timed(lambda: [renderer.render(cam, keep[i:i + 1]) for i in range(masks)]).best
         out[f"{size}x{size}"] = {"render_s": round(single, 4), f"batched_{masks}_s": round(batched, 3),
                                  f"separate_{masks}_s": round(separate, 3),
                                  "speedup": round(separate / batched, 2)}
@@ -72,14 +59,13 @@ def main() -> None:
     parser.add_argument("--views", default="16,100", help="training view counts (default 16,100)")
     parser.add_argument("--depth-distortion", type=float, default=1.0, help="2DGS regulariser weight (default 1)")
     parser.add_argument("--normal-consistency", type=float, default=0.05, help="2DGS regulariser weight (default 0.05)")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "gaussians.json")
+    parser.add_argument("--out", type=Path, default=RESULTS / "gaussians.json")
     args = parser.parse_args()
     module, function = FAMILIES[args.model].trainer.split(":")
     train = getattr(importlib.import_module(module), function)
     options = {name: getattr(args, name) for name in FAMILIES[args.model].train_options}
-    test = load_blender(DATA, "test", downscale=2, views=25)
-    results = {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                           "torch": torch.__version__, "threads": torch.get_num_threads()},
+    test = load_blender(LEGO, "test", downscale=2, views=25)
+    results = {"machine": machine(),
                "settings": {"downscale": 2, "test_views": 25, "masks": args.masks, "model": args.model,
                             "iterations": args.iterations, **options}, "models": {}}
     for views in (int(v) for v in args.views.split(",")):
@@ -87,7 +73,7 @@ def main() -> None:
         entry: dict = {}
         if not args.skip_train:
             start = time.perf_counter()
-            train(DATA, views=views, downscale=2, iterations=args.iterations, out=path, progress=False, **options)
+            train(LEGO, views=views, downscale=2, iterations=args.iterations, out=path, progress=False, **options)
             entry["train_s"] = round(time.perf_counter() - start, 1)
         else:
             entry["train_s"] = json.loads(path.with_suffix(".json").read_text())["train_seconds"]
@@ -95,10 +81,8 @@ def main() -> None:
         entry["speed"] = speed(path, args.masks)
         results["models"][f"{views}_views"] = entry
         print(views, "views:", json.dumps(entry), flush=True)
-    out = args.out
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out, results)
-    print("wrote", out)
+    write_result(args.out, results)
+    print("wrote", args.out)
 
 
 if __name__ == "__main__":

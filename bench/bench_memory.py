@@ -17,7 +17,7 @@ Concurrent: one server with a small budget (`--concurrent-budget`, 1 GiB) under 
 several models at once: 6 jobs and 2 uploads on 2 workers and a cache of 4 models, and 4 jobs
 on 4 workers; its peak over its idle RSS before the first upload, next to the budget.
 
-    OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/bench_memory.py [--budgets 1 4] [--only NAME ...]
+    OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python -m bench.bench_memory [--budgets 1 4] [--only NAME ...]
 
 Writes bench/results/memory.json (merged with the rows already there when --only is given)
 and prints the table docs/reliability.md shows.
@@ -28,9 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
-import sys
 import tempfile
 import threading
 import time
@@ -40,28 +37,24 @@ from pathlib import Path
 import httpx
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
-
-from client import PHDClient  # noqa: E402
-from conftest import SvcProcess, svc_cameras  # noqa: E402
-from phd_core.io.files import write_json_atomic  # noqa: E402
-from phd_core.renderers.gs2d import SurfelModel, write_surfel_ply  # noqa: E402
-from phd_core.renderers.gs2d.render import surfel_counts  # noqa: E402
-from phd_core.renderers.gs3d import GaussianModel, write_ply  # noqa: E402
-from phd_core.renderers.gs3d.render import splat_counts  # noqa: E402
-from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, save_nerf  # noqa: E402
-from phd_core.executors import LOCAL  # noqa: E402
-from bench_speed import donut_model  # noqa: E402  (bench/ is on the path when run as a script)
-from service.budget import MemoryLedger  # noqa: E402
-from service.errors import ServiceError  # noqa: E402
-from service.schemas import CalibrateRequest, RankRequest, SelectRequest  # noqa: E402
-from service.settings import Settings  # noqa: E402
-from service.store import ModelStore  # noqa: E402
-from service.work import calibrate_job, model_loader, rank_job, select_job  # noqa: E402
+from bench._harness import RESULTS, donut_model, machine, write_result
+from client import PHDClient
+from phd_core.executors import LOCAL
+from phd_core.renderers.gs2d import SurfelModel, write_surfel_ply
+from phd_core.renderers.gs2d.render import surfel_counts
+from phd_core.renderers.gs3d import GaussianModel, write_ply
+from phd_core.renderers.gs3d.render import splat_counts
+from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, save_nerf
+from service.budget import MemoryLedger
+from service.errors import ServiceError
+from service.schemas import CalibrateRequest, RankRequest, SelectRequest
+from service.settings import Settings
+from service.store import ModelStore
+from service.work import calibrate_job, model_loader, rank_job, select_job
+from tests.support.fixtures import SvcProcess, svc_cameras
 
 GIB = 1 << 30
-OUT = ROOT / "bench" / "results" / "memory.json"
+OUT = RESULTS / "memory.json"
 
 
 # ----------------------------------------------------------------------------- models
@@ -392,16 +385,14 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-COMMAND = "OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/bench_memory.py"
+COMMAND = "OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python -m bench.bench_memory"
 
 
 def save(rows: dict[str, dict]) -> list[dict]:
     """Write the rows to OUT (after every row: a sweep stopped half way keeps what it measured)."""
     ordered = sorted((r for r in rows.values() if "states" not in r), key=lambda r: r["budget_bytes"])
     ordered += [r for r in rows.values() if "states" in r]
-    write_json_atomic(OUT, {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                                        "python": platform.python_version(), "load_average": os.getloadavg()},
-                            "command": COMMAND, "rows": ordered})
+    write_result(OUT, {"machine": machine(), "command": COMMAND, "rows": ordered})
     return ordered
 
 

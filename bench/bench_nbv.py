@@ -13,45 +13,37 @@ strategy's score of a held-out test view (before any pick) and that view's true 
 Each (scene, seed) is one task written to bench/results/nbv/<scene>-<seed>.json after every
 strategy, so an interrupted run resumes; `--report` rewrites docs/nbv.md from those files.
 
-    .venv/bin/python bench/bench_nbv.py --jobs 2                  # shipped strategies, seeds 0..4
-    .venv/bin/python bench/bench_nbv.py --jobs 2 --seeds 0 --strategies sigma_mean kmedian kmedian_sigma \
+    .venv/bin/python -m bench.bench_nbv --jobs 2                  # shipped strategies, seeds 0..4
+    .venv/bin/python -m bench.bench_nbv --jobs 2 --seeds 0 --strategies sigma_mean kmedian kmedian_sigma \
         kmedian_sq fvs_prefilter                                  # the ones tried and not shipped
-    .venv/bin/python bench/bench_nbv.py --report
+    .venv/bin/python -m bench.bench_nbv --report
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
 import random
 import statistics
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+from bench import nbv_experiments  # importing registers the strategies tried, not shipped
+from bench._harness import DATA, DOCS, RESULTS, fmt, machine, svg_plot, train, write_doc, write_result
+from phd_core import uq as phd
+from phd_core.data import Dataset, load_dataset
+from phd_core.eval import psnr, rmse, spearman
+from phd_core.renderers.gs3d import GaussianRenderer
+from phd_core.uq.rank import add_fisher, visibility_evidence
+from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy
 
-from nbv_experiments import EXPERIMENTS  # noqa: E402  (importing registers the strategies tried, not shipped)
-from bench_phdropout import fmt, save, svg_plot, write_doc  # noqa: E402
-from phd_core import uq as phd  # noqa: E402
-from phd_core.data import Dataset, load_dataset  # noqa: E402
-from phd_core.renderers.gs3d import GaussianRenderer  # noqa: E402
-from phd_core.train.gs3d import TrainConfig, fit, training_background  # noqa: E402
-from phd_core.eval import psnr, rmse, spearman  # noqa: E402
-from phd_core.uq.rank import add_fisher, visibility_evidence  # noqa: E402
-from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy  # noqa: E402
-
-DATA = ROOT.parent / "shared" / "data"
-RESULTS = ROOT / "bench" / "results" / "nbv"
-DOC = ROOT / "docs" / "nbv.md"
+EXPERIMENTS = nbv_experiments.EXPERIMENTS
+DOC = DOCS / "nbv.md"
 SHIPPED = ["random", "fvs", "sigma_max", "fvs_sigma", "fvs_sigma_floor", "visibility", "visibility_sigma"]
 PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma"]   # curves per round
 # Image width per scene where it is not --resolution (square): the real capture is 4:3, 80x60 px
@@ -95,18 +87,6 @@ def protocol(args: argparse.Namespace) -> dict:
 
 
 # ---------------------------------------------------------------------------------------- one task
-
-def subset(data: Dataset, indices: list[int]) -> Dataset:
-    return dataclasses.replace(data, cameras=[data.cameras[i] for i in indices], images=data.images[indices],
-                               alphas=None if data.alphas is None else data.alphas[indices],
-                               indices=[data.indices[i] for i in indices])
-
-
-def train(data: Dataset, indices: list[int], iterations: int, seed: int) -> GaussianRenderer:
-    chosen = subset(data, indices)
-    model, _ = fit(chosen, TrainConfig(iterations=iterations, seed=seed), progress=False)
-    return GaussianRenderer(model, training_background(chosen), chosen.cameras)
-
 
 def test_errors(renderer: GaussianRenderer, test: Dataset) -> tuple[float, list[float]]:
     """Mean PSNR over the test views and each view's RMSE."""
@@ -191,7 +171,7 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
                 ratios.append(calibrated_ratio(renderer, [train_data.cameras[i] for i in chosen]))
         result["runs"][name] = {"psnr": curve, "chosen": chosen, "ratios": ratios, "cost_per_candidate": cost,
                                 "seconds": round(time.perf_counter() - started, 1)}
-        save(result, path)
+        write_result(path, result)
         print(f"{scene} seed {seed} {name}: " + " ".join(f"{p:.2f}" for p in curve), flush=True)
     return f"{scene} seed {seed}: done"
 
@@ -280,7 +260,7 @@ def overview(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]])
 
 
 def markdown(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]], args: argparse.Namespace) -> str:
-    lines = [f"Commands: `OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 .venv/bin/python bench/bench_nbv.py --jobs 2` "
+    lines = [f"Commands: `OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 .venv/bin/python -m bench.bench_nbv --jobs 2` "
              "(all four scenes; the strategies and seeds run are in the tables), then the "
              "line for the tried ones in the script's docstring (one seed), then `--report` "
              f"({platform.machine()}, {os.cpu_count()} cores, one thread per task). Protocol: {args.resolution}x{args.resolution} px "
@@ -362,8 +342,8 @@ def measure_costs(args: argparse.Namespace) -> dict:
         print(f"{name}: {costs[name] * 1000:.1f} ms per candidate", flush=True)
     result = {"scene": scene, "seed": seed, "candidates": len(candidates), "captured": len(captured),
               "splats": renderer.num_units, "samples": args.samples, "resolution": args.resolution,
-              "machine": platform.machine(), "cores": os.cpu_count(), "seconds_per_candidate": costs}
-    save(result, args.results / "costs.json")
+              "machine": machine(), "seconds_per_candidate": costs}
+    write_result(args.results / "costs.json", result)
     return result
 
 
@@ -374,7 +354,7 @@ def cost_table(args: argparse.Namespace) -> list[str]:
     costs = json.loads(path.read_text())
     base = costs["seconds_per_candidate"].get("fvs")
     lines = ["### What ranking costs", "",
-             f"Command: `.venv/bin/python bench/bench_nbv.py --costs --scenes {costs['scene']} --seeds {costs['seed']} "
+             f"Command: `.venv/bin/python -m bench.bench_nbv --costs --scenes {costs['scene']} --seeds {costs['seed']} "
              f"--strategies {' '.join(costs['seconds_per_candidate'])}`: one {costs['scene']} model from "
              f"{costs['captured']} views ({costs['splats']} splats), {costs['candidates']} candidates at "
              f"{costs['resolution']} px, N = {costs['samples']}, the product's `rank_views` (which reports sigma_max "
@@ -387,7 +367,7 @@ def cost_table(args: argparse.Namespace) -> list[str]:
 
 def main() -> None:
     args = parse_args()
-    args.results = args.results or RESULTS.parent / f"nbv{tag(args)}"
+    args.results = args.results or RESULTS / f"nbv{tag(args)}"
     if args.costs:
         measure_costs(args)
         return

@@ -8,29 +8,23 @@ and times, in the same process and on the same view:
 
 Writes bench/results/nerf.json and the table between the bench markers of docs/nerf.md.
 
-    OMP_WAIT_POLICY=PASSIVE .venv/bin/python bench/bench_nerf.py     # the full run (~25 min)
-    .venv/bin/python bench/bench_nerf.py --iterations 200 --variants pe --test-views 5 --no-doc
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python -m bench.bench_nerf     # the full run (~25 min)
+    .venv/bin/python -m bench.bench_nerf --iterations 200 --variants pe --test-views 5 --no-doc
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import re
-import sys
-import time
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from phd_core.data import load_blender  # noqa: E402
-from phd_core.eval import psnr, ssim  # noqa: E402
-from phd_core.train.nerf import DEFAULT_ITERATIONS, train_nerf  # noqa: E402
+from bench._harness import DOCS, LEGO, RESULTS, ROOT, command, load_average, machine, timed, write_result
+from phd_core.data import load_blender
+from phd_core.eval import psnr, ssim
+from phd_core.train.nerf import DEFAULT_ITERATIONS, train_nerf
 
 VARIANTS = {
     "pe": dict(encoding="pe", freenerf=False),
@@ -41,27 +35,23 @@ VARIANTS = {
 DOC_START, DOC_END = "<!-- bench:nerf:start -->", "<!-- bench:nerf:end -->"
 
 
-def timed(fn):
-    start = time.perf_counter()
-    result = fn()
-    return result, time.perf_counter() - start
-
-
 def run_variant(name: str, args, test) -> dict:
-    out = ROOT / "bench" / "results" / f"nerf_{name.replace('+', '_')}.nerf"
-    renderer, train_s = timed(lambda: train_nerf(args.data, views=args.views, downscale=args.downscale,
-                                                 iterations=args.iterations, seed=args.seed, out=out,
-                                                 progress=args.progress, **VARIANTS[name]))
+    out = RESULTS / f"nerf_{name.replace('+', '_')}.nerf"
+    training = timed(lambda: train_nerf(args.data, views=args.views, downscale=args.downscale,
+                                        iterations=args.iterations, seed=args.seed, out=out,
+                                        progress=args.progress, **VARIANTS[name]))
+    renderer, train_s = training.result, training.seconds
     preds = [renderer.render(camera)[0] for camera in test.cameras]
     view_psnr = [psnr(p, t) for p, t in zip(preds, test.images)]
     view_ssim = ssim(torch.stack(preds), test.images).tolist()
     camera = test.cameras[0]
 
-    with_grid, grid_s = timed(lambda: renderer.render(camera))
+    with_grid = timed(lambda: renderer.render(camera))
     renderer.use_grid = False
-    without_grid, nogrid_s = timed(lambda: renderer.render(camera))
+    without_grid = timed(lambda: renderer.render(camera))
     renderer.use_grid = True
-    diff = (with_grid - without_grid).abs()
+    diff = (with_grid.result - without_grid.result).abs()
+    grid_s, nogrid_s = with_grid.seconds, without_grid.seconds
 
     result = {
         "variant": name, **VARIANTS[name],
@@ -80,14 +70,14 @@ def run_variant(name: str, args, test) -> dict:
     if args.masks:
         gen = torch.Generator().manual_seed(0)
         keep = torch.rand(args.masks, renderer.num_units, generator=gen) >= args.ratio
-        batch, batch_s = timed(lambda: renderer.render(camera, keep))
-        singles, single_s = timed(lambda: torch.cat([renderer.render(camera, keep[i:i + 1])
-                                                     for i in range(args.masks)]))
+        batch = timed(lambda: renderer.render(camera, keep))
+        singles = timed(lambda: torch.cat([renderer.render(camera, keep[i:i + 1]) for i in range(args.masks)]))
+        batch_s, single_s = batch.seconds, singles.seconds
         result.update({
             "masks": args.masks, "mask_ratio": args.ratio,
             "mask_batch_seconds": round(batch_s, 2), "mask_separate_seconds": round(single_s, 2),
             "mask_batch_speedup": round(single_s / batch_s, 2),
-            "mask_batch_max_abs_diff": float((batch - singles).abs().max()),
+            "mask_batch_max_abs_diff": float((batch.result - singles.result).abs().max()),
         })
     print(json.dumps(result), flush=True)
     return result
@@ -118,7 +108,7 @@ def markdown(report: dict) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "lego_200"))
+    parser.add_argument("--data", default=str(LEGO))
     parser.add_argument("--views", type=int, default=16)
     parser.add_argument("--downscale", type=float, default=2)
     parser.add_argument("--test-views", type=int, default=25)
@@ -127,8 +117,8 @@ def main() -> None:
     parser.add_argument("--masks", type=int, default=16, help="keep-masks of the batch timing (0: skip)")
     parser.add_argument("--ratio", type=float, default=0.1, help="dropout ratio of the timed masks")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", default=str(ROOT / "bench" / "results" / "nerf.json"))
-    parser.add_argument("--doc", default=str(ROOT / "docs" / "nerf.md"))
+    parser.add_argument("--json", default=str(RESULTS / "nerf.json"))
+    parser.add_argument("--doc", default=str(DOCS / "nerf.md"))
     parser.add_argument("--no-doc", action="store_true", help="do not rewrite the table in docs/nerf.md")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args()
@@ -137,25 +127,19 @@ def main() -> None:
         if name not in VARIANTS:
             parser.error(f"unknown variant {name!r}; choose from {', '.join(VARIANTS)}")
 
-    (ROOT / "bench" / "results").mkdir(parents=True, exist_ok=True)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     test = load_blender(args.data, "test", downscale=args.downscale, views=args.test_views)
-    load_before = os.getloadavg()
+    load_before = load_average()
     results = [run_variant(name, args, test) for name in names]
     report = {
-        "command": "python " + " ".join([Path(sys.argv[0]).as_posix()] + sys.argv[1:]),
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-                    "threads": torch.get_num_threads(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-                    "load_before": [round(x, 2) for x in load_before],
-                    "load_after": [round(x, 2) for x in os.getloadavg()]},
+        "command": command(),
+        "machine": machine(load_before=load_before, load_after=load_average()),
         "settings": {"views": args.views, "downscale": args.downscale, "width": test.cameras[0].width,
                      "height": test.cameras[0].height, "test_views": args.test_views,
                      "iterations": args.iterations, "seed": args.seed},
         "results": results,
     }
-    path = Path(args.json)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(report, indent=2) + "\n")
-    os.replace(tmp, path)
+    write_result(Path(args.json), report)
     print(markdown(report))
     if not args.no_doc:
         doc = Path(args.doc)

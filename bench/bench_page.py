@@ -2,7 +2,7 @@
 loaded, against the same request through the Python client, interleaved in one run; and the
 screenshots that docs/service.md shows.
 
-    .venv/bin/python bench/bench_page.py --model-a A.ply --model-b B.ply --out docs --repeats 3
+    .venv/bin/python -m bench.bench_page --model-a A.ply --model-b B.ply --out docs --repeats 3
 
 Both PLYs need their training cameras (the sidecar JSON `phd train` writes). Starts `phd
 serve` in-process on a free 127.0.0.1 port with an API key, headless Chromium through the
@@ -13,22 +13,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from selenium import webdriver
+from selenium.webdriver.common.by import By
+from selenium.webdriver.support.ui import Select, WebDriverWait
 
-from selenium import webdriver  # noqa: E402
-from selenium.webdriver.common.by import By  # noqa: E402
-from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
-
-from client import PHDClient  # noqa: E402
-from service.runner import BackgroundServer  # noqa: E402
-from service.settings import Settings  # noqa: E402
+from bench._harness import timed
+from client import PHDClient
+from service.runner import BackgroundServer
+from service.settings import Settings
 
 KEY = "bench-key"
 
@@ -87,15 +84,17 @@ def main() -> int:
             WebDriverWait(driver, 60).until(
                 lambda d: (d.execute_script("return state.spec") or {}).get("count") == args.candidates)
             spec = driver.execute_script("return state.spec")      # the service makes the poses for both
-            page_times, client_times = [], []
-            for _ in range(args.repeats):
-                start = time.perf_counter()
-                result = phd.rank(a.id, candidates=spec, samples=args.samples, downscale=1, heatmaps="files")
-                client_times.append(time.perf_counter() - start)
-                start = time.perf_counter()
+            def rank_on_page() -> None:
                 driver.find_element(By.ID, "rank-run").click()
                 WebDriverWait(driver, 600, poll_frequency=0.05).until(grid_ready("rank-grid", args.candidates))
-                page_times.append(time.perf_counter() - start)
+
+            page_times, client_times = [], []
+            for _ in range(args.repeats):
+                ranked = timed(lambda: phd.rank(a.id, candidates=spec, samples=args.samples, downscale=1,
+                                                heatmaps="files"))
+                result = ranked.result
+                client_times.append(ranked.seconds)
+                page_times.append(timed(rank_on_page).seconds)
             driver.execute_script("document.querySelector('#rank-grid li.card').click()")
             args.out.mkdir(parents=True, exist_ok=True)
             driver.find_element(By.ID, "rank-section").screenshot(str(args.out / "page_rank.png"))

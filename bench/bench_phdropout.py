@@ -18,8 +18,8 @@ none does, >= 0.9 x the reference's agreement with its re-run.
 Writes bench/results/uq.json after every section (a cut run keeps its numbers),
 the tables between the bench markers of docs/uq.md and two SVG plots in docs/.
 
-    .venv/bin/python bench/bench_phdropout.py --model runs/lego16/model.ply --data ../shared/data/lego_200
-    .venv/bin/python bench/bench_phdropout.py --quick      # smoke run on a random model
+    .venv/bin/python -m bench.bench_phdropout --model runs/lego16/model.ply --data ../shared/data/lego_200
+    .venv/bin/python -m bench.bench_phdropout --quick      # smoke run on a random model
 
 Without --model (or with --random-splats K) a seeded random splat cloud stands in for the
 trained model, with lego's training cameras: numbers then only validate the script.
@@ -28,9 +28,6 @@ trained model, with lego's training cameras: numbers then only validate the scri
 from __future__ import annotations
 
 import argparse
-import math
-import os
-import platform
 import statistics
 import sys
 import time
@@ -39,17 +36,15 @@ from typing import Any
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from bench._harness import (DOCS, LEGO, RESULTS, ROOT, fmt, load_test_at_size, machine, machine_text, svg_plot,
+                            timed, write_doc, write_result)
+from phd_core import uq as phd
+from phd_core.data import load_dataset
+from phd_core.eval import uq as uqm
 
-from phd_core import uq as phd  # noqa: E402
-from phd_core.eval import uq as uqm  # noqa: E402
-from phd_core.data import load_dataset  # noqa: E402
-from phd_core.io import write_bytes_atomic, write_json_atomic  # noqa: E402
-
-DATA = ROOT.parent / "shared" / "data" / "lego_200"
-RESULTS = ROOT / "bench" / "results" / "uq.json"
-DOC = ROOT / "docs" / "uq.md"
+DATA = LEGO
+RESULT = RESULTS / "uq.json"
+DOC = DOCS / "uq.md"
 REFERENCE_SEED = 1000      # the reference ranking's masks differ from every tested seed
 TAU_TARGET = 0.9
 TOP_K = 5
@@ -80,13 +75,13 @@ def parse_args() -> argparse.Namespace:
                    help="skip the remaining grid cells once this much time has passed")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument("--quick", action="store_true", help="tiny grid on a small random model (smoke test)")
-    p.add_argument("--out", type=Path, default=None, help=f"results JSON (default {RESULTS.relative_to(ROOT)}, "
+    p.add_argument("--out", type=Path, default=None, help=f"results JSON (default {RESULT.relative_to(ROOT)}, "
                    "with --quick bench/results/phdropout_quick.json)")
     p.add_argument("--doc", type=Path, default=None,
                    help=f"markdown file whose bench section is rewritten (default {DOC.relative_to(ROOT)}; "
                         "--quick writes no document unless given)")
     args = p.parse_args()
-    args.out = args.out or (RESULTS.with_name("phdropout_quick.json") if args.quick else RESULTS)
+    args.out = args.out or (RESULT.with_name("phdropout_quick.json") if args.quick else RESULT)
     args.doc = args.doc or (None if args.quick else DOC)
     if args.quick:
         args.random_splats = args.random_splats or 2000
@@ -135,17 +130,6 @@ def load_renderer(args: argparse.Namespace):
     return GaussianRenderer(model, training_cameras=train.cameras), f"random splat cloud ({count} splats)"
 
 
-def timed(fn, *a, **kw) -> tuple[Any, float]:
-    start = time.perf_counter()
-    out = fn(*a, **kw)
-    return out, time.perf_counter() - start
-
-
-def save(results: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(path, results)
-
-
 # ---------------------------------------------------------------------------------------- sections
 
 def bench_calibration(renderer, args, results, started: float) -> float:
@@ -170,7 +154,8 @@ def bench_calibration(renderer, args, results, started: float) -> float:
             rows.append({**row, "cut": True})
             continue
         try:
-            result, seconds = timed(phd.calibrate, renderer, cameras, step=step, method=method, samples=samples)
+            run = timed(lambda: phd.calibrate(renderer, cameras, step=step, method=method, samples=samples))
+            result, seconds = run.result, run.seconds
             row.update(seconds=seconds, r_drop=result.r_drop, evaluated=len(result.ratios), capped=result.capped,
                        ratios=result.ratios, errors=result.errors, cut=False)
         except phd.CalibrationError as exc:
@@ -180,7 +165,7 @@ def bench_calibration(renderer, args, results, started: float) -> float:
               f"({row['evaluated']} ratios, {row['seconds'] or 0:.1f} s)", flush=True)
         results["calibration"] = {"resolution": args.calibration_resolution, "views": len(cameras),
                                   "epsilon": phd.DEFAULT_EPSILON, "rows": rows}
-        save(results, args.out)
+        write_result(args.out, results)
     return rows[0]["r_drop"]
 
 
@@ -200,8 +185,9 @@ def bench_grid(renderer, candidates, ratio, args, results, started: float) -> No
     # the others separate the effect of the resolution from that of the sample count.
     references = {}
     for size in sorted(sizes, reverse=True):
-        views, seconds = timed(phd.uncertainty, renderer, at_size(candidates, size), ratio=ratio,
-                               samples=args.reference_samples, seed=REFERENCE_SEED)
+        run = timed(lambda: phd.uncertainty(renderer, at_size(candidates, size), ratio=ratio,
+                                            samples=args.reference_samples, seed=REFERENCE_SEED))
+        views, seconds = run.result, run.seconds
         references[size] = {"samples": args.reference_samples, "resolution": size, "seed": REFERENCE_SEED,
                             "seconds_per_view": seconds / len(candidates),
                             "sigma_max": [v.sigma_max for v in views]}
@@ -220,7 +206,7 @@ def bench_grid(renderer, candidates, ratio, args, results, started: float) -> No
     results["reference"] = {**references[max(sizes)], "order": uqm.order_by_score(ref_scores),
                             "self_agreement": self_agreement}
     results["references_by_resolution"] = [references[size] for size in sizes]
-    save(results, args.out)
+    write_result(args.out, results)
     cells = []
     for size in sizes:
         if args.budget_minutes is not None and time.perf_counter() - started > 60 * args.budget_minutes:
@@ -230,7 +216,8 @@ def bench_grid(renderer, candidates, ratio, args, results, started: float) -> No
         # Time: direct API calls on the first timing views, one per N.
         seconds_per_view, direct = {}, {}
         for n in grid:
-            views, seconds = timed(phd.uncertainty, renderer, cams[:args.timing_views], ratio=ratio, samples=n, seed=0)
+            run = timed(lambda: phd.uncertainty(renderer, cams[:args.timing_views], ratio=ratio, samples=n, seed=0))
+            views, seconds = run.result, run.seconds
             seconds_per_view[n] = seconds / len(views)
             direct[n] = views[0].sigma_max
         # Accuracy: one render of max(grid) masks per (seed, candidate) serves every N.
@@ -262,7 +249,7 @@ def bench_grid(renderer, candidates, ratio, args, results, started: float) -> No
                   f"tau {fmt(cell['kendall_tau_mean'])} (same px {fmt(cell['kendall_tau_same_resolution_mean'])}), "
                   f"top5 {cell['top5_overlap_mean']:.2f}", flush=True)
         results["grid"] = cells
-        save(results, args.out)
+        write_result(args.out, results)
     results["grid"] = cells
     results["recommendation"] = recommend(cells, self_agreement["kendall_tau"])
 
@@ -297,7 +284,7 @@ def bench_speedup(renderer, candidates, ratio, args, results) -> None:
         keep = phd.keep_masks(phd.dropout_uniforms(renderer.num_units, n, 0), ratio)
         batched = separate = 0.0
         for cam in cams:
-            _, seconds = timed(phd.view_uncertainty, renderer, cam, ratio=ratio, samples=n, seed=0)
+            seconds = timed(lambda: phd.view_uncertainty(renderer, cam, ratio=ratio, samples=n, seed=0)).seconds
             batched += seconds
             start = time.perf_counter()
             images = torch.cat([renderer.render(cam, k[None]) for k in keep])
@@ -318,12 +305,6 @@ def angle_to_nearest(cameras: list, training: list) -> list[float]:
     axes = torch.stack([axis(c) for c in training])                          # [T, 3]
     cosines = torch.stack([axes @ axis(c) for c in cameras]).amax(1).clamp(-1, 1)
     return torch.rad2deg(torch.acos(cosines)).tolist()
-
-
-def load_test_at_size(data: Path, views: int, size: int):
-    """`views` evenly spaced test-split frames with their images, downscaled to `size` pixels wide."""
-    width = load_dataset(data, "test", views=1, with_images=False).cameras[0].width
-    return load_dataset(data, "test", views=views, downscale=width / size)
 
 
 def bench_evidence(renderer, ratio, samples, args, results) -> None:
@@ -362,16 +343,8 @@ def bench_evidence(renderer, ratio, samples, args, results) -> None:
 
 # ---------------------------------------------------------------------------------------- report
 
-def fmt(value: Any, digits: int = 3) -> str:
-    if value is None:
-        return "undefined"
-    if isinstance(value, float):
-        return f"{value:.{digits}f}"
-    return str(value)
-
-
 def markdown(results: dict) -> str:
-    lines = [f"Measured {results['date']} on {results['machine']}; model: {results['model']}; "
+    lines = [f"Measured {results['date']} on {machine_text(results['machine'])}; model: {results['model']}; "
              f"torch {results['torch']} with {results['threads']} threads; command: `{results['command']}`.", ""]
     cal = results.get("calibration")
     if cal:
@@ -438,61 +411,6 @@ def markdown(results: dict) -> str:
     return "\n".join(lines)
 
 
-def write_doc(path: Path, body: str, section: str = "phdropout") -> None:
-    """Replace the text between `<!-- bench:<section>:begin -->` and its end marker (or append)."""
-    begin, end = f"<!-- bench:{section}:begin -->", f"<!-- bench:{section}:end -->"
-    text = path.read_text() if path.exists() else ""
-    block = f"{begin}\n{body}\n{end}"
-    if begin in text and end in text:
-        text = text[:text.index(begin)] + block + text[text.index(end) + len(end):]
-    else:
-        text = text + ("\n" if text else "") + block + "\n"
-    write_bytes_atomic(path, text.encode())
-
-
-def svg_plot(path: Path, series: dict[str, list[tuple[float, float]]], xlabel: str, ylabel: str,
-             log_y: bool = False, log_x: bool = True) -> None:
-    """A minimal line chart, one polyline per series (log2 x axis by default: N)."""
-    width, height, left, right, top, bottom = 420, 280, 60, 110, 20, 45
-    points = [p for s in series.values() for p in s if p[1] is not None and (p[1] > 0 or not log_y)]
-    if not points:
-        return
-    fy = (lambda v: math.log10(v)) if log_y else (lambda v: v)
-    fx = math.log2 if log_x else (lambda v: v)
-    x0, x1 = fx(min(p[0] for p in points)), fx(max(p[0] for p in points))
-    y0, y1 = min(fy(p[1]) for p in points), max(fy(p[1]) for p in points)
-    x1, y1 = (x1 if x1 > x0 else x0 + 1), (y1 if y1 > y0 else y0 + 1)
-
-    def xy(x: float, y: float) -> tuple[float, float]:
-        return (left + (fx(x) - x0) / (x1 - x0) * (width - left - right),
-                height - bottom - (fy(y) - y0) / (y1 - y0) * (height - top - bottom))
-
-    colours = ["#440154", "#31688e", "#35b779", "#b5de2b", "#fde725", "#e4572e", "#888888"]
-    out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" '
-           f'font-size="11"><rect width="100%" height="100%" fill="white"/>',
-           f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="black"/>',
-           f'<line x1="{left}" y1="{top}" x2="{left}" y2="{height - bottom}" stroke="black"/>',
-           f'<text x="{(left + width - right) / 2}" y="{height - 8}" text-anchor="middle">{xlabel}</text>',
-           f'<text x="12" y="{(top + height - bottom) / 2}" transform="rotate(-90 12 {(top + height - bottom) / 2})" '
-           f'text-anchor="middle">{ylabel}</text>']
-    for x in sorted({p[0] for p in points}):
-        px, _ = xy(x, 10 ** y0 if log_y else y0)
-        out.append(f'<text x="{px:.1f}" y="{height - bottom + 14}" text-anchor="middle">{x:g}</text>')
-    for frac in (0, 0.5, 1):
-        value = y0 + frac * (y1 - y0)
-        label = 10 ** value if log_y else value
-        py = height - bottom - frac * (height - top - bottom)
-        out.append(f'<text x="{left - 4}" y="{py + 4:.1f}" text-anchor="end">{label:.3g}</text>')
-    for i, (name, pts) in enumerate(series.items()):
-        pts = [p for p in pts if p[1] is not None and (p[1] > 0 or not log_y)]
-        colour = colours[i % len(colours)]
-        coords = " ".join(f"{a:.1f},{b:.1f}" for a, b in (xy(*p) for p in pts))
-        out.append(f'<polyline points="{coords}" fill="none" stroke="{colour}" stroke-width="2"/>')
-        out.append(f'<text x="{width - right + 8}" y="{top + 14 * (i + 1)}" fill="{colour}">{name}</text>')
-    out.append("</svg>")
-    write_bytes_atomic(path, "\n".join(out).encode())
-
-
 def plots(results: dict, doc: Path) -> None:
     cells = [c for c in results.get("grid", []) if not c["cut"]]
     sizes = sorted({c["resolution"] for c in cells})
@@ -513,7 +431,7 @@ def main() -> None:
     test = load_dataset(args.data, "test", views=args.candidates, with_images=False)
     results: dict[str, Any] = {
         "date": time.strftime("%Y-%m-%d %H:%M"), "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
-        "machine": f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} CPUs".replace("  ", " "),
+        "machine": machine(),
         "torch": torch.__version__, "threads": torch.get_num_threads(), "model": description,
         "candidates": len(test.cameras), "candidate_frames": test.indices, "seeds": args.seeds,
         "defaults": {"epsilon": phd.DEFAULT_EPSILON, "step": phd.DEFAULT_STEP, "samples": phd.DEFAULT_SAMPLES,
@@ -526,18 +444,18 @@ def main() -> None:
         ratio = 0.1
         results["ratio_note"] = "calibration failed (r_drop = 0); the grid uses ratio 0.1"
     results["ratio"] = ratio
-    save(results, args.out)
+    write_result(args.out, results)
     bench_grid(renderer, test.cameras, ratio, args, results, started)
-    save(results, args.out)
+    write_result(args.out, results)
     bench_speedup(renderer, test.cameras, ratio, args, results)
-    save(results, args.out)
+    write_result(args.out, results)
     rec = results["recommendation"]["cell"]
     bench_evidence(renderer, ratio, rec["samples"] if rec else phd.DEFAULT_SAMPLES, args, results)
     results["total_seconds"] = time.perf_counter() - started
-    save(results, args.out)
+    write_result(args.out, results)
     if args.doc is not None:
         plots(results, args.doc)
-        write_doc(args.doc, markdown(results))
+        write_doc(args.doc, markdown(results), "phdropout")
     print(markdown(results))
     print(f"wrote {args.out}" + (f" and the tables in {args.doc}" if args.doc else ""))
 

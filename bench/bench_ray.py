@@ -12,7 +12,7 @@ then 2 CPUs; local runs are timed in the same rounds, so load hits both sides al
 - the cold first call (Ray workers start and import torch), once per Ray instance;
 - that every Ray ranking equals the local one.
 
-    .venv/bin/python bench/bench_ray.py [--model runs/lego16/model.ply] [--rounds 2]
+    .venv/bin/python -m bench.bench_ray [--model runs/lego16/model.ply] [--rounds 2]
 
 The model is --model, else a seeded random 3DGS model of --random-splats splats. Writes
 bench/results/ray.json and prints a Markdown table for docs/performance.md.
@@ -21,38 +21,19 @@ bench/results/ray.json and prints a Markdown table for docs/performance.md.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-# Before torch loads: idle OpenMP threads sleep instead of spinning (as phd_cli sets it; with
-# spinning, local torch on a busy 2-core machine runs several times slower, docs/gaussians.md).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-import torch  # noqa: E402
+import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from bench_service import candidates, random_model  # noqa: E402
-from phd_core import uq  # noqa: E402
-from phd_core.executors.ray import RayExecutor, import_ray  # noqa: E402
-from phd_core.renderers import load_model  # noqa: E402
-
-
-def timed(fn, reps: int) -> tuple[float, object]:
-    """Median wall time of `reps` calls, and the last result."""
-    times, result = [], None
-    for _ in range(reps):
-        start = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), result
+from bench._harness import RESULTS, candidates, machine, random_model, timed, write_result
+from phd_core import uq
+from phd_core.executors.ray import RayExecutor, import_ray
+from phd_core.renderers import load_model
 
 
 def worker_threads(_chunk) -> int:
@@ -73,7 +54,7 @@ def main() -> int:
     parser.add_argument("--ratio", type=float, default=0.2)
     parser.add_argument("--rounds", type=int, default=3, help="Ray restarts per CPU count")
     parser.add_argument("--reps", type=int, default=2, help="timed calls per measurement (median)")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "ray.json")
+    parser.add_argument("--out", type=Path, default=RESULTS / "ray.json")
     args = parser.parse_args()
 
     ray = import_ray()
@@ -110,25 +91,24 @@ def main() -> int:
             start = time.perf_counter()
             executor.map(worker_threads, [[i] for i in range(4)])
             rows[f"sleep_map_{cpus}cpu"].append(time.perf_counter() - start)
-            seconds, ranked = timed(lambda: rank(big, args.samples, executor), args.reps)
-            rows[f"ray_{cpus}cpu"].append(seconds)
-            same &= [r.to_dict() for r in ranked] == expected
-            rows[f"small_ray_{cpus}cpu"].append(timed(lambda: rank(small, 8, executor), args.reps * 3)[0])
+            ranking = timed(lambda: rank(big, args.samples, executor), args.reps)
+            rows[f"ray_{cpus}cpu"].append(ranking.median)
+            same &= [r.to_dict() for r in ranking.result] == expected
+            rows[f"small_ray_{cpus}cpu"].append(timed(lambda: rank(small, 8, executor), args.reps * 3).median)
             ray.shutdown()
             torch.set_num_threads(1)
-            rows["local_1thread"].append(timed(lambda: rank(big, args.samples), args.reps)[0])
+            rows["local_1thread"].append(timed(lambda: rank(big, args.samples), args.reps).median)
             torch.set_num_threads(default_threads)
-            rows["local_default"].append(timed(lambda: rank(big, args.samples), args.reps)[0])
-            rows["small_local"].append(timed(lambda: rank(small, 8), args.reps * 3)[0])
+            rows["local_default"].append(timed(lambda: rank(big, args.samples), args.reps).median)
+            rows["small_local"].append(timed(lambda: rank(small, 8), args.reps * 3).median)
             print(f"round {round_ + 1}, {cpus} CPU(s): ray {rows[f'ray_{cpus}cpu'][-1]:.3f} s, local "
                   f"{rows['local_1thread'][-1]:.3f} s (1 thread), {rows['local_default'][-1]:.3f} s", flush=True)
 
     med = {k: statistics.median(v) for k, v in rows.items()}
     result = {
         "benchmark": "rank_views on Ray (phd_core.executors.ray) vs local",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-                    "ray": ray.__version__, "local_threads": default_threads,
-                    "threads_per_ray_worker": sorted(threads_in_workers)},
+        "machine": machine(ray=ray.__version__, local_threads=default_threads,
+                           threads_per_ray_worker=sorted(threads_in_workers)),
         "model": str(args.model) if args.model else f"random 3DGS, {args.random_splats} splats",
         "num_units": renderer.num_units,
         "big_job": {"candidates": args.candidates, "size": args.size, "samples": args.samples,
@@ -145,8 +125,7 @@ def main() -> int:
         "small_job_ratio": med["small_ray_2cpu"] / med["small_local"],
         "load_average_after": os.getloadavg(),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
+    write_result(args.out, result)
     print(f"\n| job | local (1 thread) | local ({default_threads} threads) | Ray, 1 CPU | Ray, 2 CPUs |")
     print("|---|---|---|---|---|")
     print(f"| big: {args.candidates} views {args.size}px N={args.samples} | {med['local_1thread']:.2f} s | "

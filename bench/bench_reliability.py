@@ -7,7 +7,7 @@ as a separate process, as users run it:
 - ASCII PLY: peak RSS of parsing a `--splats`-splat ASCII PLY held in memory, over the
   RSS once the file is read, next to the file size.
 
-    nice -n 10 .venv/bin/python bench/bench_reliability.py [--requests 10000]
+    nice -n 10 .venv/bin/python -m bench.bench_reliability [--requests 10000]
 
 Writes bench/results/reliability.json. Memory under every kind of request (the attack's
 800x800, samples=256 rank included) is bench/bench_memory.py's sweep.
@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import random
 import resource
 import subprocess
@@ -29,13 +27,11 @@ from pathlib import Path
 
 import httpx
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
-
-from client import PHDClient  # noqa: E402
-from conftest import SvcProcess, svc_cameras, svc_random_gaussians  # noqa: E402
-from phd_core.renderers.gs3d import write_ply  # noqa: E402
-from support.fuzz import mutated_request, send  # noqa: E402
+from bench._harness import RESULTS, machine, write_result
+from client import PHDClient
+from phd_core.renderers.gs3d import write_ply
+from tests.support.fixtures import SvcProcess, svc_cameras, svc_random_gaussians
+from tests.support.fuzz import mutated_request, send
 
 
 def fuzz(requests: int, root: Path, ply: Path, ply_b: Path) -> dict:
@@ -84,6 +80,7 @@ def fuzz(requests: int, root: Path, ply: Path, ply_b: Path) -> dict:
 def ascii_ply(root: Path, splats: int) -> dict:
     # The peak is reset (clear_refs 5) after the file is read, so VmHWM - VmRSS is the parse alone.
     code = ("import sys; from pathlib import Path; from phd_core.renderers.gs3d import parse_ply; "
+            "from phd_core.allocator import keep_freed_memory; keep_freed_memory(); "     # as `phd` does
             "data = open(sys.argv[1], 'rb').read(); "
             "vm = lambda k: int(next(l for l in Path('/proc/self/status').read_text().splitlines() "
             "if l.startswith(k)).split()[1]) * 1024; "
@@ -112,8 +109,7 @@ def main() -> None:
     parser.add_argument("--splats", type=int, default=200_000)
     parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "ascii"])
     args = parser.parse_args()
-    results = {"machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                           "python": platform.python_version()}}
+    results = {"machine": machine()}
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         ply, ply_b = root / "a.ply", root / "b.ply"
@@ -125,8 +121,8 @@ def main() -> None:
         if "fuzz" not in args.skip:
             results["fuzz"] = fuzz(args.requests, root, ply, ply_b)
             print(json.dumps(results["fuzz"]), flush=True)
-    out = ROOT / "bench" / "results" / "reliability.json"
-    out.write_text(json.dumps(results, indent=2) + "\n")
+    out = RESULTS / "reliability.json"
+    write_result(out, results)
     print(f"wrote {out}; peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss} KiB")
 
 

@@ -1,6 +1,6 @@
 """How the cost of ranking and calibration grows with the model: 45k to 3M splats.
 
-    python bench/bench_scale.py [--copies 1 6 22 66] [--sh 0 3] [--widths 100 200 400]
+    python -m bench.bench_scale [--copies 1 6 22 66] [--sh 0 3] [--widths 100 200 400]
                                 [--samples 2 16 64] [--candidates 8] [--coarse-candidates 100]
 
 Models: `tiled_model`, copies of the 45,624-splat synthetic donut of bench_speed.py laid
@@ -18,34 +18,27 @@ docs/performance.md.
 
 from __future__ import annotations
 
+import argparse
+import gc
+import json
+import math
 import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # as the `phd` command does, before torch loads
+import torch
 
-import argparse  # noqa: E402
-import gc  # noqa: E402
-import json  # noqa: E402
-import math  # noqa: E402
-import platform  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+from bench._harness import (DOCS, DONUT, PHD, RESULTS, ROOT, child, donut_model, load_at_start, load_average,
+                            machine, svg_plot, write_result)
+from phd_core.data import load_blender
+from phd_core.eval.uq import kendall_tau_b
+from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, write_ply
+from phd_core.scene import Camera
+from phd_core.uq.strategies import DEFAULT_STRATEGY
 
-import torch  # noqa: E402
-
-from phd_core.data import load_blender  # noqa: E402
-from phd_core.eval.uq import kendall_tau_b  # noqa: E402
-from phd_core.io import write_json_atomic  # noqa: E402
-from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, write_ply  # noqa: E402
-from phd_core.scene import Camera  # noqa: E402
-from phd_core.uq.strategies import DEFAULT_STRATEGY  # noqa: E402
-
-from bench_phdropout import svg_plot  # noqa: E402  (bench/ is on the path when run as a script)
-from bench_speed import DONUT, PHD, child, donut_model  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
 SPACING = 2.0           # scene units between neighbouring copies (a donut is about 2.3 across)
 SH3_STD = 0.08          # std of the seeded higher SH coefficients of an SH-3 model
 
@@ -283,9 +276,10 @@ def in_child(kind: str, baseline: str | None = None, **kwargs) -> dict:
     """Run `measure_model`, `coarse_trade` or `profile` (kind) in a fresh process, so its peak
     RSS and its memory are its own; returns what it returned. With `baseline`, a directory
     holding an older phd_core, that one is imported."""
-    code = (f"import sys, json; sys.path.insert(0, {str(ROOT / 'bench')!r}); import bench_scale; "
-            f"print('RESULT ' + json.dumps(bench_scale.{kind}(**json.loads(sys.argv[1]))))")
-    env = {**os.environ, "PYTHONPATH": baseline} if baseline else None
+    # The bench package always comes from this checkout (a baseline holds phd_core and phd_cli only).
+    code = (f"import sys, json, bench.bench_scale as b; "
+            f"print('RESULT ' + json.dumps(b.{kind}(**json.loads(sys.argv[1]))))")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([baseline, str(ROOT)])} if baseline else None
     proc = subprocess.run([sys.executable, "-c", code, json.dumps(kwargs)], cwd=baseline or ROOT, env=env,
                           capture_output=True, text=True)
     sys.stdout.write(proc.stdout.replace("RESULT ", "result ")[-3000:])
@@ -321,8 +315,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--coarse-candidates", type=int, default=100)
     parser.add_argument("--coarse-strategies", nargs="+", default=["sigma_max", DEFAULT_STRATEGY])
     parser.add_argument("--target-candidates", type=int, default=100)
-    parser.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "scale.json")
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "performance.md")
+    parser.add_argument("--json", type=Path, default=RESULTS / "scale.json")
+    parser.add_argument("--out", type=Path, default=DOCS / "performance.md")
     parser.add_argument("--report-only", action="store_true", help="rewrite the docs from --json")
     return parser.parse_args()
 
@@ -333,9 +327,8 @@ def main() -> None:
         write_report(args.out, json.loads(args.json.read_text()))
         return
     results = json.loads(args.json.read_text()) if args.json.exists() else {}
-    results["machine"] = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                          "torch": torch.__version__, "load_average_at_start": [round(x, 2) for x in os.getloadavg()]}
-    command = "python bench/bench_scale.py " + " ".join(sys.argv[1:])
+    results["machine"] = machine()
+    command = "python -m bench.bench_scale " + " ".join(sys.argv[1:])
     results["commands"] = [c for c in results.get("commands", []) if c != command] + [command]
     models = results.setdefault("models", {})
     for copies in args.copies:
@@ -344,23 +337,23 @@ def main() -> None:
                 "measure_model", copies=copies, sh=sh, widths=args.widths, samples=args.samples,
                 candidates=args.candidates, calibration_views=args.calibration_views,
                 calibration_widths=args.calibration_widths, ratio=args.ratio)
-            write_json_atomic(args.json, results)                # a partial run keeps what it measured
+            write_result(args.json, results)                # a partial run keeps what it measured
     for copies in ([22] if args.target == [] else args.target or []):
         results.setdefault("targets", {})[str(copies)] = rank_target(copies, 3, args.target_candidates, 200, 16, args.ratio,
                                                                 args.baseline)
-        write_json_atomic(args.json, results)
+        write_result(args.json, results)
     if args.profile:
         runs = {args.profile_name: None} if args.baseline is None else {"before": args.baseline, args.profile_name: None}
         results.setdefault("profile", {}).update(
             {name: in_child("profile", baseline=path, copies=22, sh=3, width=200, samples=16, cameras=4,
                             ratio=args.ratio) for name, path in runs.items()})
-        write_json_atomic(args.json, results)
+        write_result(args.json, results)
     if args.coarse:
         results["coarse"] = in_child("coarse_trade", copies=22, sh=3, candidates=args.coarse_candidates, width=200,
                                      samples=16, ratio=args.ratio, scales=args.coarse_scales,
                                      refines=args.coarse_refines, strategies=args.coarse_strategies)
-    results["machine"]["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
-    write_json_atomic(args.json, results)
+    results["machine"]["load_average_at_end"] = load_average()
+    write_result(args.json, results)
     write_report(args.out, results)
     print(f"written {args.json} and {args.out}")
 
@@ -392,6 +385,11 @@ def write_report(path: Path, results: dict) -> None:
     svg_plot(path.parent / "scale_time.svg", series, "thousand splats (log)", "s per candidate, N = 16", log_y=True)
 
 
+def command_now(recorded: str) -> str:
+    """A recorded command as it is typed now (runs before bench/_harness.py started the file as a script)."""
+    return recorded.replace("python bench/" + "bench_scale.py", "python -m bench.bench_scale", 1)
+
+
 def report(r: dict) -> str:
     m = r["machine"]
     models = sorted(r.get("models", {}).values(), key=lambda x: (x["splats"], x["sh"]))
@@ -416,10 +414,10 @@ Measured by `bench/bench_scale.py` (issue 24); raw numbers in `bench/results/sca
 (one after another, each adding to the JSON; the baseline directory holds `git archive a0bdc7c
 phd_core phd_cli`, the code before issue 24):
 
-{chr(10).join('    ' + c.replace('python ', 'nice -n 19 .venv/bin/python ', 1) for c in r['commands'])}
+{chr(10).join('    ' + command_now(c).replace('python ', 'nice -n 19 .venv/bin/python ', 1) for c in r['commands'])}
 
 Machine: {m['cpus']} cores, {m['platform']}, Python {m['python']}, torch {m['torch']}; load average
-{m['load_average_at_start']} at the start and {m.get('load_average_at_end')} at the end: **the machine was shared
+{load_at_start(m)} at the start and {m.get('load_average_at_end')} at the end: **the machine was shared
 with a long benchmark holding both cores and this one ran at nice 19**, so absolute times are
 pessimistic (a 45k-splat camera that prepares in 0.025 s on the idle machine of the tables
 above took 0.1-0.2 s here); compare within this section.

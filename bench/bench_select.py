@@ -8,28 +8,23 @@ per-view oracle, and E_ME (the paper's mean over views of SSIM(selected) / max S
 Writes bench/results/select.json and the table between the `bench:select` markers of
 docs/nbv.md.
 
-    .venv/bin/python bench/bench_select.py
+    .venv/bin/python -m bench.bench_select
 """
 
 from __future__ import annotations
 
 import argparse
 import random
-import sys
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+from bench._harness import DATA, DOCS, RESULTS, train, write_doc, write_result
+from phd_core import uq as phd
+from phd_core.data import load_blender, select_views
 
-from bench_nbv import DATA, DOC, train  # noqa: E402
-from bench_phdropout import save, write_doc  # noqa: E402
-from phd_core import uq as phd  # noqa: E402
-from phd_core.data import load_blender, select_views  # noqa: E402
-
-RESULTS = ROOT / "bench" / "results" / "select.json"
+DOC = DOCS / "nbv.md"
+RESULT = RESULTS / "select.json"
 # (scene, views per model, image size, iterations, how the two view sets are drawn, test views)
 CASES = [("lego_200", 16, 100, 500, "demo", 100), ("lego_200", 8, 50, 600, "random", 40),
          ("lego_200", 16, 50, 600, "random", 40), ("donut_200", 8, 50, 600, "random", 40),
@@ -66,7 +61,7 @@ def run_case(scene: str, views: int, size: int, iterations: int, how: str, test_
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = ["Command: `.venv/bin/python bench/bench_select.py`. PSNR is the mean over the test views of the "
+    lines = ["Command: `.venv/bin/python -m bench.bench_select`. PSNR is the mean over the test views of the "
              "per-view PSNR; oracle = the better model per view; E_ME = mean over views of SSIM(selected) / "
              "max(SSIM(a), SSIM(b)) (1 = always the better model).", "",
              "| scene | views per model | size | sets | rule | PSNR a | PSNR b | selected | oracle | E_ME | "
@@ -84,12 +79,12 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--samples", type=int, default=phd.DEFAULT_SAMPLES)
-    p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument("--out", type=Path, default=RESULT)
     p.add_argument("--doc", type=Path, default=DOC)
     args = p.parse_args()
     torch.set_num_threads(1)
     rows = [run_case(*case, seed=args.seed, samples=args.samples) for case in CASES]
-    save({"seed": args.seed, "samples": args.samples, "cases": rows}, args.out)
+    write_result(args.out, {"seed": args.seed, "samples": args.samples, "cases": rows})
     write_doc(args.doc, markdown(rows), section="select")
     print(f"wrote {args.doc}")
 

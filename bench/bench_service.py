@@ -9,7 +9,7 @@ Measures, in one run on this machine:
   the per-pair ratios (the machine's load hits both halves of a pair alike) and as the
   ratio of the p50s.
 
-    .venv/bin/python bench/bench_service.py [--model runs/lego16/model.ply] [--workers 1]
+    .venv/bin/python -m bench.bench_service [--model runs/lego16/model.ply] [--workers 1]
 
 The model is --model, else runs/lego16/model.ply when the trainer has produced it, else a
 seeded random 3DGS model (the output says which). Candidates are test-split views of
@@ -20,10 +20,7 @@ bench/results/service.json and prints a Markdown table for docs/service.md.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -34,18 +31,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
-import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from bench._harness import RESULTS, ROOT, candidates, machine, random_model, write_result
+from client import PHDClient
+from phd_core import uq
+from phd_core.renderers import load_model
 
-from client import PHDClient  # noqa: E402
-from phd_core import uq  # noqa: E402
-from phd_core.uq.candidates import hemisphere_cameras  # noqa: E402
-from phd_core.renderers.gs3d import GaussianModel, write_ply  # noqa: E402
-from phd_core.renderers import load_model  # noqa: E402
-
-DATA = ROOT.parent / "shared" / "data" / "lego_200"
 TRAINED = ROOT / "runs" / "lego16" / "model.ply"
 
 
@@ -55,28 +46,6 @@ def percentile(values: list[float], q: float) -> float:
     k = (len(ordered) - 1) * q / 100
     lo, hi = math.floor(k), math.ceil(k)
     return ordered[lo] + (ordered[hi] - ordered[lo]) * (k - lo)
-
-
-def random_model(path: Path, count: int = 10_000, seed: int = 0) -> None:
-    """A seeded random splat cloud of lego's size, for when no trained model exists."""
-    g = torch.Generator().manual_seed(seed)
-    write_ply(GaussianModel(
-        means=(torch.rand(count, 3, generator=g) - 0.5) * 1.6,
-        log_scales=torch.log(0.01 + 0.02 * torch.rand(count, 3, generator=g)),
-        quats=torch.randn(count, 4, generator=g),
-        opacity_logits=torch.randn(count, generator=g),
-        sh=torch.randn(count, 16, 3, generator=g) * 0.3,
-    ), path)
-
-
-def candidates(count: int, size: int):
-    if (DATA / "transforms_test.json").is_file():
-        from phd_core.data import load_blender
-
-        dataset = load_blender(DATA, "test", downscale=200 / size, views=count, with_images=False)
-        return dataset.cameras, f"lego_200 test split, {count} evenly spaced views"
-    return (hemisphere_cameras(count, radius=4.0, width=size, height=size, min_elevation=0.2, max_elevation=1.2),
-            f"{count} hemisphere poses at radius 4")
 
 
 def start_server(data_dir: Path, workers: int) -> tuple[subprocess.Popen, str]:
@@ -139,7 +108,7 @@ def main() -> int:
                         help="requests with 1 client (each paired with one direct call)")
     parser.add_argument("--requests-4", type=int, default=8, help="requests with 4 clients")
     parser.add_argument("--workers", type=int, nargs="+", default=[1], help="server worker threads to try")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "service.json")
+    parser.add_argument("--out", type=Path, default=RESULTS / "service.json")
     args = parser.parse_args()
 
     tmp = Path(tempfile.mkdtemp(prefix="phd-bench-service-"))
@@ -211,9 +180,7 @@ def main() -> int:
     single = [r for r in runs if r["clients"] == 1]
     report = {
         "benchmark": "service rank: POST /v1/models/{id}/rank vs uq.rank_views",
-        "machine": {"platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
-                    "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "load_average": os.getloadavg()},
+        "machine": machine(),
         "settings": {"model": model_source, "num_units": renderer.num_units, "cameras": camera_source,
                      "candidates": args.candidates, "size": args.size, "samples": args.samples, "ratio": args.ratio},
         "direct": {"calls": len(direct), "p50_s": direct_p50, "latencies_s": direct},
@@ -221,10 +188,7 @@ def main() -> int:
         "overhead_ratio_p50_1_client": {str(r["workers"]): r["p50_s"] / direct_p50 for r in single},
         "overhead_ratio_median_of_pairs": statistics.median(pair_ratios),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_out = args.out.with_suffix(".json.tmp")
-    tmp_out.write_text(json.dumps(report, indent=2) + "\n")
-    os.replace(tmp_out, args.out)
+    write_result(args.out, report)
 
     print("\n| server workers | clients | requests | req/s | p50 (s) | p95 (s) | p50 / direct p50 |")
     print("|---|---|---|---|---|---|---|")

@@ -1,7 +1,7 @@
 """Ranking at interactive speed: render, batch, compositing, calibration, ranking and training
 times, measured in one run and written to docs/performance.md.
 
-    python bench/bench_speed.py [--candidates 100] [--out docs/performance.md]
+    python -m bench.bench_speed [--candidates 100] [--out docs/performance.md]
 
 The model: a synthetic 3DGS "glazed donut" of 45,624 splats, SH degree 0 (the size of the
 third-party PLY of issue 11, which is not on disk): splats on a torus surface inside
@@ -15,84 +15,29 @@ poses are the ranking candidates. Ratios are measured within this run; `phd cali
 
 from __future__ import annotations
 
+import argparse
+import json
+import math
 import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # as the `phd` command does, before torch loads
+import torch
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import math  # noqa: E402
-import platform  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+from bench._harness import (DOCS, DONUT, LEGO, PHD, RESULTS, ROOT, child, donut_model, load_at_start,
+                            load_average, machine, timed, write_result)
+from phd_core.data import load_blender
+from phd_core.io import write_json_atomic
+from phd_core.renderers.composite import COMPOSITORS
+from phd_core.renderers.gs3d import SIDECAR_FORMAT, GaussianModel, GaussianRenderer, sidecar_path, write_ply
+from phd_core.renderers.gs3d.render import project, splat_alpha
+from phd_core.renderers.splats import fragments, intersect
+from phd_core.train.gs3d import TrainConfig, fit
 
-import torch  # noqa: E402
-
-from phd_core.data import load_blender  # noqa: E402
-from phd_core.io import write_json_atomic  # noqa: E402
-from phd_core.renderers.composite import COMPOSITORS  # noqa: E402
-from phd_core.renderers.gs3d import SIDECAR_FORMAT, GaussianModel, GaussianRenderer, sidecar_path, write_ply  # noqa: E402
-from phd_core.renderers.gs3d.render import project, splat_alpha  # noqa: E402
-from phd_core.renderers.splats import SH_C0, fragments, intersect  # noqa: E402
-from phd_core.train.gs3d import TrainConfig, fit  # noqa: E402
-
-from bench_gaussians import best_of  # noqa: E402  (bench/ is on the path when run as a script)
-
-ROOT = Path(__file__).resolve().parents[1]
-DONUT = ROOT.parent / "shared" / "data" / "donut_200"
-LEGO = ROOT.parent / "shared" / "data" / "lego_200"
-SPLATS = 45_624
 MASKS = 16
-# `phd` in a child that reports its own peak RSS: VmHWM starts afresh at exec, whereas the
-# child's ru_maxrss would inherit this (larger) process's high-water mark at fork.
-PHD = [sys.executable, "-c", "import sys; from phd_cli import main; code = main(); "
-       "print(*[l for l in open('/proc/self/status') if l.startswith('VmHWM')], file=sys.stderr); sys.exit(code)"]
-
-
-def donut_model(splats: int = SPLATS, seed: int = 0) -> GaussianModel:
-    """The synthetic donut described in the module docstring."""
-    g = torch.Generator().manual_seed(seed)
-    f64 = dict(dtype=torch.float64)
-    u, v = (torch.rand(splats, generator=g, **f64) * 2 * math.pi for _ in range(2))
-    normal = torch.stack([torch.cos(v) * torch.cos(u), torch.cos(v) * torch.sin(u), torch.sin(v)], -1)
-    ring = torch.stack([0.8 * torch.cos(u), 0.8 * torch.sin(u), torch.zeros_like(u)], -1)
-    means = ring + (0.35 * (1 - 0.1 * torch.rand(splats, generator=g, **f64)))[:, None] * normal
-    helper = torch.where(normal[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0], **f64), torch.tensor([0, 1.0, 0], **f64))
-    t1 = torch.nn.functional.normalize(torch.cross(helper, normal, dim=-1), dim=-1)
-    rot = torch.stack([t1, torch.cross(normal, t1, dim=-1), normal], -1)          # columns: t1, t2, normal
-    w = torch.sqrt((1 + rot[:, 0, 0] + rot[:, 1, 1] + rot[:, 2, 2]).clamp_min(1e-12)) / 2
-    quats = torch.stack([w, (rot[:, 2, 1] - rot[:, 1, 2]) / (4 * w), (rot[:, 0, 2] - rot[:, 2, 0]) / (4 * w),
-                         (rot[:, 1, 0] - rot[:, 0, 1]) / (4 * w)], -1)
-    tangential = torch.randn(splats, 2, generator=g, **f64) * 0.4 + math.log(0.018)
-    log_scales = torch.cat([tangential, torch.full((splats, 1), math.log(0.003), **f64)], -1)
-    opaque = torch.rand(splats, generator=g) < 0.6
-    logits = torch.where(opaque, 3 + torch.randn(splats, generator=g), torch.randn(splats, generator=g) - 1)
-    glaze = (means[:, 2] > 0.05).double()[:, None]
-    colour = glaze * torch.tensor([0.9, 0.45, 0.6], **f64) + (1 - glaze) * torch.tensor([0.75, 0.5, 0.25], **f64)
-    colour = (colour + 0.08 * torch.randn(splats, 3, generator=g, **f64)).clamp(0, 1)
-    return GaussianModel(means.float(), log_scales.float(), quats.float(), logits.float(),
-                         ((colour - 0.5) / SH_C0)[:, None, :].float())
-
-
-def child(args: list[str], env: dict[str, str] | None = None, cwd: Path = ROOT) -> dict:
-    """Run `phd` in `cwd` (its phd_core is the one found there first); its wall, user and
-    system seconds (os.wait4) and peak RSS (its VmHWM)."""
-    with tempfile.TemporaryFile() as err:
-        start = time.perf_counter()
-        proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=err, cwd=cwd,
-                                env={**os.environ, **(env or {})})
-        _, status, usage = os.wait4(proc.pid, 0)
-        wall = time.perf_counter() - start
-        err.seek(0)
-        log = err.read().decode(errors="replace")
-    if status != 0:
-        raise RuntimeError(f"{' '.join(args)} failed: {log[-2000:]}")
-    peak_kb = int(next(line for line in log.splitlines() if line.startswith("VmHWM")).split()[1])
-    return {"wall_s": round(wall, 2), "user_s": round(usage.ru_utime, 2), "system_s": round(usage.ru_stime, 2),
-            "system_share": round(usage.ru_stime / wall, 3), "peak_rss_mb": round(peak_kb / 1024)}
 
 
 def repeat_calibration(ply: str) -> None:
@@ -119,8 +64,7 @@ def repeat_calibration(ply: str) -> None:
 
 def in_process(ply: Path, env: dict[str, str] | None = None) -> list[dict]:
     """`repeat_calibration` in a fresh child process."""
-    code = f"import sys; sys.path.insert(0, {str(ROOT / 'bench')!r}); import bench_speed; " \
-           "bench_speed.repeat_calibration(sys.argv[1])"
+    code = "import sys, bench.bench_speed as b; b.repeat_calibration(sys.argv[1])"     # cwd: the checkout
     out = subprocess.run([sys.executable, "-c", code, str(ply)], cwd=ROOT, env={**os.environ, **(env or {})},
                          capture_output=True, text=True, check=True).stdout
     return json.loads(out.strip().splitlines()[-1])
@@ -130,13 +74,13 @@ def render_speed(model: GaussianModel, camera, keep: torch.Tensor) -> dict:
     fused, pure = GaussianRenderer(model), GaussianRenderer(model, compositor="reference")
     view = fused.prepare(camera)
     out = {
-        "one_s": best_of(lambda: fused.render(camera)),
-        f"batch{MASKS}_s": best_of(lambda: fused.render(camera, keep)),
-        f"separate{MASKS}_s": best_of(lambda: [fused.render(camera, keep[i:i + 1]) for i in range(MASKS)], 1),
-        "prepare_s": best_of(lambda: fused.prepare(camera)),
-        f"prepared_batch{MASKS}_s": best_of(lambda: view.render(keep)),
-        "pure_torch_one_s": best_of(lambda: pure.render(camera), 3),
-        f"pure_torch_batch{MASKS}_s": best_of(lambda: pure.render(camera, keep), 3),
+        "one_s": timed(lambda: fused.render(camera), 3).best,
+        f"batch{MASKS}_s": timed(lambda: fused.render(camera, keep), 3).best,
+        f"separate{MASKS}_s": timed(lambda: [fused.render(camera, keep[i:i + 1]) for i in range(MASKS)]).best,
+        "prepare_s": timed(lambda: fused.prepare(camera), 3).best,
+        f"prepared_batch{MASKS}_s": timed(lambda: view.render(keep), 3).best,
+        "pure_torch_one_s": timed(lambda: pure.render(camera), 3).best,
+        f"pure_torch_batch{MASKS}_s": timed(lambda: pure.render(camera, keep), 3).best,
         "fragments": len(view.alpha),
     }
     # Stage 4 alone, both backends on the same torch-built fragments and masks.
@@ -147,8 +91,8 @@ def render_speed(model: GaussianModel, camera, keep: torch.Tensor) -> dict:
     values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]
     unit = proj.ids[splat]
     num_pixels = pairs.tiles_x * pairs.tiles_y * 16
-    out["composite_reference_s"] = best_of(lambda: COMPOSITORS["reference"](frags, values, keep, unit, num_pixels), 2)
-    out["composite_fused_s"] = best_of(lambda: COMPOSITORS["fused"](frags, values, keep, unit, num_pixels))
+    out["composite_reference_s"] = timed(lambda: COMPOSITORS["reference"](frags, values, keep, unit, num_pixels), 2).best
+    out["composite_fused_s"] = timed(lambda: COMPOSITORS["fused"](frags, values, keep, unit, num_pixels), 3).best
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in out.items()}
 
 
@@ -179,8 +123,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--candidates", type=int, default=100)
     parser.add_argument("--train-iterations", type=int, default=100)
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "performance.md")
-    parser.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "speed.json")
+    parser.add_argument("--out", type=Path, default=DOCS / "performance.md")
+    parser.add_argument("--json", type=Path, default=RESULTS / "speed.json")
     parser.add_argument("--report-only", action="store_true", help="rewrite --out from the numbers in --json")
     args = parser.parse_args()
     if args.report_only:
@@ -188,9 +132,7 @@ def main() -> None:
         return
 
     model = donut_model()
-    results: dict = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                                 "python": platform.python_version(), "torch": torch.__version__,
-                                 "load_average_at_start": [round(x, 2) for x in os.getloadavg()]},
+    results: dict = {"machine": machine(),
                      "splats": model.num_splats, "masks": MASKS}
     test = load_blender(DONUT, "test", with_images=False).cameras
     keep = torch.rand(MASKS, model.num_splats,
@@ -235,9 +177,8 @@ def main() -> None:
     for size in (50, 100):
         results[f"train_{size}"] = training_steps(size, args.train_iterations)
         print("train", size, results[f"train_{size}"], flush=True)
-    results["machine"]["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(args.json, results)
+    results["machine"]["load_average_at_end"] = load_average()
+    write_result(args.json, results)
     write_report(args.out, report(results))
     print(f"written {args.out} and {args.json}")
 
@@ -325,10 +266,10 @@ def report(r: dict) -> str:
 Measured by `bench/bench_speed.py` in one run (every ratio below compares numbers from that
 run); raw numbers in `bench/results/speed.json`. Command:
 
-    .venv/bin/python bench/bench_speed.py
+    .venv/bin/python -m bench.bench_speed
 
 Machine: {m['cpus']} cores, {m['platform']}, Python {m['python']}, torch {m['torch']}; load average
-{m['load_average_at_start']} at the start and {m['load_average_at_end']} at the end (the
+{load_at_start(m)} at the start and {m['load_average_at_end']} at the end (the
 machine was shared with other jobs, so absolute times are pessimistic; ratios are fairer).
 
 Model: a synthetic 3DGS "glazed donut" of {r['splats']:,} splats, SH degree 0, built by
@@ -387,7 +328,7 @@ compiles stage 4 and its gradient only (see "Training step").
   (`LOOKAHEAD`: one batch of 16 masks per view instead of four of 4; ratios past the first
   failure are dropped from the curve, so the result equals a one-by-one scan); uncertainty
   and selection prepare each view once for all mask chunks and the full render.
-- Importing `phd_core` sets glibc's malloc to keep freed memory (`phd_core/allocator.py`,
+- The `phd` command and the service set glibc's malloc to keep freed memory (`phd_core/allocator.py`,
   mallopt through ctypes: mmap threshold 32 MiB, no trimming, 1 GiB top pad) and stops
   NumPy's transparent-huge-page advice (the kernels' scratch arrays were faulted in as 2 MiB
   pages, zeroed whole: calibration's system time 0.73 -> 0.36 s, median of 5).

@@ -13,29 +13,28 @@ Writes bench/results/trend.json and the table between the `bench:trend` markers 
 docs/uq.md.
 
     for v in 4 8 16 32 100; do phd train --data ../shared/data/lego_200 --views $v --out runs/lego$v/model.ply; done
-    .venv/bin/python bench/bench_trend.py --models runs/lego{4,8,16,32,100}/model.ply --threads 1
+    .venv/bin/python -m bench.bench_trend --models runs/lego{4,8,16,32,100}/model.ply --threads 1
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from bench._harness import (DOCS, LEGO, RESULTS, fmt, load_test_at_size, machine, machine_text, timed, write_doc,
+                            write_result)
+from phd_core import uq as phd
+from phd_core.eval import rmse
+from phd_core.eval import uq as uqm
+from phd_core.renderers import load_model
 
-from bench_phdropout import DATA, DOC, fmt, load_test_at_size, save, timed, write_doc  # noqa: E402
-from phd_core import uq as phd  # noqa: E402
-from phd_core.eval import rmse, uq as uqm  # noqa: E402
-from phd_core.renderers import load_model  # noqa: E402
-
-RESULTS = ROOT / "bench" / "results" / "trend.json"
+DATA = LEGO
+DOC = DOCS / "uq.md"
+RESULT = RESULTS / "trend.json"
 
 
 def parse_args() -> argparse.Namespace:
@@ -48,7 +47,7 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--fixed-ratio", type=float, default=0.3, help="the common dropout ratio of the second column")
     p.add_argument("--fine-step", type=float, default=0.01, help="step of the second, bisection calibration")
     p.add_argument("--threads", type=int, default=None)
-    p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument("--out", type=Path, default=RESULT)
     p.add_argument("--doc", type=Path, default=DOC)
     return p.parse_args()
 
@@ -60,7 +59,8 @@ def measure(path: Path, test, args: argparse.Namespace) -> dict:
         raise SystemExit(f"{path}: no training cameras stored with the model (train it with `phd train`)")
     row = {"model": str(path), "views": len(renderer.training_cameras), "units": renderer.num_units}
     try:
-        calibration, row["calibration_seconds"] = timed(phd.calibrate, renderer, renderer.training_cameras)
+        run = timed(lambda: phd.calibrate(renderer, renderer.training_cameras))
+        calibration, row["calibration_seconds"] = run.result, run.seconds
         row["r_drop"] = calibration.r_drop
     except phd.CalibrationError:
         row["r_drop"] = 0.0
@@ -82,7 +82,7 @@ def measure(path: Path, test, args: argparse.Namespace) -> dict:
 
 def markdown(results: dict) -> str:
     t = results["trends"]
-    lines = [f"Measured {results['date']} on {results['machine']}; torch {results['torch']} with "
+    lines = [f"Measured {results['date']} on {machine_text(results['machine'])}; torch {results['torch']} with "
              f"{results['threads']} threads; command: `{results['command']}`. "
              f"sigma-max-bar over {results['test_views']} test views at {results['resolution']} px, "
              f"N = {results['samples']}; r_drop by the engine defaults on each model's training poses, and by "
@@ -110,11 +110,11 @@ def main() -> None:
     trends["rho_u_fixed"] = uqm.spearman([r["sigma_max_bar_fixed"] for r in rows], views)
     trends["rho_r_fine"] = uqm.spearman([r["r_drop_fine"] for r in rows], views)
     results = {"date": time.strftime("%Y-%m-%d %H:%M"), "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
-               "machine": f"{platform.machine()} {os.cpu_count()} CPUs", "torch": torch.__version__,
+               "machine": machine(), "torch": torch.__version__,
                "threads": torch.get_num_threads(), "test_views": len(test.cameras), "resolution": args.resolution,
                "samples": args.samples, "fixed_ratio": args.fixed_ratio, "fine_step": args.fine_step,
                "rows": rows, "trends": trends}
-    save(results, args.out)
+    write_result(args.out, results)
     write_doc(args.doc, markdown(results), section="trend")
     print(markdown(results))
 

@@ -12,6 +12,7 @@ import warnings
 # 2-core machine ran 3-25x slower (docs/gaussians.md). Must be set before torch loads.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from phd_core.allocator import keep_freed_memory
 from phd_core.errors import InputError, ModelNote, ModelWarning
 
 # Each module defines register(subparsers) and sets `func` on its parsers.
@@ -28,6 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    keep_freed_memory()     # malloc keeps freed memory for the renderer's large temporaries (phd_core.allocator)
     args = build_parser().parse_args(argv)
     try:
         with warnings.catch_warnings():

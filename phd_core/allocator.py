@@ -10,9 +10,11 @@ do. It also stops NumPy from asking for transparent huge pages on its large arra
 default on Linux): the kernels' scratch arrays then sit in 2 MiB pages that the kernel
 zeroes whole on every fresh fault, which doubled calibration's system time (0.73 s -> 0.36 s
 median of 5 runs, `phd calibrate` of docs/performance.md's model).
-`phd_core` calls it at import (so the CLI, the service and library users get it); set
-PHD_KEEP_FREED_MEMORY=0 to leave malloc and NumPy alone. Elsewhere than glibc the malloc
-part does nothing.
+The entry points call it, not `import phd_core`: the `phd` command (`phd_cli.main`), the
+service (`service.app.create_app`), Ray workers (`phd_core.executors.ray.run_chunk`), the
+benches (bench/_harness.py) and the tests (tests/conftest.py); a library user who wants it
+calls it too. Set PHD_KEEP_FREED_MEMORY=0 to leave malloc and NumPy alone. Elsewhere than
+glibc the malloc part does nothing.
 
 A process that runs large work on several threads and bounds its memory (the service) also
 wants `one_arena`, `bounded_heap` and `release_freed_memory` (below).

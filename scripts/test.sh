@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Install into .venv (CPU torch first, from the machine's disk) and run the test suite.
+# Install into .venv (CPU torch first, from the machine's disk), lint, type-check and run the test suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m venv .venv
@@ -11,4 +11,8 @@ if ! { command -v chromium && command -v chromedriver; } > /dev/null && [ "$(id 
     { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver > /dev/null; } \
         || echo "scripts/test.sh: could not install chromium; the browser tests will skip" >&2
 fi
+# Lint (ruff: pyflakes, pycodestyle errors, import order) and a basic type check ([tool.ruff],
+# [tool.mypy] in pyproject.toml), then the tests.
+.venv/bin/ruff check .
+.venv/bin/mypy
 .venv/bin/python -m pytest -q "$@"

@@ -32,12 +32,11 @@ from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import phd_core
-from phd_core.allocator import bounded_heap, one_arena
+from phd_core.allocator import bounded_heap, keep_freed_memory, one_arena
 from phd_core.errors import InputError
 from phd_core.executors import make_executor
 
 from .budget import MemoryLedger
-from .deps import ServiceState
 from .errors import ServiceError, error_body, from_exception, json_problem
 from .guard import Guard
 from .jobs import JobManager
@@ -45,6 +44,7 @@ from .jobstore import JobStore
 from .keys import KeyRing
 from .routes import ROUTERS
 from .settings import Settings
+from .state import ServiceState
 from .store import ModelStore
 from .work import model_loader
 
@@ -110,6 +110,7 @@ def install_error_handlers(app: FastAPI) -> None:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The service on `settings.data_dir` (swept of unfinished uploads before serving)."""
     settings = settings or Settings.from_env()
+    keep_freed_memory()     # what the `phd` command sets (phd_core.allocator); bounded_heap then narrows it
     one_arena()             # workers and request threads reuse each other's freed memory (phd_core.allocator)
     bounded_heap()          # large blocks are unmapped when freed: resident memory follows the live tensors
     store = ModelStore(settings.data_dir)

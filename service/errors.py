@@ -21,9 +21,14 @@ from .schemas import ErrorDetail
 JSON_ERRORS = (json.JSONDecodeError, UnicodeDecodeError, RecursionError)
 
 
+def error_detail(code: str, message: str, field: str | None = None) -> ErrorDetail:
+    """The `error` of every error answer and of every failed job."""
+    return ErrorDetail(code=code, message=message, field=field)
+
+
 def error_body(code: str, message: str, field: str | None = None) -> bytes:
     """The body of every error answer, from the routes, the guard and the HTTP protocol alike."""
-    return json.dumps({"error": {"code": code, "message": message, "field": field}}).encode()
+    return json.dumps({"error": error_detail(code, message, field).model_dump()}).encode()
 
 
 def json_problem(exc: BaseException | None) -> str | None:
@@ -46,7 +51,7 @@ class ServiceError(Exception):
         self.headers = headers or {}
 
     def detail(self) -> ErrorDetail:
-        return ErrorDetail(code=self.code, message=self.message, field=self.field)
+        return error_detail(self.code, self.message, self.field)
 
 
 def not_found(what: str, ident: str, field: str | None = None) -> ServiceError:

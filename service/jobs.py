@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from .errors import ServiceError, from_exception
+from .jobstore import FINAL_STATES, INTERRUPTED
 from .schemas import Job
 from .store import utc_now
 
@@ -31,7 +32,6 @@ log = logging.getLogger("phd.service")
 
 # A job's work: gets a progress callback (fraction done), returns (result, artefacts by name).
 Work = Callable[[Callable[[float], None]], tuple[Any, dict[str, bytes]]]
-FINAL_STATES = ("succeeded", "failed", "cancelled")
 
 
 class QueueFull(Exception):
@@ -68,9 +68,6 @@ class JobRecord:
                    estimated_pixels=self.estimated_pixels, result=self.result,
                    error=None if self.error is None else self.error.detail(),
                    artifacts=sorted(self.artifacts))
-
-
-INTERRUPTED = ("interrupted", "the job was interrupted by a restart of the service; submit it again")
 
 
 class JobManager:

@@ -14,7 +14,8 @@ from typing import Any
 
 from phd_core.io import fsync_path, write_bytes_atomic
 
-from .schemas import ErrorDetail, Job
+from .errors import error_detail
+from .schemas import Job
 from .store import ModelStore, utc_now
 
 SCHEMA = """
@@ -33,9 +34,10 @@ CREATE TABLE IF NOT EXISTS jobs (
     artifacts_json TEXT NOT NULL
 )
 """
-INTERRUPTED = ErrorDetail(code="interrupted", message="the job was interrupted by a restart of the service; "
-                          "submit it again")
+# A job in one of these states is over (service.jobs uses the same ones).
 FINAL_STATES = ("succeeded", "failed", "cancelled")
+# (code, message) of a job that a restart or a shutdown cut short (service.jobs fails it with the same).
+INTERRUPTED = ("interrupted", "the job was interrupted by a restart of the service; submit it again")
 
 
 class JobStore:
@@ -53,8 +55,8 @@ class JobStore:
         """At startup: jobs left queued or running by the last process become failed (interrupted)."""
         with self.store._write_lock, self.store._connect() as db:
             cursor = db.execute("UPDATE jobs SET state = 'failed', error_json = ?, finished_at = ? "
-                                "WHERE state NOT IN ('succeeded', 'failed', 'cancelled')",
-                                (INTERRUPTED.model_dump_json(), utc_now()))
+                                f"WHERE state NOT IN ({', '.join('?' * len(FINAL_STATES))})",
+                                (error_detail(*INTERRUPTED).model_dump_json(), utc_now(), *FINAL_STATES))
             return cursor.rowcount
 
     def save(self, job: Job, owner: str | None, artifacts: dict[str, bytes] | None = None) -> None:

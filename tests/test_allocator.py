@@ -1,8 +1,8 @@
 """phd_core.allocator in a fresh process: with one arena, memory a thread freed serves the
 next thread instead of staying in the first thread's arena; release_freed_memory gives the
-freed pages back (what the service's memory budget relies on between jobs); and importing
-phd_core applies the settings (malloc keeps freed memory, NumPy's huge pages off) unless
-PHD_KEEP_FREED_MEMORY=0; bounded_heap (the service's) maps every large block on its own, so
+freed pages back (what the service's memory budget relies on between jobs); and
+keep_freed_memory, which the entry points call, applies the settings (malloc keeps freed
+memory, NumPy's huge pages off) unless PHD_KEEP_FREED_MEMORY=0; bounded_heap (the service's) maps every large block on its own, so
 resident memory is the blocks alive."""
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ import pytest
 CODE = """
 import sys, threading
 from pathlib import Path
-import phd_core.allocator as allocator          # importing phd_core keeps freed memory
+import phd_core.allocator as allocator
+allocator.keep_freed_memory()                   # as the entry points do
 
 def rss():
     line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith("VmRSS:"))
@@ -63,8 +64,8 @@ def test_one_arena_reuses_what_other_threads_freed_and_release_gives_it_back() -
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt")
-def test_importing_phd_core_sets_the_allocator_and_can_be_turned_off() -> None:
-    # _set_madvise_hugepage returns NumPy's previous setting: huge pages off after phd_core's import.
+def test_keep_freed_memory_sets_the_allocator_and_can_be_turned_off() -> None:
+    # _set_madvise_hugepage returns NumPy's previous setting: huge pages off after keep_freed_memory.
     code = ("import numpy._core.multiarray as m, phd_core.allocator as a, phd_core; "
             "print(a.keep_freed_memory(), m._set_madvise_hugepage(True))")
     env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
@@ -77,7 +78,8 @@ def test_importing_phd_core_sets_the_allocator_and_can_be_turned_off() -> None:
 HEAP = """
 import sys
 from pathlib import Path
-import phd_core.allocator as allocator          # importing phd_core keeps freed memory (a 1 GiB heap pad)
+import phd_core.allocator as allocator
+allocator.keep_freed_memory()                   # as the entry points do: malloc keeps freed memory (a 1 GiB heap pad)
 
 def status(key):
     line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith(key + ":"))

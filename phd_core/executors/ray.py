@@ -19,6 +19,7 @@ import threading
 import weakref
 from typing import Any, Callable, Sequence, TypeVar
 
+from ..allocator import keep_freed_memory
 from ..errors import InputError
 from .base import Done, ExecutorError
 
@@ -39,8 +40,16 @@ def import_ray():
     return ray
 
 
+_worker_ready = False
+
+
 def run_chunk(fn: Callable[..., R], chunk: Any, *shared: Any) -> R:
-    """What one Ray task runs (module level, so workers import it instead of unpickling code)."""
+    """What one Ray task runs (module level, so workers import it instead of unpickling code).
+    A worker's first task applies the `phd` command's malloc settings (phd_core.allocator)."""
+    global _worker_ready
+    if not _worker_ready:
+        keep_freed_memory()
+        _worker_ready = True
     return fn(chunk, *shared)
 
 

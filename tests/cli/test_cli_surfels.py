@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from conftest import LEGO, svc_cameras
+from support.fixtures import LEGO, svc_cameras
 from phd_cli import main
 from phd_core import uq
 from phd_core.renderers import load_model

@@ -198,7 +198,7 @@ def test_malformed_llff_files_name_the_field(tmp_path) -> None:
 # ----------------------------------------------------------------------------- reference 3DGS output folder
 
 def test_output_folder_latest_iteration_cameras_and_eval_split(tmp_path) -> None:
-    from conftest import svc_random_gaussians
+    from support.fixtures import svc_random_gaussians
 
     cameras = capture_cameras(9)
     centred = [Camera(c.c2w, c.fx, c.fy, c.width / 2, c.height / 2, c.width, c.height) for c in cameras]

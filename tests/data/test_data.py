@@ -12,7 +12,7 @@ import torch
 
 from phd_core.data import load_blender, load_dataset, load_nerfstudio, select_views, split_size
 from phd_core.errors import InputError
-from conftest import LEGO
+from support.fixtures import LEGO
 
 POSE = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]
 

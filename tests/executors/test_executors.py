@@ -140,7 +140,7 @@ def test_unknown_executors_and_missing_ray_are_clear_errors(monkeypatch, capsys,
         RayExecutor("auto").connect()
     model = tmp_path / "m.ply"
     from phd_core.renderers.gs3d import write_ply
-    from conftest import svc_random_gaussians
+    from support.fixtures import svc_random_gaussians
 
     write_ply(svc_random_gaussians(20), model)
     cameras = tmp_path / "c.json"

@@ -20,7 +20,7 @@ import pytest
 ray = pytest.importorskip("ray", reason="ray is not installed (pip install '.[ray]'): the Ray executor is untested")
 
 from client import JobFailedError, NotFoundError, PHDClient  # noqa: E402
-from conftest import svc_cameras, svc_random_gaussians  # noqa: E402
+from support.fixtures import svc_cameras, svc_random_gaussians  # noqa: E402
 from phd_cli import main  # noqa: E402
 from phd_core import uq  # noqa: E402
 from phd_core.executors import make_executor  # noqa: E402

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from client import PHDClient
-from conftest import svc_cameras
+from support.fixtures import svc_cameras
 from phd_core import uq
 from phd_core.uq.candidates import candidate_cameras
 

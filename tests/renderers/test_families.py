@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from client import PHDClient, UnsupportedModelError
-from conftest import svc_cameras
+from support.fixtures import svc_cameras
 from phd_core import uq
 from phd_core.renderers import FAMILIES, Family, load_model, load_model_bytes, model_kind, register_family
 from support.toy_renderers import BlobRenderer

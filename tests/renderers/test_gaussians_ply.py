@@ -49,7 +49,10 @@ def expected_model(cols: dict[str, np.ndarray], k: int) -> GaussianModel:
         sh[:, 0, c] = cols[f"f_dc_{c}"]
         for j in range(1, k):
             sh[:, j, c] = cols[f"f_rest_{c * (k - 1) + (j - 1)}"]  # channel-major
-    stack = lambda names: torch.from_numpy(np.stack([cols[n] for n in names], axis=1))
+
+    def stack(names):
+        return torch.from_numpy(np.stack([cols[n] for n in names], axis=1))
+
     return GaussianModel(
         means=stack(["x", "y", "z"]),
         log_scales=stack(["scale_0", "scale_1", "scale_2"]),

@@ -91,7 +91,7 @@ def test_the_sniffs_are_exclusive() -> None:
 
 
 def test_a_2dgs_ply_with_a_sidecar_loads_its_training_cameras(tmp_path) -> None:
-    from conftest import svc_cameras
+    from support.fixtures import svc_cameras
     path = tmp_path / "trained.ply"
     path.write_bytes(reference_layout_ply(random_surfels(20)))
     cameras = svc_cameras(3)

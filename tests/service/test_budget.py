@@ -8,7 +8,7 @@ import time
 import pytest
 import torch
 
-from conftest import svc_random_gaussians
+from support.fixtures import svc_random_gaussians
 from phd_core.errors import InputError
 from phd_core.renderers import RenderMemory
 from phd_core.renderers.gs3d import GaussianRenderer
@@ -245,7 +245,7 @@ def test_every_built_in_family_loads_within_its_model_bytes(svc_model_files, tmp
 
 def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(svc_start, svc_model_files):
     from client import PHDClient
-    from conftest import svc_cameras
+    from support.fixtures import svc_cameras
     from service.schemas import RankRequest
     from service.work import rank_job
 

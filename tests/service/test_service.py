@@ -16,7 +16,7 @@ import torch
 
 import phd_core
 from client import ConflictError, InvalidInputError, JobCancelledError, NotFoundError, PHDClient, camera_frames
-from conftest import LEGO, svc_cameras
+from support.fixtures import LEGO, svc_cameras
 from phd_core import uq
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 from phd_core.io import colorize

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from client import InvalidInputError, PHDClient
-from conftest import svc_cameras, svc_random_gaussians
+from support.fixtures import svc_cameras, svc_random_gaussians
 from phd_core import uq as phd
 from phd_core.errors import ModelNote
 from phd_core.renderers import load_model

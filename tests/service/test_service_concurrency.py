@@ -11,7 +11,7 @@ import httpx
 import pytest
 
 from client import PHDClient, QueueFullError
-from conftest import svc_cameras
+from support.fixtures import svc_cameras
 from phd_core import uq
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 

@@ -15,21 +15,7 @@ import torch
 
 from client import (AuthenticationError, ConflictError, InvalidInputError, NotFoundError, PayloadTooLargeError,
                     PHDClient, UnsupportedModelError)
-from conftest import svc_cameras
-
-
-def _error(response: httpx.Response, status: int, code: str | None = None, field: str | None = None) -> dict:
-    """Assert the status and the error shape; return the error object."""
-    assert response.status_code == status, response.text
-    body = response.json()
-    assert set(body) == {"error"} and set(body["error"]) == {"code", "message", "field"}
-    error = body["error"]
-    assert isinstance(error["code"], str) and isinstance(error["message"], str) and error["message"]
-    if code is not None:
-        assert error["code"] == code
-    if field is not None:
-        assert error["field"] == field
-    return error
+from support.fixtures import svc_cameras, expect_error
 
 
 def _leftovers(server) -> list:
@@ -57,18 +43,18 @@ def test_not_found_everywhere(svc_small):
     server, model_id = svc_small
     url = server.url
     ok_rank = {"cameras": [_frame()], "dropout_ratio": 0.1, "samples": 2}
-    _error(httpx.get(f"{url}/v1/models/nope"), 404, "model_not_found")
-    _error(httpx.delete(f"{url}/v1/models/nope"), 404, "model_not_found")
-    _error(httpx.post(f"{url}/v1/models/nope/rank", json=ok_rank), 404, "model_not_found")
-    _error(httpx.post(f"{url}/v1/models/nope/calibrate", json={}), 404, "model_not_found")
+    expect_error(httpx.get(f"{url}/v1/models/nope"), 404, "model_not_found")
+    expect_error(httpx.delete(f"{url}/v1/models/nope"), 404, "model_not_found")
+    expect_error(httpx.post(f"{url}/v1/models/nope/rank", json=ok_rank), 404, "model_not_found")
+    expect_error(httpx.post(f"{url}/v1/models/nope/calibrate", json={}), 404, "model_not_found")
     select = {"cameras": [_frame()], "samples": 2, "model_a": model_id, "model_b": "nope", "ratio_a": 0.1,
               "ratio_b": 0.1}
-    _error(httpx.post(f"{url}/v1/select", json=select), 404, "model_not_found", "model_b")
-    _error(httpx.get(f"{url}/v1/jobs/nope"), 404, "job_not_found")
-    _error(httpx.delete(f"{url}/v1/jobs/nope"), 404, "job_not_found")
-    _error(httpx.get(f"{url}/v1/nothing-here"), 404, "not_found")
-    _error(httpx.get(f"{url}/v2/models"), 404, "not_found")
-    _error(httpx.put(f"{url}/v1/models"), 405, "method_not_allowed")
+    expect_error(httpx.post(f"{url}/v1/select", json=select), 404, "model_not_found", "model_b")
+    expect_error(httpx.get(f"{url}/v1/jobs/nope"), 404, "job_not_found")
+    expect_error(httpx.delete(f"{url}/v1/jobs/nope"), 404, "job_not_found")
+    expect_error(httpx.get(f"{url}/v1/nothing-here"), 404, "not_found")
+    expect_error(httpx.get(f"{url}/v2/models"), 404, "not_found")
+    expect_error(httpx.put(f"{url}/v1/models"), 405, "method_not_allowed")
     with PHDClient(url) as phd, pytest.raises(NotFoundError) as exc:
         phd.rank("nope", svc_cameras(1), dropout_ratio=0.1)
     assert exc.value.status == 404 and "nope" in exc.value.message
@@ -86,9 +72,9 @@ def test_oversized_uploads_and_bodies_get_413_and_leave_nothing(svc_small, tmp_p
                   + [bytes(50_000)] * 6 + [b"\r\n--b--\r\n"])
     answer = httpx.post(f"{server.url}/v1/models", content=chunks,
                         headers={"content-type": "multipart/form-data; boundary=b"})
-    _error(answer, 413, "payload_too_large", "file")
+    expect_error(answer, 413, "payload_too_large", "file")
     cameras = [_frame()] * 2000  # a JSON body past max_json_bytes
-    _error(httpx.post(f"{server.url}/v1/models/x/rank", json={"cameras": cameras}), 413, "payload_too_large")
+    expect_error(httpx.post(f"{server.url}/v1/models/x/rank", json={"cameras": cameras}), 413, "payload_too_large")
     assert len(_leftovers(server)) == 1  # only the fixture's model
 
 
@@ -116,7 +102,7 @@ def test_unknown_content_and_pickles_get_415(svc_small, tmp_path):
             assert exc.value.status == 415 and exc.value.code == "unsupported_model" and exc.value.field == "file"
     assert not marker.exists()
     answer = httpx.post(f"{server.url}/v1/models", json={"file": "model.ply"})  # not multipart at all
-    _error(answer, 415, "unsupported_media_type")
+    expect_error(answer, 415, "unsupported_media_type")
     assert len(_leftovers(server)) == 1
 
 
@@ -139,10 +125,10 @@ def test_broken_models_and_camera_files_get_422(svc_small, svc_model_files, tmp_
             phd.upload_model(svc_model_files["ply"], cameras=bad_cameras)
         assert exc.value.field == "cameras[1].fl_x"
     files = {"file": ("m.ply", data), "cameras": (None, "{not json")}
-    _error(httpx.post(f"{server.url}/v1/models", files=files), 422, "invalid_input", "cameras")
+    expect_error(httpx.post(f"{server.url}/v1/models", files=files), 422, "invalid_input", "cameras")
     files = {"file": ("m.ply", data), "extra": (None, "1")}
-    _error(httpx.post(f"{server.url}/v1/models", files=files), 422, "invalid_input", "extra")
-    _error(httpx.post(f"{server.url}/v1/models", files={"cameras": (None, "[]")}), 422, "invalid_input", "file")
+    expect_error(httpx.post(f"{server.url}/v1/models", files=files), 422, "invalid_input", "extra")
+    expect_error(httpx.post(f"{server.url}/v1/models", files={"cameras": (None, "[]")}), 422, "invalid_input", "file")
     assert len(_leftovers(server)) == 1
 
 
@@ -179,16 +165,16 @@ def test_invalid_cameras_and_parameters_get_422(svc_small):
     ]
     for changes, field in cases:
         body = {"cameras": [_frame()], "dropout_ratio": 0.1, "samples": 2, **changes}
-        _error(httpx.post(rank, content=json.dumps(body), headers={"content-type": "application/json"}),
+        expect_error(httpx.post(rank, content=json.dumps(body), headers={"content-type": "application/json"}),
                422, "invalid_input", field)
-    _error(httpx.post(rank, content=b'{"cameras": [', headers={"content-type": "application/json"}),
+    expect_error(httpx.post(rank, content=b'{"cameras": [', headers={"content-type": "application/json"}),
            400, "invalid_json")
-    _error(httpx.post(rank), 422, "invalid_input")  # no body
+    expect_error(httpx.post(rank), 422, "invalid_input")  # no body
     calibrate = f"{server.url}/v1/models/{model_id}/calibrate"
-    _error(httpx.post(calibrate, json={"epsilon": 0}), 422, "invalid_input", "epsilon")
-    _error(httpx.post(calibrate, json={"method": "ssim"}), 422, "invalid_input", "method")
+    expect_error(httpx.post(calibrate, json={"epsilon": 0}), 422, "invalid_input", "epsilon")
+    expect_error(httpx.post(calibrate, json={"method": "ssim"}), 422, "invalid_input", "method")
     # r_drop = 0 (epsilon too small for this model) is a clear 422, not a crash.
-    error = _error(httpx.post(calibrate, json={"epsilon": 1e-9, "step": 0.5, "samples": 2,
+    error = expect_error(httpx.post(calibrate, json={"epsilon": 1e-9, "step": 0.5, "samples": 2,
                                                "training_cameras": [_frame()]}), 422, "calibration_failed", "epsilon")
     assert "r_drop = 0" in error["message"]
 
@@ -217,10 +203,10 @@ def test_api_key_on(svc_start, svc_model_files):
     for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "s3cret"},
                     {"Authorization": "Basic s3cret"}):
         answer = httpx.get(f"{url}/v1/models", headers=headers)
-        _error(answer, 401, "unauthorized", "Authorization")
+        expect_error(answer, 401, "unauthorized", "Authorization")
         assert answer.headers["www-authenticate"] == "Bearer"
-    _error(httpx.post(f"{url}/v1/models", files={"file": ("m.ply", b"ply\n")}), 401, "unauthorized")
-    _error(httpx.get(f"{url}/v1/nothing-here"), 401, "unauthorized")  # no probing of routes either
+    expect_error(httpx.post(f"{url}/v1/models", files={"file": ("m.ply", b"ply\n")}), 401, "unauthorized")
+    expect_error(httpx.get(f"{url}/v1/nothing-here"), 401, "unauthorized")  # no probing of routes either
     assert httpx.get(f"{url}/v1/models", headers={"Authorization": "Bearer s3cret"}).json() == {"models": []}
     with PHDClient(url) as anonymous, pytest.raises(AuthenticationError) as exc:
         anonymous.list_models()
@@ -304,7 +290,7 @@ def test_fuzzed_bodies_never_give_5xx(svc_start, svc_model_files):
             statuses[answer.status_code] = statuses.get(answer.status_code, 0) + 1
             assert answer.status_code < 500, (path, answer.text)
             if answer.status_code >= 400:
-                _error(answer, answer.status_code)
+                expect_error(answer, answer.status_code)
             elif answer.status_code == 202:
                 jobs.append(answer.json()["id"])
         for job_id in jobs:  # accepted work must never have crashed either

@@ -12,7 +12,7 @@ import httpx
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from client import PHDClient
-from conftest import svc_cameras
+from support.fixtures import svc_cameras
 from support.fuzz import FuzzRequest, mutated_request, mutated_upload, send
 
 EXAMPLES = 300

@@ -12,14 +12,14 @@ import pytest
 import torch
 
 from client import PHDClient
-from conftest import SvcProcess, svc_cameras
+from support.fixtures import SvcProcess, svc_cameras, expect_error
 from phd_core.renderers.gs3d import GaussianModel, write_ply
 from service.budget import MemoryLedger, model_bytes
 from service.schemas import RankRequest
 from service.settings import Settings
 from service.store import ModelStore
 from service.work import model_loader, rank_job
-from test_service_errors import _error
+
 
 
 def rank(server, model_id: str, **body) -> httpx.Response:
@@ -53,10 +53,10 @@ def test_a_model_the_budget_cannot_load_is_413_naming_it(svc_start, svc_model_fi
         model = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(2))
     first.stop()
     server = svc_start(data_dir=tmp_path / "data", memory_budget_bytes=1 << 20)   # restarted with less memory
-    _error(rank(server, model.id), 413, "over_memory_budget", "model_id")
+    expect_error(rank(server, model.id), 413, "over_memory_budget", "model_id")
     select = {"model_a": model.id, "model_b": model.id, "cameras": [svc_cameras(1)[0].to_frame()],
               "ratio_a": 0.1, "ratio_b": 0.1, "rule": "sigma_mean"}
-    _error(httpx.post(f"{server.url}/v1/select", json=select), 413, "over_memory_budget", "model_a")
+    expect_error(httpx.post(f"{server.url}/v1/select", json=select), 413, "over_memory_budget", "model_a")
     assert server.app.state.service.ledger.used == 0
 
 
@@ -72,7 +72,7 @@ def test_a_view_whose_fragments_exceed_the_budget_is_413_once_the_model_is_proje
     with PHDClient(server.url) as phd:
         model = phd.upload_model(tmp_path / "dense.ply")
     frame = svc_cameras(1, size=200)[0].to_frame()
-    error = _error(rank(server, model.id, cameras=[frame]), 413, "over_memory_budget", "downscale")
+    error = expect_error(rank(server, model.id, cameras=[frame]), 413, "over_memory_budget", "downscale")
     assert "MiB" in error["message"]
     response = rank(server, model.id, cameras=[frame], downscale=8)           # 25x25 fits
     assert response.status_code == 200, response.text

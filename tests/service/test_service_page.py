@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from client import AuthenticationError, NotFoundError, PHDClient
-from conftest import svc_cameras
+from support.fixtures import svc_cameras
 from phd_core import uq
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply

@@ -9,7 +9,7 @@ import time
 import httpx
 
 from client import PHDClient
-from conftest import SvcProcess, svc_cameras
+from support.fixtures import SvcProcess, svc_cameras
 
 
 def test_restart_keeps_models_and_calibrations(svc_start, svc_model_files):

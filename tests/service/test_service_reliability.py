@@ -16,8 +16,8 @@ import httpx
 import pytest
 
 from client import PHDClient
-from conftest import SvcProcess, svc_cameras
-from test_service_errors import _error
+from support.fixtures import SvcProcess, svc_cameras, expect_error
+
 
 
 def _frame(**changes) -> dict:
@@ -41,11 +41,11 @@ def svc_up(svc_start, svc_model_files):
 def test_cameras_part_is_never_opened_as_a_server_path(svc_start, svc_model_files, path):
     server = svc_start()
     files = {"file": ("m.ply", svc_model_files["ply"].read_bytes()), "cameras": (None, json.dumps(path))}
-    error = _error(httpx.post(f"{server.url}/v1/models", files=files, timeout=30), 422, "invalid_input", "cameras")
+    error = expect_error(httpx.post(f"{server.url}/v1/models", files=files, timeout=30), 422, "invalid_input", "cameras")
     assert "Expecting value" not in error["message"] and "No such file" not in error["message"]
     assert "str" in error["message"]                     # refused for its type, before any file is touched
     body = {"cameras": path, "dropout_ratio": 0.1}
-    _error(httpx.post(f"{server.url}/v1/models/x/rank", json=body), 422, "invalid_input")
+    expect_error(httpx.post(f"{server.url}/v1/models/x/rank", json=body), 422, "invalid_input")
     assert not list((server.settings.data_dir / "models").iterdir())
 
 
@@ -57,7 +57,7 @@ def test_work_over_the_memory_budget_is_refused_before_it_is_queued(svc_start, s
         model = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(2))
     big = _frame(w=800, h=800, fl_x=900.0, fl_y=900.0, cx=400, cy=400)
     rank = f"{server.url}/v1/models/{model.id}/rank"
-    error = _error(httpx.post(rank, json={"cameras": [big], "samples": 256, "dropout_ratio": 0.1}),
+    error = expect_error(httpx.post(rank, json={"cameras": [big], "samples": 256, "dropout_ratio": 0.1}),
                    413, "over_memory_budget", "downscale")
     assert "MiB" in error["message"]
     # The same view at 1/8 fits and streams its 256 samples in batches.
@@ -66,11 +66,11 @@ def test_work_over_the_memory_budget_is_refused_before_it_is_queued(svc_start, s
     assert small.status_code == 200, small.text
     assert small.json()["width"] == 100
     many = {"training_cameras": [big] * 40, "epsilon": 0.5, "step": 0.5, "samples": 2}
-    _error(httpx.post(f"{server.url}/v1/models/{model.id}/calibrate", json=many), 413, "over_memory_budget",
+    expect_error(httpx.post(f"{server.url}/v1/models/{model.id}/calibrate", json=many), 413, "over_memory_budget",
            "training_cameras")
     select = {"model_a": model.id, "model_b": model.id, "cameras": [big], "ratio_a": 0.1, "ratio_b": 0.1,
               "rule": "sigma_mean"}
-    _error(httpx.post(f"{server.url}/v1/select", json=select), 413, "over_memory_budget", "downscale")
+    expect_error(httpx.post(f"{server.url}/v1/select", json=select), 413, "over_memory_budget", "downscale")
 
 
 def test_uploads_past_what_the_budget_can_parse_are_cut_off_as_they_stream(svc_start, svc_model_files):
@@ -85,7 +85,7 @@ def test_uploads_past_what_the_budget_can_parse_are_cut_off_as_they_stream(svc_s
     stream = [boundary, *chunks(), b"\r\n--xyz--\r\n"]
     response = httpx.post(f"{server.url}/v1/models", content=iter(stream),
                           headers={"content-type": "multipart/form-data; boundary=xyz"}, timeout=30)
-    _error(response, 413, "payload_too_large", "file")
+    expect_error(response, 413, "payload_too_large", "file")
     assert not list((server.settings.data_dir / "tmp").iterdir())
 
 
@@ -131,28 +131,28 @@ def test_non_finite_and_overflowing_numbers_are_422_naming_the_field_on_one_conn
     with httpx.Client(base_url=server.url, timeout=30) as client:
         for key, token in NON_FINITE:
             rank = _raw({"cameras": [_frame()], "dropout_ratio": 0.1, "samples": 2}, key, token)
-            error = _error(client.post(f"/v1/models/{model_id}/rank", content=rank, headers=headers), 422)
+            error = expect_error(client.post(f"/v1/models/{model_id}/rank", content=rank, headers=headers), 422)
             assert error["field"] == f"cameras[0].{key}", (key, token, error)
             select = _raw({"cameras": [_frame()], "model_a": model_id, "model_b": model_id, "ratio_a": 0.1,
                            "ratio_b": 0.1, "samples": 2, "rule": "sigma_mean"}, key, token)
             response = client.post("/v1/select", content=select, headers=headers)
-            assert _error(response, 422)["field"] == f"cameras[0].{key}"
+            assert expect_error(response, 422)["field"] == f"cameras[0].{key}"
             calibrate = _raw({"cameras": [_frame()]}, key, token).replace(b'"cameras"', b'"training_cameras"')
             response = client.post(f"/v1/models/{model_id}/calibrate", content=calibrate, headers=headers)
-            assert _error(response, 422)["field"] == f"training_cameras[0].{key}"
+            assert expect_error(response, 422)["field"] == f"training_cameras[0].{key}"
             upload = _raw({"cameras": [_frame()]}, key, token)
             files = {"file": ("m.ply", svc_model_files["ply"].read_bytes()),
                      "cameras": (None, upload[len(b'{"cameras": '):-1])}
-            assert _error(client.post("/v1/models", files=files), 422)["field"] == f"cameras[0].{key}"
+            assert expect_error(client.post("/v1/models", files=files), 422)["field"] == f"cameras[0].{key}"
         for downscale in ("1e-320", "5e-324"):
             body = b'{"cameras": [%s], "dropout_ratio": 0.1, "downscale": %s}' % (
                 json.dumps(_frame()).encode(), downscale.encode())
-            _error(client.post(f"/v1/models/{model_id}/rank", content=body, headers=headers), 422,
+            expect_error(client.post(f"/v1/models/{model_id}/rank", content=body, headers=headers), 422,
                    field="downscale")
         blender = {"camera_angle_x": 5e-324, "w": 16, "h": 16, "frames": [{"transform_matrix":
                                                                         _frame()["transform_matrix"]}]}
         tiny_angle = client.post(f"/v1/models/{model_id}/rank", json={"cameras": blender, "dropout_ratio": 0.1})
-        _error(tiny_angle, 422, field="cameras[0].camera_angle_x")          # found by the 10k fuzz run
+        expect_error(tiny_angle, 422, field="cameras[0].camera_angle_x")          # found by the 10k fuzz run
         assert client.get("/health").status_code == 200       # still the same live connection
     assert not list((server.settings.data_dir / "tmp").iterdir())
 
@@ -167,7 +167,7 @@ def test_an_unexpected_error_is_a_json_500_that_keeps_the_connection(svc_up, mon
     monkeypatch.setattr(models, "model_info", broken)
     with httpx.Client(base_url=server.url, timeout=30) as client:
         first = client.get(f"/v1/models/{model_id}")
-        _error(first, 500, "internal_error")
+        expect_error(first, 500, "internal_error")
         assert "a bug" not in first.text and first.headers.get("connection") != "close"
         second = client.get("/health")
         assert second.status_code == 200
@@ -187,13 +187,13 @@ def test_json_nested_past_the_decoder_is_invalid_json_or_names_the_cameras_part(
     with httpx.Client(base_url=server.url, timeout=30) as client:
         for body in (deep, b'{"cameras": %s, "dropout_ratio": 0.1}' % deep):       # the body, or one field of it
             response = client.post(f"/v1/models/{model_id}/rank", content=body, headers=headers)
-            error = _error(response, 400, "invalid_json")
+            error = expect_error(response, 400, "invalid_json")
             assert "nested too deeply" in error["message"]
         files = {"file": ("m.ply", svc_model_files["ply"].read_bytes()), "cameras": (None, deep)}
-        error = _error(client.post("/v1/models", files=files), 422, "invalid_input", "cameras")
+        error = expect_error(client.post("/v1/models", files=files), 422, "invalid_input", "cameras")
         assert "nested too deeply" in error["message"]
         not_utf8 = client.post("/v1/select", content=b'{"model_a": "\xff"}', headers=headers)
-        assert "utf-8" in _error(not_utf8, 400, "invalid_json")["message"]
+        assert "utf-8" in expect_error(not_utf8, 400, "invalid_json")["message"]
         assert client.get("/health").status_code == 200
         assert len(client._transport._pool.connections) == 1
     assert len(list((server.settings.data_dir / "models").iterdir())) == 1      # svc_up's model only
@@ -210,10 +210,10 @@ def test_multipart_boundaries_the_parser_refuses_are_400_naming_content_type(svc
                           headers={"content-type": f"multipart/form-data; boundary={boundary}"})
 
     assert upload("b" * 256).status_code == 201                  # the parser's longest boundary
-    error = _error(upload("b" * 257), 400, "invalid_multipart", "Content-Type")
+    error = expect_error(upload("b" * 257), 400, "invalid_multipart", "Content-Type")
     assert "257" in error["message"] and "256" in error["message"]
-    _error(upload("b" * 5000), 400, "invalid_multipart", "Content-Type")
-    _error(upload("b", b"Not A Header\r\n"), 400, "invalid_multipart", "file")
+    expect_error(upload("b" * 5000), 400, "invalid_multipart", "Content-Type")
+    expect_error(upload("b", b"Not A Header\r\n"), 400, "invalid_multipart", "file")
     assert not list((server.settings.data_dir / "tmp").iterdir())
 
 
@@ -248,8 +248,8 @@ def test_jobs_and_heat_maps_survive_kill_9_and_running_jobs_report_interrupted(t
             interrupted = phd.get_job(slow.id)
             assert interrupted.state == "failed" and interrupted.error.code == "interrupted"
             assert "restart" in interrupted.error.message
-        _error(httpx.get(f"{restarted.url}/v1/jobs/0123456789abcdef"), 404, "job_not_found")
-        _error(httpx.get(f"{restarted.url}/v1/jobs/{done.id}/artifacts/..%2Fphd.sqlite3"), 404)
+        expect_error(httpx.get(f"{restarted.url}/v1/jobs/0123456789abcdef"), 404, "job_not_found")
+        expect_error(httpx.get(f"{restarted.url}/v1/jobs/{done.id}/artifacts/..%2Fphd.sqlite3"), 404)
     finally:
         restarted.kill()
 
@@ -274,7 +274,7 @@ def test_messages_never_name_the_servers_temp_files(svc_start, svc_model_files):
     server = svc_start()
     broken = svc_model_files["ply"].read_bytes()[:-100]
     response = httpx.post(f"{server.url}/v1/models", files={"file": ("mine.ply", broken)})
-    error = _error(response, 422, "invalid_input")
+    error = expect_error(response, 422, "invalid_input")
     assert "upload-" not in error["message"] and ".part" not in error["message"]
     assert "mine.ply" in error["message"]
 
@@ -348,10 +348,10 @@ def test_a_trickled_body_is_cut_at_its_rate_deadline_and_a_slow_steady_one_is_no
 def test_headers_past_64_kib_are_431_naming_the_largest(svc_start):
     server = svc_start()
     assert httpx.get(f"{server.url}/health", headers={"x-big": "a" * 60 * 1024}).status_code == 200
-    error = _error(httpx.get(f"{server.url}/health", headers={"x-big": "a" * 70 * 1024}), 431, "headers_too_large")
+    error = expect_error(httpx.get(f"{server.url}/health", headers={"x-big": "a" * 70 * 1024}), 431, "headers_too_large")
     assert error["field"] == "x-big" and "65536" in error["message"]
     many = {f"x-h{i}": "a" * 1000 for i in range(70)}
-    assert _error(httpx.get(f"{server.url}/health", headers=many), 431, "headers_too_large")["field"].startswith("x-h")
+    assert expect_error(httpx.get(f"{server.url}/health", headers=many), 431, "headers_too_large")["field"].startswith("x-h")
     with _open(server.port) as unfinished:                      # still arriving past the cap: h11 refuses them
         unfinished.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 70 * 1024)
         answer = _answer(unfinished)
@@ -406,14 +406,14 @@ def test_each_key_sees_and_deletes_only_its_models_and_jobs(svc_start, svc_model
     bob_headers = {"authorization": "Bearer bob-key-4567"}
     for method, path in (("GET", f"/v1/models/{mine.id}"), ("DELETE", f"/v1/models/{mine.id}"),
                          ("GET", f"/v1/jobs/{job.id}"), ("DELETE", f"/v1/jobs/{job.id}")):
-        _error(httpx.request(method, server.url + path, headers=bob_headers), 404)
+        expect_error(httpx.request(method, server.url + path, headers=bob_headers), 404)
     rank = {"cameras": [_frame()], "dropout_ratio": 0.1, "samples": 2}
-    _error(httpx.post(f"{server.url}/v1/models/{mine.id}/rank", json=rank, headers=bob_headers), 404,
+    expect_error(httpx.post(f"{server.url}/v1/models/{mine.id}/rank", json=rank, headers=bob_headers), 404,
            "model_not_found")
     select = {"model_a": theirs.id, "model_b": mine.id, "cameras": [_frame()], "ratio_a": 0.1, "ratio_b": 0.1,
               "rule": "sigma_mean"}
-    _error(httpx.post(f"{server.url}/v1/select", json=select, headers=bob_headers), 404, field="model_b")
-    _error(httpx.get(f"{server.url}/v1/models", headers={"authorization": "Bearer nobody"}), 401)
+    expect_error(httpx.post(f"{server.url}/v1/select", json=select, headers=bob_headers), 404, field="model_b")
+    expect_error(httpx.get(f"{server.url}/v1/models", headers={"authorization": "Bearer nobody"}), 401)
     admin_headers = {"authorization": "Bearer admin-key-89"}
     assert httpx.get(f"{server.url}/v1/jobs/{job.id}", headers=admin_headers).status_code == 200
     assert httpx.delete(f"{server.url}/v1/models/{mine.id}", headers=admin_headers).status_code == 204

@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 
 from client import PHDClient
-from conftest import LEGO, svc_cameras
+from support.fixtures import LEGO, svc_cameras
 from phd_core import uq
 from phd_core.renderers import load_model
 from phd_core.renderers.gs2d import SurfelRenderer, parse_surfel_ply

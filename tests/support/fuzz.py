@@ -17,7 +17,7 @@ import random
 from dataclasses import dataclass
 from typing import Any
 
-from conftest import svc_cameras
+from .fixtures import svc_cameras
 
 TOKENS = ["NaN", "Infinity", "-Infinity", "1e309", "-1e309", "5e-324", "1e-320", "1e308", "-0.0",
           "123456789012345678901234567890", "-1", "0", "1", "2.5", "true", "null", '""', '"/etc/passwd"',

@@ -17,7 +17,7 @@ from phd_core.renderers import UnknownModelError, load_model, load_model_bytes
 from phd_core.renderers.gs3d import rasterize, read_ply, read_sidecar
 from phd_core.scene import scene_bounds
 from phd_core.train.gs3d import Splats, TrainConfig, carve_points, densify, fit, initial_model, train_gaussians
-from conftest import LEGO
+from support.fixtures import LEGO
 
 
 

@@ -13,7 +13,7 @@ from phd_core.eval import psnr
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, camera_rays, load_nerf
 from phd_core.scene import frustum_bounds
 from phd_core.train.nerf import TrainSettings, fit, grid_hull, train_nerf
-from conftest import LEGO
+from support.fixtures import LEGO
 
 pytestmark = pytest.mark.skipif(not LEGO.is_dir(), reason="lego_200 data not available")
 # Small enough for a few seconds of training on 2 busy cores.

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from conftest import LEGO
+from support.fixtures import LEGO
 from phd_core.data import load_blender
 from phd_core.errors import InputError
 from phd_core.eval import psnr

@@ -19,7 +19,7 @@ from phd_core import uq as phd
 from phd_core.errors import InputError
 from phd_core.eval import psnr, ssim
 from support.toy_renderers import BlobRenderer, ConstantRenderer, EmptyRenderer, away_camera, ring_cameras
-from conftest import LEGO
+from support.fixtures import LEGO
 
 CAMERAS = ring_cameras(6)
 

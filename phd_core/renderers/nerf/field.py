@@ -69,7 +69,7 @@ class HashEncoding(nn.Module):
         self.size = 1 << log2_size
         self.out_dim = levels * features
         growth = math.exp((math.log(finest) - math.log(base)) / (levels - 1)) if levels > 1 else 1.0
-        res = [int(math.floor(base * growth ** l + 1e-9)) for l in range(levels)]
+        res = [int(math.floor(base * growth ** level + 1e-9)) for level in range(levels)]
         self.register_buffer("resolutions", torch.tensor(res, dtype=torch.int64), persistent=False)
         self.register_buffer("dense", torch.tensor([(r + 1) ** 3 <= self.size for r in res]), persistent=False)
         self.table = nn.Parameter(torch.empty(levels, self.size, features).uniform_(-HASH_INIT, HASH_INIT))

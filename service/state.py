@@ -1,0 +1,126 @@
+"""The service's state and what it does with it: the settings, the model store, the memory
+ledger, the jobs and the executor, with the steps the routes share (look a model or a job up
+for a caller, queue work, ingest an upload). `service.deps` hands it to the routes."""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+from typing import Any
+
+from fastapi.responses import JSONResponse
+
+from phd_core.executors import LOCAL, Executor
+from phd_core.renderers import FAMILIES, load_model_bytes
+from phd_core.renderers.gs3d import GaussianRenderer
+from phd_core.scene import Camera
+
+from .budget import MemoryLedger, Reservation, load_bytes
+from .errors import ServiceError, busy, not_found
+from .jobs import JobManager, JobRecord, QueueFull, Work
+from .jobstore import JobStore
+from .keys import Principal
+from .schemas import Job, RenderSize
+from .settings import Settings
+from .store import ModelRecord, ModelStore
+from .upload import Upload, guess_background, parse_background, parse_camera_format, parse_camera_json
+from .work import parse_cameras, set_background
+
+
+@dataclass
+class ServiceState:
+    settings: Settings
+    store: ModelStore
+    ledger: MemoryLedger                # the memory budget, and the models in memory
+    job_store: JobStore
+    jobs: JobManager | None = None
+    executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
+
+    def model(self, model_id: str, who: Principal, field: str | None = None) -> ModelRecord:
+        """The model, or 404 when it does not exist or belongs to another key."""
+        record = self.store.get(model_id)
+        if record is None or not who.may_see(record.owner):
+            raise not_found("model", model_id, field)
+        return record
+
+    def job(self, job_id: str, who: Principal) -> Job:
+        """The job as the API shows it: live from memory until it is final and persisted, then from
+        the store (also after a restart)."""
+        live = self.jobs.get(job_id)
+        if live is not None and not live.on_disk:
+            found = (live.to_schema(), live.owner)
+        else:
+            found = self.job_store.get(job_id)
+        if found is None or not who.may_see(found[1]):
+            raise not_found("job", job_id)
+        return found[0]
+
+    def artifact(self, job_id: str, name: str, who: Principal) -> bytes | None:
+        self.job(job_id, who)
+        live = self.jobs.get(job_id)
+        if live is not None and name in live.artifacts:     # a job whose final state could not be persisted
+            return live.artifacts[name]
+        return self.job_store.artifact(job_id, name)
+
+    def persist_job(self, job: JobRecord) -> None:
+        """JobManager's on_change: the job's state, and once final its artefacts, to disk."""
+        self.job_store.save(job.to_schema(), job.owner, job.artifacts if job.state == "succeeded" else None)
+
+    async def run(self, job_id: str, kind: str, work: Work, estimate: float, run_async: bool,
+                  who: Principal) -> Any:
+        """Queue the work; answer 202 with the job when asked or when it is big, else wait for it."""
+        try:
+            job = self.jobs.submit(job_id, kind, work, estimate, owner=who.name)
+        except QueueFull as exc:
+            raise ServiceError(429, "queue_full", f"the work queue is full ({exc}); retry later", None,
+                               {"Retry-After": str(self.settings.retry_after)}) from None
+        if run_async or estimate > self.settings.async_threshold:
+            return JSONResponse(job.to_schema().model_dump(mode="json"), status_code=202,
+                                headers={"Location": f"/v1/jobs/{job.id}"})
+        result = await asyncio.wrap_future(job.done)
+        if job.state == "succeeded":
+            return result
+        if job.state == "cancelled":
+            raise ServiceError(409, "job_cancelled", f"job '{job.id}' was cancelled before it finished")
+        raise job.error
+
+    def ingest(self, upload: Upload, kind: str, who: Principal) -> ModelRecord:
+        """Load the uploaded file fully (worker thread), then move it into the store."""
+        cameras = source = None
+        if upload.cameras is not None:  # the cheap checks first
+            source = parse_camera_json(upload.cameras)
+            cameras = parse_cameras(source, RenderSize(), self.settings, field="cameras",
+                                    cap=self.settings.max_training_cameras)
+        camera_format = parse_camera_format(upload.camera_format, source)
+        # Parsed under the shared memory budget, which the model then stays in (if the parse's
+        # bytes hold it); by content and the client's file name, so no message ever names the
+        # server's temp file.
+        try:
+            with self.ledger.reserve(load_bytes(upload.size), timeout=self.settings.upload_wait) as parse:
+                return self._store(upload, kind, who, cameras, camera_format, parse)
+        except TimeoutError:
+            raise busy("file", self.settings.retry_after) from None
+
+    def _store(self, upload: Upload, kind: str, who: Principal, cameras: list[Camera] | None,
+               camera_format: str | None, parse: Reservation) -> ModelRecord:
+        renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
+        background_source = None
+        if upload.background is not None:
+            set_background(renderer, parse_background(upload.background))    # a NeRF refuses it
+            background_source = "the upload's background field"
+        elif isinstance(renderer, GaussianRenderer):            # a bare PLY carries no background
+            color, background_source = guess_background(camera_format)
+            set_background(renderer, color)
+        cameras = cameras if cameras is not None else renderer.training_cameras
+        frames = None if not cameras else [c.to_frame() for c in cameras]
+        name = upload.name or upload.filename or f"model{FAMILIES[kind].extension}"
+        # The stored cameras are the truth about training cameras, not what the file carried.
+        facts = {k: v for k, v in renderer.describe().items() if k != "has_training_cameras"}
+        facts["camera_format"] = camera_format or facts.get("camera_format")
+        if background_source is not None:
+            facts["background_source"] = background_source
+        record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
+                                sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
+                                training_frames=frames, owner=who.name)
+        parse.keep(record.id, renderer, record.size_bytes)
+        return record
