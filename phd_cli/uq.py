@@ -115,10 +115,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     views.add_argument("--cameras", type=Path, help="the views: transforms-style JSON, a cameras.json, any capture")
     select.add_argument("--split", default="test", help="split of --data (default test)")
     select.add_argument("--views", type=int, default=None, help="this many evenly spaced frames of --data")
-    select.add_argument("--rule", choices=phd.SELECTION_RULES, default=phd.DEFAULT_SELECTION_RULE,
-                        help="distance_sigma (default): distance to the nearest training camera times the "
-                             "relative mean zeta; coverage_sigma: the share of the view its training views did "
-                             "not see in place of the distance; sigma_mean: the paper's rule")
+    select.add_argument("--rule", choices=list(phd.SELECTION_RULES), default=phd.DEFAULT_SELECTION_RULE,
+                        help=phd.rules_help())
     _add_camera_size_args(select)
     _add_uncertainty_args(select)
     _add_calibration_args(select)

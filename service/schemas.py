@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator,
 
 from phd_core.renderers import FAMILIES
 from phd_core.registry import Registry
-from phd_core.uq import DEFAULT_SELECTION_RULE, SELECTION_RULES
+from phd_core.uq import DEFAULT_SELECTION_RULE, SELECTION_RULES, rules_help
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 
@@ -207,11 +207,8 @@ class SelectRequest(RenderSize):
     seed: int = Field(0, ge=0, le=2**63 - 1)
     ratio_a: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: model a's calibration.")
     ratio_b: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: model b's calibration.")
-    rule: Literal[SELECTION_RULES] = Field(  # type: ignore[valid-type]
-        DEFAULT_SELECTION_RULE, description="distance_sigma (default): distance to the model's nearest training "
-        "camera times the view's mean zeta relative to the model's own training views (needs both models' training "
-        "cameras); coverage_sigma: as distance_sigma with the share of the view its training views did not see in "
-        "place of the distance; sigma_mean: the paper's rule, the lower mean zeta.")
+    rule: Literal[tuple(SELECTION_RULES)] = Field(  # type: ignore[valid-type]
+        DEFAULT_SELECTION_RULE, description=rules_help() + ".")
     images: HeatmapMode = Field("none", description="The selected model's render per view: inline base64 PNG "
                                 "or downloadable files.")
     both_images: bool = Field(False, description="With images: also the other model's render per view "

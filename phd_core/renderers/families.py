@@ -1,14 +1,14 @@
 """Model families and loading: any supported model is recognised by its content, never by
 its file name.
 
-`FAMILIES` maps a kind ("3dgs", "nerf") to a `Family`: how its files are recognised (a
+`FAMILIES` maps a kind (the renderer's `kind`) to a `Family`: how its files are recognised (a
 3DGS PLY starts with `ply`; a NeRF checkpoint is a safetensors file marked as ours), how
 they are loaded, which file extension the service stores them under, which trainer
 `phd train` calls (named, so loading a model never imports a trainer) and how much memory
 a render of one camera takes (`RenderMemory`, which the service budgets with). Anything no family
 recognises (a pickle, an archive, random bytes) is refused before it is parsed, so no file
 can execute code on load. A new family is one module defining its `Family` plus one
-`register_family` call (`phd_core/renderers/__init__.py` registers the built-in ones); the
+`FAMILIES.register` call (`phd_core/renderers/__init__.py` registers the built-in ones); the
 CLI and the service take their names from here. Trainers' output folders are read by
 `phd_core.renderers.outputs` (one module per trainer); this module never imports a family.
 """
@@ -31,7 +31,7 @@ SNIFF_BYTES = 4096
 class Family:
     """One model family: how its files are recognised, loaded, stored and trained."""
 
-    kind: str                                               # the renderer's `kind`
+    name: str                                               # the kind: the renderer's `kind`
     title: str                                              # for messages: "a 3DGS PLY"
     extension: str                                          # file extension the service stores it under
     sniff: Callable[[bytes], bool]                          # True for the first SNIFF_BYTES of its files
@@ -44,11 +44,6 @@ class Family:
 
 
 FAMILIES: Registry[Family] = Registry("model family")
-
-
-def register_family(family: Family) -> Family:
-    """Add a model family (a kind is registered once)."""
-    return FAMILIES.add(family.kind, family)
 
 
 class UnknownModelError(InputError):
@@ -68,7 +63,7 @@ def family_of(head: bytes) -> Family | None:
 def model_kind(head: bytes) -> str | None:
     """The kind of a file from its first bytes, or None."""
     family = family_of(head)
-    return None if family is None else family.kind
+    return None if family is None else family.name
 
 
 def load_model_bytes(data: bytes, name: str = "model",

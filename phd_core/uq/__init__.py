@@ -23,7 +23,7 @@ from .rank import RankedView, candidate_evidence, coarse_cameras, rank_views
 from .sampling import (MAX_MASKS_PER_RENDER, Progress, RunningStd, dropout_uniforms, keep_masks, limit_mask_batch,
                        sample_std)
 from .select import (DEFAULT_SELECTION_RULE, SELECTION_RULES, SELECTION_TRAINING_VIEWS, SelectionResult,
-                     ViewSelection, select_models)
+                     SelectionRule, ViewSelection, rules_help, select_models)
 from .strategies import DEFAULT_STRATEGY, STRATEGIES
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, sigma_max_bar, uncertainty, view_uncertainty
 
@@ -31,7 +31,7 @@ __all__ = [
     "DEFAULT_CALIBRATION_SAMPLES", "DEFAULT_EPSILON", "DEFAULT_SAMPLES", "DEFAULT_SELECTION_RULE",
     "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "GENERATORS", "LOOKAHEAD", "MAX_MASKS_PER_RENDER",
     "SELECTION_RULES", "SELECTION_TRAINING_VIEWS", "STRATEGIES", "CalibrationError", "CalibrationResult",
-    "Progress", "RankedView", "RunningStd", "SelectionResult", "ViewSelection", "ViewUncertainty", "calibrate", "calibrate_ssim",
-    "candidate_evidence", "coarse_cameras", "dropout_uniforms", "keep_masks", "limit_mask_batch", "rank_views", "sample_std", "select_models",
+    "Progress", "RankedView", "RunningStd", "SelectionResult", "SelectionRule", "ViewSelection", "ViewUncertainty", "calibrate", "calibrate_ssim",
+    "candidate_evidence", "coarse_cameras", "dropout_uniforms", "keep_masks", "limit_mask_batch", "rank_views", "rules_help", "sample_std", "select_models",
     "sigma_max_bar", "uncertainty", "view_uncertainty",
 ]

@@ -14,6 +14,7 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError
+from ..registry import Registry
 from ..eval import ensemble_efficiency, psnr, ssim
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
@@ -47,8 +48,31 @@ class SelectionResult:
         return {"views": [v.to_dict() for v in self.views], "metrics": self.metrics}
 
 
-SELECTION_RULES = ("distance_sigma", "coverage_sigma", "sigma_mean")
+@dataclass(frozen=True)
+class SelectionRule:
+    """How a view's score is made from a model's mean zeta (`select_models`)."""
+
+    name: str
+    summary: str                    # one line for --help and the API schema
+    relative: bool                  # zeta relative to the model's own level on its training views
+    coverage: bool = False          # times what its training views did not see (else the distance to them)
+
+
+SELECTION_RULES: Registry[SelectionRule] = Registry("selection rule")
+SELECTION_RULES.register(SelectionRule(
+    "distance_sigma", "distance to the model's nearest training camera times the view's mean zeta relative to the "
+    "model's own training views (needs both models' training cameras)", relative=True))
+SELECTION_RULES.register(SelectionRule(
+    "coverage_sigma", "as distance_sigma with the share of the view its training views did not see in place of the "
+    "distance", relative=True, coverage=True))
+SELECTION_RULES.register(SelectionRule("sigma_mean", "the paper's rule, the lower mean zeta", relative=False))
 DEFAULT_SELECTION_RULE = "distance_sigma"
+
+
+def rules_help() -> str:
+    """Each rule with its summary, for --help and the API schema."""
+    return "; ".join(f"{name}{' (default)' if name == DEFAULT_SELECTION_RULE else ''}: {rule.summary}"
+                     for name, rule in SELECTION_RULES.items())
 UNCOVERED_FLOOR = 0.05             # coverage_sigma: a fully covered view still counts its zeta
 SELECTION_TRAINING_VIEWS = 8       # training views (evenly spaced) that set a model's own zeta level
 
@@ -99,14 +123,13 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     samples, _ = check_samples(samples, 1)
     seed = check_seed(seed)
     cameras = check_cameras(cameras)
-    if rule not in SELECTION_RULES:
-        raise InputError("rule", f"must be one of {', '.join(SELECTION_RULES)}, got {rule!r}")
+    chosen = SELECTION_RULES.lookup(rule, "rule")
     if images is not None:
         images = check_images(images, cameras)
     renderers = {"a": renderer_a, "b": renderer_b}
     keeps = {"a": keep_masks(dropout_uniforms(renderer_a.num_units, samples, seed), ratio_a),
              "b": keep_masks(dropout_uniforms(renderer_b.num_units, samples, seed), ratio_b)}
-    if rule != "sigma_mean":
+    if chosen.relative:
         given = {"a": training_a, "b": training_b}
         training = {key: _training_views(renderers[key], given[key], f"model_{key}") for key in renderers}
         levels = {key: level_views(training[key]) for key in renderers}
@@ -122,26 +145,26 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         """Each view under model `key`'s masks, on the executor."""
         chunks = executor.split(views)
         parts = executor.map(partial(measure_views, ddof=1, keep_maps=False, dtype=torch.float64,
-                                     keep_full=keep_full, keep_visibility=rule == "coverage_sigma"), chunks,
+                                     keep_full=keep_full, keep_visibility=chosen.coverage), chunks,
                              executor.share(renderers[key]), keeps[key], done=lambda i: ticker.tick(len(chunks[i])))
         return [view for part in parts for view in part]
 
     measured = {key: measure(key, cameras, keep_full=both or bool(keep_images)) for key in renderers}
     sigmas = {key: [view.sigma_mean for view in measured[key]] for key in renderers}
-    if rule != "sigma_mean":
+    if chosen.relative:
         own = {}
         for key in renderers:
             means = [view.sigma_mean for view in measure(key, levels[key])]
             own[key] = max(sum(means) / len(means), 1e-12)
     uncovered = {}
-    if rule == "coverage_sigma":
+    if chosen.coverage:
         for key, renderer in renderers.items():
             if reports_visibility(renderer):
                 uncovered[key] = uncovered_share([view.visibility for view in measured[key]],
                                                  view_visibility(renderer, training[key]))
 
     def score(key: str, i: int) -> float:
-        if rule == "sigma_mean":
+        if not chosen.relative:
             return sigmas[key][i]
         if key in uncovered:
             return (UNCOVERED_FLOOR + float(uncovered[key][i])) * sigmas[key][i] / own[key]

@@ -217,5 +217,5 @@ def _section(config: dict, *keys: str) -> dict:
     return config if isinstance(config, dict) else {}
 
 
-OUTPUTS.add("nerfstudio", OutputFormat("nerfstudio", "a nerfstudio splatfacto output folder (config.yml + "
-                                       f"{FRAME_FILE})", detect, read))
+OUTPUTS.register(OutputFormat("nerfstudio", f"a nerfstudio splatfacto output folder (config.yml + {FRAME_FILE})",
+                              detect, read, order=20))
