@@ -22,8 +22,8 @@ from phd_core.uq.candidates import candidate_cameras
 from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
-from phd_core.renderers import FAMILIES, Renderer, RenderMemory, load_model, memory_probe_bytes
-from phd_core.renderers.gs3d import GaussianRenderer, set_background
+from phd_core.renderers import (FAMILIES, Renderer, RenderMemory, accepts_background, load_model, memory_probe_bytes,
+                                 set_background)
 from phd_core.renderers.visibility import PASS_FRAGMENT_BYTES, PASS_UNIT_BYTES, visibility_bytes
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
@@ -49,7 +49,7 @@ def model_loader(store: ModelStore) -> Callable[[str], Renderer]:
         if record is None:
             raise not_found("model", model_id)
         renderer = load_model(store.path(record))
-        if isinstance(renderer, GaussianRenderer) and record.describe.get("background") is not None:
+        if accepts_background(renderer) and record.describe.get("background") is not None:
             set_background(renderer, record.describe["background"])
         return renderer
     return load

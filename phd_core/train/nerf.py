@@ -34,6 +34,7 @@ from ..data import Dataset, load_dataset
 from ..errors import InputError, check_color
 from ..renderers.nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays, render_rays,
                               save_nerf)
+from ..renderers.nerf.family import NeRFOptions
 from ..scene import Camera, frustum_bounds, visual_hull
 
 # 100x100 images, 16 views, 2 shared CPU cores: about 0.1 s per iteration, 4 minutes (docs/nerf.md).
@@ -83,9 +84,10 @@ class TrainSettings:
         return self
 
 
-def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, downscale: float = 2, encoding: str = "pe",
-               freenerf: bool = False, iterations: int | None = None, seed: int = 0, out: str | Path | None,
-               progress: bool = True, **overrides: Any) -> NeRFRenderer:
+def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, downscale: float = 2,
+               encoding: str = NeRFOptions.encoding, freenerf: bool = NeRFOptions.freenerf,
+               iterations: int | None = None, seed: int = 0, out: str | Path | None, progress: bool = True,
+               **overrides: Any) -> NeRFRenderer:
     """Train a NeRF on the "train" split of `data` and write it to `out` (None: don't write).
 
     `views`: a count of evenly spaced training frames or a list of frame indices, loaded at
@@ -95,8 +97,7 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
     (depth, width, samples, bounds, ...) or `TrainSettings` fields (batch_rays, lr, ...).
     iterations=None: DEFAULT_ITERATIONS.
     """
-    if not isinstance(freenerf, bool):
-        raise InputError("freenerf", f"must be true or false, got {freenerf!r}")
+    NeRFOptions(encoding, freenerf)
     iterations = DEFAULT_ITERATIONS if iterations is None else iterations
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise InputError("iterations", f"must be a positive integer, got {iterations!r}")

@@ -20,7 +20,7 @@ from typing import Callable
 import torch
 
 from ...registry import Registry
-from ..splats import Fragments
+from ..splats.maths import Fragments
 from . import fused, reference
 
 

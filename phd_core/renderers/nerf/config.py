@@ -18,6 +18,13 @@ CHUNK_ELEMENTS = 1 << 23
 
 # --------------------------------------------------------------------------- configuration
 
+def check_encoding(encoding: Any) -> str:
+    """`encoding` when it is one of ENCODINGS, else an InputError naming the field."""
+    if encoding not in ENCODINGS:
+        raise InputError("encoding", f"must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
+    return encoding
+
+
 @dataclass
 class NeRFConfig:
     """Everything needed to rebuild a model: stored as JSON in every checkpoint.
@@ -52,8 +59,7 @@ class NeRFConfig:
 
     def validate(self) -> "NeRFConfig":
         """Raise `InputError` naming the first field out of range; return self."""
-        if self.encoding not in ENCODINGS:
-            raise InputError("encoding", f"must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}")
+        check_encoding(self.encoding)
         for name, lo, hi in (("depth", 1, 16), ("width", 1, 1024), ("color_width", 1, 1024),
                              ("pos_freqs", 0, 16), ("dir_freqs", 0, 8), ("hash_levels", 1, 32),
                              ("hash_features", 1, 8), ("hash_log2_size", 8, 24),

@@ -46,7 +46,7 @@ from ...errors import InputError
 from ...io.foreign import read_checkpoint, read_yaml, yaml_path
 from ...scene import Camera, Similarity
 from ..gs3d import GaussianModel, read_ply
-from ..splats import SH_C0
+from ..splats.maths import SH_C0
 from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates, sh_from_parts
 
 FRAME_FILE = "dataparser_transforms.json"
