@@ -40,7 +40,7 @@ import torch
 from tqdm import tqdm
 
 from ..data import Dataset, load_dataset, locate
-from ..errors import InputError, check_color
+from ..errors import InputError, check_color, check_float, check_int
 from ..eval import ssim
 from ..io import write_json_atomic
 from ..renderers.composite import COMPOSITORS, DEFAULT_COMPOSITOR
@@ -52,6 +52,8 @@ from ..scene import Camera, footprint, scene_bounds, visual_hull
 
 @dataclass
 class TrainConfig:
+    """The splat loop's settings, checked when built (`validate`)."""
+
     iterations: int = 2000
     sh_degree: int = 3
     ssim_weight: float = 0.2
@@ -79,16 +81,26 @@ class TrainConfig:
     background: str | Sequence[float] | None = None   # behind the splats: a name or [r, g, b]; None: the data's
                                       # (alpha masks: white) or the training images' mean (a real capture)
 
-    def validate(self) -> None:
-        if self.iterations < 1:
-            raise InputError("iterations", f"must be at least 1, got {self.iterations}")
-        if not 0 <= self.sh_degree <= 3:
-            raise InputError("sh_degree", f"must be 0..3, got {self.sh_degree}")
-        if self.init_points < 1:
-            raise InputError("init_points", f"must be at least 1, got {self.init_points}")
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> "TrainConfig":
+        """Raise `InputError` naming the first field out of range; return self."""
+        for name, lo, hi in (("iterations", 1, None), ("sh_degree", 0, 3), ("init_points", 1, None),
+                             ("background_splats", 0, None), ("densify_every", 1, None), ("seed", None, None),
+                             ("tile", 1, None)):
+            check_int(getattr(self, name), name, lo, hi)
+        for name, lo, hi in (("ssim_weight", 0.0, 1.0), ("lr_means", 0.0, None), ("lr_sh_dc", 0.0, None),
+                             ("lr_sh_rest", 0.0, None), ("lr_opacity", 0.0, None), ("lr_scales", 0.0, None),
+                             ("lr_quats", 0.0, None), ("shell_radius", 0.0, None), ("splats_per_pixel", 0.0, None),
+                             ("densify_from", 0.0, 1.0), ("densify_until", 0.0, 1.0), ("grad_threshold", 0.0, None),
+                             ("dense_fraction", 0.0, None), ("opacity_reset_every", 0.0, 1.0),
+                             ("min_opacity", 0.0, 1.0), ("sh_up_every", 0.0, None)):
+            check_float(getattr(self, name), name, lo, hi)
         COMPOSITORS.lookup(self.compositor, "compositor")
         if self.background is not None:
             self.background = list(check_color(self.background, "background"))
+        return self
 
 
 @dataclass(frozen=True)
@@ -327,10 +339,7 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
     """Train `recipe`'s family on the `train` split of a capture (Blender, nerfstudio, COLMAP,
     LLFF) and write `out` (PLY) plus the sidecar `<stem>.json` with the training cameras, the
     views and the settings."""
-    config = TrainConfig(seed=seed, **overrides)
-    if iterations is not None:
-        config.iterations = iterations
-    config.validate()
+    config = TrainConfig(seed=seed, **overrides, **({} if iterations is None else {"iterations": iterations}))
     source = locate(data, "train")[0].name            # the capture's format: its pose convention
     dataset = load_dataset(data, "train", downscale=downscale, views=views,
                            background=config.background or (1.0, 1.0, 1.0))

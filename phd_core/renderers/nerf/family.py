@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ...errors import InputError
+from ...errors import check_bool
 from ...scene import Camera
 from ..families import Family, option
 from .checkpoint import is_nerf_checkpoint, load_nerf_bytes
@@ -22,8 +22,7 @@ class NeRFOptions:
 
     def __post_init__(self) -> None:
         check_encoding(self.encoding)
-        if not isinstance(self.freenerf, bool):
-            raise InputError("freenerf", f"must be true or false, got {self.freenerf!r}")
+        check_bool(self.freenerf, "freenerf")
 
 
 def _load(data: bytes, name: str, cameras: list[Camera] | None) -> NeRFRenderer:
