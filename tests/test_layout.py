@@ -139,11 +139,13 @@ NOT_CHECKED = {ROOT.parent / "phd_cli" / "demo.py"}
 
 
 def family_names() -> set[str]:
-    """The public names of every family package (GaussianRenderer, SurfelModel, NeRFConfig, ...)."""
+    """The family packages and their public classes and constants (GaussianRenderer, SurfelModel,
+    NeRFConfig, ...); their functions are reached through a package name, which is checked."""
     import importlib
 
     return {name for package in FAMILY_PACKAGES
-            for name in importlib.import_module(f"phd_core.renderers.{package}").__all__} | FAMILY_PACKAGES
+            for name in importlib.import_module(f"phd_core.renderers.{package}").__all__
+            if name[0].isupper()} | FAMILY_PACKAGES
 
 
 def docstrings(tree: ast.AST) -> set[int]:

@@ -39,5 +39,6 @@ def locate(path: Path, split: str) -> Path | None:
     return json_path if path.is_dir() and json_path.is_file() else None
 
 
-FORMATS.register(DataFormat("blender", locate, lambda json_path, split, **kw: load_blender(json_path.parent, split, **kw),
+FORMATS.register(DataFormat("blender", locate,
+                            lambda json_path, split, **kw: load_blender(json_path.parent, split, **kw),
                             order=10, looks_for="transforms_{split}.json", count=count_frames))

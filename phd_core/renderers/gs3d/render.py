@@ -26,7 +26,8 @@ touches, so the image does not depend on the tile size (the reference cuts splat
 
 Stages 2-4 and the SH colour are shared splat maths (`phd_core.renderers.splats.maths`),
 the renderer's protocol side is `SplatRenderer`; this module holds what is particular to 3D
-Gaussians: the EWA projection, the alpha of an ellipse and the compiled `SplatView`. Pixel (i, j) has its centre at (i + 0.5, j + 0.5); see `phd_core.scene.camera`.
+Gaussians: the EWA projection, the alpha of an ellipse and the compiled `SplatView`.
+Pixel (i, j) has its centre at (i + 0.5, j + 0.5); see `phd_core.scene.camera`.
 """
 
 from __future__ import annotations
