@@ -21,7 +21,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from phd_core.uq.strategies import Evidence, Selection, Strategy, register
+from phd_core.uq.strategies import STRATEGIES, Evidence, Selection, Strategy
 from phd_core.uq.strategies.base import by_score, centres, greedy
 
 
@@ -71,4 +71,4 @@ for _strategy in (
                  lambda ev, k, seed: by_score(ev.sigma_top)),
         Strategy("sigma_area", "largest share of pixels with zeta above 0.05", lambda ev, k, seed: by_score(ev.area)),
         Strategy("fvs_top", "distance times (sigma_top + its mean), greedy", _fvs_top)):
-    register(_strategy)
+    STRATEGIES.register(_strategy)

@@ -20,8 +20,10 @@ COMMAND_MODULES = ("train", "render", "serve", "demo", "uq", "candidates", "view
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from phd_core.renderers import FAMILIES
+
     parser = argparse.ArgumentParser(prog="phd", description="PH-Dropout: post hoc epistemic uncertainty "
-                                     "for Gaussian Splatting and NeRF models.")
+                                     f"for trained models ({', '.join(FAMILIES)}).")
     subparsers = parser.add_subparsers(dest="command", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(f"{__name__}.{name}").register(subparsers)

@@ -66,7 +66,7 @@ def _train(data: Path, views: list[int], iterations: int | None, out: Path, retr
     """Train a 3DGS model on `views` of the train split, or reuse a cached one whose
     sidecar (written by the trainer) records the same scene, views and settings."""
     from phd_core.train.gs3d import TrainConfig, train_gaussians
-    from phd_core.renderers.gs3d import read_sidecar
+    from phd_core.renderers.splats import read_sidecar
 
     model = out / "models" / f"{name}.ply"
     wanted_iterations = iterations if iterations is not None else TrainConfig().iterations

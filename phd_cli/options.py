@@ -1,4 +1,4 @@
-"""Options several commands share: `--background`."""
+"""Options several commands share: `--background`, and the help of a model argument."""
 
 from __future__ import annotations
 
@@ -6,6 +6,19 @@ import argparse
 from typing import Any
 
 from phd_core.errors import NAMED_COLORS, InputError, check_color
+from phd_core.renderers import family_titles, set_background
+
+
+def model_help(folders: bool = False) -> str:
+    """What a model argument takes: a file of any registered family (and, with `folders`, any
+    registered trainer's output folder)."""
+    files = f"trained model: {family_titles('or')}"
+    if not folders:
+        return files
+    from phd_core.renderers.outputs import OUTPUTS
+
+    return (f"{files}, or a trainer's output folder as is: {'; '.join(f.title for f in OUTPUTS.in_order())}; "
+            "poses are in the capture's frame")
 
 
 def add_background_arg(parser: argparse.ArgumentParser, what: str) -> None:
@@ -27,9 +40,7 @@ def parse_background(values: list[str] | None) -> tuple[float, float, float] | N
 
 
 def apply_background(renderer: Any, values: list[str] | None) -> None:
-    """Render a splat model over --background, when given (a NeRF checkpoint refuses it)."""
+    """Render the model over --background, when given (a model that carries its own refuses it)."""
     color = parse_background(values)
     if color is not None:
-        from phd_core.renderers.gs3d import set_background
-
         set_background(renderer, color)

@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .options import model_help
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("render", help="render a split and score it against the ground truth")
-    p.add_argument("--model", required=True, type=Path, help="3DGS or 2DGS PLY, or NeRF checkpoint")
+    p.add_argument("--model", required=True, type=Path, help=model_help())
     p.add_argument("--data", required=True, type=Path, help="dataset directory")
     p.add_argument("--split", default="test")
     p.add_argument("--views", default=None, help="count or comma-separated indices (default: all)")

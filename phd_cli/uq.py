@@ -22,7 +22,7 @@ from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
 
-from .options import add_background_arg, apply_background
+from .options import add_background_arg, apply_background, model_help
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -115,8 +115,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     views.add_argument("--cameras", type=Path, help="the views: transforms-style JSON, a cameras.json, any capture")
     select.add_argument("--split", default="test", help="split of --data (default test)")
     select.add_argument("--views", type=int, default=None, help="this many evenly spaced frames of --data")
-    select.add_argument("--rule", choices=phd.SELECTION_RULES, default=phd.DEFAULT_SELECTION_RULE,
-                        help="per view, the model with the lower score; " + phd.rule_help())
+    select.add_argument("--rule", choices=list(phd.SELECTION_RULES), default=phd.DEFAULT_SELECTION_RULE,
+                        help=phd.rules_help())
     _add_camera_size_args(select)
     _add_uncertainty_args(select)
     _add_calibration_args(select)
@@ -131,10 +131,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # ---------------------------------------------------------------------------------------- arguments
 
 def _add_model_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", type=Path, required=True, help="trained model: 3DGS or 2DGS .ply, NeRF checkpoint, "
-                        "or a trainer's output folder as is: the reference 3DGS trainer's, nerfstudio splatfacto's "
-                        "(config.yml + dataparser_transforms.json) or gsplat's (ckpts/, with its COLMAP capture); "
-                        "poses are in the capture's frame")
+    parser.add_argument("--model", type=Path, required=True, help=model_help(folders=True))
     add_background_arg(parser, "splat models: the colour to render over (default: the one the model came with: "
                        "its sidecar's or cfg_args', else white)")
 

@@ -21,6 +21,8 @@ import numpy as np
 
 from phd_core.errors import InputError
 
+from .options import model_help
+
 TRAINING_COLOUR = (40, 40, 40)
 UNRANKED_COLOUR = (170, 170, 170)
 
@@ -31,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Open an interactive 3D view (viser, in the browser) of the model's splats, its training "
                     "cameras and the candidate poses coloured by score (yellow = capture first). Click a candidate "
                     "to see its mean render and zeta heat map.")
-    p.add_argument("model", type=Path, help="3DGS or 2DGS PLY, or NeRF checkpoint")
+    p.add_argument("model", type=Path, help=model_help())
     p.add_argument("--candidates", type=Path, default=None,
                    help="candidate poses (transforms.json or a list of frames), as given to `phd rank`")
     p.add_argument("--ranking", type=Path, default=None,

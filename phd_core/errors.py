@@ -54,14 +54,23 @@ def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | 
     return value
 
 
-def check_float(value: Any, name: str, minimum: float | None = None, maximum: float | None = None) -> float:
-    """`value` as a finite float (bools refused) within [minimum, maximum], else an InputError."""
+def check_float(value: Any, name: str, minimum: float | None = None, maximum: float | None = None, *,
+                open_min: bool = False, open_max: bool = False) -> float:
+    """`value` as a finite float (bools refused) within [minimum, maximum], else an InputError;
+    open_min / open_max exclude the bound itself ((0, 1]: minimum=0, maximum=1, open_min=True)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(name, f"must be a number, got {value!r}")
     value = float(value)
     if not math.isfinite(value):
         raise InputError(name, f"must be finite, got {value}")
-    _check_range(value, name, minimum, maximum)
+    _check_range(value, name, minimum, maximum, open_min, open_max)
+    return value
+
+
+def check_bool(value: Any, name: str) -> bool:
+    """`value` when it is True or False, else an InputError naming `name`."""
+    if not isinstance(value, bool):
+        raise InputError(name, f"must be true or false, got {value!r}")
     return value
 
 
@@ -83,10 +92,14 @@ def check_color(value: Any, name: str) -> tuple[float, float, float]:
     return tuple(color)
 
 
-def _check_range(value: float, name: str, minimum: float | None, maximum: float | None) -> None:
-    if minimum is not None and maximum is not None and not minimum <= value <= maximum:
-        raise InputError(name, f"must lie in [{minimum}, {maximum}], got {value}")
-    if minimum is not None and value < minimum:
-        raise InputError(name, f"must be at least {minimum}, got {value}")
-    if maximum is not None and value > maximum:
-        raise InputError(name, f"must be at most {maximum}, got {value}")
+def _check_range(value: float, name: str, minimum: float | None, maximum: float | None,
+                 open_min: bool = False, open_max: bool = False) -> None:
+    low = minimum is not None and (value <= minimum if open_min else value < minimum)
+    high = maximum is not None and (value >= maximum if open_max else value > maximum)
+    if minimum is not None and maximum is not None and (low or high):
+        raise InputError(name, f"must lie in {'(' if open_min else '['}{minimum}, {maximum}{')' if open_max else ']'}, "
+                               f"got {value}")
+    if low:
+        raise InputError(name, f"must be {'above' if open_min else 'at least'} {minimum}, got {value}")
+    if high:
+        raise InputError(name, f"must be {'below' if open_max else 'at most'} {maximum}, got {value}")

@@ -35,6 +35,7 @@ import phd_core
 from phd_core.allocator import bounded_heap, keep_freed_memory, one_arena
 from phd_core.errors import InputError
 from phd_core.executors import make_executor
+from phd_core.renderers import FAMILIES
 
 from .budget import MemoryLedger
 from .errors import ServiceError, error_body, from_exception, json_problem
@@ -137,7 +138,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await asyncio.to_thread(state.jobs.shutdown)
 
     app = FastAPI(title="PH-Dropout service", version=phd_core.__version__, lifespan=lifespan,
-                  description="Post hoc epistemic uncertainty for trained Gaussian Splatting and NeRF models: "
+                  description=f"Post hoc epistemic uncertainty for trained models ({', '.join(FAMILIES)}): "
                               "next-best-view ranking and per-view model selection.")
     app.state.service = state
     install_error_handlers(app)

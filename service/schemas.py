@@ -13,13 +13,13 @@ every frame.
 
 from __future__ import annotations
 
-from typing import Any, Literal, Union
+from typing import Any, Callable, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
-from phd_core.renderers import FAMILIES
+from phd_core.renderers import FAMILIES, Family
 from phd_core.registry import Registry
-from phd_core.uq import DEFAULT_SELECTION_RULE, SELECTION_RULES, rule_help
+from phd_core.uq import DEFAULT_SELECTION_RULE, SELECTION_RULES, rules_help
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 
@@ -29,6 +29,16 @@ CameraList = Union[list[dict[str, Any]], dict[str, Any]]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 JobKind = Literal["calibrate", "rank", "select"]
 HeatmapMode = Literal["none", "base64", "files"]
+
+def _by_family(fact: Callable[[Family], str]) -> str:
+    """'splats (3dgs, 2dgs) or first-layer hidden units (nerf)': a fact of each registered
+    family, the families that share it together (those without it left out)."""
+    kinds: dict[str, list[str]] = {}
+    for family in FAMILIES.values():
+        if fact(family):
+            kinds.setdefault(fact(family), []).append(family.name)
+    return " or ".join(f"{value} ({', '.join(names)})" for value, names in kinds.items())
+
 
 def _registered(registry: Registry, name: str) -> str:
     """`name` when the registry has it; else a validation error that lists the known names."""
@@ -96,9 +106,10 @@ class ModelInfo(_Response):
     id: str
     name: str
     kind: str = Field(description="Model family, one of the registry's kinds (phd_core.renderers.FAMILIES).")
-    num_units: int = Field(description="Dropout units: splats (3DGS, 2DGS) or first-layer hidden units (NeRF).")
-    sh_degree: int | None = Field(None, description="Spherical-harmonic degree (3DGS, 2DGS).")
-    network: dict[str, Any] | None = Field(None, description="Network size facts (NeRF).")
+    num_units: int = Field(description=f"Dropout units: {_by_family(lambda f: f.units)}.")
+    sh_degree: int | None = Field(None, description="Spherical-harmonic degree (models with SH colour).")
+    network: dict[str, Any] | None = Field(None, description="Network size facts: "
+                                           f"{_by_family(lambda f: ', '.join(f.network))}.")
     bounds: dict[str, list[float]] | None = Field(None, description="Scene bounds {'min': [x,y,z], 'max': [x,y,z]}.")
     size_bytes: int
     sha256: str
@@ -207,8 +218,8 @@ class SelectRequest(RenderSize):
     seed: int = Field(0, ge=0, le=2**63 - 1)
     ratio_a: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: model a's calibration.")
     ratio_b: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: model b's calibration.")
-    rule: Literal[SELECTION_RULES] = Field(  # type: ignore[valid-type]
-        DEFAULT_SELECTION_RULE, description="Per view, the model with the lower score; " + rule_help())
+    rule: Literal[tuple(SELECTION_RULES)] = Field(  # type: ignore[valid-type]
+        DEFAULT_SELECTION_RULE, description=rules_help() + ".")
     images: HeatmapMode = Field("none", description="The selected model's render per view: inline base64 PNG "
                                 "or downloadable files.")
     both_images: bool = Field(False, description="With images: also the other model's render per view "

@@ -3,7 +3,9 @@
 Each cap is a setting because what is "too large" depends on the machine the service runs
 on. pydantic-settings reads every field from a `PHD_<NAME>` environment variable (keyword
 arguments win over the environment, the environment over the defaults); the CLI (`phd
-serve`) overrides the data dir, workers and queue size from its flags.
+serve`) overrides the data dir, workers, queue size and executor from its flags. Each
+setting is described once, in its field; docs/service.md's table is `settings_table()`
+(`python -m service.settings` prints it) and a test keeps the two the same.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ APP_NAME = "ph-dropout-service"
 
 
 def default_data_dir() -> Path:
-    """The user's data directory for this application (XDG on Linux)."""
+    """`$XDG_DATA_HOME/ph-dropout-service` (`~/.local/share/...`) on Linux; the platform's user data dir elsewhere."""
     home = Path.home()
     if sys.platform == "darwin":
         base = home / "Library" / "Application Support"
@@ -33,38 +35,51 @@ def default_data_dir() -> Path:
 
 
 class Settings(BaseSettings):
+    """Every setting, described once: docs/service.md's table is `settings_table()`."""
+
     model_config = SettingsConfigDict(env_prefix="PHD_", frozen=True, extra="forbid")
 
-    data_dir: Path = Field(default_factory=default_data_dir)
-    api_key: str | None = None                 # when set, every route but /health needs Bearer <key>
-    workers: PositiveInt = 1                   # threads running PH-Dropout work
-    queue_size: PositiveInt = 8                # jobs waiting for a worker; past it: 429
-    retry_after: PositiveInt = 5               # seconds, sent with 429
-    cache_size: PositiveInt = 4                # idle models kept in memory (LRU; evicted sooner when the
-                                               # memory budget needs their room)
-    job_retention: PositiveInt = 256           # finished jobs (and their artefacts) kept in memory
-    max_upload_bytes: PositiveInt = 1 << 30    # model upload cap (413 past it)
-    max_camera_json_bytes: PositiveInt = 16 << 20  # training-camera JSON part of an upload
-    max_json_bytes: PositiveInt = 32 << 20     # any other request body
-    max_frame_size: PositiveInt = 4096         # width/height a camera frame may declare
-    max_image_size: PositiveInt = 800          # width/height actually rendered (after downscale)
-    max_candidates: PositiveInt = 1000         # cameras per rank/select request
-    max_training_cameras: PositiveInt = 1000   # cameras used for calibration
-    max_samples: PositiveInt = 256             # dropout samples N per request
-    async_threshold: PositiveFloat = 2e7       # estimated rendered pixels (views * N * H * W) above which
-                                               # a request becomes a 202 job
-    memory_budget_bytes: PositiveInt = 4 << 30  # estimated memory of the models in memory, running work and
-                                               # upload parses together (service.budget); one request above it: 413
-    upload_wait: PositiveFloat = 30.0          # seconds an upload parse waits for budget before 429
-    keys_file: Path | None = None              # JSON {"name": "key", ...}: per-key model ownership (docs/service.md)
-    cors_origins: list[str] = []               # origins a browser page may call the API from (none by default)
-    header_timeout: PositiveFloat = 10.0       # seconds a client may take to send its request headers
-    body_timeout: PositiveFloat = 30.0         # seconds a client may pause between body chunks
-    min_body_rate: PositiveFloat = 1024.0      # bytes per second a body must keep up: it may take body_timeout
-                                               # seconds plus one second per min_body_rate bytes received
-    executor: str = "local"                    # where jobs' rendering runs: a name in phd_core.executors
-                                               # (local: the worker threads; ray: a Ray cluster, docs/scale-out.md)
-    executor_address: str | None = None        # the cluster for it (ray: auto, local, host:6379, ray://host:10001)
+    data_dir: Path = Field(default_factory=default_data_dir,
+                           description="models and metadata (`phd serve --data-dir`)")
+    api_key: str | None = Field(
+        None, description="bearer token required on every route but `/health` and the docs (unset: auth off)")
+    workers: PositiveInt = Field(1, description="threads running PH-Dropout work (`phd serve --workers`)")
+    queue_size: PositiveInt = Field(
+        8, description="jobs waiting for a worker; past it: 429 (`phd serve --queue-size`)")
+    retry_after: PositiveInt = Field(5, description="seconds, sent with 429")
+    cache_size: PositiveInt = Field(
+        4, description="idle models kept in memory (LRU; evicted sooner when the memory budget needs their room)")
+    job_retention: PositiveInt = Field(
+        256, description="finished jobs (and their artefacts) kept, in memory and on disk")
+    max_upload_bytes: PositiveInt = Field(1 << 30, description="model upload cap (413 past it)")
+    max_camera_json_bytes: PositiveInt = Field(16 << 20, description="training-camera JSON part of an upload")
+    max_json_bytes: PositiveInt = Field(32 << 20, description="any other request body")
+    max_frame_size: PositiveInt = Field(4096, description="width/height a camera frame may declare")
+    max_image_size: PositiveInt = Field(800, description="width/height actually rendered (after downscale)")
+    max_candidates: PositiveInt = Field(1000, description="cameras per rank/select request")
+    max_training_cameras: PositiveInt = Field(1000, description="cameras per calibration / upload")
+    max_samples: PositiveInt = Field(256, description="dropout samples N per request")
+    async_threshold: PositiveFloat = Field(
+        2e7, description="estimated rendered pixels (views * N * H * W) above which a request becomes a 202 job")
+    memory_budget_bytes: PositiveInt = Field(
+        4 << 30, description="estimated memory of the models in memory, running work and upload parses together "
+                             "(service.budget); one request above it: 413")
+    upload_wait: PositiveFloat = Field(30.0, description="seconds an upload parse waits for budget before 429")
+    keys_file: Path | None = Field(
+        None, description='JSON `{"name": "key"}`: named keys, each owning its models and jobs')
+    cors_origins: list[str] = Field(
+        [], description="JSON list of origins whose pages may call the API (none by default)")
+    header_timeout: PositiveFloat = Field(10.0, description="seconds a client may take to send its request headers")
+    body_timeout: PositiveFloat = Field(30.0, description="seconds a client may pause between body chunks")
+    min_body_rate: PositiveFloat = Field(
+        1024.0, description="bytes per second a body must keep up: it may take `PHD_BODY_TIMEOUT` seconds plus one "
+                            "second per this many bytes received")
+    executor: str = Field(
+        "local", description="where jobs' rendering runs: a name in phd_core.executors (`local`: the worker threads; "
+                             "`ray`: a Ray cluster, docs/scale-out.md; `phd serve --ray`)")
+    executor_address: str | None = Field(
+        None, description="the cluster for it (ray: `auto`, `local`, `host:6379`, `ray://host:10001`; "
+                          "`phd serve --ray ADDRESS`)")
 
     @field_validator("data_dir")
     @classmethod
@@ -87,3 +102,31 @@ class Settings(BaseSettings):
     def from_env(cls, **overrides) -> "Settings":
         """Defaults, then `PHD_<NAME>` environment variables, then the `overrides` that are not None."""
         return cls(**{k: v for k, v in overrides.items() if v is not None})
+
+
+def shown_default(name: str) -> str:
+    """A setting's default as docs/service.md shows it: sizes in MiB/GiB, unset for None, and
+    for a computed default the first line of its function's docstring."""
+    field = Settings.model_fields[name]
+    if field.default_factory is not None:
+        return field.default_factory.__doc__.split("\n")[0].rstrip(".")
+    value = field.default
+    if value is None:
+        return "unset"
+    if name.endswith("_bytes"):
+        return f"{value >> 30} GiB" if value % (1 << 30) == 0 else f"{value >> 20} MiB"
+    if isinstance(value, float):
+        return f"{value:.0e}".replace("e+0", "e") if value >= 1e6 else f"{value:g}"
+    return f"`{value}`" if isinstance(value, (str, list)) else str(value)
+
+
+def settings_table() -> str:
+    """The markdown table of every setting: environment variable, default, meaning."""
+    rows = ["| variable | default | meaning |", "|---|---|---|"]
+    rows += [f"| `PHD_{name.upper()}` | {shown_default(name)} | {field.description} |"
+             for name, field in Settings.model_fields.items()]
+    return "\n".join(rows)
+
+
+if __name__ == "__main__":
+    print(settings_table())

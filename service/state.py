@@ -11,8 +11,7 @@ from typing import Any
 from fastapi.responses import JSONResponse
 
 from phd_core.executors import LOCAL, Executor
-from phd_core.renderers import FAMILIES, load_model_bytes
-from phd_core.renderers.gs3d import GaussianRenderer
+from phd_core.renderers import FAMILIES, accepts_background, load_model_bytes, set_background
 from phd_core.scene import Camera
 
 from .budget import MemoryLedger, Reservation, load_bytes
@@ -24,7 +23,7 @@ from .schemas import Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore
 from .upload import Upload, guess_background, parse_background, parse_camera_format, parse_camera_json
-from .work import parse_cameras, set_background
+from .work import parse_cameras
 
 
 @dataclass
@@ -106,9 +105,9 @@ class ServiceState:
         renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
         background_source = None
         if upload.background is not None:
-            set_background(renderer, parse_background(upload.background))    # a NeRF refuses it
+            set_background(renderer, parse_background(upload.background))    # refused by a model with its own
             background_source = "the upload's background field"
-        elif isinstance(renderer, GaussianRenderer):            # a bare PLY carries no background
+        elif accepts_background(renderer):                      # a bare PLY carries no background
             color, background_source = guess_background(camera_format)
             set_background(renderer, color)
         cameras = cameras if cameras is not None else renderer.training_cameras

@@ -1,8 +1,8 @@
 """Model uploads: stream a multipart body to a temp file, then check it fully.
 
 Form fields of `POST /v1/models`:
-- `file` (required): the model, a 3DGS or 2DGS PLY or one of our NeRF checkpoints. The kind comes
-  from the first bytes, never from the file name; anything else (a pickle named .pt, a
+- `file` (required): the model, a file of a registered family (`phd_core.renderers.FAMILIES`). The
+  kind comes from the first bytes, never from the file name; anything else (a pickle named .pt, a
   zip, text) is refused with 415 before any parser sees more than its head.
 - `cameras` (optional): training cameras as JSON, a transforms.json object or a list of
   frames, as a text field or a file.
@@ -39,7 +39,7 @@ from phd_core.data import POSES
 from phd_core.data.inria import is_inria_cameras
 from phd_core.errors import InputError, check_color
 from phd_core.io import fsync_path
-from phd_core.renderers import FAMILIES, SNIFF_BYTES, model_kind
+from phd_core.renderers import SNIFF_BYTES, family_titles, model_kind
 
 from .errors import JSON_ERRORS, ServiceError, invalid, json_problem
 
@@ -178,8 +178,7 @@ def sniff_kind(head: bytes) -> str:
     kind = model_kind(head)
     if kind is not None:
         return kind
-    known = " nor ".join(family.title for family in FAMILIES.values())
-    what = "an empty file" if not head else f"neither {known}"
+    what = "an empty file" if not head else f"neither {family_titles('nor')}"
     if head[:1] == b"\x80" or head[:2] == b"PK":
         what = ("a Python pickle or zip archive (e.g. a torch.save file); such files can run code when loaded "
                 "and are never opened (a nerfstudio or gsplat run: upload its folder with the Python client, which "

@@ -22,8 +22,8 @@ from phd_core.uq.candidates import candidate_cameras
 from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
-from phd_core.renderers import FAMILIES, Renderer, RenderMemory, load_model, memory_probe_bytes
-from phd_core.renderers.gs3d import GaussianRenderer, set_background
+from phd_core.renderers import (FAMILIES, Renderer, RenderMemory, accepts_background, load_model, memory_probe_bytes,
+                                 set_background)
 from phd_core.renderers.visibility import PASS_FRAGMENT_BYTES, PASS_UNIT_BYTES, visibility_bytes
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
@@ -49,7 +49,7 @@ def model_loader(store: ModelStore) -> Callable[[str], Renderer]:
         if record is None:
             raise not_found("model", model_id)
         renderer = load_model(store.path(record))
-        if isinstance(renderer, GaussianRenderer) and record.describe.get("background") is not None:
+        if accepts_background(renderer) and record.describe.get("background") is not None:
             set_background(renderer, record.describe["background"])
         return renderer
     return load
@@ -354,7 +354,8 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     estimate = pixels(cameras) * (2 * samples + 2 * images)
     levels: dict[str, list[Camera]] = {"model_a": [], "model_b": []}      # rendered at their own size
     kept = 0
-    if body.rule != "sigma_mean":
+    rule = uq.SELECTION_RULES[body.rule]     # the schema admits registered names only
+    if rule.relative:
         for name, record in (("model_a", record_a), ("model_b", record_b)):
             if not record.training_frames:
                 raise invalid(name, f"the model has no training cameras, which rule '{body.rule}' needs: upload "
@@ -362,20 +363,20 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
         own = {"model_a": level_views(stored_cameras(record_a)), "model_b": level_views(stored_cameras(record_b))}
         for name, other, record in (("model_a", "model_b", record_a), ("model_b", "model_a", record_b)):
             levels[name] = own[name]
-            if body.rule in uq.COVERAGE_RULES:   # every training view is rendered too, and what each view sees kept
+            if rule.coverage:   # every training view is rendered too, and what each view sees kept
                 levels[name] = stored_cameras(record)
                 kept += sum(visibility_bytes(record.num_units, c) for c in cameras + levels[name])
-            if body.rule == "coverage_checked":  # also at the other's level views; both full renders kept there
+            if rule.checked:    # also at the other's level views; both full renders kept there
                 levels[name] = levels[name] + own[other]
                 kept += 2 * 12 * pixels(own[other])
-        levels_rendered = 2 if body.rule == "coverage_checked" else 1   # its own, and the other's
+        levels_rendered = 2 if rule.checked else 1       # its own, and the other's
         estimate += 2 * levels_rendered * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples
     # With images, both models' full render of every view ([H, W, 3] float32) is kept until the
     # choice, then the PNGs of the chosen one (and of the other with both_images).
     kept += (2 * 12 + (1 + body.both_images) * PNG_PIXEL_BYTES) * pixels(cameras) if images else 0
     renders = Renders([(record_a, "model_a", cameras + levels["model_a"]),
                        (record_b, "model_b", cameras + levels["model_b"])], samples, kept_bytes=kept,
-                      kept_field="images", visibility=body.rule in uq.COVERAGE_RULES)
+                      kept_field="images", visibility=rule.coverage)
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:

@@ -9,6 +9,7 @@ a fresh interpreter that imports every phd_core module and then looks at what go
 from __future__ import annotations
 
 import ast
+import re
 import json
 import subprocess
 import sys
@@ -125,3 +126,56 @@ def test_no_two_phd_core_modules_import_each_other() -> None:
     circles = [c for c in circles if not all(a.startswith(b + ".") or b.startswith(a + ".") or a == b
                                              for a, b in zip(c, c[1:]))]
     assert circles == []
+
+
+# "A new family is one module plus one entry": the service and the CLI know families only
+# through phd_core.renderers.FAMILIES, so their code names no family package, class or kind.
+# Docstrings and comments may; help text that lists families is generated from the registry.
+# The demo is the one exception: a scripted run of two 3DGS models.
+FAMILY_PACKAGES = {"gs3d", "gs2d", "nerf"}
+FAMILY_KIND = re.compile(r"\b(3dgs(?!-output)|2dgs|nerf)\b", re.IGNORECASE)
+FRONT_ENDS = [ROOT.parent / "service", ROOT.parent / "phd_cli"]
+NOT_CHECKED = {ROOT.parent / "phd_cli" / "demo.py"}
+
+
+def family_names() -> set[str]:
+    """The family packages and their public classes and constants (GaussianRenderer, SurfelModel,
+    NeRFConfig, ...); their functions are reached through a package name, which is checked."""
+    import importlib
+
+    return {name for package in FAMILY_PACKAGES
+            for name in importlib.import_module(f"phd_core.renderers.{package}").__all__
+            if name[0].isupper()} | FAMILY_PACKAGES
+
+
+def docstrings(tree: ast.AST) -> set[int]:
+    """ids of the string constants that are docstrings."""
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant):
+                found.add(id(first.value))
+    return found
+
+
+def test_the_service_and_the_cli_name_no_family() -> None:
+    names = family_names()
+    found = {}
+    for path in sorted(p for front in FRONT_ENDS for p in front.rglob("*.py") if p not in NOT_CHECKED):
+        tree = ast.parse(path.read_text(), str(path))
+        skip = docstrings(tree)
+        hits = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                hits |= set(node.module.split(".")) & FAMILY_PACKAGES
+                hits |= {alias.name for alias in node.names} & names
+            elif isinstance(node, ast.Name) and node.id in names:
+                hits.add(node.id)
+            elif isinstance(node, ast.Attribute) and node.attr in names:
+                hits.add(node.attr)
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in skip:
+                hits |= {m.group(0) for m in FAMILY_KIND.finditer(node.value)}
+        if hits:
+            found[str(path.relative_to(ROOT.parent))] = sorted(hits)
+    assert found == {}

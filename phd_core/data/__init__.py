@@ -1,7 +1,7 @@
-"""Datasets: one module per capture format (blender, nerfstudio, colmap, llff, the reference
-3DGS trainer's output folder) behind `FORMATS`, a registry that recognises the folder from
-its content; `frames` holds what they share (Dataset, views, images). docs/formats.md lists
-every format with its axis convention."""
+"""Datasets: one module per capture format behind `FORMATS`, a registry that recognises the
+folder from its content (the formats are tried in the order `formats` documents); `frames`
+holds what they share (Dataset, views, images). docs/formats.md lists every format with its
+axis convention."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from ..errors import InputError
 from ..scene import DEFAULT_MAX_SIZE, Camera, cameras_from_json
 from .blender import BLENDER_FAR, BLENDER_NEAR, load_blender
 from .formats import FORMATS, DataFormat
-from .frames import Dataset, check_split, read_transforms, select_views
+from .frames import Dataset, check_split, select_views
 from .nerfstudio import load_nerfstudio
 from .colmap import load_colmap
 from .llff import load_llff
@@ -22,18 +22,20 @@ from .poses import POSES, PoseConvention, export_cameras, export_convention, sou
 
 
 def locate(path: str | Path, split: str) -> tuple[DataFormat, Path]:
-    """The first registered format that recognises `path`, and the file it would load."""
+    """The first format, in detection order (`formats`), that recognises `path`, and the file
+    it would load."""
     check_split(split)
     path = Path(path)
     if not path.exists():
         raise InputError("data", f"no such file or directory: {path}")
-    for data_format in FORMATS.values():
+    tried = FORMATS.in_order()
+    for data_format in tried:
         located = data_format.locate(path, split)
         if located is not None:
             return data_format, located
+    looked_for = [f.looks_for.format(split=split) for f in tried if f.looks_for]
     raise InputError("data", f"{path} is no capture this project reads ({', '.join(FORMATS)}): it has neither "
-                     f"transforms_{split}.json, transforms.json, a COLMAP sparse model, poses_bounds.npy nor "
-                     "cameras.json with point_cloud/iteration_*")
+                     f"{', '.join(looked_for[:-1])} nor {looked_for[-1]}")
 
 
 def load_dataset(path: str | Path, split: str = "train", **kw: Any) -> Dataset:
@@ -48,9 +50,8 @@ def load_dataset(path: str | Path, split: str = "train", **kw: Any) -> Dataset:
 def split_size(root: str | Path, split: str) -> int:
     """Number of frames in a split (cameras only, no images)."""
     data_format, located = locate(root, split)
-    if data_format.name in ("blender", "nerfstudio"):
-        frames, _ = read_transforms(located)
-        return len(frames)
+    if data_format.count is not None:
+        return data_format.count(located, split)
     return len(data_format.load(located, split, with_images=False).cameras)
 
 

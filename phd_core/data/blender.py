@@ -8,7 +8,7 @@ from typing import Sequence
 
 from ..errors import InputError
 from .formats import FORMATS, DataFormat
-from .frames import Dataset, check_split, load_frames
+from .frames import Dataset, check_split, count_frames, load_frames
 
 # The NeRF-synthetic scenes fit in [-1.5, 1.5]^3 seen from radius ~4: near 2, far 6.
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
@@ -39,5 +39,6 @@ def locate(path: Path, split: str) -> Path | None:
     return json_path if path.is_dir() and json_path.is_file() else None
 
 
-FORMATS.add("blender", DataFormat("blender", locate,
-                                     lambda json_path, split, **kw: load_blender(json_path.parent, split, **kw)))
+FORMATS.register(DataFormat("blender", locate,
+                            lambda json_path, split, **kw: load_blender(json_path.parent, split, **kw),
+                            order=10, looks_for="transforms_{split}.json", count=count_frames))

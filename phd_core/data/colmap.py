@@ -404,6 +404,6 @@ def locate(path: Path, split: str) -> Path | None:
     return path if path.is_dir() and find_model(path) is not None else None
 
 
-FORMATS.add("colmap", DataFormat("colmap", locate, load_colmap))
-POSES.add("colmap", PoseConvention("colmap", colmap_pose, write_colmap_text,
-                                   "a COLMAP text model folder (cameras.txt, images.txt, points3D.txt)", suffix=""))
+FORMATS.register(DataFormat("colmap", locate, load_colmap, order=30, looks_for="a COLMAP sparse model"))
+POSES.register(PoseConvention("colmap", colmap_pose, write_colmap_text,
+                              "a COLMAP text model folder (cameras.txt, images.txt, points3D.txt)", suffix=""))

@@ -227,6 +227,11 @@ def read_transforms(json_path: Path) -> tuple[list, dict]:
     return data["frames"], {k: v for k, v in data.items() if k != "frames"}
 
 
+def count_frames(json_path: Path, split: str) -> int:
+    """The frames of a transforms JSON, counted without loading them (a format's `count`)."""
+    return len(read_transforms(json_path)[0])
+
+
 def _near_far(defaults: dict, fallback: tuple[float | None, float | None]) -> tuple[float | None, float | None]:
     near, far = defaults.get("near", fallback[0]), defaults.get("far", fallback[1])
     for name, value in (("near", near), ("far", far)):

@@ -199,6 +199,7 @@ def locate(path: Path, split: str) -> Path | None:
     return path if is_output_folder(path) else None
 
 
-FORMATS.add("3dgs-output", DataFormat("3dgs-output", locate, load_inria))
-POSES.add("3dgs-output", PoseConvention("3dgs-output", camera_entry, write_cameras_json,
-                                        "a reference-trainer cameras.json", file_name="cameras.json"))
+FORMATS.register(DataFormat("3dgs-output", locate, load_inria, order=50,
+                            looks_for="cameras.json with point_cloud/iteration_*"))
+POSES.register(PoseConvention("3dgs-output", camera_entry, write_cameras_json,
+                              "a reference-trainer cameras.json", file_name="cameras.json"))

@@ -105,4 +105,4 @@ def locate(path: Path, split: str) -> Path | None:
     return path / FILE if (path / FILE).is_file() else None
 
 
-FORMATS.add("llff", DataFormat("llff", locate, load_llff))
+FORMATS.register(DataFormat("llff", locate, load_llff, order=40, looks_for=FILE))

@@ -11,7 +11,7 @@ from ..errors import InputError
 from ..io import write_json_atomic
 from ..scene import Camera
 from .formats import FORMATS, DataFormat
-from .frames import Dataset, load_frames
+from .frames import Dataset, count_frames, load_frames
 from .poses import POSES, PoseConvention
 
 def load_nerfstudio(path: str | Path, *, downscale: float = 1, views: int | Sequence[int] | None = None,
@@ -41,8 +41,8 @@ def locate(path: Path, split: str) -> Path | None:
     return json_path
 
 
-FORMATS.add("nerfstudio", DataFormat("nerfstudio", locate,
-                                     lambda json_path, split, **kw: load_nerfstudio(json_path, **kw)))
+FORMATS.register(DataFormat("nerfstudio", locate, lambda json_path, split, **kw: load_nerfstudio(json_path, **kw),
+                            order=20, looks_for="transforms.json", count=count_frames))
 
 
 def write_transforms(path: Path, cameras: Sequence[Camera], names: Sequence[str]) -> None:
@@ -54,7 +54,6 @@ def write_transforms(path: Path, cameras: Sequence[Camera], names: Sequence[str]
 
 
 TRANSFORMS_FRAME = "a transforms.json with one frame per camera"
-POSES.add("nerfstudio", PoseConvention("nerfstudio", Camera.to_frame, write_transforms, TRANSFORMS_FRAME,
-                                       suffix=".json"))
+POSES.register(PoseConvention("nerfstudio", Camera.to_frame, write_transforms, TRANSFORMS_FRAME, suffix=".json"))
 # A Blender frame is the same frame (OpenGL c2w; per-frame fl_x reads in both layouts).
-POSES.add("blender", PoseConvention("blender", Camera.to_frame, write_transforms, TRANSFORMS_FRAME))
+POSES.register(PoseConvention("blender", Camera.to_frame, write_transforms, TRANSFORMS_FRAME))

@@ -14,7 +14,7 @@ and how a batch of cameras is written as the files that source's tools read:
                   position (the centre), fx, fy, width, height
 
 The converters live beside their format's loader (`colmap.py`, `inria.py`, `nerfstudio.py`),
-which reads each back; a new source is one more `POSES.add`.
+which reads each back; a new source is one more `POSES.register`.
 """
 
 from __future__ import annotations

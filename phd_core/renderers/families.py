@@ -1,25 +1,27 @@
 """Model families and loading: any supported model is recognised by its content, never by
 its file name.
 
-`FAMILIES` maps a kind ("3dgs", "nerf") to a `Family`: how its files are recognised (a
+`FAMILIES` maps a kind (the renderer's `kind`) to a `Family`: how its files are recognised (a
 3DGS PLY starts with `ply`; a NeRF checkpoint is a safetensors file marked as ours), how
 they are loaded, which file extension the service stores them under, which trainer
-`phd train` calls (named, so loading a model never imports a trainer) and how much memory
-a render of one camera takes (`RenderMemory`, which the service budgets with). Anything no family
+`phd train` calls (named, so loading a model never imports a trainer) with which options,
+how much memory a render of one camera takes (`RenderMemory`, which the service budgets
+with), whether it renders over a background given, and what the API shows of it. The CLI
+and the service know a family only through this entry. Anything no family
 recognises (a pickle, an archive, random bytes) is refused before it is parsed, so no file
 can execute code on load. A new family is one module defining its `Family` plus one
-`register_family` call (`phd_core/renderers/__init__.py` registers the built-in ones); the
+`FAMILIES.register` call (`phd_core/renderers/__init__.py` registers the built-in ones); the
 CLI and the service take their names from here. Trainers' output folders are read by
 `phd_core.renderers.outputs` (one module per trainer); this module never imports a family.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Sequence
 
-from ..errors import InputError
+from ..errors import InputError, check_color
 from ..registry import Registry
 from ..scene import Camera
 from .protocol import Renderer, RenderMemory
@@ -27,37 +29,62 @@ from .protocol import Renderer, RenderMemory
 SNIFF_BYTES = 4096
 
 
+def option(default: Any, help: str, choices: Sequence[str] | None = None) -> Any:
+    """A field of a family's training options: its default, the help of its `phd train` flag
+    and, for a string, the values allowed."""
+    return field(default=default, metadata={"help": help, "choices": choices})
+
+
 @dataclass(frozen=True)
 class Family:
-    """One model family: how its files are recognised, loaded, stored and trained."""
+    """One model family: how its files are recognised, loaded, stored, shown and trained."""
 
-    kind: str                                               # the renderer's `kind`
+    name: str                                               # the kind: the renderer's `kind`
     title: str                                              # for messages: "a 3DGS PLY"
     extension: str                                          # file extension the service stores it under
     sniff: Callable[[bytes], bool]                          # True for the first SNIFF_BYTES of its files
     load: Callable[[bytes, str, list[Camera] | None], Renderer]   # (content, name, training cameras or None)
     beside: Callable[[Path, Renderer], Renderer] | None = None    # extras stored next to a model file
     trainer: str | None = None                              # "module:function" that `phd train` calls
-    train_options: tuple[str, ...] = ()                     # `phd train` flags the trainer takes
+    # The trainer's own options: a dataclass whose fields (made with `option`) are `phd train`
+    # flags and are checked when it is built; None: the trainer takes only the common ones.
+    train_options: type | None = None
     memory: Callable[[Renderer, Camera], RenderMemory] | None = None   # bounds of one camera's render
                                                             # (None: unknown; the service assumes its worst case)
+    # Renders over the colour given (a checked [r, g, b]); None: the model carries its own.
+    set_background: Callable[[Renderer, tuple[float, float, float]], None] | None = None
+    units: str = "dropout units"                            # what its dropout units are: "splats"
+    network: tuple[str, ...] = ()                           # describe() keys the API shows as its network's size
 
 
 FAMILIES: Registry[Family] = Registry("model family")
-
-
-def register_family(family: Family) -> Family:
-    """Add a model family (a kind is registered once)."""
-    return FAMILIES.add(family.kind, family)
 
 
 class UnknownModelError(InputError):
     """No registered family recognises the content."""
 
     def __init__(self, name: str):
-        known = " nor ".join(f.title for f in FAMILIES.values())
-        super().__init__("model", f"{name} is neither {known} (the kind is detected from the content, "
+        super().__init__("model", f"{name} is neither {family_titles('nor')} (the kind is detected from the content, "
                                   "not the file name)")
+
+
+def accepts_background(renderer: Renderer) -> bool:
+    """Whether `renderer`'s family renders over a colour given (else its model carries its own)."""
+    family = FAMILIES.get(renderer.kind)
+    return family is not None and family.set_background is not None
+
+
+def set_background(renderer: Renderer, color: Sequence[float] | str) -> None:
+    """Render `renderer` over `color` (a name or [r, g, b] in [0, 1]): the colour it was trained
+    over. A model that carries its own background (a NeRF checkpoint) refuses, naming the field."""
+    if not accepts_background(renderer):
+        raise InputError("background", f"a {renderer.kind} model carries its own background (set at training)")
+    FAMILIES[renderer.kind].set_background(renderer, check_color(color, "background"))
+
+
+def family_titles(conjunction: str) -> str:
+    """The registered families' titles joined by `conjunction` ("or", "nor"), for messages and help."""
+    return f" {conjunction} ".join(family.title for family in FAMILIES.values())
 
 
 def family_of(head: bytes) -> Family | None:
@@ -68,7 +95,7 @@ def family_of(head: bytes) -> Family | None:
 def model_kind(head: bytes) -> str | None:
     """The kind of a file from its first bytes, or None."""
     family = family_of(head)
-    return None if family is None else family.kind
+    return None if family is None else family.name
 
 
 def load_model_bytes(data: bytes, name: str = "model",

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from ..scene import Camera
-from .splats import LOG_T_MIN
+from .splats.maths import LOG_T_MIN
 
 
 ELEMENTS_PER_PIXEL = 4     # a Visibility lists at most this many elements per image pixel

@@ -1,9 +1,9 @@
-"""Fit a 2D Gaussian Splatting model (surfels) with the 3DGS loop (`phd_core.train.gs3d`).
+"""Fit a 2D Gaussian Splatting model (surfels) with the splat loop (`phd_core.train.splats`).
 
 The loop, schedule, density control and sidecar are the 3DGS ones; a `Recipe` swaps in the
 surfel model and rasteriser, random initial orientations, and the two 2DGS regularisers
-(Huang et al. 2024), on by default (weights 1 and 0.05; 0 turns one off: on lego at 16 views
-they raised the test PSNR by 0.14-0.25 dB, docs/gs2d.md):
+(Huang et al. 2024), on by default (weights `SurfelOptions`: 1 and 0.05; 0 turns one off: on
+lego at 16 views they raised the test PSNR by 0.14-0.25 dB, docs/gs2d.md):
 
 - depth distortion: per pixel sum_ij w_i w_j (d_i - d_j)^2 / 2 over the compositing
   weights w and intersection depths d, divided by the squared scene extent so the weight
@@ -23,15 +23,13 @@ from typing import Any, Sequence
 
 import torch
 
-from ..errors import check_float
 from ..renderers.gs2d import SurfelModel, SurfelOutput, SurfelRenderer, rasterize_surfels
+from ..renderers.gs2d.family import SurfelOptions
 from ..scene import Camera
-from .gs3d import Recipe, train_gaussians
+from .splats import Recipe, train_splats
 
 DISTORTION_FROM = 0.1   # fractions of the run before each regulariser starts
 NORMAL_FROM = 0.25
-DEPTH_DISTORTION = 1.0  # default weights
-NORMAL_CONSISTENCY = 0.05
 
 
 def depth_normals(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
@@ -61,21 +59,21 @@ def regulariser(out: SurfelOutput, camera: Camera, fraction: float, extent: floa
     return loss
 
 
-def recipe(depth_distortion: float = DEPTH_DISTORTION, normal_consistency: float = NORMAL_CONSISTENCY) -> Recipe:
+def recipe(depth_distortion: float = SurfelOptions.depth_distortion,
+           normal_consistency: float = SurfelOptions.normal_consistency) -> Recipe:
     """The 2DGS recipe for the shared loop; regularisers on for positive weights."""
-    depth_distortion = check_float(depth_distortion, "depth_distortion", minimum=0.0)
-    normal_consistency = check_float(normal_consistency, "normal_consistency", minimum=0.0)
-    regularise = depth_distortion > 0 or normal_consistency > 0
+    weights = SurfelOptions(depth_distortion, normal_consistency)
+    regularise = weights.depth_distortion > 0 or weights.normal_consistency > 0
     return Recipe("2dgs", SurfelModel, SurfelRenderer, partial(rasterize_surfels, geometry=regularise),
-                  partial(regulariser, distortion_weight=depth_distortion, normal_weight=normal_consistency)
-                  if regularise else None, random_rotations=True)
+                  partial(regulariser, distortion_weight=weights.depth_distortion,
+                          normal_weight=weights.normal_consistency) if regularise else None, random_rotations=True)
 
 
 def train_surfels(data: str | Path, *, views: int | Sequence[int] = 16, downscale: float = 2,
                   iterations: int | None = None, seed: int = 0, out: str | Path, progress: bool = True,
-                  depth_distortion: float = DEPTH_DISTORTION, normal_consistency: float = NORMAL_CONSISTENCY,
-                  **overrides: Any) -> SurfelRenderer:
-    """Train 2DGS on the `train` split of a Blender dataset; writes `out` in the 2DGS
-    reference PLY layout plus the sidecar `<stem>.json` (as `train_gaussians`)."""
-    return train_gaussians(data, views=views, downscale=downscale, iterations=iterations, seed=seed, out=out,
-                           progress=progress, recipe=recipe(depth_distortion, normal_consistency), **overrides)
+                  depth_distortion: float = SurfelOptions.depth_distortion,
+                  normal_consistency: float = SurfelOptions.normal_consistency, **overrides: Any) -> SurfelRenderer:
+    """Train 2DGS on the `train` split of a capture; writes `out` in the 2DGS reference PLY
+    layout plus the sidecar `<stem>.json` (`phd_core.train.splats.train_splats`)."""
+    return train_splats(data, recipe(depth_distortion, normal_consistency), views=views, downscale=downscale,
+                        iterations=iterations, seed=seed, out=out, progress=progress, **overrides)

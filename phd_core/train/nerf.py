@@ -31,9 +31,10 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..data import Dataset, load_dataset
-from ..errors import InputError, check_color
+from ..errors import InputError, check_bool, check_color, check_float, check_int
 from ..renderers.nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays, render_rays,
                               save_nerf)
+from ..renderers.nerf.family import NeRFOptions
 from ..scene import Camera, frustum_bounds, visual_hull
 
 # 100x100 images, 16 views, 2 shared CPU cores: about 0.1 s per iteration, 4 minutes (docs/nerf.md).
@@ -58,34 +59,27 @@ class TrainSettings:
     grid_decay: float = 0.95
     hull: bool = True               # start the grid as the visual hull of the alpha masks
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     def validate(self) -> "TrainSettings":
-        for name in ("batch_rays", "empty_points", "grid_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise InputError(name, f"must be a positive integer, got {value!r}")
-        if isinstance(self.occlusion_range, bool) or not isinstance(self.occlusion_range, int) \
-                or self.occlusion_range < 0:
-            raise InputError("occlusion_range", f"must be a non-negative integer, got {self.occlusion_range!r}")
+        """Raise `InputError` naming the first field out of range; return self."""
+        for name, lo in (("batch_rays", 1), ("empty_points", 1), ("grid_every", 1), ("occlusion_range", 0)):
+            check_int(getattr(self, name), name, lo)
         for name in ("lr", "lr_final", "hash_lr"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise InputError(name, f"must be a positive number, got {value!r}")
+            check_float(getattr(self, name), name, 0.0, open_min=True)
         for name in ("alpha_weight", "empty_weight", "occlusion_weight"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-                raise InputError(name, f"must be a non-negative number, got {value!r}")
+            check_float(getattr(self, name), name, 0.0)
         for name in ("frequency_end", "grid_decay"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not 0 < value <= 1:
-                raise InputError(name, f"must lie in (0, 1], got {value!r}")
-        if not isinstance(self.hull, bool):
-            raise InputError("hull", f"must be true or false, got {self.hull!r}")
+            check_float(getattr(self, name), name, 0.0, 1.0, open_min=True)
+        check_bool(self.hull, "hull")
         return self
 
 
-def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, downscale: float = 2, encoding: str = "pe",
-               freenerf: bool = False, iterations: int | None = None, seed: int = 0, out: str | Path | None,
-               progress: bool = True, **overrides: Any) -> NeRFRenderer:
+def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, downscale: float = 2,
+               encoding: str = NeRFOptions.encoding, freenerf: bool = NeRFOptions.freenerf,
+               iterations: int | None = None, seed: int = 0, out: str | Path | None, progress: bool = True,
+               **overrides: Any) -> NeRFRenderer:
     """Train a NeRF on the "train" split of `data` and write it to `out` (None: don't write).
 
     `views`: a count of evenly spaced training frames or a list of frame indices, loaded at
@@ -95,19 +89,15 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
     (depth, width, samples, bounds, ...) or `TrainSettings` fields (batch_rays, lr, ...).
     iterations=None: DEFAULT_ITERATIONS.
     """
-    if not isinstance(freenerf, bool):
-        raise InputError("freenerf", f"must be true or false, got {freenerf!r}")
-    iterations = DEFAULT_ITERATIONS if iterations is None else iterations
-    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
-        raise InputError("iterations", f"must be a positive integer, got {iterations!r}")
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise InputError("seed", f"must be an integer, got {seed!r}")
+    NeRFOptions(encoding, freenerf)
+    iterations = check_int(DEFAULT_ITERATIONS if iterations is None else iterations, "iterations", 1)
+    seed = check_int(seed, "seed")
     config_keys = {f.name for f in fields(NeRFConfig)}
     settings_keys = {f.name for f in fields(TrainSettings)}
     for key in overrides:
         if key not in config_keys | settings_keys or key == "encoding":
             raise InputError(key, "unknown training option")
-    settings = TrainSettings(**{k: v for k, v in overrides.items() if k in settings_keys}).validate()
+    settings = TrainSettings(**{k: v for k, v in overrides.items() if k in settings_keys})
     background = list(check_color(overrides.get("background", "white"), "background"))
     if isinstance(data, Dataset):
         dataset = data
@@ -127,7 +117,7 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
         config_values.setdefault("far", far)
     if "bounds" not in overrides:
         config_values["bounds"] = frustum_bounds(dataset.cameras, config_values["near"], config_values["far"])
-    config = NeRFConfig(**config_values).validate()
+    config = NeRFConfig(**config_values)
     model = RadianceField(config, seed=seed)
     if settings.hull and dataset.alphas is not None:
         hull = grid_hull(model, dataset.cameras, dataset.alphas)

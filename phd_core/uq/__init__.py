@@ -22,17 +22,17 @@ from .candidates import GENERATORS
 from .rank import RankedView, candidate_evidence, coarse_cameras, rank_views
 from .sampling import (MAX_MASKS_PER_RENDER, Progress, RunningStd, dropout_uniforms, keep_masks, limit_mask_batch,
                        sample_std)
-from .select import (COVERAGE_RULES, DEFAULT_SELECTION_RULE, SELECTION_RULE_SUMMARIES, SELECTION_RULES,
-                     SELECTION_TRAINING_VIEWS, SelectionResult, ViewSelection, rule_help, select_models)
+from .select import (DEFAULT_SELECTION_RULE, SELECTION_RULES, SELECTION_TRAINING_VIEWS, SelectionResult,
+                     SelectionRule, ViewSelection, rules_help, select_models)
 from .strategies import DEFAULT_STRATEGY, STRATEGIES
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, sigma_max_bar, uncertainty, view_uncertainty
 
 __all__ = [
-    "COVERAGE_RULES", "DEFAULT_CALIBRATION_SAMPLES", "DEFAULT_EPSILON", "DEFAULT_SAMPLES", "DEFAULT_SELECTION_RULE",
+    "DEFAULT_CALIBRATION_SAMPLES", "DEFAULT_EPSILON", "DEFAULT_SAMPLES", "DEFAULT_SELECTION_RULE",
     "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "GENERATORS", "LOOKAHEAD", "MAX_MASKS_PER_RENDER",
-    "SELECTION_RULE_SUMMARIES", "SELECTION_RULES", "SELECTION_TRAINING_VIEWS", "STRATEGIES", "CalibrationError",
-    "CalibrationResult", "Progress", "RankedView", "RunningStd", "SelectionResult", "ViewSelection", "ViewUncertainty",
+    "SELECTION_RULES", "SELECTION_TRAINING_VIEWS", "STRATEGIES", "CalibrationError", "CalibrationResult",
+    "Progress", "RankedView", "RunningStd", "SelectionResult", "SelectionRule", "ViewSelection", "ViewUncertainty",
     "calibrate", "calibrate_ssim", "candidate_evidence", "coarse_cameras", "dropout_uniforms", "keep_masks",
-    "limit_mask_batch", "rank_views", "rule_help", "sample_std", "select_models", "sigma_max_bar", "uncertainty",
+    "limit_mask_batch", "rank_views", "rules_help", "sample_std", "select_models", "sigma_max_bar", "uncertainty",
     "view_uncertainty",
 ]

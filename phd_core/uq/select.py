@@ -16,6 +16,7 @@ from torch import Tensor
 
 from ..scene import Camera
 from ..errors import InputError
+from ..registry import Registry
 from ..eval import ensemble_efficiency, psnr, rmse, ssim
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
@@ -49,28 +50,43 @@ class SelectionResult:
         return {"views": [v.to_dict() for v in self.views], "metrics": self.metrics}
 
 
-SELECTION_RULE_SUMMARIES = {     # name -> one line for --help and the API schema
-    "coverage_checked": "the share of the view its training views did not see times its relative mean zeta, "
-                        "scaled to an error by checking each model against the other's renders where the other "
-                        "was trained (needs both models' training cameras)",
-    "coverage_sigma": "the share of the view its training views did not see times its relative mean zeta",
-    "distance_sigma": "the distance to its nearest training camera times its relative mean zeta",
-    "sigma_mean": "the paper's rule: the lower mean zeta",
-}
-SELECTION_RULES = tuple(SELECTION_RULE_SUMMARIES)
+@dataclass(frozen=True)
+class SelectionRule:
+    """How a view's score is made from a model's mean zeta (`select_models`)."""
+
+    name: str
+    summary: str                    # one line for --help and the API schema
+    relative: bool                  # zeta relative to the model's own level on its training views
+    coverage: bool = False          # times what its training views did not see (else the distance to them)
+    checked: bool = False           # scaled to an error by checking each model where the other was trained
+
+
+SELECTION_RULES: Registry[SelectionRule] = Registry("selection rule")
+SELECTION_RULES.register(SelectionRule(
+    "coverage_checked", "as coverage_sigma, scaled to an error per model by checking each model against the other's "
+    "renders where the other was trained (needs both models' training cameras)", relative=True, coverage=True,
+    checked=True))
+SELECTION_RULES.register(SelectionRule(
+    "coverage_sigma", "the share of the view its training views did not see times the view's mean zeta relative to "
+    "the model's own training views", relative=True, coverage=True))
+SELECTION_RULES.register(SelectionRule(
+    "distance_sigma", "as coverage_sigma with the distance to the model's nearest training camera in place of the "
+    "share", relative=True))
+SELECTION_RULES.register(SelectionRule("sigma_mean", "the paper's rule, the lower mean zeta", relative=False))
 DEFAULT_SELECTION_RULE = "coverage_checked"   # at or above the better model on every pair (docs/nbv.md)
-COVERAGE_RULES = ("coverage_sigma", "coverage_checked")   # the rules that need each view's visibility
+
+
+def rules_help() -> str:
+    """Each rule with its summary, for --help and the API schema."""
+    return "; ".join(f"{name}{' (default)' if name == DEFAULT_SELECTION_RULE else ''}: {rule.summary}"
+                     for name, rule in SELECTION_RULES.items())
+
+
 UNCOVERED_FLOOR = 0.05             # coverage_sigma: a fully covered view still counts its zeta
 # coverage_checked: renders closer than this count as equal (below 8-bit quantisation), so two
 # models that agree where each was trained keep their scores' order instead of all tying at 0
 CHECKED_RMSE_FLOOR = 1e-4
 SELECTION_TRAINING_VIEWS = 8       # training views (evenly spaced) that set a model's own zeta level
-
-
-def rule_help() -> str:
-    """Every selection rule with its summary, the default marked (CLI help, API schema)."""
-    return "; ".join(f"{name}{' (default)' if name == DEFAULT_SELECTION_RULE else ''}: {summary}"
-                     for name, summary in SELECTION_RULE_SUMMARIES.items())
 
 
 def _nearest_distance(camera: Camera, training: Sequence[Camera]) -> float:
@@ -125,20 +141,19 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     samples, _ = check_samples(samples, 1)
     seed = check_seed(seed)
     cameras = check_cameras(cameras)
-    if rule not in SELECTION_RULES:
-        raise InputError("rule", f"must be one of {', '.join(SELECTION_RULES)}, got {rule!r}")
+    chosen = SELECTION_RULES.lookup(rule, "rule")
     if images is not None:
         images = check_images(images, cameras)
     renderers = {"a": renderer_a, "b": renderer_b}
     keeps = {"a": keep_masks(dropout_uniforms(renderer_a.num_units, samples, seed), ratio_a),
              "b": keep_masks(dropout_uniforms(renderer_b.num_units, samples, seed), ratio_b)}
-    if rule != "sigma_mean":
+    if chosen.relative:
         given = {"a": training_a, "b": training_b}
         training = {key: _training_views(renderers[key], given[key], f"model_{key}", rule) for key in renderers}
         levels = {key: level_views(training[key]) for key in renderers}
     else:
         levels = {"a": [], "b": []}
-    checked = rule == "coverage_checked"      # each model also measured at the other's level views
+    checked = chosen.checked                  # each model also measured at the other's level views
     ticker = ProgressTicker(progress, 2 * len(cameras) + (1 + checked) * (len(levels["a"]) + len(levels["b"])))
 
     # Full renders: both models when scoring against ground truth, else only the chosen one (made
@@ -149,24 +164,24 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         """Each view under model `key`'s masks, on the executor."""
         chunks = executor.split(views)
         parts = executor.map(partial(measure_views, ddof=1, keep_maps=False, dtype=torch.float64,
-                                     keep_full=keep_full, keep_visibility=rule in COVERAGE_RULES), chunks,
+                                     keep_full=keep_full, keep_visibility=chosen.coverage), chunks,
                              executor.share(renderers[key]), keeps[key], done=lambda i: ticker.tick(len(chunks[i])))
         return [view for part in parts for view in part]
 
     measured = {key: measure(key, cameras, keep_full=both or bool(keep_images)) for key in renderers}
-    if rule != "sigma_mean":
+    if chosen.relative:
         own, at_own = {}, {}
         for key in renderers:
             at_own[key] = measure(key, levels[key], keep_full=checked)
             means = [view.sigma_mean for view in at_own[key]]
             own[key] = max(sum(means) / len(means), 1e-12)
     visible = {key: view_visibility(renderer, training[key]) for key, renderer in renderers.items()
-               if rule in COVERAGE_RULES and reports_visibility(renderer)}
+               if chosen.coverage and reports_visibility(renderer)}
 
     def scores_of(key: str, views: list[Camera], measured_views: list[ViewUncertainty]) -> list[float]:
         """Model `key`'s score of each view (lower: trust it more)."""
         sigma = [view.sigma_mean for view in measured_views]
-        if rule == "sigma_mean":
+        if not chosen.relative:
             return sigma
         if key in visible:
             uncovered = uncovered_share([view.visibility for view in measured_views], visible[key])

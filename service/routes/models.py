@@ -7,6 +7,8 @@ import asyncio
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
+from phd_core.renderers import FAMILIES, family_titles
+
 from ..budget import largest_model_file
 from ..deps import ERRORS, Caller, Service
 from ..errors import not_found
@@ -15,10 +17,9 @@ from ..store import ModelRecord
 from ..upload import receive_upload, sniff_kind
 
 router = APIRouter(prefix="/v1", responses=ERRORS, tags=["models"])
-NETWORK_FACTS = ("encoding", "depth", "width", "parameters", "samples_per_ray")  # NeRF describe() keys
 UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
     "type": "object", "required": ["file"], "properties": {
-        "file": {"type": "string", "format": "binary", "description": "3DGS PLY or NeRF checkpoint"},
+        "file": {"type": "string", "format": "binary", "description": "The model: " + family_titles("or")},
         "cameras": {"type": "string", "description": "Training cameras as JSON (transforms.json or a list of frames)"},
         "name": {"type": "string", "description": "Display name (default: the file name)"},
         "background": {"type": "string", "description": "Splat models: the colour trained over, [r, g, b] in [0, 1] "
@@ -31,7 +32,8 @@ UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-dat
 def model_info(record: ModelRecord) -> ModelInfo:
     facts = record.describe
     bounds = facts.get("bounds")
-    network = {k: facts[k] for k in NETWORK_FACTS if k in facts} or None
+    family = FAMILIES.get(record.kind)
+    network = {k: facts[k] for k in (family.network if family else ()) if k in facts} or None
     return ModelInfo(
         id=record.id, name=record.name, kind=record.kind, num_units=record.num_units,
         sh_degree=facts.get("sh_degree") if isinstance(facts.get("sh_degree"), int) else None,
@@ -46,9 +48,9 @@ def model_info(record: ModelRecord) -> ModelInfo:
         details=facts)
 
 
-@router.post("/models", status_code=201, response_model=ModelInfo, openapi_extra=UPLOAD_BODY)
+@router.post("/models", status_code=201, response_model=ModelInfo, openapi_extra=UPLOAD_BODY,
+             description=f"Upload a model ({family_titles('or')}) with optional training cameras.")
 async def upload_model(request: Request, svc: Service, who: Caller) -> JSONResponse:
-    """Upload a model (3DGS PLY or NeRF checkpoint) with optional training cameras."""
     temp = svc.store.new_temp_path()
     try:
         upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes,

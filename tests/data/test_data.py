@@ -277,7 +277,7 @@ def test_a_capture_format_is_one_registry_entry(tmp_path):
     def locate(path, split):
         return path / "frames.json" if (path / "cameras.toy").is_file() else None
 
-    FORMATS.add("toy", DataFormat("toy", locate, lambda file, split, **kw: load_nerfstudio(file, **kw)))
+    FORMATS.register(DataFormat("toy", locate, lambda file, split, **kw: load_nerfstudio(file, **kw)))
     try:
         dataset = load_dataset(folder, "train", with_images=False)
         assert len(dataset.cameras) == 2 and dataset.cameras[0].width == 8

@@ -15,7 +15,7 @@ import torch
 from client import PHDClient, UnsupportedModelError
 from support.fixtures import svc_cameras
 from phd_core import uq
-from phd_core.renderers import FAMILIES, Family, load_model, load_model_bytes, model_kind, register_family
+from phd_core.renderers import FAMILIES, Family, load_model, load_model_bytes, model_kind
 from support.toy_renderers import BlobRenderer
 
 MAGIC = b"PHD-TOY-BLOBS\n"
@@ -35,7 +35,7 @@ def load_toy(data: bytes, name: str, cameras) -> BlobRenderer:
 
 @pytest.fixture
 def toy_family():
-    family = register_family(Family("toy", "a toy blob file", ".toy", lambda head: head.startswith(MAGIC), load_toy))
+    family = FAMILIES.register(Family("toy", "a toy blob file", ".toy", lambda head: head.startswith(MAGIC), load_toy))
     yield family
     del FAMILIES["toy"]
 
@@ -55,7 +55,7 @@ def test_the_library_loads_a_registered_family(toy_family, toy_file) -> None:
     cameras = svc_cameras(2)
     assert load_model_bytes(data, "x", training_cameras=cameras).training_cameras == cameras
     with pytest.raises(ValueError):
-        register_family(toy_family)
+        FAMILIES.register(toy_family)
 
 
 def test_an_unregistered_family_is_refused_by_name(toy_file) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core.renderers import gs3d
+from phd_core.renderers import splats
 from phd_core.io import files
 from phd_core.errors import InputError
 from phd_core.renderers.gs3d import GaussianModel, is_ply, parse_ply, read_ply, write_ply
@@ -86,7 +86,7 @@ def ply_file(props: list[tuple[str, str, np.ndarray]], *, fmt: str = "binary_lit
 def standard_props(cols: dict[str, np.ndarray], k: int) -> list[tuple[str, str, np.ndarray]]:
     """The properties in the order the reference trainer writes them (normals zero)."""
     zeros = np.zeros(len(cols["x"]), dtype=np.float32)
-    return [(n, "float", cols.get(n, zeros)) for n in gs3d.property_names(k)]
+    return [(n, "float", cols.get(n, zeros)) for n in splats.property_names(k)]
 
 
 def assert_models_equal(got: GaussianModel, want: GaussianModel) -> None:
@@ -169,7 +169,7 @@ def test_ascii_body_parsed_in_blocks_gives_the_same_model(monkeypatch, block):
     cols = standard_columns(40, k, seed=6)
     data = ply_file(standard_props(cols, k), fmt="ascii",
                     header_before="element camera 3\nproperty float fov\n", body_before=b"1\n2\n3\n")
-    monkeypatch.setattr(gs3d.ply, "ASCII_BLOCK_BYTES", block)
+    monkeypatch.setattr(splats.ply, "ASCII_BLOCK_BYTES", block)
     assert_models_equal(parse_ply(data), expected_model(cols, k))
     assert_models_equal(parse_ply(data.rstrip(b"\n")), expected_model(cols, k))   # no final newline
 

@@ -16,7 +16,8 @@ from phd_core.eval import psnr
 from phd_core.renderers import UnknownModelError, load_model, load_model_bytes
 from phd_core.renderers.gs3d import rasterize, read_ply, read_sidecar
 from phd_core.scene import scene_bounds
-from phd_core.train.gs3d import Splats, TrainConfig, carve_points, densify, fit, initial_model, train_gaussians
+from phd_core.train.gs3d import GAUSSIANS, TrainConfig, fit, train_gaussians
+from phd_core.train.splats import Splats, carve_points, densify, initial_model
 from support.fixtures import LEGO
 
 
@@ -53,7 +54,7 @@ def test_carving_keeps_points_inside_every_silhouette(tiny) -> None:
 def test_densify_clones_splits_prunes_and_keeps_adam_state_aligned() -> None:
     gen = torch.Generator().manual_seed(0)
     points = torch.randn(10, 3)
-    model = initial_model(points, torch.full((10, 3), 0.5), 1, extent=1.0, gen=gen)
+    model = initial_model(points, torch.full((10, 3), 0.5), 1, extent=1.0, gen=gen, recipe=GAUSSIANS)
     model.log_scales[:5] = math.log(0.001)     # small: cloned
     model.log_scales[5:] = math.log(0.5)       # large: split
     model.opacity_logits[9] = -10.0            # transparent: pruned
@@ -78,7 +79,7 @@ def test_densify_clones_splits_prunes_and_keeps_adam_state_aligned() -> None:
 
 def test_densify_respects_the_budget() -> None:
     gen = torch.Generator().manual_seed(0)
-    model = initial_model(torch.randn(20, 3), torch.full((20, 3), 0.5), 0, extent=1.0, gen=gen)
+    model = initial_model(torch.randn(20, 3), torch.full((20, 3), 0.5), 0, extent=1.0, gen=gen, recipe=GAUSSIANS)
     model.log_scales[:] = math.log(0.001)
     splats = Splats(model, TrainConfig(), extent=1.0)
     densify(splats, torch.ones(20), TrainConfig(), extent=1.0, budget=25, gen=gen)
@@ -161,13 +162,13 @@ CUP = LEGO.parent / "cup_colmap"
 
 def test_a_real_capture_starts_from_its_sfm_points_and_a_background_shell() -> None:
     from phd_core.data import load_dataset
-    from phd_core.train.gs3d import seed_model, training_background, training_extent
+    from phd_core.train.splats import seed_model, training_background, training_extent
 
     data = load_dataset(CUP, "train", downscale=20, views=4)
     assert data.alphas is None and data.points is not None
     centre, extent = scene_bounds(data.cameras)
     config = TrainConfig(background_splats=300)
-    model = seed_model(data, centre, extent, config, torch.Generator().manual_seed(0))
+    model = seed_model(data, centre, extent, config, torch.Generator().manual_seed(0), GAUSSIANS)
     sfm = len(data.points)
     assert model.num_splats > sfm
     assert torch.allclose(model.means[:sfm].double(), data.points, atol=1e-5)      # every SfM point is a splat

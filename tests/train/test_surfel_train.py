@@ -17,7 +17,7 @@ from phd_core.renderers.gs2d import SurfelModel, rasterize_surfels, read_surfel_
 from phd_core.renderers.gs3d import read_sidecar
 from phd_core.scene import look_at
 from phd_core.train import gs2d
-from phd_core.train.gs3d import Splats, TrainConfig, densify, fit, initial_model
+from phd_core.train.splats import Splats, TrainConfig, densify, fit, initial_model
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import torch
 
 from phd_core.errors import InputError
 from phd_core.scene import look_at
-from phd_core.uq.candidates import GENERATORS, Generator, get_generator, hemisphere_cameras, register
+from phd_core.uq.candidates import GENERATORS, Generator, get_generator, hemisphere_cameras
 
 
 def test_hemisphere_poses_lie_on_the_band_and_look_at_the_centre() -> None:
@@ -41,12 +41,12 @@ def test_a_generator_is_one_registry_entry() -> None:
         return [look_at((radius * math.cos(2 * math.pi * i / count), radius * math.sin(2 * math.pi * i / count), 0),
                         (0, 0, 0), width=width, height=height, fov_x=0.7) for i in range(count)]
 
-    register(Generator("ring", "a horizontal ring", orbit))
+    GENERATORS.register(Generator("ring", "a horizontal ring", orbit))
     try:
         cameras = get_generator("ring").generate(4, radius=2.0)
         assert [round(float(c.center.norm()), 9) for c in cameras] == [2.0] * 4
         with pytest.raises(ValueError):
-            register(Generator("ring", "again", orbit))
+            GENERATORS.register(Generator("ring", "again", orbit))
     finally:
         del GENERATORS["ring"]
 

@@ -10,7 +10,7 @@ import torch
 from phd_core import uq as phd
 from phd_core.scene import look_at
 from phd_core.errors import InputError
-from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, Strategy, get_strategy, register
+from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, Strategy, get_strategy
 from phd_core.uq.strategies.base import by_score
 from support.toy_renderers import BlobRenderer, ring_cameras
 
@@ -126,13 +126,13 @@ def test_a_new_strategy_is_one_registry_entry() -> None:
     def lowest_index_last(ev: Evidence, k: int, seed: int):
         return by_score(torch.arange(len(ev.candidates), dtype=torch.float64))
 
-    register(Strategy("test_last_first", "test only", lowest_index_last, uses_dropout=False))
+    STRATEGIES.register(Strategy("test_last_first", "test only", lowest_index_last, uses_dropout=False))
     try:
         renderer, _ = blob_scene()
         ranked = phd.rank_views(renderer, ring_cameras(3), ratio=0.3, samples=2, strategy="test_last_first")
         assert [r.index for r in ranked] == [2, 1, 0]
         with pytest.raises(ValueError):
-            register(Strategy("test_last_first", "again", lowest_index_last))
+            STRATEGIES.register(Strategy("test_last_first", "again", lowest_index_last))
     finally:
         del STRATEGIES["test_last_first"]
 

@@ -18,19 +18,13 @@ Two entry points share the kernel:
 
 from __future__ import annotations
 
-import threading
-
 import numba
 import numpy as np
 import torch
 
-from ..splats import LOG_T_MIN, Fragments
+from ..splats.maths import LAUNCH_LOCK, LOG_T_MIN, Fragments
 
 PIXEL_BLOCK = 64    # pixels per parallel work item (scratch space is allocated per block)
-
-# numba's default threading layer runs one parallel region at a time per process; the
-# service renders on several worker threads, so launches take turns (each uses every core).
-LAUNCH_LOCK = threading.Lock()
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)

@@ -1,6 +1,6 @@
 """The reference compositing backend: pure torch, differentiable, batched over keep-masks.
 
-Front-to-back compositing of the fragments (`phd_core.renderers.splats.Fragments`) in log
+Front-to-back compositing of the fragments (`phd_core.renderers.splats.maths.Fragments`) in log
 space, once per keep-mask; per-pixel sums are sparse CSR products (`PixelSums`).
 """
 
@@ -10,7 +10,7 @@ import warnings
 
 import torch
 
-from ..splats import LOG_T_MIN, Fragments
+from ..splats.maths import LOG_T_MIN, Fragments
 
 # Per-pixel sums use CSR products, which torch flags as beta; they are checked in the tests.
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")

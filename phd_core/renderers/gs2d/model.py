@@ -3,12 +3,12 @@
 Stored like a 3DGS model except that each splat has two scales, along the first two
 columns of its rotation (the tangent axes t_u, t_v); the third column is the surfel's
 normal. Everything else (means, wxyz quaternions, opacity logits, SH colour) and every
-method comes from `GaussianModel`.
+method comes from the splat model, `GaussianModel`.
 """
 
 from __future__ import annotations
 
-from ..gs3d.model import GaussianModel
+from ..splats.model import GaussianModel
 
 
 class SurfelModel(GaussianModel):

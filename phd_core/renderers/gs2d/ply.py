@@ -2,7 +2,7 @@
 
     x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0 scale_1 rot_0..3
 
-read and written by the 3DGS PLY code (`phd_core.renderers.gs3d.ply`) with the surfel model.
+read and written by the splat PLY code (`phd_core.renderers.splats.ply`) with the surfel model.
 A file is a 2DGS PLY when its header declares exactly two scale columns; the 3DGS sniff
 takes every other PLY, so no file is claimed by both families.
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..gs3d.ply import is_ply, parse_ply, read_ply, scale_axes, write_ply
+from ..splats.ply import is_ply, parse_ply, read_ply, scale_axes, write_ply
 from .model import SurfelModel
 
 

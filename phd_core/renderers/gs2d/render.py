@@ -1,8 +1,8 @@
 """2D Gaussian Splatting on the CPU (Huang et al. 2024), built for batches of keep-masks.
 
-The same four stages as the 3DGS rasteriser (`phd_core.renderers.gs3d.render`), sharing its
-stages 2 and 4 (`phd_core.renderers.splats`, `phd_core.renderers.composite`); only what a
-surfel is differs:
+The same four stages as the 3DGS rasteriser (`phd_core.renderers.gs3d.render`), sharing
+stages 2 and 4 with it (`phd_core.renderers.splats.maths`, `phd_core.renderers.composite`)
+and the renderer (`SplatRenderer`); only what a surfel is differs:
 
 1. `project`:   per surfel the 3x3 map T from its local (u, v, 1) to homogeneous pixels,
                 T = K [s_u R t_u, s_v R t_v, p_cam] (K the intrinsics, R, p_cam the surfel's
@@ -26,7 +26,7 @@ surfel is differs:
 Outputs: RGB, alpha, depth (alpha-weighted), and with `geometry=True` the alpha-weighted
 camera-frame normal (OpenCV axes, facing the camera) and the depth distortion
 sum_ij w_i w_j (d_i - d_j)^2 / 2 per pixel, which the 2DGS trainer regularises.
-Compositing rules and constants are the 3DGS ones (`splats`). Float64 up to alpha.
+Compositing rules and constants are the 3DGS ones (`splats.maths`). Float64 up to alpha.
 """
 
 from __future__ import annotations
@@ -39,10 +39,10 @@ import torch
 from ...scene import Camera
 from ...scene.rotations import quaternion_to_rotation
 from ..composite import pick_compositor
-from ..gs3d.render import NEAR_PLANE, GaussianRenderer, RenderOutput
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
-from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Fragments, Pairs, box_counts, composite_images, eval_sh,
-                      fragments, intersect)
+from ..splats.maths import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Fragments, Pairs, box_counts, composite_images,
+                            eval_sh, fragments, intersect)
+from ..splats.renderer import NEAR_PLANE, RenderOutput, SplatRenderer
 from .model import SurfelModel
 
 LOWPASS_INV_VAR = 2.0   # 1 / sigma^2 of the screen-space low-pass, sigma = sqrt(2)/2 px
@@ -255,7 +255,7 @@ def surfel_memory(renderer: "SurfelRenderer", camera: Camera) -> RenderMemory:
                         fragments=fragments_)
 
 
-class SurfelRenderer(GaussianRenderer):
+class SurfelRenderer(SplatRenderer):
     """A trained 2DGS model behind the renderer protocol; dropout units are the surfels."""
 
     kind = "2dgs"

@@ -2,7 +2,7 @@
 
 Stage 1 (`project_splats`) is the EWA projection of `render.project`, one splat per loop
 step in float64 instead of a dozen [G, 3, 3] torch temporaries. Stages 2-3 follow the same
-rules as the torch stages (`phd_core.renderers.splats.intersect`, `render.splat_alpha`,
+rules as the torch stages (`phd_core.renderers.splats.maths.intersect`, `render.splat_alpha`,
 `splats.fragments`): a splat is listed in every tile its alpha >= 1/255 box overlaps, in
 depth order; at every pixel of the tile alpha = min(ALPHA_MAX, opacity * exp(-d^T conic d / 2))
 is evaluated (in float64) and kept when >= ALPHA_MIN. The output is the fused compositor's
@@ -19,9 +19,8 @@ import numba
 import numpy as np
 import torch
 
-from ..composite.fused import LAUNCH_LOCK
 from ...scene import Camera
-from ..splats import ALPHA_MAX, ALPHA_MIN, SH_C0, SH_C1, SH_C2, SH_C3
+from ..splats.maths import ALPHA_MAX, ALPHA_MIN, LAUNCH_LOCK, SH_C0, SH_C1, SH_C2, SH_C3
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)

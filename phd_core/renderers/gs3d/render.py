@@ -24,34 +24,31 @@ transmittance below 1e-4. A splat is listed in every tile its alpha >= 1/255 ell
 touches, so the image does not depend on the tile size (the reference cuts splats at a
 3-sigma square, which makes its images depend on the tiling).
 
-Stages 2-4 and the SH colour are shared splat maths (`phd_core.renderers.splats`); this
-module holds what is particular to 3D Gaussians: the EWA projection and the alpha of an
-ellipse. Pixel (i, j) has its centre at (i + 0.5, j + 0.5); see `phd_core.scene.camera`.
+Stages 2-4 and the SH colour are shared splat maths (`phd_core.renderers.splats.maths`),
+the renderer's protocol side is `SplatRenderer`; this module holds what is particular to 3D
+Gaussians: the EWA projection, the alpha of an ellipse and the compiled `SplatView`.
+Pixel (i, j) has its centre at (i + 0.5, j + 0.5); see `phd_core.scene.camera`.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Sequence
 
 import torch
 
-from ...errors import InputError, check_color
-from ...scene import Camera, pixels_in_box
+from ...errors import InputError
+from ...scene import Camera
 from ...scene.rotations import quaternion_to_rotation
-from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR, pick_compositor
+from ..composite import pick_compositor
 from ..composite.fused import composite_indexed
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
-from ..visibility import Visibility, fragment_visibility, reduce_to_visibility, robust_box
-from ..splats import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, box_counts, composite_images, eval_sh, fragments,
-                      intersect, tile_layout, untile)
+from ..splats.maths import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, box_counts, composite_images, eval_sh,
+                            fragments, intersect, untile)
+from ..splats.model import GaussianModel
+from ..splats.renderer import NEAR_PLANE, RenderOutput, SplatRenderer
 from .kernels import project_splats, splat_fragments, splat_values
-from .model import GaussianModel
 
-NEAR_PLANE = 0.2
-SOLID_OPACITY = 0.05    # splats at least this opaque say where the scene is (`scene_box`)
-FISHER_PROBES = 4       # random projections per view in `GaussianRenderer.fisher`
 DILATION = 0.3          # px^2 added to the 2D covariance diagonal (anti-aliasing low-pass)
 
 
@@ -66,15 +63,6 @@ class Projected:
     colors: torch.Tensor    # [V, 3]
     depths: torch.Tensor    # [V] camera-space z
     extents: torch.Tensor   # [V, 2] half-width/height of the alpha >= 1/255 ellipse, px
-
-
-@dataclass
-class RenderOutput:
-    rgb: torch.Tensor       # [N, H, W, 3] composited on the background
-    alpha: torch.Tensor     # [N, H, W] accumulated opacity
-    depth: torch.Tensor     # [N, H, W] alpha-weighted camera depth (divide by alpha for the mean)
-    means2d: torch.Tensor   # [G, 2] screen positions (autograd leaf for densification stats)
-    visible: torch.Tensor   # [G] bool, survived culling in this view
 
 
 def front_to_back(visible: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
@@ -284,37 +272,17 @@ def view_memory(renderer: "GaussianRenderer", camera: Camera) -> RenderMemory:
     return RenderMemory(fixed=fixed, kept=kept, per_mask=units + MASK_GRID_PIXEL_BYTES * grid, fragments=fragments_)
 
 
-class GaussianRenderer:
-    """A trained 3DGS model behind the renderer protocol (`phd_core.renderers.Renderer`).
+class GaussianRenderer(SplatRenderer):
+    """A trained 3DGS model behind the renderer protocol (the shared parts: `SplatRenderer`).
 
-    Dropout units are the splats: keep [N, G]. With the fused compositor (the default)
-    `prepare` returns a `SplatView` that renders many mask batches from one projection;
-    any other compositor renders through `rasterize` (pure torch for `reference`).
+    With the fused compositor (the default) `prepare` returns a `SplatView` that renders many
+    mask batches from one projection; any other compositor renders through `rasterize`
+    (pure torch for `reference`).
     """
 
     kind = "3dgs"
     model_type = GaussianModel
-    rasterizer = staticmethod(rasterize)    # the differentiable renderer (training, Fisher information)
-
-    def __init__(self, model: GaussianModel, background: Sequence[float] = (1.0, 1.0, 1.0),
-                 training_cameras: list[Camera] | None = None, *, tile: int = DEFAULT_TILE,
-                 near: float = NEAR_PLANE, compositor: str = DEFAULT_COMPOSITOR, camera_format: str | None = None):
-        if not isinstance(model, self.model_type) or model.scale_axes != self.model_type.scale_axes:
-            raise InputError("model", f"a {self.kind} renderer needs a {self.model_type.__name__}, "
-                                      f"got {type(model).__name__}")
-        model.validate()
-        COMPOSITORS.lookup(compositor, "compositor")
-        self.model = model
-        self.background = torch.tensor(background, dtype=torch.float32)
-        self.training_cameras = training_cameras
-        self.camera_format = camera_format      # the source's pose convention (phd_core.data.POSES), when known
-        self.tile = tile
-        self.near = near
-        self.compositor = compositor
-
-    @property
-    def num_units(self) -> int:
-        return self.model.num_splats
+    rasterizer = staticmethod(rasterize)
 
     def prepare(self, camera: Camera) -> View:
         if self.compositor == "fused":
@@ -328,73 +296,8 @@ class GaussianRenderer:
         return rasterize(self.model, camera, self.background, keep, tile=self.tile, near=self.near,
                          compositor=self.compositor)
 
-    def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
-        return self.render_full(camera, keep).rgb.clamp(0.0, 1.0)
-
-    def fisher(self, camera: Camera, probes: int = FISHER_PROBES, seed: int = 0) -> torch.Tensor:
-        """[G, 5] float64: the diagonal of J^T J of this view's render (J: d pixels / d parameters),
-        summed per splat over each parameter group (means, scales, rotation, opacity, colour).
-
-        Estimated without forming J: for v with independent +-1 entries over the image,
-        E[(J^T v)^2] = diag(J^T J), so each probe is one backward pass of the differentiable
-        rasteriser (FisherRF's quantity, Jiang et al. 2024, by random projections)."""
-        leaves = [t.detach().clone().requires_grad_(True) for t in self.model.tensors()]
-        generator = torch.Generator().manual_seed(seed)
-        total = torch.zeros(self.num_units, len(leaves), dtype=torch.float64)
-        with torch.enable_grad():
-            rgb = self.rasterizer(type(self.model)(*leaves), camera, self.background, tile=self.tile,
-                                  near=self.near).rgb[0]                                       # [H, W, 3]
-            for probe in range(probes):
-                signs = torch.randint(0, 2, rgb.shape, generator=generator).float() * 2 - 1
-                grads = torch.autograd.grad((rgb * signs).sum(), leaves, retain_graph=probe < probes - 1)
-                total += torch.stack([g.double().square().reshape(self.num_units, -1).sum(1) for g in grads], 1)
-        return total / probes
-
-    def scene_box(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The box the model's splats fill ([lo, hi] float64), ignoring nearly transparent
-        splats and the farthest floaters (`robust_box`): where empty space counts as unobserved."""
-        if getattr(self, "_box", None) is None:
-            solid = torch.sigmoid(self.model.opacity_logits.detach()) >= SOLID_OPACITY
-            self._box = robust_box(self.model.means.detach()[solid])
-        return self._box
-
     def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, Pairs]:
-        """The full model's fragments of `view`'s camera, grouped by pixel: (row_ptr [S + 1],
-        alpha [E], splat [E], pixel [S] in tile layout, the tile grid)."""
         if not isinstance(view, SplatView):
             view = prepare_view(self.model, view.camera, self.background, tile=self.tile, near=self.near)
         rows = torch.arange(len(view.row_ptr) - 1)
         return view.row_ptr, view.alpha, view.units[view.index.long()], rows, view.pairs
-
-    @torch.no_grad()
-    def visibility(self, view: View, pixel_values: torch.Tensor | None = None) -> Visibility:
-        """What `view`'s camera sees of each splat (`phd_core.renderers.visibility`); with
-        pixel_values [H, W], each splat's weights times the values of its pixels as well."""
-        camera = view.camera
-        row_ptr, alpha, splat, pixel, grid = self.fragment_rows(view)
-        tiled = lambda image: tile_layout(image, grid.tiles_x, grid.tiles_y, self.tile)[pixel]   # noqa: E731
-        sums = fragment_visibility(row_ptr, alpha, splat, self.num_units,
-                                   None if pixel_values is None else tiled(pixel_values.double()))
-        lo, hi = self.scene_box()
-        in_box = pixels_in_box(camera, lo, hi)
-        return reduce_to_visibility(camera, sums, self.model.means.detach(), tiled(in_box), int(in_box.sum()))
-
-    def describe(self) -> dict[str, Any]:
-        lo, hi = self.model.bounds()
-        return {
-            "kind": self.kind,
-            "num_units": self.num_units,
-            "sh_degree": self.model.sh_degree,
-            "bounds": {"min": lo, "max": hi},
-            "background": self.background.tolist(),
-            "has_training_cameras": self.training_cameras is not None,
-            "camera_format": self.camera_format,
-        }
-
-
-def set_background(renderer: Any, color: Sequence[float] | str) -> None:
-    """Render a splat model (3DGS, 2DGS) over `color` (a name or [r, g, b] in [0, 1]): the
-    colour it was trained over. A NeRF checkpoint carries its own, so giving one is an error."""
-    if not isinstance(renderer, GaussianRenderer):
-        raise InputError("background", f"a {renderer.kind} model carries its own background (set at training)")
-    renderer.background = torch.tensor(check_color(color, "background"), dtype=torch.float32)

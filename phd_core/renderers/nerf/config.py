@@ -1,4 +1,5 @@
-"""NeRF configuration: the network, encoding and sampling settings, validated."""
+"""NeRF configuration: the network, encoding and sampling settings, checked when built
+(`errors.check_*`, like every config in the project)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from typing import Any
 
 import torch
 
-from ...errors import InputError, check_color, check_float, check_int
+from ...errors import InputError, check_bool, check_color, check_float, check_int
 
 ENCODINGS = ("pe", "spe", "hash")
 # Memory bounds of one rendering step: samples per ray chunk, and elements of one
@@ -17,6 +18,13 @@ CHUNK_ELEMENTS = 1 << 23
 
 
 # --------------------------------------------------------------------------- configuration
+
+def check_encoding(encoding: Any) -> str:
+    """`encoding` when it is one of ENCODINGS, else an InputError naming the field."""
+    if encoding not in ENCODINGS:
+        raise InputError("encoding", f"must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
+    return encoding
+
 
 @dataclass
 class NeRFConfig:
@@ -50,10 +58,12 @@ class NeRFConfig:
     freenerf_frequency: bool = False  # provenance: trained with FreeNeRF's frequency mask
     freenerf_occlusion: bool = False  # provenance: trained with FreeNeRF's occlusion penalty
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     def validate(self) -> "NeRFConfig":
         """Raise `InputError` naming the first field out of range; return self."""
-        if self.encoding not in ENCODINGS:
-            raise InputError("encoding", f"must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}")
+        check_encoding(self.encoding)
         for name, lo, hi in (("depth", 1, 16), ("width", 1, 1024), ("color_width", 1, 1024),
                              ("pos_freqs", 0, 16), ("dir_freqs", 0, 8), ("hash_levels", 1, 32),
                              ("hash_features", 1, 8), ("hash_log2_size", 8, 24),
@@ -64,15 +74,12 @@ class NeRFConfig:
             raise InputError("hash_max_resolution", f"must be >= hash_base_resolution ({self.hash_base_resolution}), "
                              f"got {self.hash_max_resolution}")
         for name in ("skip", "freenerf_frequency", "freenerf_occlusion"):
-            if not isinstance(getattr(self, name), bool):
-                raise InputError(name, f"must be true or false, got {getattr(self, name)!r}")
+            check_bool(getattr(self, name), name)
         check_float(self.near, "near", 0.0)
         check_float(self.far, "far", 0.0)
         if not self.far > self.near:
             raise InputError("far", f"must exceed near ({self.near}), got {self.far}")
-        check_float(self.grid_threshold, "grid_threshold", 0.0)
-        if not 0 < self.grid_threshold < 1:
-            raise InputError("grid_threshold", f"must lie in (0, 1), got {self.grid_threshold}")
+        check_float(self.grid_threshold, "grid_threshold", 0.0, 1.0, open_min=True, open_max=True)
         self.bounds = _check_bounds(self.bounds)
         self.background = list(check_color(self.background, "background"))
         return self

@@ -6,10 +6,10 @@
 
 Trainers that normalise the world are mapped back into the user's frame on loading (splats
 and cameras), so every pose in and out of the project is in the frame the user holds.
-docs/formats.md describes each. A new trainer is one module calling `OUTPUTS.add`.
+docs/formats.md describes each. A new trainer is one module calling `OUTPUTS.register`.
 """
 
 from .base import OUTPUTS, OutputFormat, TrainerOutput, empty_views, load_output, read_output
-from . import inria, nerfstudio, gsplat  # noqa: E402,F401  (registration, in detection order)
+from . import inria, nerfstudio, gsplat  # noqa: E402,F401  (registration; each states its detection order)
 
 __all__ = ["OUTPUTS", "OutputFormat", "TrainerOutput", "empty_views", "load_output", "read_output"]

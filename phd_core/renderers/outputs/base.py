@@ -40,16 +40,19 @@ class OutputFormat:
     title: str                                   # for messages: "a nerfstudio splatfacto output folder"
     detect: Callable[[Path], bool]               # True when a folder is this trainer's output
     read: Callable[[Path], TrainerOutput]
+    order: int = 100                             # detection order, lowest first (`read_output`)
 
 
-OUTPUTS: Registry[OutputFormat] = Registry("trainer output folder")   # detected in registration order
+OUTPUTS: Registry[OutputFormat] = Registry("trainer output folder")
 
 
 def read_output(path: str | Path) -> TrainerOutput:
-    """The first registered trainer output that recognises the folder, read; its notes and
-    warnings are also issued as Python warnings (ModelNote, ModelWarning)."""
+    """The first trainer output, by `order`, that recognises the folder, read; its notes and
+    warnings are also issued as Python warnings (ModelNote, ModelWarning). The built-in
+    ones look for different files (cameras.json + point_cloud/, config.yml, ckpts/); the
+    order decides for a folder holding more than one."""
     path = Path(path)
-    for output_format in OUTPUTS.values():
+    for output_format in OUTPUTS.in_order():
         if output_format.detect(path):
             output = output_format.read(path)
             empty = empty_views(output.model, output.cameras)
@@ -63,7 +66,7 @@ def read_output(path: str | Path) -> TrainerOutput:
             for warning in output.warnings:
                 warnings.warn(warning, ModelWarning, stacklevel=2)
             return output
-    known = "; ".join(f.title for f in OUTPUTS.values())
+    known = "; ".join(f.title for f in OUTPUTS.in_order())
     raise InputError("model", f"{path} is a folder but no trainer output this project reads ({known})")
 
 

@@ -206,5 +206,5 @@ def _find_capture(folder: Path, data: Path | None) -> Path | None:
     return None
 
 
-OUTPUTS.add("gsplat", OutputFormat("gsplat", "a gsplat result folder (ckpts/ckpt_*_rank*.pt, with cfg.yml naming "
-                                   "its COLMAP capture)", detect, read))
+OUTPUTS.register(OutputFormat("gsplat", "a gsplat result folder (ckpts/ckpt_*_rank*.pt, with cfg.yml naming its "
+                              "COLMAP capture)", detect, read, order=30))

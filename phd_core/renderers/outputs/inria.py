@@ -17,5 +17,5 @@ def read(folder: Path) -> TrainerOutput:
                          camera_format="3dgs-output")
 
 
-OUTPUTS.add("3dgs-output", OutputFormat("3dgs-output", "a reference 3DGS output folder (cameras.json + "
-                                        "point_cloud/iteration_*)", is_output_folder, read))
+OUTPUTS.register(OutputFormat("3dgs-output", "a reference 3DGS output folder (cameras.json + point_cloud/iteration_*)",
+                              is_output_folder, read, order=10))

@@ -46,7 +46,7 @@ from ...errors import InputError
 from ...io.foreign import read_checkpoint, read_yaml, yaml_path
 from ...scene import Camera, Similarity
 from ..gs3d import GaussianModel, read_ply
-from ..splats import SH_C0
+from ..splats.maths import SH_C0
 from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates, sh_from_parts
 
 FRAME_FILE = "dataparser_transforms.json"
@@ -217,5 +217,5 @@ def _section(config: dict, *keys: str) -> dict:
     return config if isinstance(config, dict) else {}
 
 
-OUTPUTS.add("nerfstudio", OutputFormat("nerfstudio", "a nerfstudio splatfacto output folder (config.yml + "
-                                       f"{FRAME_FILE})", detect, read))
+OUTPUTS.register(OutputFormat("nerfstudio", f"a nerfstudio splatfacto output folder (config.yml + {FRAME_FILE})",
+                              detect, read, order=20))

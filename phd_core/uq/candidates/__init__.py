@@ -1,7 +1,7 @@
 """Candidate-pose generators: where a next-best view may be taken from.
 
-`GENERATORS` maps a name to a `Generator`; adding one is one module plus one `register`
-call. Built in: `orbit` (rings), `hemisphere` and `sphere` (look-at poses spread evenly),
+`GENERATORS` maps a name to a `Generator`; adding one is one module plus one
+`GENERATORS.register` call. Built in: `orbit` (rings), `hemisphere` and `sphere` (look-at poses spread evenly),
 `spiral` (forward-facing, for LLFF-like captures) and `jitter` (moved copies of the training
 poses).
 
@@ -40,21 +40,15 @@ class Generator:
 
 
 GENERATORS: Registry[Generator] = Registry("candidate generator")
-
-
-def register(generator: Generator) -> Generator:
-    """Add a generator under its name (a name is registered once)."""
-    return GENERATORS.add(generator.name, generator)
-
-
-register(Generator("orbit", "look-at rings around the scene (rings, elevation, spread)", orbit_cameras))
-register(Generator("hemisphere", "look-at poses spread evenly (Fibonacci spiral) over a band of the upper "
-                   "hemisphere", hemisphere_cameras))
-register(Generator("sphere", "look-at poses spread evenly over the whole sphere around the scene", sphere_cameras))
-register(Generator("spiral", "a forward-facing spiral in front of the training cameras (LLFF-like captures)",
-                   spiral_cameras))
-register(Generator("jitter", "copies of the training poses moved and turned a little (position, angle, seed)",
-                   jitter_cameras))
+GENERATORS.register(Generator("orbit", "look-at rings around the scene (rings, elevation, spread)", orbit_cameras))
+GENERATORS.register(Generator("hemisphere", "look-at poses spread evenly (Fibonacci spiral) over a band of "
+                              "the upper hemisphere", hemisphere_cameras))
+GENERATORS.register(Generator("sphere", "look-at poses spread evenly over the whole sphere around the scene",
+                              sphere_cameras))
+GENERATORS.register(Generator("spiral", "a forward-facing spiral in front of the training cameras (LLFF-like "
+                              "captures)", spiral_cameras))
+GENERATORS.register(Generator("jitter", "copies of the training poses moved and turned a little (position, angle, "
+                              "seed)", jitter_cameras))
 
 
 def get_generator(name: str) -> Generator:
@@ -150,5 +144,5 @@ def parse_spec(text: str, default_count: int = 64) -> tuple[str, int, dict[str, 
 
 
 __all__ = ["GENERATORS", "Generator", "SceneFrame", "candidate_cameras", "get_generator", "hemisphere_cameras",
-           "jitter_cameras", "orbit_cameras", "parse_spec", "register", "scene_frame", "scene_points",
+           "jitter_cameras", "orbit_cameras", "parse_spec", "scene_frame", "scene_points",
            "sphere_cameras", "spiral_cameras"]

@@ -1,7 +1,8 @@
 """Next-best-view strategies: one module per family, one registry entry per strategy.
 
 `STRATEGIES` maps a name to a `Strategy`; the CLI, the REST schema and the client take
-their allowed names from it. Adding a strategy is one module plus one `register` call.
+their allowed names from it. Adding a strategy is one module plus one `STRATEGIES.register`
+call.
 """
 
 from __future__ import annotations
@@ -15,16 +16,9 @@ from .uncertainty import SIGMA_MAX, SIGMA_MEAN
 from .visibility import VISIBILITY, VISIBILITY_SIGMA
 
 STRATEGIES: Registry[Strategy] = Registry("strategy")
-
-
-def register(strategy: Strategy) -> Strategy:
-    """Add a strategy under its name (a name is registered once)."""
-    return STRATEGIES.add(strategy.name, strategy)
-
-
 for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR, VISIBILITY, VISIBILITY_SIGMA,
                   FISHER):
-    register(_strategy)
+    STRATEGIES.register(_strategy)
 
 DEFAULT_STRATEGY = "visibility_sigma"   # the best final PSNR over the four scenes of docs/nbv.md
 
@@ -34,4 +28,4 @@ def get_strategy(name: str) -> Strategy:
     return STRATEGIES.lookup(name, "strategy")
 
 
-__all__ = ["DEFAULT_STRATEGY", "STRATEGIES", "Evidence", "Selection", "Strategy", "get_strategy", "register"]
+__all__ = ["DEFAULT_STRATEGY", "STRATEGIES", "Evidence", "Selection", "Strategy", "get_strategy"]

@@ -1,6 +1,6 @@
-"""The 3D Gaussian Splatting model: G splats in the parameterisation the reference trainer
-stores (log-scales, unnormalised wxyz quaternions, opacity logits and spherical-harmonic
-colour coefficients)."""
+"""The splat model: G splats in the parameterisation the reference 3DGS trainer stores
+(log-scales, unnormalised wxyz quaternions, opacity logits and spherical-harmonic colour
+coefficients). 3DGS uses it as is; 2DGS surfels are the subclass with two scale axes."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import torch
 from ...errors import InputError
 from ...scene import Similarity
 from ...scene.rotations import quaternion_multiply, quaternion_to_rotation, rotation_to_quaternion
-from ..splats import SH_C0, sh_rotation
+from .maths import SH_C0, sh_rotation
 
 SH_COEFFS = (1, 4, 9, 16)  # K = (degree + 1) ** 2 for SH degrees 0..3
 

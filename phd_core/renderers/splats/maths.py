@@ -1,6 +1,6 @@
 """Splat maths every splat renderer shares (3DGS and 2DGS): the reference
-rasteriser's constants and compositing rules, SH colour, quaternion rotations, and the
-mask-independent stages that turn projected splats into per-pixel fragments.
+rasteriser's constants and compositing rules, SH colour, and the mask-independent stages
+that turn projected splats into per-pixel fragments; and the lock compiled kernels launch under.
 
     tile_boxes  the tiles each splat's screen box overlaps
     intersect   tile/splat pairs ordered by (tile, depth)
@@ -14,6 +14,7 @@ Stage 4, compositing the fragments once per keep-mask, is a backend (`composite`
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import torch
@@ -34,6 +35,11 @@ DEFAULT_TILE = 4        # pixels per tile side; see bench/bench_gaussians.py
 # Upper bound on elements of one [masks, fragments] compositing chunk (about 1 GB of temporaries).
 CHUNK_ELEMENTS = 1 << 24
 BOX_MARGIN = 0.5        # px added to each side of a splat box when bounding its fragments (box_counts)
+
+# numba's default threading layer runs one parallel region at a time per process; the
+# service renders on several worker threads, so every compiled splat kernel (the fused
+# compositor's, a family's projection) launches under this lock (each uses every core).
+LAUNCH_LOCK = threading.Lock()
 
 
 def sh_basis(dirs: torch.Tensor, k: int) -> torch.Tensor:
