@@ -24,8 +24,8 @@ from typing import Any, Callable
 
 import torch
 
-from phd_core.io import write_bytes_atomic, write_json_atomic
 from phd_core.data import Dataset, load_blender, load_dataset
+from phd_core.io import write_bytes_atomic, write_json_atomic
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, write_ply
 from phd_core.renderers.splats import SH_C0
 from phd_core.train.gs3d import TrainConfig, fit, training_background

@@ -36,8 +36,20 @@ from typing import Any
 
 import torch
 
-from bench._harness import (DOCS, LEGO, RESULTS, ROOT, fmt, load_test_at_size, machine, machine_text, svg_plot,
-                            timed, write_doc, write_result)
+from bench._harness import (
+    DOCS,
+    LEGO,
+    RESULTS,
+    ROOT,
+    fmt,
+    load_test_at_size,
+    machine,
+    machine_text,
+    svg_plot,
+    timed,
+    write_doc,
+    write_result,
+)
 from phd_core import uq as phd
 from phd_core.data import load_dataset
 from phd_core.eval import uq as uqm

@@ -31,8 +31,20 @@ from pathlib import Path
 
 import torch
 
-from bench._harness import (DOCS, DONUT, PHD, RESULTS, ROOT, child, donut_model, load_at_start, load_average,
-                            machine, svg_plot, write_result)
+from bench._harness import (
+    DOCS,
+    DONUT,
+    PHD,
+    RESULTS,
+    ROOT,
+    child,
+    donut_model,
+    load_at_start,
+    load_average,
+    machine,
+    svg_plot,
+    write_result,
+)
 from phd_core.data import load_blender
 from phd_core.eval.uq import kendall_tau_b
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, write_ply

@@ -27,8 +27,21 @@ from pathlib import Path
 
 import torch
 
-from bench._harness import (DOCS, DONUT, LEGO, PHD, RESULTS, ROOT, child, donut_model, load_at_start,
-                            load_average, machine, timed, write_result)
+from bench._harness import (
+    DOCS,
+    DONUT,
+    LEGO,
+    PHD,
+    RESULTS,
+    ROOT,
+    child,
+    donut_model,
+    load_at_start,
+    load_average,
+    machine,
+    timed,
+    write_result,
+)
 from phd_core.data import load_blender
 from phd_core.io import write_json_atomic
 from phd_core.renderers.composite import COMPOSITORS

@@ -25,8 +25,18 @@ from pathlib import Path
 
 import torch
 
-from bench._harness import (DOCS, LEGO, RESULTS, fmt, load_test_at_size, machine, machine_text, timed, write_doc,
-                            write_result)
+from bench._harness import (
+    DOCS,
+    LEGO,
+    RESULTS,
+    fmt,
+    load_test_at_size,
+    machine,
+    machine_text,
+    timed,
+    write_doc,
+    write_result,
+)
 from phd_core import uq as phd
 from phd_core.eval import rmse
 from phd_core.eval import uq as uqm

@@ -4,12 +4,24 @@ Results are the service's pydantic schemas (`service.schemas`, pure pydantic: im
 the client imports neither FastAPI nor torch).
 """
 
-from service.schemas import (Calibration, Health, Job, ModelInfo, RankedCandidate, RankResult, SelectedView,
-                             SelectResult)
+from service.schemas import Calibration, Health, Job, ModelInfo, RankedCandidate, RankResult, SelectedView, SelectResult
 
-from .client import (AuthenticationError, ConflictError, InvalidInputError, JobCancelledError, JobFailedError,
-                     NotFoundError, PayloadTooLargeError, PHDClient, PHDError, QueueFullError, ServerError,
-                     ServiceUnavailableError, UnsupportedModelError, camera_frames)
+from .client import (
+    AuthenticationError,
+    ConflictError,
+    InvalidInputError,
+    JobCancelledError,
+    JobFailedError,
+    NotFoundError,
+    PayloadTooLargeError,
+    PHDClient,
+    PHDError,
+    QueueFullError,
+    ServerError,
+    ServiceUnavailableError,
+    UnsupportedModelError,
+    camera_frames,
+)
 
 __all__ = [
     "PHDClient", "camera_frames",

@@ -30,8 +30,7 @@ from typing import Any, Callable, Iterable, Sequence, Union
 
 import httpx
 
-from service.schemas import (Calibration, Health, Job, ModelInfo, ModelList, RankResult, SelectResult,
-                             TrainingCameras)
+from service.schemas import Calibration, Health, Job, ModelInfo, ModelList, RankResult, SelectResult, TrainingCameras
 
 ProgressCallback = Callable[[float], None]
 Cameras = Union[str, Path, dict, Iterable[Any]]
@@ -166,7 +165,7 @@ def _frames_of_transforms(data: dict, base: Path | None) -> list[dict]:
 def camera_frames(cameras: Cameras) -> list[dict]:
     """Frames (JSON-ready dicts) from Camera objects, frame dicts, a transforms.json object or path."""
     if isinstance(cameras, (str, Path)) and (Path(cameras).is_dir() or str(cameras).lower().endswith(".npy")):
-        from phd_core.data import load_cameras     # a capture of any format (COLMAP, LLFF, ...): its train split
+        from phd_core.data import load_cameras  # a capture of any format (COLMAP, LLFF, ...): its train split
 
         try:
             return [c.to_frame() for c in load_cameras(cameras)]

@@ -65,8 +65,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _train(data: Path, views: list[int], iterations: int | None, out: Path, retrain: bool, name: str) -> Path:
     """Train a 3DGS model on `views` of the train split, or reuse a cached one whose
     sidecar (written by the trainer) records the same scene, views and settings."""
-    from phd_core.train.gs3d import TrainConfig, train_gaussians
     from phd_core.renderers.splats import read_sidecar
+    from phd_core.train.gs3d import TrainConfig, train_gaussians
 
     model = out / "models" / f"{name}.ply"
     wanted_iterations = iterations if iterations is not None else TrainConfig().iterations
@@ -111,8 +111,8 @@ def run(args: argparse.Namespace) -> int:
 
     from client import PHDClient
     from phd_core.data import load_blender, select_views, split_size
-    from phd_core.io import write_bytes_atomic, write_json_atomic, write_png
     from phd_core.eval import ensemble_efficiency, spearman
+    from phd_core.io import write_bytes_atomic, write_json_atomic, write_png
     from service.runner import BackgroundServer
     from service.settings import Settings
 

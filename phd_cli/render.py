@@ -22,9 +22,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from phd_core.data import load_dataset, split_size
-    from phd_core.io import write_json_atomic, write_png
     from phd_core.eval import psnr, ssim
+    from phd_core.io import write_json_atomic, write_png
     from phd_core.renderers import load_model
+
     from .train import parse_views
 
     renderer = load_model(args.model)

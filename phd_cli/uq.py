@@ -14,13 +14,13 @@ from typing import Any
 
 from phd_core import uq as phd
 from phd_core.data import POSES, export_cameras, load_cameras, source_pose
-from phd_core.scene import Camera
 from phd_core.errors import InputError
+from phd_core.eval import image_uq_metrics, mean_defined, spearman
 from phd_core.executors import LOCAL, Executor, make_executor
 from phd_core.io import write_heatmap, write_json_atomic
+from phd_core.scene import Camera
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
-from phd_core.eval import image_uq_metrics, mean_defined, spearman
 
 from .options import add_background_arg, apply_background, model_help
 

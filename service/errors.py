@@ -15,7 +15,6 @@ from phd_core.uq import CalibrationError
 
 from .schemas import ErrorDetail
 
-
 # What json.loads raises on text that is not JSON it can decode: bad syntax, bytes that are not
 # UTF-8/16/32, and arrays or objects nested past the interpreter's recursion limit (about 1,000).
 JSON_ERRORS = (json.JSONDecodeError, UnicodeDecodeError, RecursionError)

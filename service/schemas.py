@@ -17,8 +17,8 @@ from typing import Any, Callable, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
-from phd_core.renderers import FAMILIES, Family
 from phd_core.registry import Registry
+from phd_core.renderers import FAMILIES, Family
 from phd_core.uq import DEFAULT_SELECTION_RULE, SELECTION_RULES, rules_help
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES

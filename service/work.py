@@ -14,31 +14,52 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 from phd_core import uq
-from phd_core.uq import Progress
 from phd_core.data import source_pose
 from phd_core.data.inria import cameras_from_entries, is_inria_cameras
-from phd_core.scene import Camera, cameras_from_json
-from phd_core.uq.candidates import candidate_cameras
 from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
-from phd_core.renderers import (FAMILIES, Renderer, RenderMemory, accepts_background, load_model, memory_probe_bytes,
-                                 set_background)
+from phd_core.renderers import (
+    FAMILIES,
+    Renderer,
+    RenderMemory,
+    accepts_background,
+    load_model,
+    memory_probe_bytes,
+    set_background,
+)
 from phd_core.renderers.visibility import PASS_FRAGMENT_BYTES, PASS_UNIT_BYTES, visibility_bytes
+from phd_core.scene import Camera, cameras_from_json
+from phd_core.uq import Progress
+from phd_core.uq.candidates import candidate_cameras
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
 from phd_core.uq.strategies import get_strategy
 
-from .budget import (DEFAULT_MASK_PIXEL_BYTES, PNG_PIXEL_BYTES, MemoryLedger, MemoryPlan, ModelSize, model_bytes,
-                     plan_work)
+from .budget import (
+    DEFAULT_MASK_PIXEL_BYTES,
+    PNG_PIXEL_BYTES,
+    MemoryLedger,
+    MemoryPlan,
+    ModelSize,
+    model_bytes,
+    plan_work,
+)
 from .errors import ServiceError, busy, invalid, not_found
 from .jobs import Work
-from .schemas import (Calibration, CalibrateRequest, RankedCandidate, RankRequest, RankResult, SelectedView,
-                      SelectRequest, SelectResult, RenderSize)
+from .schemas import (
+    CalibrateRequest,
+    Calibration,
+    RankedCandidate,
+    RankRequest,
+    RankResult,
+    RenderSize,
+    SelectedView,
+    SelectRequest,
+    SelectResult,
+)
 from .settings import Settings
 from .store import ModelRecord, ModelStore, utc_now
-
-
 
 # ----------------------------------------------------------------------------- loaded models
 

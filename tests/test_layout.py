@@ -9,8 +9,8 @@ a fresh interpreter that imports every phd_core module and then looks at what go
 from __future__ import annotations
 
 import ast
-import re
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path

@@ -14,6 +14,7 @@ from .formats import FORMATS, DataFormat
 from .frames import Dataset, count_frames, load_frames
 from .poses import POSES, PoseConvention
 
+
 def load_nerfstudio(path: str | Path, *, downscale: float = 1, views: int | Sequence[int] | None = None,
                     background: Sequence[float] = (1, 1, 1), seed: int | None = None,
                     with_images: bool = True) -> Dataset:

@@ -29,7 +29,7 @@ class ExecutorKind:
 
 
 def _ray(address: str | None = None) -> Executor:
-    from .ray import RayExecutor       # the module imports ray only when the executor connects
+    from .ray import RayExecutor  # the module imports ray only when the executor connects
 
     return RayExecutor(address)
 

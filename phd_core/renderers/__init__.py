@@ -12,8 +12,20 @@ A new family is one module defining a `Family` plus one entry in the tuple below
 is the one messages list the families in).
 """
 
-from .families import (FAMILIES, SNIFF_BYTES, Family, UnknownModelError, accepts_background, family_of, family_titles,
-                       load_model, load_model_bytes, model_kind, option, set_background)
+from .families import (
+    FAMILIES,
+    SNIFF_BYTES,
+    Family,
+    UnknownModelError,
+    accepts_background,
+    family_of,
+    family_titles,
+    load_model,
+    load_model_bytes,
+    model_kind,
+    option,
+    set_background,
+)
 from .gs2d.family import GS2D
 from .gs3d.family import GS3D
 from .nerf.family import NERF

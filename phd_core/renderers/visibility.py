@@ -22,7 +22,6 @@ from torch import Tensor
 from ..scene import Camera
 from .splats.maths import LOG_T_MIN
 
-
 ELEMENTS_PER_PIXEL = 4     # a Visibility lists at most this many elements per image pixel
 
 

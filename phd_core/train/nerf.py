@@ -32,8 +32,7 @@ from tqdm import tqdm
 
 from ..data import Dataset, load_dataset
 from ..errors import InputError, check_bool, check_color, check_float, check_int
-from ..renderers.nerf import (NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays, render_rays,
-                              save_nerf)
+from ..renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays, render_rays, save_nerf
 from ..renderers.nerf.family import NeRFOptions
 from ..scene import Camera, frustum_bounds, visual_hull
 

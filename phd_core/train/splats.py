@@ -46,8 +46,8 @@ from ..io import write_json_atomic
 from ..renderers.composite import COMPOSITORS, DEFAULT_COMPOSITOR
 from ..renderers.splats import SH_C0, SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
 from ..renderers.splats.renderer import RenderOutput, SplatRenderer
-from ..scene.rotations import quaternion_to_rotation
 from ..scene import Camera, footprint, scene_bounds, visual_hull
+from ..scene.rotations import quaternion_to_rotation
 
 
 @dataclass

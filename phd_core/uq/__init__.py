@@ -16,14 +16,38 @@ one image per mask, so N sub-models of one view cost one batched pass.
 Everything public is importable from here: `from phd_core import uq`.
 """
 
-from .calibrate import (DEFAULT_CALIBRATION_SAMPLES, DEFAULT_EPSILON, DEFAULT_SSIM_MARGIN, DEFAULT_STEP, LOOKAHEAD,
-                        CalibrationError, CalibrationResult, calibrate, calibrate_ssim)
+from .calibrate import (
+    DEFAULT_CALIBRATION_SAMPLES,
+    DEFAULT_EPSILON,
+    DEFAULT_SSIM_MARGIN,
+    DEFAULT_STEP,
+    LOOKAHEAD,
+    CalibrationError,
+    CalibrationResult,
+    calibrate,
+    calibrate_ssim,
+)
 from .candidates import GENERATORS
 from .rank import RankedView, candidate_evidence, coarse_cameras, rank_views
-from .sampling import (MAX_MASKS_PER_RENDER, Progress, RunningStd, dropout_uniforms, keep_masks, limit_mask_batch,
-                       sample_std)
-from .select import (DEFAULT_SELECTION_RULE, SELECTION_RULES, SELECTION_TRAINING_VIEWS, SelectionResult,
-                     SelectionRule, ViewSelection, rules_help, select_models)
+from .sampling import (
+    MAX_MASKS_PER_RENDER,
+    Progress,
+    RunningStd,
+    dropout_uniforms,
+    keep_masks,
+    limit_mask_batch,
+    sample_std,
+)
+from .select import (
+    DEFAULT_SELECTION_RULE,
+    SELECTION_RULES,
+    SELECTION_TRAINING_VIEWS,
+    SelectionResult,
+    SelectionRule,
+    ViewSelection,
+    rules_help,
+    select_models,
+)
 from .strategies import DEFAULT_STRATEGY, STRATEGIES
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, sigma_max_bar, uncertainty, view_uncertainty
 

@@ -13,20 +13,31 @@ searches only return ratios they have evaluated as passing.
 from __future__ import annotations
 
 import math
-from functools import partial
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
 
-from ..scene import Camera
 from ..errors import InputError, check_float, check_int
 from ..eval import ssim
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
-from .sampling import (PreparedViews, Progress, ProgressTicker, check_cameras, check_images,
-                       check_seed, check_step, dropout_uniforms, keep_masks, masked_renders, render_masks)
+from ..scene import Camera
+from .sampling import (
+    PreparedViews,
+    Progress,
+    ProgressTicker,
+    check_cameras,
+    check_images,
+    check_seed,
+    check_step,
+    dropout_uniforms,
+    keep_masks,
+    masked_renders,
+    render_masks,
+)
 
 # Defaults measured on the 16-view lego 3DGS model (docs/uq.md, bench/bench_phdropout.py).
 DEFAULT_EPSILON = 0.0175           # mean |full - dropped| per pixel and channel on [0, 1]: on lego16 the

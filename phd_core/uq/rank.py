@@ -9,11 +9,11 @@ from typing import Sequence
 
 import torch
 
-from ..scene import Camera
 from ..errors import InputError, check_float, check_int
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
 from ..renderers.visibility import Visibility, reports_visibility
+from ..scene import Camera
 from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, uncertainty

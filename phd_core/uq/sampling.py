@@ -15,9 +15,9 @@ from typing import Any, Callable, Iterator, Sequence
 import torch
 from torch import Tensor
 
-from ..scene import Camera
 from ..errors import InputError, check_float, check_int
 from ..renderers import Renderer, View
+from ..scene import Camera
 
 MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds renderer memory)
 _MASK_BATCH: ContextVar[int] = ContextVar("mask_batch", default=MAX_MASKS_PER_RENDER)

@@ -14,16 +14,25 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from ..scene import Camera
 from ..errors import InputError
-from ..registry import Registry
 from ..eval import ensemble_efficiency, psnr, rmse, ssim
 from ..executors import LOCAL, Executor
+from ..registry import Registry
 from ..renderers import Renderer
 from ..renderers.visibility import reports_visibility
-from .sampling import (Progress, ProgressTicker, check_cameras, check_images, check_ratio, check_samples, check_seed,
-                       dropout_uniforms, keep_masks)
+from ..scene import Camera
 from .rank import view_visibility
+from .sampling import (
+    Progress,
+    ProgressTicker,
+    check_cameras,
+    check_images,
+    check_ratio,
+    check_samples,
+    check_seed,
+    dropout_uniforms,
+    keep_masks,
+)
 from .strategies.visibility import uncovered_share
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, measure_views
 

@@ -11,13 +11,25 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
-from ..scene import Camera
 from ..errors import InputError
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer, View
 from ..renderers.visibility import Visibility, reports_visibility
-from .sampling import (Progress, ProgressTicker, RunningStd, check_cameras, check_dtype, check_ratio, check_samples,
-                       check_seed, dropout_uniforms, keep_masks, masked_renders, render_masks)
+from ..scene import Camera
+from .sampling import (
+    Progress,
+    ProgressTicker,
+    RunningStd,
+    check_cameras,
+    check_dtype,
+    check_ratio,
+    check_samples,
+    check_seed,
+    dropout_uniforms,
+    keep_masks,
+    masked_renders,
+    render_masks,
+)
 
 TOP_SHARE = 0.1                    # sigma_top: the share of pixels it averages
 AREA_THRESHOLD = 0.05              # area: zeta above this (on [0, 1] colours) counts as uncertain

@@ -8,7 +8,7 @@ from typing import Any
 from fastapi import APIRouter
 
 from ..deps import ACCEPTED, ERRORS, Caller, Service
-from ..schemas import Calibration, CalibrateRequest, RankRequest, RankResult, SelectRequest, SelectResult
+from ..schemas import CalibrateRequest, Calibration, RankRequest, RankResult, SelectRequest, SelectResult
 from ..work import calibrate_job, rank_job, select_job
 
 router = APIRouter(prefix="/v1", responses=ERRORS, tags=["work"])

@@ -8,12 +8,12 @@ import json
 
 import pytest
 
-from support.fixtures import LEGO, svc_cameras
 from phd_cli import main
 from phd_core import uq
 from phd_core.renderers import load_model
 from phd_core.renderers.gs2d import read_surfel_ply
 from phd_core.uq.strategies import STRATEGIES
+from support.fixtures import LEGO, svc_cameras
 from support.surfels import random_surfels, reference_layout_ply
 
 

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core import uq as phd
 from phd_cli import main
+from phd_core import uq as phd
 from phd_core.data import load_cameras, load_dataset
-from phd_core.renderers.gs3d import GaussianModel, write_ply
-from phd_core.renderers import load_model
 from phd_core.eval import image_uq_metrics
+from phd_core.renderers import load_model
+from phd_core.renderers.gs3d import GaussianModel, write_ply
 from support.toy_renderers import away_camera, ring_cameras
 
 SIZE, FOV, STEP = 16, 0.7, 0.25

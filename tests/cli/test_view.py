@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import torch
 
-from support.fixtures import svc_cameras, svc_free_port, svc_random_gaussians
 from phd_core import uq
 from phd_core.io import colorize
 from phd_core.renderers.gs3d import GaussianRenderer, write_ply
+from support.fixtures import svc_cameras, svc_free_port, svc_random_gaussians
 
 BLOCK_VISER = "import sys; sys.modules['viser'] = None; "   # as if viser were not installed
 

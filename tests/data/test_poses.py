@@ -17,7 +17,8 @@ from phd_core.data.colmap import qvec_to_rotation, rotation_to_qvec
 from phd_core.data.inria import camera_from_entry
 from phd_core.errors import InputError
 from phd_core.scene import Camera, camera_from_frame
-from support.captures import colmap_pose as written_colmap_pose, inria_entries
+from support.captures import colmap_pose as written_colmap_pose
+from support.captures import inria_entries
 
 GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core.eval import uq as m
 from phd_core.errors import InputError
+from phd_core.eval import uq as m
 from phd_core.io.heatmap import ANCHORS, apply_colormap, colorize, write_heatmap
 
 RNG = np.random.default_rng(0)

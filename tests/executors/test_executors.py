@@ -125,6 +125,7 @@ def test_unknown_executors_and_missing_ray_are_clear_errors(monkeypatch, capsys,
     assert info.value.field == "executor" and "known: local, ray" in info.value.reason
 
     from pydantic import ValidationError
+
     from service.settings import Settings
 
     with pytest.raises(ValidationError, match="unknown executor 'dask'"):

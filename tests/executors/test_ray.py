@@ -20,13 +20,13 @@ import pytest
 ray = pytest.importorskip("ray", reason="ray is not installed (pip install '.[ray]'): the Ray executor is untested")
 
 from client import JobFailedError, NotFoundError, PHDClient  # noqa: E402
-from support.fixtures import svc_cameras, svc_random_gaussians  # noqa: E402
 from phd_cli import main  # noqa: E402
 from phd_core import uq  # noqa: E402
 from phd_core.executors import make_executor  # noqa: E402
 from phd_core.executors.ray import RayExecutor  # noqa: E402
 from phd_core.renderers import load_model  # noqa: E402
 from phd_core.renderers.gs3d import write_ply  # noqa: E402
+from support.fixtures import svc_cameras, svc_random_gaussians  # noqa: E402
 from support.stall_renderer import StallOnceRenderer  # noqa: E402
 from support.toy_renderers import BlobRenderer, ring_cameras  # noqa: E402
 

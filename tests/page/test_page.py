@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from client import PHDClient
-from support.fixtures import svc_cameras
 from phd_core import uq
 from phd_core.uq.candidates import candidate_cameras
+from support.fixtures import svc_cameras
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"

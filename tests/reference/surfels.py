@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 from reference.gaussians import _rotation, _sh_colour
 
 

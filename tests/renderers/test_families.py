@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from client import PHDClient, UnsupportedModelError
-from support.fixtures import svc_cameras
 from phd_core import uq
 from phd_core.renderers import FAMILIES, Family, load_model, load_model_bytes, model_kind
+from support.fixtures import svc_cameras
 from support.toy_renderers import BlobRenderer
 
 MAGIC = b"PHD-TOY-BLOBS\n"

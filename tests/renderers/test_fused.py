@@ -13,6 +13,8 @@ import threading
 
 import pytest
 import torch
+from renderers.test_gaussian_render import assert_close, camera, random_scene, reference
+from renderers.test_surfel_render import random_surfels
 
 from phd_core.renderers.composite import COMPOSITORS
 from phd_core.renderers.gs2d import rasterize_surfels
@@ -20,8 +22,6 @@ from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.gs3d.kernels import project_splats, splat_fragments, splat_values
 from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, project, rasterize, splat_alpha, splat_colors
 from phd_core.renderers.splats import ALPHA_MIN, fragments, intersect
-from renderers.test_gaussian_render import assert_close, camera, random_scene, reference
-from renderers.test_surfel_render import random_surfels
 
 TOL = 1e-5
 

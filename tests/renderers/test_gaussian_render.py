@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from phd_core.scene import Camera, look_at
-from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, rasterize
 from reference.gaussians import render_reference
+
+from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, rasterize
+from phd_core.scene import Camera, look_at
 
 WHITE = torch.ones(3)
 

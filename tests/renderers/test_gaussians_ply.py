@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core.renderers import splats
-from phd_core.io import files
 from phd_core.errors import InputError
+from phd_core.io import files
+from phd_core.renderers import splats
 from phd_core.renderers.gs3d import GaussianModel, is_ply, parse_ply, read_ply, write_ply
 
 NUMPY_TYPES = {"float": "f4", "double": "f8", "uchar": "u1", "short": "i2", "int": "i4"}

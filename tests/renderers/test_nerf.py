@@ -15,12 +15,24 @@ import pytest
 import torch
 from safetensors.torch import save as st_save
 
-from phd_core.renderers import Renderer, nerf
-from phd_core.scene import look_at
 from phd_core.errors import InputError
-from phd_core.renderers.nerf import (HASH_PRIMES, HashEncoding, NeRFConfig, NeRFRenderer, PositionalEncoding, RadianceField,
-                           band_weights, composite, is_nerf_checkpoint, load_nerf, load_nerf_bytes, nerf_bytes,
-                           save_nerf)
+from phd_core.renderers import Renderer, nerf
+from phd_core.renderers.nerf import (
+    HASH_PRIMES,
+    HashEncoding,
+    NeRFConfig,
+    NeRFRenderer,
+    PositionalEncoding,
+    RadianceField,
+    band_weights,
+    composite,
+    is_nerf_checkpoint,
+    load_nerf,
+    load_nerf_bytes,
+    nerf_bytes,
+    save_nerf,
+)
+from phd_core.scene import look_at
 
 BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
 

@@ -9,7 +9,8 @@ import torch
 
 from phd_core.renderers import FAMILIES
 from phd_core.renderers.gs2d import SurfelModel, SurfelRenderer
-from phd_core.renderers.gs2d.render import project as project_surfels, splat_alpha as surfel_alpha
+from phd_core.renderers.gs2d.render import project as project_surfels
+from phd_core.renderers.gs2d.render import splat_alpha as surfel_alpha
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.gs3d.render import project, splat_alpha, splat_counts
 from phd_core.renderers.protocol import MEMORY_PROBE_UNITS

@@ -9,12 +9,12 @@ import math
 import numpy as np
 import pytest
 import torch
+from reference.surfels import render_surfels_reference
 
 from phd_core.errors import InputError
 from phd_core.renderers.gs2d import SurfelModel, SurfelRenderer, rasterize_surfels
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.scene import Camera, look_at
-from reference.surfels import render_surfels_reference
 
 WHITE = torch.ones(3)
 EYE = (0.3, -3.0, 1.0)

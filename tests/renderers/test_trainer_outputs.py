@@ -19,8 +19,8 @@ from phd_core.renderers.gs3d import GaussianRenderer
 from phd_core.renderers.outputs import read_output
 from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.renderers.splats import eval_sh, sh_rotation
-from phd_core.scene.rotations import quaternion_to_rotation
 from phd_core.scene import Camera
+from phd_core.scene.rotations import quaternion_to_rotation
 from support.trainers import gsplat_scene, move_camera, splatfacto_scene
 
 GREY = BACKGROUNDS["random"]

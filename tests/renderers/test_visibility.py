@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from reference.gaussians import render_reference
 
 from phd_core.renderers.gs2d import SurfelRenderer
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField
 from phd_core.renderers.visibility import fragment_visibility
 from phd_core.scene import look_at
-from reference.gaussians import render_reference
 from support.surfels import random_surfels
 
 

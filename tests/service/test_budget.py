@@ -8,14 +8,18 @@ import time
 import pytest
 import torch
 
-from support.fixtures import svc_random_gaussians
 from phd_core.errors import InputError
 from phd_core.renderers import RenderMemory
 from phd_core.renderers.gs3d import GaussianRenderer
-from phd_core.renderers.visibility import (COVERAGE_ELEMENT_BYTES, KEPT_ELEMENT_BYTES, PASS_FRAGMENT_BYTES,
-                                          visibility_bytes)
+from phd_core.renderers.visibility import (
+    COVERAGE_ELEMENT_BYTES,
+    KEPT_ELEMENT_BYTES,
+    PASS_FRAGMENT_BYTES,
+    visibility_bytes,
+)
 from service.budget import MemoryLedger, ModelSize, load_bytes, model_bytes, plan_work
 from service.errors import ServiceError
+from support.fixtures import svc_random_gaussians
 
 MODEL = [ModelSize("a", 300, 20_000, "model_id")]
 
@@ -245,9 +249,9 @@ def test_every_built_in_family_loads_within_its_model_bytes(svc_model_files, tmp
 
 def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(svc_start, svc_model_files):
     from client import PHDClient
-    from support.fixtures import svc_cameras
     from service.schemas import RankRequest
     from service.work import rank_job
+    from support.fixtures import svc_cameras
 
     server = svc_start()
     service = server.app.state.service

@@ -16,11 +16,11 @@ import torch
 
 import phd_core
 from client import ConflictError, InvalidInputError, JobCancelledError, NotFoundError, PHDClient, camera_frames
-from support.fixtures import LEGO, svc_cameras
 from phd_core import uq
-from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 from phd_core.io import colorize
+from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 from phd_core.renderers.nerf import load_nerf
+from support.fixtures import LEGO, svc_cameras
 
 
 def _png(data: str | bytes) -> np.ndarray:

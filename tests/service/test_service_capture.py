@@ -6,7 +6,6 @@ candidate generator instead of a camera list, and 4xx (never 5xx) for malformed 
 from __future__ import annotations
 
 import json
-
 import warnings
 
 import httpx
@@ -14,16 +13,17 @@ import numpy as np
 import pytest
 
 from client import InvalidInputError, PHDClient
-from support.fixtures import svc_cameras, svc_random_gaussians
 from phd_core import uq as phd
+from phd_core.data.inria import camera_from_entry
 from phd_core.errors import ModelNote
 from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import GaussianRenderer
 from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.scene import Camera
 from phd_core.uq.candidates import candidate_cameras
-from phd_core.data.inria import camera_from_entry
-from support.captures import colmap_pose as written_colmap_pose, inria_entries, write_colmap, write_llff, write_output_folder
+from support.captures import colmap_pose as written_colmap_pose
+from support.captures import inria_entries, write_colmap, write_llff, write_output_folder
+from support.fixtures import svc_cameras, svc_random_gaussians
 from support.trainers import gsplat_scene, splatfacto_scene
 
 

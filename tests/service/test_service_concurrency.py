@@ -11,9 +11,9 @@ import httpx
 import pytest
 
 from client import PHDClient, QueueFullError
-from support.fixtures import svc_cameras
 from phd_core import uq
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
+from support.fixtures import svc_cameras
 
 
 def test_eight_clients_rank_at_once(svc_start, svc_model_files):

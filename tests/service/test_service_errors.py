@@ -13,9 +13,16 @@ import httpx
 import pytest
 import torch
 
-from client import (AuthenticationError, ConflictError, InvalidInputError, NotFoundError, PayloadTooLargeError,
-                    PHDClient, UnsupportedModelError)
-from support.fixtures import svc_cameras, expect_error
+from client import (
+    AuthenticationError,
+    ConflictError,
+    InvalidInputError,
+    NotFoundError,
+    PayloadTooLargeError,
+    PHDClient,
+    UnsupportedModelError,
+)
+from support.fixtures import expect_error, svc_cameras
 
 
 def _leftovers(server) -> list:

@@ -9,7 +9,8 @@ import random
 from typing import Callable
 
 import httpx
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from client import PHDClient
 from support.fixtures import svc_cameras

@@ -12,14 +12,13 @@ import pytest
 import torch
 
 from client import PHDClient
-from support.fixtures import SvcProcess, svc_cameras, expect_error
 from phd_core.renderers.gs3d import GaussianModel, write_ply
 from service.budget import MemoryLedger, model_bytes
 from service.schemas import RankRequest
 from service.settings import Settings
 from service.store import ModelStore
 from service.work import model_loader, rank_job
-
+from support.fixtures import SvcProcess, expect_error, svc_cameras
 
 
 def rank(server, model_id: str, **body) -> httpx.Response:

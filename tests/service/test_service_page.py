@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 
 from client import AuthenticationError, NotFoundError, PHDClient
-from support.fixtures import svc_cameras
 from phd_core import uq
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
-
+from support.fixtures import svc_cameras
 
 PAGE_DIR = Path(__file__).resolve().parents[2] / "service" / "page"
 

@@ -16,8 +16,7 @@ import httpx
 import pytest
 
 from client import PHDClient
-from support.fixtures import SvcProcess, svc_cameras, expect_error
-
+from support.fixtures import SvcProcess, expect_error, svc_cameras
 
 
 def _frame(**changes) -> dict:

@@ -8,12 +8,12 @@ from __future__ import annotations
 import pytest
 
 from client import PHDClient
-from support.fixtures import LEGO, svc_cameras
 from phd_core import uq
 from phd_core.renderers import load_model
 from phd_core.renderers.gs2d import SurfelRenderer, parse_surfel_ply
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 from phd_core.uq.strategies import STRATEGIES
+from support.fixtures import LEGO, svc_cameras
 from support.surfels import random_surfels, reference_layout_ply
 
 

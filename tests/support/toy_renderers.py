@@ -15,8 +15,8 @@ import math
 
 import torch
 
-from phd_core.scene import Camera, look_at
 from phd_core.renderers import CameraView, check_keep
+from phd_core.scene import Camera, look_at
 
 
 class BlobRenderer:

@@ -20,6 +20,7 @@ import torch
 
 from phd_core.renderers.gs3d import GaussianModel
 from phd_core.scene import Camera, look_at
+
 from .captures import rotation_to_quaternion, write_colmap
 
 # ns-process-data's applied_transform for COLMAP data: swap x and y, negate z.

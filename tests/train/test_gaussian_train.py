@@ -21,7 +21,6 @@ from phd_core.train.splats import Splats, carve_points, densify, initial_model
 from support.fixtures import LEGO
 
 
-
 @pytest.fixture(scope="module")
 def tiny() -> object:
     return load_blender(LEGO, "train", downscale=8, views=8)

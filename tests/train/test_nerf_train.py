@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-
 import pytest
 import torch
 
-from phd_core.uq.candidates import hemisphere_cameras
 from phd_core.data import load_blender
 from phd_core.errors import InputError
 from phd_core.eval import psnr
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, camera_rays, load_nerf
 from phd_core.scene import frustum_bounds
 from phd_core.train.nerf import TrainSettings, fit, grid_hull, train_nerf
+from phd_core.uq.candidates import hemisphere_cameras
 from support.fixtures import LEGO
 
 pytestmark = pytest.mark.skipif(not LEGO.is_dir(), reason="lego_200 data not available")

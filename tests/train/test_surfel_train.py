@@ -8,7 +8,6 @@ import math
 import pytest
 import torch
 
-from support.fixtures import LEGO
 from phd_core.data import load_blender
 from phd_core.errors import InputError
 from phd_core.eval import psnr
@@ -18,6 +17,7 @@ from phd_core.renderers.gs3d import read_sidecar
 from phd_core.scene import look_at
 from phd_core.train import gs2d
 from phd_core.train.splats import Splats, TrainConfig, densify, fit, initial_model
+from support.fixtures import LEGO
 
 
 @pytest.fixture(scope="module")

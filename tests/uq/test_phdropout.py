@@ -18,8 +18,8 @@ import torch
 from phd_core import uq as phd
 from phd_core.errors import InputError
 from phd_core.eval import psnr, ssim
-from support.toy_renderers import BlobRenderer, ConstantRenderer, EmptyRenderer, away_camera, ring_cameras
 from support.fixtures import LEGO
+from support.toy_renderers import BlobRenderer, ConstantRenderer, EmptyRenderer, away_camera, ring_cameras
 
 CAMERAS = ring_cameras(6)
 

@@ -8,12 +8,12 @@ import math
 
 import pytest
 import torch
+from renderers.test_gaussian_render import camera, random_scene
 
 import phd_core.uq.sampling as sampling
 from phd_core import uq as phd
-from phd_core.uq.calibrate import LOOKAHEAD
 from phd_core.renderers.gs3d import GaussianRenderer
-from renderers.test_gaussian_render import camera, random_scene
+from phd_core.uq.calibrate import LOOKAHEAD
 
 calibration = importlib.import_module("phd_core.uq.calibrate")   # the module (phd.calibrate is the function)
 

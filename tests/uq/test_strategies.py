@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from phd_core import uq as phd
-from phd_core.scene import look_at
 from phd_core.errors import InputError
+from phd_core.scene import look_at
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, Strategy, get_strategy
 from phd_core.uq.strategies.base import by_score
 from support.toy_renderers import BlobRenderer, ring_cameras

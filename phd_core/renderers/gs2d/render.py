@@ -40,8 +40,18 @@ from ...scene import Camera
 from ...scene.rotations import quaternion_to_rotation
 from ..composite import pick_compositor
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
-from ..splats.maths import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Fragments, Pairs, box_counts, composite_images,
-                            eval_sh, fragments, intersect)
+from ..splats.maths import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    DEFAULT_TILE,
+    Fragments,
+    Pairs,
+    box_counts,
+    composite_images,
+    eval_sh,
+    fragments,
+    intersect,
+)
 from ..splats.renderer import NEAR_PLANE, RenderOutput, SplatRenderer
 from .model import SurfelModel
 

@@ -4,8 +4,16 @@ model, the PLY format and its sidecar are the splats' (`phd_core.renderers.splat
 3DGS uses as they are, so they are importable from here too."""
 
 from ..splats.model import SH_COEFFS, GaussianModel
-from ..splats.ply import (SIDECAR_FORMAT, is_ply, parse_ply, property_names, read_ply, read_sidecar, sidecar_path,
-                          write_ply)
+from ..splats.ply import (
+    SIDECAR_FORMAT,
+    is_ply,
+    parse_ply,
+    property_names,
+    read_ply,
+    read_sidecar,
+    sidecar_path,
+    write_ply,
+)
 from ..splats.renderer import RenderOutput
 from .render import GaussianRenderer, rasterize
 

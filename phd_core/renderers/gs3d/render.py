@@ -43,8 +43,18 @@ from ...scene.rotations import quaternion_to_rotation
 from ..composite import pick_compositor
 from ..composite.fused import composite_indexed
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
-from ..splats.maths import (ALPHA_MAX, ALPHA_MIN, DEFAULT_TILE, Pairs, box_counts, composite_images, eval_sh,
-                            fragments, intersect, untile)
+from ..splats.maths import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    DEFAULT_TILE,
+    Pairs,
+    box_counts,
+    composite_images,
+    eval_sh,
+    fragments,
+    intersect,
+    untile,
+)
 from ..splats.model import GaussianModel
 from ..splats.renderer import NEAR_PLANE, RenderOutput, SplatRenderer
 from .kernels import project_splats, splat_fragments, splat_values

@@ -9,11 +9,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load as st_load, save as st_save
+from safetensors.torch import load as st_load
+from safetensors.torch import save as st_save
 
-from ...scene import Camera, cameras_from_json
 from ...errors import InputError
 from ...io import write_bytes_atomic
+from ...scene import Camera, cameras_from_json
 from .config import NeRFConfig
 from .field import RadianceField
 from .renderer import NeRFRenderer

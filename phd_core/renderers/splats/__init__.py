@@ -11,12 +11,44 @@ This package re-exports maths, model and ply; `renderer` is imported from its mo
 uses the compositing backends, which use the maths).
 """
 
-from .maths import (ALPHA_MAX, ALPHA_MIN, BOX_MARGIN, CHUNK_ELEMENTS, DEFAULT_TILE, LAUNCH_LOCK, LOG_T_MIN, SH_C0,
-                    SH_C1, SH_C2, SH_C3, T_MIN, Fragments, Pairs, box_counts, composite_images, eval_sh, fragments,
-                    intersect, sh_basis, sh_rotation, tile_boxes, tile_layout, untile)
+from .maths import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    BOX_MARGIN,
+    CHUNK_ELEMENTS,
+    DEFAULT_TILE,
+    LAUNCH_LOCK,
+    LOG_T_MIN,
+    SH_C0,
+    SH_C1,
+    SH_C2,
+    SH_C3,
+    T_MIN,
+    Fragments,
+    Pairs,
+    box_counts,
+    composite_images,
+    eval_sh,
+    fragments,
+    intersect,
+    sh_basis,
+    sh_rotation,
+    tile_boxes,
+    tile_layout,
+    untile,
+)
 from .model import SH_COEFFS, GaussianModel
-from .ply import (SIDECAR_FORMAT, is_ply, parse_ply, property_names, read_ply, read_sidecar, scale_axes, sidecar_path,
-                  write_ply)
+from .ply import (
+    SIDECAR_FORMAT,
+    is_ply,
+    parse_ply,
+    property_names,
+    read_ply,
+    read_sidecar,
+    scale_axes,
+    sidecar_path,
+    write_ply,
+)
 
 __all__ = ["ALPHA_MAX", "ALPHA_MIN", "BOX_MARGIN", "CHUNK_ELEMENTS", "DEFAULT_TILE", "LAUNCH_LOCK", "LOG_T_MIN", "SH_C0",
            "SH_C1", "SH_C2", "SH_C3", "SH_COEFFS", "SIDECAR_FORMAT", "T_MIN", "Fragments", "GaussianModel", "Pairs",

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import torch
 
-
 # Reference constants (Kerbl et al. 2023 rasteriser).
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
