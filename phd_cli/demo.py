@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from phd_core.errors import InputError
+from phd_core.renderers import DEFAULT_FAMILY, FAMILIES
 
 DEFAULT_OUT = Path("phd-demo")
 DOWNSCALE = 2            # lego_200 is 200x200: 100x100 renders
@@ -41,7 +42,7 @@ def default_data() -> Path:
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo", help="train, serve, rank and select on the bundled lego scene (a few minutes)",
-        description="Train (or reuse) two 3DGS models on disjoint 16-view sets of lego_200 at 100x100, start "
+        description=f"Train (or reuse) two models of the default family ({DEFAULT_FAMILY}) on disjoint 16-view sets of lego_200 at 100x100, start "
                     "the service, then through the Python client calibrate, rank 100 held-out views "
                     "(top 5 printed next to their true RMSE) and select per view between the two models. "
                     "Writes report.json and heat maps into --out.")
@@ -63,28 +64,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # ----------------------------------------------------------------------------- steps
 
 def _train(data: Path, views: list[int], iterations: int | None, out: Path, retrain: bool, name: str) -> Path:
-    """Train a 3DGS model on `views` of the train split, or reuse a cached one whose
-    sidecar (written by the trainer) records the same scene, views and settings."""
+    """Train a model of the default family on `views` of the train split, or reuse a
+    cached one whose sidecar (written by the trainer) records the same scene, views and
+    iterations (with the trainer's default iterations, None, it always trains)."""
     from phd_core.renderers.splats import read_sidecar
-    from phd_core.train.gs3d import TrainConfig, train_gaussians
 
-    model = out / "models" / f"{name}.ply"
-    wanted_iterations = iterations if iterations is not None else TrainConfig().iterations
-    if not retrain and model.is_file():
+    family = FAMILIES[DEFAULT_FAMILY]
+    model = out / "models" / f"{name}{family.extension}"
+    if not retrain and iterations is not None and model.is_file():
         try:
             sidecar = read_sidecar(model) or {}
         except InputError:
             sidecar = {}
         settings = sidecar.get("settings") or {}
         if (sidecar.get("dataset") == str(data) and sidecar.get("view_indices") == views
-                and sidecar.get("downscale") == DOWNSCALE and settings.get("iterations") == wanted_iterations
+                and sidecar.get("downscale") == DOWNSCALE and settings.get("iterations") == iterations
                 and settings.get("seed") == 0):
             print(f"  {name}: reusing {model} ({sidecar.get('num_splats')} splats, "
                   f"trained in {sidecar.get('train_seconds')} s)")
             return model
     model.parent.mkdir(parents=True, exist_ok=True)
-    print(f"  {name}: training {wanted_iterations} iterations on train views {views} ...", flush=True)
-    train_gaussians(data, views=views, downscale=DOWNSCALE, iterations=iterations, seed=0, out=model, progress=True)
+    print(f"  {name}: training {iterations or 'the default'} iterations on train views {views} ...", flush=True)
+    family.train(data, views=views, downscale=DOWNSCALE, iterations=iterations, seed=0, out=model, progress=True)
     return model
 
 

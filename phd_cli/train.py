@@ -5,7 +5,6 @@ capture. The flags every trainer takes are below; each family's own come from it
 from __future__ import annotations
 
 import argparse
-import importlib
 import time
 from dataclasses import asdict, fields
 from pathlib import Path
@@ -74,14 +73,12 @@ def run(args: argparse.Namespace) -> int:
     views = parse_views(args.views)
     started = time.perf_counter()
     family = FAMILIES[args.model]
-    module, function = family.trainer.split(":")
-    train = getattr(importlib.import_module(module), function)   # imported only to train
     options = {} if family.train_options is None else asdict(family.train_options(
         **{field.name: getattr(args, field.name) for field in fields(family.train_options)}))
     background = parse_background(args.background)
     if background is not None:
         options["background"] = list(background)
-    renderer = train(args.data, views=views, downscale=args.downscale, iterations=args.iterations, seed=args.seed,
+    renderer = family.train(args.data, views=views, downscale=args.downscale, iterations=args.iterations, seed=args.seed,
                      out=args.out, progress=not args.quiet, **options)
     print(f"trained {renderer.kind} with {renderer.num_units} dropout units in "
           f"{time.perf_counter() - started:.1f} s -> {args.out}")

@@ -17,6 +17,7 @@ CLI and the service take their names from here. Trainers' output folders are rea
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -55,6 +56,13 @@ class Family:
     set_background: Callable[[Renderer, tuple[float, float, float]], None] | None = None
     units: str = "dropout units"                            # what its dropout units are: "splats"
     network: tuple[str, ...] = ()                           # describe() keys the API shows as its network's size
+
+    def train(self, data: str | Path, **kwargs: Any) -> Renderer:
+        """Run the family's trainer on a capture (imported only now: loading never needs it)."""
+        if self.trainer is None:
+            raise InputError("model", f"{self.name} models cannot be trained here")
+        module, function = self.trainer.split(":")
+        return getattr(importlib.import_module(module), function)(data, **kwargs)
 
 
 FAMILIES: Registry[Family] = Registry("model family")
