@@ -453,9 +453,8 @@ splats get small boxes. Only the survivors are sorted, coloured and rasterised. 
   only about 15 % of its CPU time (the profile below).
   It is compiled now (`kernels.splat_values`, float64, one visible splat per step), with
   `render.splat_colors` (`splats.eval_sh`) as its tested twin at 1e-5.
-- Fragments: the alpha of every tile/splat pair is compiled (`kernels._pair_alpha`) into an
-  array that a second kernel (`_gather`) scans; since this table, only over the pixels of the
-  splat's box (below, "Fragments over each splat's box"), at first over all of its tile's.
+- Fragments: the alpha of every tile/splat pair at each pixel of its tile is compiled
+  (`kernels._pair_alpha`) into a [pairs, 16] array that a second kernel (`_gather`) scans.
   Fusing the two (count each pixel's fragments, then write each alpha into its slot, no
   [pairs, 16] array) was tried and measured: it cost 0.50 CPU s per camera against 0.34 for
   the two kernels (1M splats, 200x150, one thread, the same 5.1M fragments, three rounds), as

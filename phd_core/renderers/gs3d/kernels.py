@@ -198,86 +198,46 @@ def _alpha(means2d, conics, opacities, v, px, py, cutoff):  # pragma: no cover
     return min(ALPHA_MAX, opacities[v] * math.exp(power))
 
 
-SPAN_SLACK = 1e-6   # pixels: the extents are exact float64 bounds of the alpha >= ALPHA_MIN ellipse
-
-
-@numba.njit(inline="always")
-def _span(centre, extent, origin, count):  # pragma: no cover
-    """(first, last) offsets in [0, count) of a tile's pixels (pixel i has its centre at
-    origin + i + 0.5) whose centre lies within `extent` of `centre`, give or take SPAN_SLACK
-    so rounding never drops one; first > last when none does."""
-    first = max(0, math.ceil(centre - 0.5 - extent - SPAN_SLACK) - origin)
-    last = min(count - 1, math.floor(centre - 0.5 + extent + SPAN_SLACK) - origin)
-    return first, last
-
-
-@numba.njit(inline="always")
-def _box(t, v, means2d, extents, tiles_x, tile, width, height):  # pragma: no cover
-    """Tile t's pixels that splat v can reach: (x0, y0) the tile's corner, then the first and
-    last column and row offsets (`_span`; first > last when none)."""
-    x0 = (t % tiles_x) * tile
-    y0 = (t // tiles_x) * tile
-    x_first, x_last = _span(means2d[v, 0], extents[v, 0], x0, min(tile, width - x0))
-    y_first, y_last = _span(means2d[v, 1], extents[v, 1], y0, min(tile, height - y0))
-    return x0, y0, x_first, x_last, y_first, y_last
-
-
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _box_sizes(start, splat, means2d, extents, tiles_x, tile, width, height, sizes):  # pragma: no cover
-    """sizes[1 + k]: pixels in pair k's box (`_box`), so the pairs' alphas pack into one array."""
-    for t in numba.prange(start.shape[0] - 1):
-        for k in range(start[t], start[t + 1]):
-            _, _, x_first, x_last, y_first, y_last = _box(t, splat[k], means2d, extents, tiles_x, tile, width, height)
-            sizes[1 + k] = max(0, x_last - x_first + 1) * max(0, y_last - y_first + 1)
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _pair_alpha(start, splat, means2d, conics, opacities, extents, tiles_x, tile, width, height, box_ptr,
-                pair_alpha, row_ptr):  # pragma: no cover
-    """pair_alpha[box_ptr[k]:box_ptr[k + 1]]: alpha of pair k at each pixel of its box, row by
-    row (0 below ALPHA_MIN); row_ptr[1 + q]: number of fragments of pixel q (tile layout). A
-    small splat reaches a few of a tile's pixels: visiting and storing only those is what keeps
-    millions of splats cheap."""
+def _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha,
+                row_ptr):  # pragma: no cover
+    """pair_alpha[k, p]: alpha of pair k at pixel p of its tile (0 below ALPHA_MIN or outside
+    the image); row_ptr[1 + q]: number of fragments of pixel q (tile layout)."""
     pixels = tile * tile
     for t in numba.prange(start.shape[0] - 1):
+        x0 = (t % tiles_x) * tile
+        y0 = (t // tiles_x) * tile
+        cols = min(tile, width - x0)
+        rows = min(tile, height - y0)
         for p in range(pixels):
             row_ptr[1 + t * pixels + p] = 0
         for k in range(start[t], start[t + 1]):
             v = splat[k]
-            x0, y0, x_first, x_last, y_first, y_last = _box(t, v, means2d, extents, tiles_x, tile, width, height)
+            pair_alpha[k, :] = 0.0
             cutoff = math.log(ALPHA_MIN / opacities[v]) - 1e-6     # alpha >= ALPHA_MIN needs power above it
-            e = box_ptr[k]
-            for oy in range(y_first, y_last + 1):
-                for ox in range(x_first, x_last + 1):
+            for oy in range(rows):
+                for ox in range(cols):
                     a = _alpha(means2d, conics, opacities, v, x0 + ox, y0 + oy, cutoff)
                     if a >= ALPHA_MIN:
-                        pair_alpha[e] = a
+                        pair_alpha[k, oy * tile + ox] = a
                         row_ptr[1 + t * pixels + oy * tile + ox] += 1
-                    else:
-                        pair_alpha[e] = 0.0
-                    e += 1
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _gather(start, splat, means2d, extents, tiles_x, tile, width, height, box_ptr, pair_alpha, row_ptr, alpha,
-            index):  # pragma: no cover
-    """The nonzero pair alphas, pixel by pixel, front to back: one pass over a tile's pairs (in
-    depth order) appends each pair's fragments at its pixels' cursors."""
-    pixels = tile * tile
+def _gather(start, splat, pair_alpha, row_ptr, alpha, index):  # pragma: no cover
+    """The nonzero pair_alpha entries, pixel by pixel, front to back: one pass over a tile's
+    pairs (in depth order) appends each pair's fragments at its pixels' cursors."""
+    pixels = pair_alpha.shape[1]
     for t in numba.prange(start.shape[0] - 1):
         cursor = row_ptr[t * pixels:(t + 1) * pixels].copy()     # next free entry of each pixel
         for k in range(start[t], start[t + 1]):
-            _, _, x_first, x_last, y_first, y_last = _box(t, splat[k], means2d, extents, tiles_x, tile, width, height)
-            e = box_ptr[k]
-            for oy in range(y_first, y_last + 1):
-                for ox in range(x_first, x_last + 1):
-                    a = pair_alpha[e]
-                    e += 1
-                    if a > 0.0:
-                        p = oy * tile + ox
-                        alpha[cursor[p]] = a
-                        index[cursor[p]] = splat[k]
-                        cursor[p] += 1
+            for p in range(pixels):
+                a = pair_alpha[k, p]
+                if a > 0.0:
+                    e = cursor[p]
+                    alpha[e] = a
+                    index[e] = splat[k]
+                    cursor[p] = e + 1
 
 
 def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, extents: torch.Tensor,
@@ -294,15 +254,10 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     row_ptr = np.zeros(tiles_x * tiles_y * tile * tile + 1, np.int64)
     with LAUNCH_LOCK:
         start, splat = _tile_lists(means2d, extents, tiles_x, tiles_y, tile)
-        box_ptr = np.zeros(len(splat) + 1, np.int64)
-        _box_sizes(start, splat, means2d, extents, tiles_x, tile, width, height, box_ptr)
-        np.cumsum(box_ptr, out=box_ptr)
-        pair_alpha = np.empty(box_ptr[-1], np.float32)        # every pair's box, packed
-        _pair_alpha(start, splat, means2d, conics, opacities, extents, tiles_x, tile, width, height, box_ptr,
-                    pair_alpha, row_ptr)
+        pair_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P]
+        _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha, row_ptr)
         np.cumsum(row_ptr, out=row_ptr)
         alpha = np.empty(row_ptr[-1], np.float32)
         index = np.empty(row_ptr[-1], np.int32)
-        _gather(start, splat, means2d, extents, tiles_x, tile, width, height, box_ptr, pair_alpha, row_ptr, alpha,
-                index)
+        _gather(start, splat, pair_alpha, row_ptr, alpha, index)
     return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index), tiles_x, tiles_y
