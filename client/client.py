@@ -286,7 +286,7 @@ class PHDClient:
                 cameras = output.cameras                  # training views only, in the user's frame
                 camera_format = camera_format or output.camera_format
             background = output.background if background is None else background
-            if output.ply is None:                        # splats moved out of the trainer's frame: upload them as a PLY
+            if output.ply is None:         # splats moved out of the trainer's frame: upload them as a PLY
                 with tempfile.TemporaryDirectory(prefix="phd-upload-") as tmp:
                     ply = Path(tmp) / f"{path.name}.ply"
                     write_ply(output.model, ply)
@@ -390,7 +390,9 @@ class PHDClient:
         response = self._request("POST", path, json={k: v for k, v in body.items() if v is not None})
         if response.status_code == 202:
             job = Job.model_validate(response.json())
-            return self.wait_job(job.id, progress=progress, poll_interval=poll_interval, timeout=timeout) if wait else job
+            if not wait:
+                return job
+            return self.wait_job(job.id, progress=progress, poll_interval=poll_interval, timeout=timeout)
         result = result_type.model_validate(response.json())
         if progress is not None:
             progress(1.0)

@@ -78,8 +78,8 @@ def run(args: argparse.Namespace) -> int:
     background = parse_background(args.background)
     if background is not None:
         options["background"] = list(background)
-    renderer = family.train(args.data, views=views, downscale=args.downscale, iterations=args.iterations, seed=args.seed,
-                     out=args.out, progress=not args.quiet, **options)
+    renderer = family.train(args.data, views=views, downscale=args.downscale, iterations=args.iterations,
+                            seed=args.seed, out=args.out, progress=not args.quiet, **options)
     print(f"trained {renderer.kind} with {renderer.num_units} dropout units in "
           f"{time.perf_counter() - started:.1f} s -> {args.out}")
     return 0

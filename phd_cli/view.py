@@ -218,7 +218,8 @@ def run(args: argparse.Namespace) -> int:
     from phd_core.scene import cameras_from_json
 
     if args.ranking is not None and args.candidates is None:
-        raise InputError("candidates", "a ranking names candidates by index: give --candidates with the poses it ranked")
+        raise InputError("candidates",
+                         "a ranking names candidates by index: give --candidates with the poses it ranked")
     if args.samples < 2:
         raise InputError("samples", f"must be at least 2, got {args.samples}")
     viser = import_viser()
