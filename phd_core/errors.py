@@ -35,7 +35,7 @@ class ModelWarning(UserWarning):
     """A loaded model that will probably not give what the user expects (its cameras miss its splats)."""
 
 
-def _rebuild_error(cls: type, args: tuple, state: dict) -> InputError:
+def _rebuild_error(cls: type[InputError], args: tuple, state: dict) -> InputError:
     error = cls.__new__(cls)
     error.args = args
     error.__dict__.update(state)
