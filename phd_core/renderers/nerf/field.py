@@ -63,6 +63,12 @@ class HashEncoding(nn.Module):
     `weights` [levels] scales each level (the FreeNeRF mask, applied coarse to fine).
     """
 
+    # buffers registered in __init__ (nn.Module's __getattr__ would type them as Tensor | Module)
+    resolutions: Tensor
+    dense: Tensor
+    strides: Tensor
+    primes: Tensor
+
     def __init__(self, levels: int, features: int, log2_size: int, base: int, finest: int):
         super().__init__()
         self.bands = levels
