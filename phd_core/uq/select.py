@@ -206,7 +206,8 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
             per_score = error / max(sum(scores_of(key, levels[other], at_other)), 1e-12)
             view_scores[key] = [score * per_score for score in view_scores[key]]
 
-    views, scores = [], {"a": [], "b": [], "selected": []}
+    views: list[ViewSelection] = []
+    scores: dict[str, list] = {"a": [], "b": [], "selected": []}
     for i in range(len(cameras)):
         score_a, score_b = view_scores["a"][i], view_scores["b"][i]
         choice, other = ("a", "b") if score_a <= score_b else ("b", "a")
