@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence, Union
 
 import httpx
+from pydantic import BaseModel
 
 from service.schemas import Calibration, Health, Job, ModelInfo, ModelList, RankResult, SelectResult, TrainingCameras
 
@@ -385,8 +386,8 @@ class PHDClient:
                 "width": width, "height": height, "async": run_async}
         return self._work("/v1/select", body, SelectResult, wait, progress, poll_interval, timeout)
 
-    def _work(self, path: str, body: dict, result_type: type, wait: bool, progress: ProgressCallback | None,
-              poll_interval: float, timeout: float | None) -> Any:
+    def _work(self, path: str, body: dict, result_type: type[BaseModel], wait: bool,
+              progress: ProgressCallback | None, poll_interval: float, timeout: float | None) -> Any:
         response = self._request("POST", path, json={k: v for k, v in body.items() if v is not None})
         if response.status_code == 202:
             job = Job.model_validate(response.json())

@@ -15,12 +15,16 @@ in float64 log space, and a pixel stops at the fragment that would bring it belo
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, TypeGuard
 
 import torch
 from torch import Tensor
 
 from ..scene import Camera
 from .splats.maths import LOG_T_MIN
+
+if TYPE_CHECKING:
+    from .protocol import ReportsVisibility
 
 ELEMENTS_PER_PIXEL = 4     # a Visibility lists at most this many elements per image pixel
 
@@ -71,7 +75,7 @@ def visibility_bytes(num_units: int, camera: Camera) -> int:
     return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * elements
 
 
-def reports_visibility(renderer: object) -> bool:
+def reports_visibility(renderer: object) -> TypeGuard[ReportsVisibility]:
     """True when the renderer's family implements `visibility(view, pixel_values=None)`."""
     return callable(getattr(renderer, "visibility", None))
 
