@@ -13,14 +13,11 @@ batches from it (calibration renders the same training views for every ratio it 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 
 from ..scene import Camera
-
-if TYPE_CHECKING:
-    from .visibility import Visibility
 
 
 @runtime_checkable
@@ -80,14 +77,6 @@ class Renderer(Protocol):
 
     def describe(self) -> dict[str, Any]:
         """JSON-ready facts about the model (kind, units, bounds, ...)."""
-        ...
-
-
-class ReportsVisibility(Renderer, Protocol):
-    """A Renderer whose family also reports what a view sees of the model (for type checking:
-    `phd_core.renderers.visibility.reports_visibility` tells one apart)."""
-
-    def visibility(self, view: View, pixel_values: torch.Tensor | None = None) -> Visibility:
         ...
 
 

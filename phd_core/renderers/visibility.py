@@ -15,16 +15,14 @@ in float64 log space, and a pixel stops at the fragment that would bring it belo
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, TypeGuard
+from typing import Protocol, TypeGuard
 
 import torch
 from torch import Tensor
 
 from ..scene import Camera
+from .protocol import Renderer, View
 from .splats.maths import LOG_T_MIN
-
-if TYPE_CHECKING:
-    from .protocol import ReportsVisibility
 
 ELEMENTS_PER_PIXEL = 4     # a Visibility lists at most this many elements per image pixel
 
@@ -73,6 +71,14 @@ def visibility_bytes(num_units: int, camera: Camera) -> int:
     elements a pixel, and never more than the model's units."""
     elements = min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
     return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * elements
+
+
+class ReportsVisibility(Renderer, Protocol):
+    """A Renderer whose family also reports what a view sees of the model (for type checking:
+    `reports_visibility` tells one apart)."""
+
+    def visibility(self, view: View, pixel_values: Tensor | None = None) -> Visibility:
+        ...
 
 
 def reports_visibility(renderer: object) -> TypeGuard[ReportsVisibility]:

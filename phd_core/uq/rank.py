@@ -12,8 +12,7 @@ import torch
 from ..errors import InputError, check_float, check_int
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
-from ..renderers.protocol import ReportsVisibility
-from ..renderers.visibility import Visibility, reports_visibility
+from ..renderers.visibility import ReportsVisibility, Visibility, reports_visibility
 from ..scene import Camera
 from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
