@@ -26,7 +26,7 @@ import struct
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence, Union
+from typing import Any, Callable, Iterable, Sequence, Union, cast
 
 import httpx
 from pydantic import BaseModel
@@ -191,7 +191,7 @@ def camera_frames(cameras: Cameras) -> list[dict]:
         return _frames_of_transforms(cameras, None) if "frames" in cameras else [cameras]
     if hasattr(cameras, "to_frame"):
         return [cameras.to_frame()]
-    return [c.to_frame() if hasattr(c, "to_frame") else c for c in cameras]
+    return [c.to_frame() if hasattr(c, "to_frame") else c for c in cast(Iterable[Any], cameras)]
 
 
 # ----------------------------------------------------------------------------- the client

@@ -81,6 +81,7 @@ class ServiceState:
             return result
         if job.state == "cancelled":
             raise ServiceError(409, "job_cancelled", f"job '{job.id}' was cancelled before it finished")
+        assert job.error is not None               # a failed job always carries its error (JobQueue)
         raise job.error
 
     def ingest(self, upload: Upload, kind: str, who: Principal) -> ModelRecord:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, replace
-from typing import Sequence
+from typing import Sequence, cast
 
 import torch
 
@@ -51,7 +51,8 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
         return torch.tensor([getattr(v, name) for v in views], dtype=torch.float64)
     evidence = Evidence(list(cameras), captured, stat("sigma_max"), stat("sigma_mean"), stat("sigma_top"), stat("area"))
     if visibility and reports_visibility(renderer):
-        evidence.candidate_views = [v.visibility for v in views]
+        # measured with keep_visibility on a family that reports it: every view has one
+        evidence.candidate_views = cast(list[Visibility], [v.visibility for v in views])
         evidence.captured_views = view_visibility(renderer, captured)
     if fisher:
         add_fisher(evidence, renderer, seed)
