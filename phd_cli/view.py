@@ -84,7 +84,8 @@ def score_colours(scores: dict[int, float], count: int) -> list[tuple[int, int, 
         lo, hi = min(scores.values()), max(scores.values())
         for index, score in scores.items():
             t = (score - lo) / (hi - lo) if hi > lo else 1.0
-            colours[index] = tuple(int(c) for c in apply_colormap(np.array(t)))
+            r, g, b = (int(c) for c in apply_colormap(np.array(t)))      # RGB
+            colours[index] = (r, g, b)
     return colours
 
 

@@ -90,13 +90,13 @@ class TrainConfig:
                              ("background_splats", 0, None), ("densify_every", 1, None), ("seed", None, None),
                              ("tile", 1, None)):
             check_int(getattr(self, name), name, lo, hi)
-        for name, lo, hi in (("ssim_weight", 0.0, 1.0), ("lr_means", 0.0, None), ("lr_sh_dc", 0.0, None),
+        for name, low, high in (("ssim_weight", 0.0, 1.0), ("lr_means", 0.0, None), ("lr_sh_dc", 0.0, None),
                              ("lr_sh_rest", 0.0, None), ("lr_opacity", 0.0, None), ("lr_scales", 0.0, None),
                              ("lr_quats", 0.0, None), ("shell_radius", 0.0, None), ("splats_per_pixel", 0.0, None),
                              ("densify_from", 0.0, 1.0), ("densify_until", 0.0, 1.0), ("grad_threshold", 0.0, None),
                              ("dense_fraction", 0.0, None), ("opacity_reset_every", 0.0, 1.0),
                              ("min_opacity", 0.0, 1.0), ("sh_up_every", 0.0, None)):
-            check_float(getattr(self, name), name, lo, hi)
+            check_float(getattr(self, name), name, low, high)
         COMPOSITORS.lookup(self.compositor, "compositor")
         if self.background is not None:
             self.background = list(check_color(self.background, "background"))

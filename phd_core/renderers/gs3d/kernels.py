@@ -289,20 +289,20 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     tiles_x, tiles_y); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1].
     """
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
-    means2d, conics, opacities, extents = (t.detach().double().contiguous().numpy()
-                                           for t in (means2d, conics, opacities, extents))
+    means2d_np, conics_np, opacities_np, extents_np = (t.detach().double().contiguous().numpy()
+                                                       for t in (means2d, conics, opacities, extents))
     row_ptr = np.zeros(tiles_x * tiles_y * tile * tile + 1, np.int64)
     with LAUNCH_LOCK:
-        start, splat = _tile_lists(means2d, extents, tiles_x, tiles_y, tile)
+        start, splat = _tile_lists(means2d_np, extents_np, tiles_x, tiles_y, tile)
         box_ptr = np.zeros(len(splat) + 1, np.int64)
-        _box_sizes(start, splat, means2d, extents, tiles_x, tile, width, height, box_ptr)
+        _box_sizes(start, splat, means2d_np, extents_np, tiles_x, tile, width, height, box_ptr)
         np.cumsum(box_ptr, out=box_ptr)
         pair_alpha = np.empty(box_ptr[-1], np.float32)        # every pair's box, packed
-        _pair_alpha(start, splat, means2d, conics, opacities, extents, tiles_x, tile, width, height, box_ptr,
-                    pair_alpha, row_ptr)
+        _pair_alpha(start, splat, means2d_np, conics_np, opacities_np, extents_np, tiles_x, tile, width, height,
+                    box_ptr, pair_alpha, row_ptr)
         np.cumsum(row_ptr, out=row_ptr)
         alpha = np.empty(row_ptr[-1], np.float32)
         index = np.empty(row_ptr[-1], np.int32)
-        _gather(start, splat, means2d, extents, tiles_x, tile, width, height, box_ptr, pair_alpha, row_ptr, alpha,
-                index)
+        _gather(start, splat, means2d_np, extents_np, tiles_x, tile, width, height, box_ptr, pair_alpha, row_ptr,
+                alpha, index)
     return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index), tiles_x, tiles_y
