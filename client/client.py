@@ -418,7 +418,8 @@ class PHDClient:
                 last = job.progress
                 progress(job.progress)
             if job.state == "succeeded":
-                return job.result
+                # the service sets a succeeded job's result; asserting it would change what a bad answer gives
+                return job.result  # type: ignore[return-value]
             if job.state == "failed":
                 raise JobFailedError(job)
             if job.state == "cancelled":

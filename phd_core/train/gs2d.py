@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from functools import partial
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Sequence, cast
 
 import torch
 
@@ -75,5 +75,6 @@ def train_surfels(data: str | Path, *, views: int | Sequence[int] = 16, downscal
                   normal_consistency: float = SurfelOptions.normal_consistency, **overrides: Any) -> SurfelRenderer:
     """Train 2DGS on the `train` split of a capture; writes `out` in the 2DGS reference PLY
     layout plus the sidecar `<stem>.json` (`phd_core.train.splats.train_splats`)."""
-    return train_splats(data, recipe(depth_distortion, normal_consistency), views=views, downscale=downscale,
-                        iterations=iterations, seed=seed, out=out, progress=progress, **overrides)
+    renderer = train_splats(data, recipe(depth_distortion, normal_consistency), views=views, downscale=downscale,
+                            iterations=iterations, seed=seed, out=out, progress=progress, **overrides)
+    return cast(SurfelRenderer, renderer)               # what the 2DGS recipe builds

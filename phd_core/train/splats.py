@@ -34,7 +34,7 @@ import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, cast
 
 import torch
 from tqdm import tqdm
@@ -232,11 +232,12 @@ def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: Train
 def training_background(data: Dataset, given: Sequence[float] | None = None) -> tuple[float, float, float]:
     """The colour behind the splats: the one given, else the dataset's where alpha masks define
     it, else the training images' mean colour (a real capture has no empty background)."""
+    # tuple() cannot tell mypy its length: three (a checked colour, an image's RGB mean)
     if given is not None:
-        return tuple(float(v) for v in given)
+        return cast(tuple[float, float, float], tuple(float(v) for v in given))
     if data.alphas is not None or data.images is None:
         return data.background
-    return tuple(float(v) for v in data.images.mean(dim=(0, 1, 2)))
+    return cast(tuple[float, float, float], tuple(float(v) for v in data.images.mean(dim=(0, 1, 2))))
 
 
 def training_extent(data: Dataset, extent: float) -> float:
