@@ -202,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
         stem = f"rank{view.rank}_test{frame:03d}"
         write_bytes_atomic(heat_dir / f"{stem}_zeta.png", base64.b64decode(mapped.heatmap_png))
         write_png(heat_dir / f"{stem}_render.png", renders_a[view.index])
+        assert test.images is not None                  # load_blender reads the images by default
         write_png(heat_dir / f"{stem}_truth.png", test.images[view.index])
         top_rows.append({"rank": view.rank, "test_view": frame, "score": view.score, "sigma_max": view.sigma_max,
                          "rmse": rmse_a[view.index], "rmse_rank": rmse_rank[view.index],

@@ -38,6 +38,8 @@ class PositionalEncoding(nn.Module):
     (FreeNeRF's mask). The raw x is never masked.
     """
 
+    scales: Tensor                  # a buffer registered in __init__
+
     def __init__(self, freqs: int):
         super().__init__()
         self.bands = freqs
