@@ -126,6 +126,12 @@ class OccupancyGrid(nn.Module):
     network only at samples inside occupied cells. A new grid is fully occupied.
     """
 
+    # buffers registered in __init__ (nn.Module's __getattr__ would type them as Tensor | Module)
+    lo: Tensor
+    size: Tensor
+    density: Tensor
+    occupied: Tensor
+
     def __init__(self, resolution: int, bounds: list[list[float]], threshold: float):
         super().__init__()
         self.resolution = resolution
@@ -173,6 +179,9 @@ class RadianceField(nn.Module):
     Parameters are initialised from `seed` without touching the global random state.
     The dropout units are the `width` outputs of `first` (after its activation).
     """
+
+    center: Tensor                  # buffers registered in __init__
+    half_size: Tensor
 
     def __init__(self, config: NeRFConfig, seed: int = 0):
         super().__init__()
