@@ -321,7 +321,8 @@ def concurrent(root: Path, budget: int, crowd: Crowd) -> dict:
         with PHDClient(server.url, timeout=600) as phd:      # warm every route up on a tiny model
             tiny = phd.upload_model(model_file(root, "3dgs-300-attack"), cameras=svc_cameras(2, size=16)).id
             for route in ("rank", "select", "calibrate"):
-                row = Row("warm", route, ["3dgs-300-attack"], 16, 2, training=2, body={"step": 0.5} if route == "calibrate" else {})
+                row = Row("warm", route, ["3dgs-300-attack"], 16, 2, training=2,
+                          body={"step": 0.5} if route == "calibrate" else {})
                 assert submit(server.url, *row.request([tiny], 16, 2))["state"] == "succeeded"
             phd.delete_model(tiny)
             idle = reset_peak(server.proc.pid)
@@ -379,7 +380,8 @@ def table(rows: list[dict]) -> str:
         if "peaks_bytes" in r:
             peak = f"{mib(min(r['peaks_bytes']))}-{peak} ({len(r['peaks_bytes'])} runs)"
         over = r["peak_over_idle_bytes"] / r["budget_bytes"]
-        lines.append(f"| {r['name']} | {mib(r['budget_bytes'])} | {result} | {r.get('fragments_per_pixel_bound') or ''} | "
+        lines.append(f"| {r['name']} | {mib(r['budget_bytes'])} | {result} | "
+                     f"{r.get('fragments_per_pixel_bound') or ''} | "
                      f"{r.get('mask_batch', '')} | {planned} | {peak} | {ratio} | "
                      f"{over:.2f}{'' if r['within_budget'] else ' OVER'} |")
     return "\n".join(lines)

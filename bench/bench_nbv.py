@@ -108,7 +108,8 @@ def initial_views(cameras: list, count: int, seed: int) -> list[int]:
 def load_split(args: argparse.Namespace, scene: str, split: str, **kw) -> Dataset:
     """A split of a scene at the protocol's size (--resolution wide; WIDTH_SCALE for 4:3 captures)."""
     size = load_dataset(args.data / scene, "train", with_images=False).cameras[0].width
-    return load_dataset(args.data / scene, split, downscale=size / (args.resolution * WIDTH_SCALE.get(scene, 1.0)), **kw)
+    return load_dataset(args.data / scene, split, downscale=size / (args.resolution * WIDTH_SCALE.get(scene, 1.0)),
+                        **kw)
 
 
 def calibrated_ratio(renderer: GaussianRenderer, captured: list) -> float:
@@ -263,10 +264,12 @@ def markdown(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]],
     lines = [f"Commands: `OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 .venv/bin/python -m bench.bench_nbv --jobs 2` "
              "(all four scenes; the strategies and seeds run are in the tables), then the "
              "line for the tried ones in the script's docstring (one seed), then `--report` "
-             f"({platform.machine()}, {os.cpu_count()} cores, one thread per task). Protocol: {args.resolution}x{args.resolution} px "
+             f"({platform.machine()}, {os.cpu_count()} cores, one thread per task). "
+             f"Protocol: {args.resolution}x{args.resolution} px "
              f"(cup_colmap {round(args.resolution * WIDTH_SCALE['cup_colmap'])}x"
              f"{round(args.resolution * WIDTH_SCALE['cup_colmap'] * 3 / 4)}, its SfM points as the start, every 8th "
-             f"image held out), {args.iterations} iterations, {args.initial} initial views (one by the seed, then FVS), "
+             f"image held out), {args.iterations} iterations, {args.initial} initial views "
+             "(one by the seed, then FVS), "
              f"{args.per_round} views per round, {args.rounds} rounds, PSNR on {args.test_views} evenly spaced "
              f"test views (cup_colmap: its 10), N = {args.samples} masks, r_drop calibrated every round.", "",
              "Final = mean test PSNR after the last round over the seeds (with the standard deviation and each "

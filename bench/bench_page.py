@@ -106,12 +106,14 @@ def main() -> int:
                 phone.get(server.url + "/ui/")
                 set_field(phone, "api-key", KEY)
                 phone.find_element(By.CSS_SELECTOR, "#key-form button").click()
-                WebDriverWait(phone, 60).until(lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2)
+                WebDriverWait(phone, 60).until(
+                    lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2)
                 overflow = phone.execute_script("return document.documentElement.scrollWidth - window.innerWidth")
             finally:
                 phone.quit()
         report = {
-            "candidates": args.candidates, "samples": args.samples, "size": f"{result.width}x{result.height}", "repeats": args.repeats,
+            "candidates": args.candidates, "samples": args.samples, "size": f"{result.width}x{result.height}",
+            "repeats": args.repeats,
             "client_rank_s": [round(t, 2) for t in client_times], "page_rank_s": [round(t, 2) for t in page_times],
             "page_over_client_median": round(statistics.median(p / c for p, c in zip(page_times, client_times)), 3),
             "phone_horizontal_overflow_px": overflow,

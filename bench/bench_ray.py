@@ -138,7 +138,8 @@ def main() -> int:
     print(f"\nscaling 1 -> 2 CPUs: {result['scaling_1_to_2_cpus']:.2f}x (per round: "
           f"{', '.join(f'{r:.2f}' for r in result['scaling_per_round'])}); load average after: "
           f"{', '.join(f'{x:.1f}' for x in result['load_average_after'])}; Ray 2 CPUs / local: "
-          f"{result['ray_2cpu_vs_local_default']:.2f}; small-job overhead {result['small_job_overhead_s'] * 1e3:.0f} ms "
+          f"{result['ray_2cpu_vs_local_default']:.2f}; "
+          f"small-job overhead {result['small_job_overhead_s'] * 1e3:.0f} ms "
           f"({result['small_job_ratio']:.1f}x); rankings equal to local: {same}")
     return 0
 

@@ -351,11 +351,12 @@ def main() -> None:
                 calibration_widths=args.calibration_widths, ratio=args.ratio)
             write_result(args.json, results)                # a partial run keeps what it measured
     for copies in ([22] if args.target == [] else args.target or []):
-        results.setdefault("targets", {})[str(copies)] = rank_target(copies, 3, args.target_candidates, 200, 16, args.ratio,
-                                                                args.baseline)
+        results.setdefault("targets", {})[str(copies)] = rank_target(copies, 3, args.target_candidates, 200, 16,
+                                                                     args.ratio, args.baseline)
         write_result(args.json, results)
     if args.profile:
-        runs = {args.profile_name: None} if args.baseline is None else {"before": args.baseline, args.profile_name: None}
+        runs = ({args.profile_name: None} if args.baseline is None
+                else {"before": args.baseline, args.profile_name: None})
         results.setdefault("profile", {}).update(
             {name: in_child("profile", baseline=path, copies=22, sh=3, width=200, samples=16, cameras=4,
                             ratio=args.ratio) for name, path in runs.items()})
@@ -393,7 +394,8 @@ def write_report(path: Path, results: dict) -> None:
     series = {}
     for splats, sh, c in sorted(cells, key=lambda x: x[0]):
         if c["samples"] == 16:
-            series.setdefault(f"SH {sh}, {c['width']} px", []).append((round(splats / 1000), c["seconds_per_candidate"]))
+            series.setdefault(f"SH {sh}, {c['width']} px", []).append(
+                (round(splats / 1000), c["seconds_per_candidate"]))
     svg_plot(path.parent / "scale_time.svg", series, "thousand splats (log)", "s per candidate, N = 16", log_y=True)
 
 
@@ -417,7 +419,8 @@ def report(r: dict) -> str:
             rows.append(f"| {x['splats']:,} | {x['sh']} | {width}x{c['height']} | "
                         + " | ".join(f"{cells[n]['seconds_per_candidate']:.3f}" if n in cells else "" for n in samples)
                         + f" | {c['project_s']:.3f} | {c['order_s']:.3f} | {c['colour_s']:.3f} | "
-                          f"{c['fragments_s']:.3f} | {mid['composite_s']:.3f} | {c['visible']:,} | {c['fragments']:,} |")
+                          f"{c['fragments_s']:.3f} | {mid['composite_s']:.3f} | {c['visible']:,} | "
+                          f"{c['fragments']:,} |")
     calibration = [f"| {x['splats']:,} | {x['sh']} | {c['width']}x{c['height']} | {c['views']} | {c['seconds']:.2f} | "
                    f"{c['r_drop']} |" for x in models for c in x.get("calibration", [])]
     text = f"""{SECTION}

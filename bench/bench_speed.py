@@ -104,7 +104,8 @@ def render_speed(model: GaussianModel, camera, keep: torch.Tensor) -> dict:
     values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]
     unit = proj.ids[splat]
     num_pixels = pairs.tiles_x * pairs.tiles_y * 16
-    out["composite_reference_s"] = timed(lambda: COMPOSITORS["reference"](frags, values, keep, unit, num_pixels), 2).best
+    out["composite_reference_s"] = timed(
+        lambda: COMPOSITORS["reference"](frags, values, keep, unit, num_pixels), 2).best
     out["composite_fused_s"] = timed(lambda: COMPOSITORS["fused"](frags, values, keep, unit, num_pixels), 3).best
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in out.items()}
 
@@ -241,6 +242,10 @@ def share(run: dict) -> float:
 
 def report(r: dict) -> str:
     a, b = r["render_100"], r["render_200"]
+    batch_header = (f"| size | fragments | one render s | batch of {MASKS} s | batch / one | {MASKS} separate s | "
+                    "separate / batch | prepare s | batch from a prepared view s |")
+    training_header = ("| size | pure-torch compositing s per step | fused compositing s per step | speed-up | "
+                       "splats at the end | final loss (pure torch / fused) |")
     rows, pure = [], []
     for name, x in (("100x100", a), ("200x200", b)):
         rows.append(f"| {name} | {x['fragments']:,} | {x['one_s']:.3f} | {x[f'batch{MASKS}_s']:.3f} | "
@@ -348,7 +353,7 @@ compiles stage 4 and its gradient only (see "Training step").
 
 ## One camera: batch vs one render vs separate renders (fused, the default)
 
-| size | fragments | one render s | batch of {MASKS} s | batch / one | {MASKS} separate s | separate / batch | prepare s | batch from a prepared view s |
+{batch_header}
 |---|---|---|---|---|---|---|---|---|
 {chr(10).join(rows)}
 
@@ -391,7 +396,7 @@ process after start-up (`repeat_calibration` in the benchmark); times from getru
 
 ## Training step (lego_200, 16 views, `fit`, {r['train_50']['iterations']} iterations)
 
-| size | pure-torch compositing s per step | fused compositing s per step | speed-up | splats at the end | final loss (pure torch / fused) |
+{training_header}
 |---|---|---|---|---|---|
 {chr(10).join(training)}
 

@@ -42,7 +42,8 @@ def default_data() -> Path:
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo", help="train, serve, rank and select on the bundled lego scene (a few minutes)",
-        description=f"Train (or reuse) two models of the default family ({DEFAULT_FAMILY}) on disjoint 16-view sets of lego_200 at 100x100, start "
+        description=f"Train (or reuse) two models of the default family ({DEFAULT_FAMILY}) on disjoint 16-view sets "
+                    "of lego_200 at 100x100, start "
                     "the service, then through the Python client calibrate, rank 100 held-out views "
                     "(top 5 printed next to their true RMSE) and select per view between the two models. "
                     "Writes report.json and heat maps into --out.")
@@ -151,7 +152,8 @@ def run(args: argparse.Namespace) -> int:
     train_b = load_blender(data, "train", downscale=DOWNSCALE, views=views_b, with_images=False).cameras
     test = load_blender(data, "test", downscale=DOWNSCALE, views=candidates_idx)
     with tempfile.TemporaryDirectory(prefix="phd-demo-service-") as service_dir, \
-            BackgroundServer(Settings(data_dir=Path(service_dir), max_candidates=max(1000, len(test.cameras)))) as server:
+            BackgroundServer(Settings(data_dir=Path(service_dir),
+                                      max_candidates=max(1000, len(test.cameras)))) as server:
         print(f"2/5 service on {server.url} (data in a temporary folder)")
         with PHDClient(server.url) as phd:
             info_a = phd.upload_model(model_a, cameras=train_a, name="lego A")
@@ -200,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
         stem = f"rank{view.rank}_test{frame:03d}"
         write_bytes_atomic(heat_dir / f"{stem}_zeta.png", base64.b64decode(mapped.heatmap_png))
         write_png(heat_dir / f"{stem}_render.png", renders_a[view.index])
+        assert test.images is not None                  # load_blender reads the images by default
         write_png(heat_dir / f"{stem}_truth.png", test.images[view.index])
         top_rows.append({"rank": view.rank, "test_view": frame, "score": view.score, "sigma_max": view.sigma_max,
                          "rmse": rmse_a[view.index], "rmse_rank": rmse_rank[view.index],

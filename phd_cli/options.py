@@ -35,7 +35,8 @@ def parse_background(values: list[str] | None) -> tuple[float, float, float] | N
     try:
         numbers = [float(v) for v in values]
     except ValueError:
-        raise InputError("background", f"expected a name or three numbers in [0, 1], got {' '.join(values)!r}") from None
+        raise InputError("background",
+                         f"expected a name or three numbers in [0, 1], got {' '.join(values)!r}") from None
     return check_color(numbers, "background")
 
 

@@ -403,7 +403,8 @@ def run_select(args: argparse.Namespace) -> int:
         cameras = _scaled(load_cameras(args.cameras, split="all", width=args.width, height=args.height),
                           args.downscale)
         images = None
-    ratios, calibrations = {}, {}
+    ratios: dict[str, float] = {}
+    calibrations: dict[str, dict[str, Any] | None] = {}
     for key, renderer in renderers.items():
         given = getattr(args, f"ratio_{key}")
         ratios[key], calibrations[key] = (given, None) if given is not None else _ratio(args, renderer)

@@ -84,7 +84,8 @@ def score_colours(scores: dict[int, float], count: int) -> list[tuple[int, int, 
         lo, hi = min(scores.values()), max(scores.values())
         for index, score in scores.items():
             t = (score - lo) / (hi - lo) if hi > lo else 1.0
-            colours[index] = tuple(int(c) for c in apply_colormap(np.array(t)))
+            r, g, b = (int(c) for c in apply_colormap(np.array(t)))      # RGB
+            colours[index] = (r, g, b)
     return colours
 
 
@@ -218,7 +219,8 @@ def run(args: argparse.Namespace) -> int:
     from phd_core.scene import cameras_from_json
 
     if args.ranking is not None and args.candidates is None:
-        raise InputError("candidates", "a ranking names candidates by index: give --candidates with the poses it ranked")
+        raise InputError("candidates",
+                         "a ranking names candidates by index: give --candidates with the poses it ranked")
     if args.samples < 2:
         raise InputError("samples", f"must be at least 2, got {args.samples}")
     viser = import_viser()

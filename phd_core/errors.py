@@ -35,7 +35,7 @@ class ModelWarning(UserWarning):
     """A loaded model that will probably not give what the user expects (its cameras miss its splats)."""
 
 
-def _rebuild_error(cls: type, args: tuple, state: dict) -> InputError:
+def _rebuild_error(cls: type[InputError], args: tuple, state: dict) -> InputError:
     error = cls.__new__(cls)
     error.args = args
     error.__dict__.update(state)
@@ -89,7 +89,7 @@ def check_color(value: Any, name: str) -> tuple[float, float, float]:
         raise InputError(name, f"must be three numbers in [0, 1], got {value!r}") from None
     if len(color) != 3 or not all(0.0 <= c <= 1.0 for c in color):
         raise InputError(name, f"must be three numbers in [0, 1], got {value!r}")
-    return tuple(color)
+    return color[0], color[1], color[2]
 
 
 def _check_range(value: float, name: str, minimum: float | None, maximum: float | None,

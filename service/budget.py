@@ -298,6 +298,7 @@ class MemoryLedger:
             self._cond.wait_for(lambda: resident.renderer is not None or resident.failed is not None)
             if resident.failed is not None:
                 raise resident.failed
+            assert resident.renderer is not None       # what wait_for waited for, with no failure
             return resident.renderer
 
 

@@ -33,7 +33,7 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 DRAIN_LIMIT = 64 << 20
 MAX_HEADER_BYTES = 64 * 1024
-OPEN_PATHS = ("/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
+OPEN_PATHS: tuple[str, ...] = ("/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
 OPEN_PATHS += ("/", "/ui", "/ui/", "/ui/app.js", "/ui/app.css")   # the page's static files; its API calls send the key
 UPLOAD_PATH = "/v1/models"
 DOC_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")   # FastAPI's pages load their scripts from a CDN

@@ -72,7 +72,8 @@ class JobStore:
         with self.store._write_lock, self.store._connect() as db:
             db.execute(
                 "INSERT OR REPLACE INTO jobs (id, kind, owner, state, progress, created_at, started_at, finished_at, "
-                "estimated_pixels, result_json, error_json, artifacts_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "estimated_pixels, result_json, error_json, artifacts_json) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (job.id, job.kind, owner, job.state, job.progress, job.created_at, job.started_at, job.finished_at,
                  job.estimated_pixels, result, error, json.dumps(job.artifacts)))
         if job.state in FINAL_STATES:

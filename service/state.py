@@ -46,6 +46,7 @@ class ServiceState:
         """The job as the API shows it: live from memory until it is final and persisted, then from
         the store (also after a restart)."""
         live = self.jobs.get(job_id)
+        found: tuple[Job, str | None] | None
         if live is not None and not live.on_disk:
             found = (live.to_schema(), live.owner)
         else:
@@ -81,6 +82,7 @@ class ServiceState:
             return result
         if job.state == "cancelled":
             raise ServiceError(409, "job_cancelled", f"job '{job.id}' was cancelled before it finished")
+        assert job.error is not None               # a failed job always carries its error (JobQueue)
         raise job.error
 
     def ingest(self, upload: Upload, kind: str, who: Principal) -> ModelRecord:

@@ -126,6 +126,7 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
                                    "largest this service's memory budget can parse", "file")
             part.file.write(chunk)
             return
+        assert part.buffer is not None         # on_headers_finished set it for every non-file part
         part.buffer += chunk
         cap = max_cameras_bytes if part.name == "cameras" else MAX_NAME_BYTES
         if len(part.buffer) > cap:

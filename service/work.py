@@ -407,7 +407,8 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
                                   training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
                                   keep_images=("both" if body.both_images else True) if images else False,
                                   progress=progress, executor=executor)
-        views, artifacts = [], {}
+        views: list[SelectedView] = []
+        artifacts: dict[str, bytes] = {}
         for v in result.views:
             view = SelectedView(index=v.index, choice=v.choice, score_a=v.score_a, score_b=v.score_b,
                                 model_id=record_a.id if v.choice == "a" else record_b.id)

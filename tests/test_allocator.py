@@ -2,7 +2,8 @@
 next thread instead of staying in the first thread's arena; release_freed_memory gives the
 freed pages back (what the service's memory budget relies on between jobs); and
 keep_freed_memory, which the entry points call, applies the settings (malloc keeps freed
-memory, NumPy's huge pages off) unless PHD_KEEP_FREED_MEMORY=0; bounded_heap (the service's) maps every large block on its own, so
+memory, NumPy's huge pages off) unless PHD_KEEP_FREED_MEMORY=0; bounded_heap (the service's) maps
+every large block on its own, so
 resident memory is the blocks alive."""
 
 from __future__ import annotations

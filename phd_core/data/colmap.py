@@ -315,6 +315,7 @@ def pinhole(camera: ColmapCamera, where: str) -> tuple[float, float, float, floa
         raise InputError(where, f"camera model {camera.model} with lens distortion is not supported: undistort the "
                          "images first (colmap image_undistorter writes a PINHOLE model)")
     fx = values.get("fx", values.get("f"))
+    assert fx is not None                  # every pinhole-type model has f or fx
     return fx, values.get("fy", fx), values["cx"], values["cy"]
 
 

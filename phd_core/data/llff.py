@@ -93,8 +93,9 @@ def load_llff(path: str | Path, split: str = "train", *, downscale: float = 1,
         if (height, width) != (cameras[0].height, cameras[0].width):
             cameras = [c.resized(width, height) for c in cameras]
     chosen = holdout_split(len(cameras), split)
-    return build_dataset([cameras[i] for i in chosen], [paths[i] for i in chosen] if with_images else None, root,
-                         split, downscale=downscale, views=views, background=background, seed=seed,
+    chosen_paths = [paths[i] for i in chosen] if with_images and paths is not None else None   # raised above
+    return build_dataset([cameras[i] for i in chosen], chosen_paths, root, split, downscale=downscale, views=views,
+                         background=background, seed=seed,
                          near=float(bounds[:, 0].min()), far=float(bounds[:, 1].max()),
                          names=None if paths is None else [paths[i].name for i in chosen])
 

@@ -34,8 +34,12 @@ def _ray(address: str | None = None) -> Executor:
     return RayExecutor(address)
 
 
+def _local(address: str | None = None) -> Executor:
+    return LOCAL
+
+
 EXECUTORS: Registry[ExecutorKind] = Registry("executor")
-EXECUTORS.register(ExecutorKind("local", lambda address=None: LOCAL))
+EXECUTORS.register(ExecutorKind("local", _local))
 EXECUTORS.register(ExecutorKind("ray", _ray))
 
 

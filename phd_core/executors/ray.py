@@ -62,7 +62,7 @@ class RayExecutor:
         self.max_retries = max_retries
         self.chunks_per_cpu = chunks_per_cpu
         self._lock = threading.Lock()
-        self._task = None
+        self._task: Any = None          # the Ray remote function, once connected
         self._shared: dict[int, tuple[weakref.ref, Any]] = {}     # id(value) -> (weakref, ObjectRef)
 
     def connect(self) -> "RayExecutor":

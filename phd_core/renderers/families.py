@@ -87,7 +87,9 @@ def set_background(renderer: Renderer, color: Sequence[float] | str) -> None:
     over. A model that carries its own background (a NeRF checkpoint) refuses, naming the field."""
     if not accepts_background(renderer):
         raise InputError("background", f"a {renderer.kind} model carries its own background (set at training)")
-    FAMILIES[renderer.kind].set_background(renderer, check_color(color, "background"))
+    setter = FAMILIES[renderer.kind].set_background
+    assert setter is not None                  # accepts_background checked it
+    setter(renderer, check_color(color, "background"))
 
 
 def family_titles(conjunction: str) -> str:

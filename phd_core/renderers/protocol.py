@@ -53,8 +53,12 @@ class CameraView:
 class Renderer(Protocol):
     """What PH-Dropout, ranking and ensemble selection need from a model."""
 
-    kind: str  # the model family (phd_core.renderers.FAMILIES)
     training_cameras: list[Camera] | None   # the poses the model was trained on, when known
+
+    @property
+    def kind(self) -> str:
+        """The model family (phd_core.renderers.FAMILIES); a class attribute in the families."""
+        ...
 
     @property
     def num_units(self) -> int:

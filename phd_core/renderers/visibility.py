@@ -15,11 +15,13 @@ in float64 log space, and a pixel stops at the fragment that would bring it belo
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol, TypeGuard
 
 import torch
 from torch import Tensor
 
 from ..scene import Camera
+from .protocol import Renderer, View
 from .splats.maths import LOG_T_MIN
 
 ELEMENTS_PER_PIXEL = 4     # a Visibility lists at most this many elements per image pixel
@@ -71,7 +73,15 @@ def visibility_bytes(num_units: int, camera: Camera) -> int:
     return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * elements
 
 
-def reports_visibility(renderer: object) -> bool:
+class ReportsVisibility(Renderer, Protocol):
+    """A Renderer whose family also reports what a view sees of the model (for type checking:
+    `reports_visibility` tells one apart)."""
+
+    def visibility(self, view: View, pixel_values: Tensor | None = None) -> Visibility:
+        ...
+
+
+def reports_visibility(renderer: object) -> TypeGuard[ReportsVisibility]:
     """True when the renderer's family implements `visibility(view, pixel_values=None)`."""
     return callable(getattr(renderer, "visibility", None))
 

@@ -35,8 +35,8 @@ def rotation_to_quaternion(rotation: torch.Tensor) -> torch.Tensor:
     else:
         s = 2 * (1 + r[2, 2] - r[0, 0] - r[1, 1]).sqrt()
         q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4]
-    q = torch.stack(q)
-    return q / q.norm()
+    quaternion = torch.stack(q)
+    return quaternion / quaternion.norm()
 
 
 def quaternion_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

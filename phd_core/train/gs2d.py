@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from functools import partial
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Sequence, cast
 
 import torch
 
@@ -49,9 +49,12 @@ def regulariser(out: SurfelOutput, camera: Camera, fraction: float, extent: floa
                 distortion_weight: float, normal_weight: float) -> torch.Tensor:
     """The weighted 2DGS regularisers of one training render (N = 1)."""
     loss = out.rgb.new_zeros(())
+    # a positive weight turns the recipe's geometry render on, which sets distortion and normal
     if distortion_weight > 0 and fraction >= DISTORTION_FROM:
+        assert out.distortion is not None
         loss = loss + distortion_weight * out.distortion[0].mean() / (extent * extent)
     if normal_weight > 0 and fraction >= NORMAL_FROM:
+        assert out.normal is not None
         alpha = out.alpha[0]
         surface = depth_normals(out.depth[0] / alpha.clamp_min(1e-6), camera)        # [H-2, W-2, 3]
         rendered = out.normal[0][1:-1, 1:-1]                                          # sum_i w_i n_i
@@ -75,5 +78,6 @@ def train_surfels(data: str | Path, *, views: int | Sequence[int] = 16, downscal
                   normal_consistency: float = SurfelOptions.normal_consistency, **overrides: Any) -> SurfelRenderer:
     """Train 2DGS on the `train` split of a capture; writes `out` in the 2DGS reference PLY
     layout plus the sidecar `<stem>.json` (`phd_core.train.splats.train_splats`)."""
-    return train_splats(data, recipe(depth_distortion, normal_consistency), views=views, downscale=downscale,
-                        iterations=iterations, seed=seed, out=out, progress=progress, **overrides)
+    renderer = train_splats(data, recipe(depth_distortion, normal_consistency), views=views, downscale=downscale,
+                            iterations=iterations, seed=seed, out=out, progress=progress, **overrides)
+    return cast(SurfelRenderer, renderer)               # what the 2DGS recipe builds

@@ -7,7 +7,7 @@ recipe (the 3DGS model, renderer and rasteriser, identity initial rotations, no 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Sequence, cast
 
 from ..data import Dataset
 from ..renderers.gs3d import GaussianModel, GaussianRenderer, rasterize
@@ -27,8 +27,9 @@ def train_gaussians(data: str | Path, *, views: int | Sequence[int] = 16, downsc
                     **overrides: Any) -> GaussianRenderer:
     """Train 3DGS on the `train` split of a capture; writes `out` (PLY) plus the sidecar
     `<stem>.json` (`phd_core.train.splats.train_splats`). `overrides` are TrainConfig fields."""
-    return splats.train_splats(data, GAUSSIANS, views=views, downscale=downscale, iterations=iterations, seed=seed,
-                               out=out, progress=progress, **overrides)
+    renderer = splats.train_splats(data, GAUSSIANS, views=views, downscale=downscale, iterations=iterations,
+                                   seed=seed, out=out, progress=progress, **overrides)
+    return cast(GaussianRenderer, renderer)             # what the GAUSSIANS recipe builds
 
 
 __all__ = ["GAUSSIANS", "TrainConfig", "fit", "train_gaussians", "training_background"]

@@ -170,6 +170,7 @@ def fit(model: RadianceField, dataset: Dataset, settings: TrainSettings, *, iter
         if alphas is not None and settings.alpha_weight > 0:
             loss = loss + settings.alpha_weight * F.mse_loss(out.alpha[0], alphas[batch])
         if config.freenerf_occlusion and settings.occlusion_range > 0:
+            assert out.sigma is not None                    # rendered with_sigma=config.freenerf_occlusion
             occlusion = out.sigma[0, :, :settings.occlusion_range].sum(-1).mean() / config.samples
             loss = loss + settings.occlusion_weight * occlusion
         if settings.empty_weight > 0:

@@ -34,7 +34,7 @@ import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, cast
 
 import torch
 from tqdm import tqdm
@@ -90,13 +90,13 @@ class TrainConfig:
                              ("background_splats", 0, None), ("densify_every", 1, None), ("seed", None, None),
                              ("tile", 1, None)):
             check_int(getattr(self, name), name, lo, hi)
-        for name, lo, hi in (("ssim_weight", 0.0, 1.0), ("lr_means", 0.0, None), ("lr_sh_dc", 0.0, None),
+        for name, low, high in (("ssim_weight", 0.0, 1.0), ("lr_means", 0.0, None), ("lr_sh_dc", 0.0, None),
                              ("lr_sh_rest", 0.0, None), ("lr_opacity", 0.0, None), ("lr_scales", 0.0, None),
                              ("lr_quats", 0.0, None), ("shell_radius", 0.0, None), ("splats_per_pixel", 0.0, None),
                              ("densify_from", 0.0, 1.0), ("densify_until", 0.0, 1.0), ("grad_threshold", 0.0, None),
                              ("dense_fraction", 0.0, None), ("opacity_reset_every", 0.0, 1.0),
                              ("min_opacity", 0.0, 1.0), ("sh_up_every", 0.0, None)):
-            check_float(getattr(self, name), name, lo, hi)
+            check_float(getattr(self, name), name, low, high)
         COMPOSITORS.lookup(self.compositor, "compositor")
         if self.background is not None:
             self.background = list(check_color(self.background, "background"))
@@ -232,11 +232,12 @@ def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: Train
 def training_background(data: Dataset, given: Sequence[float] | None = None) -> tuple[float, float, float]:
     """The colour behind the splats: the one given, else the dataset's where alpha masks define
     it, else the training images' mean colour (a real capture has no empty background)."""
+    # tuple() cannot tell mypy its length: three (a checked colour, an image's RGB mean)
     if given is not None:
-        return tuple(float(v) for v in given)
+        return cast(tuple[float, float, float], tuple(float(v) for v in given))
     if data.alphas is not None or data.images is None:
         return data.background
-    return tuple(float(v) for v in data.images.mean(dim=(0, 1, 2)))
+    return cast(tuple[float, float, float], tuple(float(v) for v in data.images.mean(dim=(0, 1, 2))))
 
 
 def training_extent(data: Dataset, extent: float) -> float:

@@ -5,7 +5,8 @@ Linear scan (the paper's loop) or bisection over the same nested masks; bisectio
 that the error grows with r for a fixed draw. The linear scan renders LOOKAHEAD ratios per
 pass over the views (one mask batch of LOOKAHEAD x samples per view instead of LOOKAHEAD
 small ones: the fused compositor's cost per mask halves from 4 to 16 masks); ratios
-past the first failure are rendered but not reported, so the result equals a one-by-one scan. Nesting makes that the rule, not a theorem:
+past the first failure are rendered but not reported, so the result equals a one-by-one scan.
+Nesting makes that the rule, not a theorem:
 dropping a splat can uncover one of similar colour, so the mean error may dip. Both
 searches only return ratios they have evaluated as passing.
 """

@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, replace
-from typing import Sequence
+from typing import Sequence, cast
 
 import torch
 
 from ..errors import InputError, check_float, check_int
 from ..executors import LOCAL, Executor
 from ..renderers import Renderer
-from ..renderers.visibility import Visibility, reports_visibility
+from ..renderers.visibility import ReportsVisibility, Visibility, reports_visibility
 from ..scene import Camera
 from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
@@ -51,7 +51,8 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
         return torch.tensor([getattr(v, name) for v in views], dtype=torch.float64)
     evidence = Evidence(list(cameras), captured, stat("sigma_max"), stat("sigma_mean"), stat("sigma_top"), stat("area"))
     if visibility and reports_visibility(renderer):
-        evidence.candidate_views = [v.visibility for v in views]
+        # measured with keep_visibility on a family that reports it: every view has one
+        evidence.candidate_views = cast(list[Visibility], [v.visibility for v in views])
         evidence.captured_views = view_visibility(renderer, captured)
     if fisher:
         add_fisher(evidence, renderer, seed)
@@ -65,7 +66,7 @@ def captured_cameras(renderer: Renderer, captured: Sequence[Camera] | None) -> l
     return check_cameras(captured, "captured") if captured else []
 
 
-def view_visibility(renderer: Renderer, cameras: Sequence[Camera]) -> list[Visibility]:
+def view_visibility(renderer: ReportsVisibility, cameras: Sequence[Camera]) -> list[Visibility]:
     """What each camera sees of the model (one render of the full model each)."""
     return [renderer.visibility(renderer.prepare(camera)) for camera in cameras]
 
@@ -86,9 +87,10 @@ def visibility_evidence(renderer: Renderer, cameras: Sequence[Camera],
 def add_fisher(evidence: Evidence, renderer: Renderer, seed: int = 0) -> Evidence:
     """Each candidate's and the captured views' Fisher information, where the family computes it
     (`Renderer.fisher`; FisherRF's quantity by random projections)."""
-    if callable(getattr(renderer, "fisher", None)):
-        evidence.candidate_fisher = torch.stack([renderer.fisher(c, seed=seed) for c in evidence.candidates])
-        held = [renderer.fisher(c, seed=seed) for c in evidence.captured]
+    fisher = getattr(renderer, "fisher", None)      # an optional method, not on the Renderer protocol
+    if callable(fisher):
+        evidence.candidate_fisher = torch.stack([fisher(c, seed=seed) for c in evidence.candidates])
+        held = [fisher(c, seed=seed) for c in evidence.captured]
         evidence.captured_fisher = (torch.stack(held).sum(0) if held else
                                     torch.zeros_like(evidence.candidate_fisher[0]))
     return evidence

@@ -184,6 +184,7 @@ class RunningStd:
         if self.shift is None:
             self.shift = chunk[0].to(self.dtype)
             self.mean, self.m2 = torch.zeros_like(self.shift), torch.zeros_like(self.shift)
+        assert self.mean is not None and self.m2 is not None      # set with the shift
         m = chunk.shape[0]
         if m == 0:
             return
@@ -201,6 +202,7 @@ class RunningStd:
     def result(self, ddof: int = 1) -> tuple[Tensor, Tensor]:
         """(std, mean), both in the accumulation dtype; divides by N - ddof."""
         check_samples(self.count, ddof)
+        assert self.shift is not None and self.mean is not None and self.m2 is not None   # count >= 1: added
         return (self.m2 / (self.count - ddof)).sqrt(), self.shift + self.mean
 
 

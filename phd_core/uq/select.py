@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, Sequence
+from typing import Any, Sequence, cast
 
 import torch
 from torch import Tensor
@@ -19,7 +19,7 @@ from ..eval import ensemble_efficiency, psnr, rmse, ssim
 from ..executors import LOCAL, Executor
 from ..registry import Registry
 from ..renderers import Renderer
-from ..renderers.visibility import reports_visibility
+from ..renderers.visibility import Visibility, reports_visibility
 from ..scene import Camera
 from .rank import view_visibility
 from .sampling import (
@@ -193,7 +193,9 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         if not chosen.relative:
             return sigma
         if key in visible:
-            uncovered = uncovered_share([view.visibility for view in measured_views], visible[key])
+            # measured with keep_visibility=chosen.coverage on a family that reports it: never None
+            uncovered = uncovered_share(cast(list[Visibility], [view.visibility for view in measured_views]),
+                                        visible[key])
             return [(UNCOVERED_FLOOR + float(u)) * s / own[key] for u, s in zip(uncovered, sigma)]
         return [_nearest_distance(c, training[key]) * s / own[key] for c, s in zip(views, sigma)]
 
@@ -201,12 +203,14 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     if checked:
         for key, other in (("a", "b"), ("b", "a")):
             at_other = measure(key, levels[other], keep_full=True)
-            error = sum(max(rmse(mine.image, theirs.image), CHECKED_RMSE_FLOOR)
-                        for mine, theirs in zip(at_other, at_own[other]))
+            errors = [max(rmse(mine.image, theirs.image), CHECKED_RMSE_FLOOR)
+                      for mine, theirs in zip(at_other, at_own[other])]
+            error = sum(errors)
             per_score = error / max(sum(scores_of(key, levels[other], at_other)), 1e-12)
             view_scores[key] = [score * per_score for score in view_scores[key]]
 
-    views, scores = [], {"a": [], "b": [], "selected": []}
+    views: list[ViewSelection] = []
+    scores: dict[str, list] = {"a": [], "b": [], "selected": []}
     for i in range(len(cameras)):
         score_a, score_b = view_scores["a"][i], view_scores["b"][i]
         choice, other = ("a", "b") if score_a <= score_b else ("b", "a")

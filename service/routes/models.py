@@ -25,7 +25,8 @@ UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-dat
         "background": {"type": "string", "description": "Splat models: the colour trained over, [r, g, b] in [0, 1] "
                        "or white/black/grey. Default: what the file or its cameras say, else white (docs/service.md)"},
         "camera_format": {"type": "string", "description": "The pose convention of the cameras' source (colmap, "
-                          "3dgs-output, nerfstudio, blender); default: 3dgs-output for a cameras.json, else nerfstudio"},
+                          "3dgs-output, nerfstudio, blender); default: 3dgs-output for a cameras.json, "
+                          "else nerfstudio"},
     }}}}}}
 
 

@@ -104,7 +104,8 @@ def test_ranked_generated_candidates_carry_their_poses_and_export_as_a_batch(cap
                          "--samples", 3, "--dropout-ratio", 0.3, "--top-k", 4, "--export", colmap,
                          "--out", capture["root"] / "plan" / "r.json")
     assert code == 0 and "COLMAP text model" in out, err
-    chosen = [poses[entry["index"]] for entry in json.loads((capture["root"] / "plan" / "r.json").read_text())["ranking"]]
+    ranking = json.loads((capture["root"] / "plan" / "r.json").read_text())["ranking"]
+    chosen = [poses[entry["index"]] for entry in ranking]
     reloaded = load_cameras(colmap, split="all")                    # sorted by name = capture order
     assert max((a.c2w - b.c2w).abs().max().item() for a, b in zip(reloaded, chosen, strict=True)) < 1e-9
     code, _, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6", "--samples", 3,

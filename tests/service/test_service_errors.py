@@ -281,7 +281,8 @@ def test_fuzzed_bodies_never_give_5xx(svc_start, svc_model_files):
                 break
             path = rng.choice(list(valid))
             if valid[path] is None:  # uploads: random bytes, sometimes with a PLY or safetensors head
-                head = rng.choice([b"", b"ply\n", b"ply\nformat ascii 1.0\nelement vertex 2\n", b"\x08" + bytes(7) + b"{"])
+                head = rng.choice([b"", b"ply\n", b"ply\nformat ascii 1.0\nelement vertex 2\n",
+                                   b"\x08" + bytes(7) + b"{"])
                 body = head + rng.randbytes(rng.randrange(0, 300))
                 files = {"file": ("m", body)}
                 if rng.random() < 0.5:

@@ -198,7 +198,8 @@ def test_coarse_to_fine_ranks_the_best_again_at_full_size(name: str) -> None:
 
 
 @pytest.mark.parametrize("coarse, refine, field", [
-    (0.0, None, "coarse"), (1.0, None, "coarse"), (float("nan"), None, "coarse"), (0.5, 0, "refine"), (None, 3, "refine"),
+    (0.0, None, "coarse"), (1.0, None, "coarse"), (float("nan"), None, "coarse"), (0.5, 0, "refine"),
+    (None, 3, "refine"),
 ])
 def test_bad_coarse_settings_name_the_field(coarse, refine, field: str) -> None:
     renderer, _ = blob_scene()

@@ -10,6 +10,7 @@ takes every other PLY, so no file is claimed by both families.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 from ..splats.ply import is_ply, parse_ply, read_ply, scale_axes, write_ply
 from .model import SurfelModel
@@ -22,11 +23,11 @@ def is_2dgs_ply(head: bytes) -> bool:
 
 def parse_surfel_ply(data: bytes, name: str = "model") -> SurfelModel:
     """Read a 2DGS PLY held in memory; a 3DGS PLY is refused naming `ply.scale_2`."""
-    return parse_ply(data, name, SurfelModel)
+    return cast(SurfelModel, parse_ply(data, name, SurfelModel))     # an instance of the model_type given
 
 
 def read_surfel_ply(path: str | Path) -> SurfelModel:
-    return read_ply(path, SurfelModel)
+    return cast(SurfelModel, read_ply(path, SurfelModel))
 
 
 def write_surfel_ply(model: SurfelModel, path: str | Path) -> None:

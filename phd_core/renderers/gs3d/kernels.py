@@ -249,13 +249,14 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     tiles_x, tiles_y); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1].
     """
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
-    means2d, conics, opacities, extents = (t.detach().double().contiguous().numpy()
-                                           for t in (means2d, conics, opacities, extents))
+    means2d_np, conics_np, opacities_np, extents_np = (t.detach().double().contiguous().numpy()
+                                                       for t in (means2d, conics, opacities, extents))
     row_ptr = np.zeros(tiles_x * tiles_y * tile * tile + 1, np.int64)
     with LAUNCH_LOCK:
-        start, splat = _tile_lists(means2d, extents, tiles_x, tiles_y, tile)
+        start, splat = _tile_lists(means2d_np, extents_np, tiles_x, tiles_y, tile)
         pair_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P]
-        _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha, row_ptr)
+        _pair_alpha(start, splat, means2d_np, conics_np, opacities_np, tiles_x, tile, width, height, pair_alpha,
+                    row_ptr)
         np.cumsum(row_ptr, out=row_ptr)
         alpha = np.empty(row_ptr[-1], np.float32)
         index = np.empty(row_ptr[-1], np.int32)

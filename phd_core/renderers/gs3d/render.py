@@ -88,7 +88,8 @@ def splat_colors(model: GaussianModel, ids: torch.Tensor, camera: Camera) -> tor
     return eval_sh(model.sh[ids], dirs.to(model.sh.dtype))
 
 
-def project(model: GaussianModel, camera: Camera, near: float = NEAR_PLANE) -> tuple[Projected, torch.Tensor, torch.Tensor]:
+def project(model: GaussianModel, camera: Camera,
+            near: float = NEAR_PLANE) -> tuple[Projected, torch.Tensor, torch.Tensor]:
     """Stage 1. Returns the visible splats, the screen means of ALL splats [G, 2]
     (for densification gradients) and the visibility mask [G]."""
     rot_wc = camera.world_to_camera()[:3, :3]          # [3, 3] float64
@@ -271,7 +272,8 @@ def splat_counts(renderer: "GaussianRenderer", camera: Camera) -> tuple[int, int
 def view_memory(renderer: "GaussianRenderer", camera: Camera) -> RenderMemory:
     """Bounds of `prepare(camera)` and its renders (the family's `memory`; fused compositing)."""
     if renderer.compositor != "fused":
-        raise InputError("compositor", f"memory bounds are measured for the fused compositor, not {renderer.compositor!r}")
+        raise InputError("compositor",
+                         f"memory bounds are measured for the fused compositor, not {renderer.compositor!r}")
     visible, pairs, fragments_ = splat_counts(renderer, camera)
     units, tile = renderer.num_units, renderer.tile
     grid = math.ceil(camera.width / tile) * math.ceil(camera.height / tile) * tile * tile

@@ -38,6 +38,8 @@ class PositionalEncoding(nn.Module):
     (FreeNeRF's mask). The raw x is never masked.
     """
 
+    scales: Tensor                  # a buffer registered in __init__
+
     def __init__(self, freqs: int):
         super().__init__()
         self.bands = freqs
@@ -62,6 +64,12 @@ class HashEncoding(nn.Module):
     A point's features are the trilinear interpolation of its cell's 8 vertices.
     `weights` [levels] scales each level (the FreeNeRF mask, applied coarse to fine).
     """
+
+    # buffers registered in __init__ (nn.Module's __getattr__ would type them as Tensor | Module)
+    resolutions: Tensor
+    dense: Tensor
+    strides: Tensor
+    primes: Tensor
 
     def __init__(self, levels: int, features: int, log2_size: int, base: int, finest: int):
         super().__init__()
@@ -118,6 +126,12 @@ class OccupancyGrid(nn.Module):
     network only at samples inside occupied cells. A new grid is fully occupied.
     """
 
+    # buffers registered in __init__ (nn.Module's __getattr__ would type them as Tensor | Module)
+    lo: Tensor
+    size: Tensor
+    density: Tensor
+    occupied: Tensor
+
     def __init__(self, resolution: int, bounds: list[list[float]], threshold: float):
         super().__init__()
         self.resolution = resolution
@@ -165,6 +179,9 @@ class RadianceField(nn.Module):
     Parameters are initialised from `seed` without touching the global random state.
     The dropout units are the `width` outputs of `first` (after its activation).
     """
+
+    center: Tensor                  # buffers registered in __init__
+    half_size: Tensor
 
     def __init__(self, config: NeRFConfig, seed: int = 0):
         super().__init__()

@@ -118,14 +118,16 @@ class NeRFRenderer:
         for start in range(0, len(origins), rays_per_chunk):
             o, d = origins[start:start + rays_per_chunk], dirs[start:start + rays_per_chunk]
             _, delta, points, valid = ray_samples(self.model, o, d, use_grid=self.use_grid)
-            sigma = render_rays(self.model, o, d, use_grid=self.use_grid, with_sigma=True).sigma[0]   # [R, S]
+            rays = render_rays(self.model, o, d, use_grid=self.use_grid, with_sigma=True)
+            assert rays.sigma is not None                                                           # with_sigma
+            sigma = rays.sigma[0]                                                                   # [R, S]
             tau = (sigma * delta).double() * valid                                                  # [R, S]
             w, total = segment_weights(tau)                                                         # [R, S]
             alpha = -torch.expm1(-tau)
             cell = grid.cells(points.reshape(-1, 3))
             weight.index_add_(0, cell, w.reshape(-1))
             footprint.index_add_(0, cell, alpha.reshape(-1))
-            if valued is not None:
+            if valued is not None and values is not None:          # both set with pixel_values
                 valued.index_add_(0, cell, (w * values[start:start + rays_per_chunk, None]).reshape(-1))
             left[start:start + rays_per_chunk] = torch.exp(-total[:, -1])
         t_in, t_out = ray_box(origins, dirs, grid.lo, grid.lo + grid.size)

@@ -96,7 +96,9 @@ def render_rays(model: RadianceField, origins: Tensor, dirs: Tensor, *, keep: Te
         sigma = sigma_k.new_zeros(n, t.numel()).index_copy(1, flat, sigma_k).view(n, *t.shape)
         rgb = rgb_k.new_zeros(n, t.numel(), 3).index_copy(1, flat, rgb_k).view(n, *t.shape, 3)
         color, acc, depth = composite(sigma, rgb, delta, t, bg)
-        colors.append(color), alphas.append(acc), depths.append(depth)
+        colors.append(color)
+        alphas.append(acc)
+        depths.append(depth)
         if with_sigma:
             sigmas.append(sigma)
     return RayOutput(torch.cat(colors), torch.cat(alphas), torch.cat(depths),

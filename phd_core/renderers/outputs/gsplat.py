@@ -131,9 +131,9 @@ def normalisations(cameras: list[Camera], points: np.ndarray | None) -> dict[str
     from_cameras = cameras_similarity(c2w)
     if points is None or len(points) < 3:
         return {"similarity from the cameras (the capture has no SfM points)": from_cameras}
-    points = torch.from_numpy(np.asarray(points, dtype=np.float32).astype(np.float64))   # [P, 3] as gsplat holds them
-    axes = from_cameras.then(principal_axes(from_cameras.points(points).numpy()))
-    moved = axes.points(points).numpy()
+    cloud = torch.from_numpy(np.asarray(points, dtype=np.float32).astype(np.float64))    # [P, 3] as gsplat holds them
+    axes = from_cameras.then(principal_axes(from_cameras.points(cloud).numpy()))
+    moved = axes.points(cloud).numpy()
     found = {}
     if np.median(moved[:, 2]) > np.mean(moved[:, 2]):
         found["cameras, principal axes of the points, upside-down turn"] = axes.then(HALF_TURN_X)

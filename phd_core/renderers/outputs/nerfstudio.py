@@ -212,9 +212,10 @@ def _find_transforms(folder: Path, data: Path | None) -> Path | None:
 
 def _section(config: dict, *keys: str) -> dict:
     """config[k1][k2]... as a dict ({} when any level is missing)."""
+    section: Any = config
     for key in keys:
-        config = config.get(key) if isinstance(config, dict) else None
-    return config if isinstance(config, dict) else {}
+        section = section.get(key) if isinstance(section, dict) else None
+    return section if isinstance(section, dict) else {}
 
 
 OUTPUTS.register(OutputFormat("nerfstudio", f"a nerfstudio splatfacto output folder (config.yml + {FRAME_FILE})",

@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -87,7 +87,7 @@ class _Element:
         """The numpy record type of one binary record, or None if a list makes it variable."""
         if any(isinstance(kind, tuple) for _, kind in self.properties):
             return None
-        return np.dtype([(name, order + _PLY_TYPES[kind]) for name, kind in self.properties])
+        return np.dtype([(name, order + _PLY_TYPES[cast(str, kind)]) for name, kind in self.properties])
 
 
 def _parse_header(data: bytes) -> tuple[str, list[_Element], int]:

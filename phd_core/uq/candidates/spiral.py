@@ -65,10 +65,10 @@ def _focus_depth(cameras: Sequence[Camera], mean_eye: torch.Tensor, back: torch.
     from ...scene import scene_bounds
 
     centre, _ = scene_bounds(cameras)
-    depth = float((mean_eye - centre) @ back)
-    if not depth > 0:
+    distance = float((mean_eye - centre) @ back)
+    if not distance > 0:
         raise InputError("focus", "cannot tell how far in front of the cameras the scene lies: give focus")
-    return depth
+    return distance
 
 
 def _unit(v: torch.Tensor, field: str) -> torch.Tensor:
