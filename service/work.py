@@ -270,6 +270,7 @@ def generated_candidates(record: ModelRecord, body: RankRequest, settings: Setti
     (else its splats: the model is loaded, waiting for memory at most `upload_wait`), checked
     like explicit cameras, at their own size."""
     spec = body.candidates
+    assert spec is not None  # rank_job calls this only for a request that gives candidates
     if spec.count > settings.max_candidates:
         raise invalid("candidates.count", f"{spec.count} poses exceed the cap of {settings.max_candidates} per request")
     training = stored_cameras(record)

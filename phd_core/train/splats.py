@@ -215,6 +215,7 @@ def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: Train
         points, colours = carve_points(data, centre, extent, config.init_points, gen)
         spacing = None
     else:
+        assert data.point_colors is not None  # the readers that give points give their colours
         points, colours = data.points.to(torch.float64), data.point_colors.to(torch.float64)
         spacing = neighbour_spacing(points)
     if data.alphas is None and config.background_splats > 0:
@@ -416,6 +417,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
         loss.backward()
         if step < densify_until:
             # Screen-space gradient in NDC units (pixels * W / 2), as the reference thresholds it.
+            assert out.means2d.grad is not None  # retain_grad() before backward() kept it
             g = out.means2d.grad.float() * torch.tensor([cam.width / 2, cam.height / 2])
             grad_sum += torch.where(out.visible, g.norm(dim=-1), 0.0)
             grad_count += out.visible.float()

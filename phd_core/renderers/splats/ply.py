@@ -174,6 +174,7 @@ def _vertex_columns(data: bytes) -> tuple[dict[str, np.ndarray], int]:
                                            "property, so the vertex data cannot be located")
         offset += element.count * dtype.itemsize
     dtype = vertex.fixed_dtype(order)
+    assert dtype is not None  # list properties were rejected above
     available = len(data) - offset
     if available < count * dtype.itemsize:
         raise InputError("ply.vertex", f"truncated: the header declares {count} vertices of "
