@@ -204,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {view.rank:>4}  {frame:>9}  {view.score:9.4f}  {view.sigma_max:9.4f}  {rmse_a[view.index]:9.4f}  "
               f"{rmse_rank[view.index]:>9}")
         stem = f"rank{view.rank}_test{frame:03d}"
+        assert mapped.heatmap_png is not None           # asked for with heatmaps="base64"
         write_bytes_atomic(heat_dir / f"{stem}_zeta.png", base64.b64decode(mapped.heatmap_png))
         write_png(heat_dir / f"{stem}_render.png", renders_a[view.index])
         assert test.images is not None                  # load_blender reads the images by default
