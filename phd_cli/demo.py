@@ -111,7 +111,7 @@ def _true_errors(model_path: Path, cameras, images) -> tuple[list[float], list[f
 def run(args: argparse.Namespace) -> int:
     import base64
 
-    from client import PHDClient
+    from client import Calibration, PHDClient, RankResult, SelectResult
     from phd_core.data import load_blender, select_views, split_size
     from phd_core.eval import ensemble_efficiency, spearman
     from phd_core.io import write_bytes_atomic, write_json_atomic, write_png
@@ -163,19 +163,23 @@ def run(args: argparse.Namespace) -> int:
             print("3/5 calibrate (Algorithm 1 on the 16 training poses)", flush=True)
             cal_a = phd.calibrate(info_a.id, run_async=True, progress=_progress("A"))
             cal_b = phd.calibrate(info_b.id, run_async=True, progress=_progress("B"))
+            assert isinstance(cal_a, Calibration) and isinstance(cal_b, Calibration)  # wait=True: the results
             print(f"  r_drop A = {cal_a.r_drop}, B = {cal_b.r_drop}")
             lap("calibrate")
             print(f"4/5 rank {len(test.cameras)} held-out views (test split), N = {args.samples}", flush=True)
             ranking = phd.rank(info_a.id, test.cameras, samples=args.samples, run_async=True,
                                progress=_progress("rank"))
+            assert isinstance(ranking, RankResult)
             lap("rank")
             top = ranking.views[:TOP]
             maps = phd.rank(info_a.id, [test.cameras[v.index] for v in top], samples=args.samples,
                             heatmaps="base64")
+            assert isinstance(maps, RankResult)
             lap("heatmaps")
             print("5/5 select between A and B per view", flush=True)
             selection = phd.select(info_a.id, info_b.id, test.cameras, samples=args.samples, run_async=True,
                                    progress=_progress("select"))
+            assert isinstance(selection, SelectResult)
             lap("select")
 
     rmse_a, psnr_a, ssim_a, renders_a = _true_errors(model_a, test.cameras, test.images)
@@ -200,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {view.rank:>4}  {frame:>9}  {view.score:9.4f}  {view.sigma_max:9.4f}  {rmse_a[view.index]:9.4f}  "
               f"{rmse_rank[view.index]:>9}")
         stem = f"rank{view.rank}_test{frame:03d}"
+        assert mapped.heatmap_png is not None           # asked for with heatmaps="base64"
         write_bytes_atomic(heat_dir / f"{stem}_zeta.png", base64.b64decode(mapped.heatmap_png))
         write_png(heat_dir / f"{stem}_render.png", renders_a[view.index])
         assert test.images is not None                  # load_blender reads the images by default

@@ -35,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     split_size(args.data, args.split)  # clear error for a missing split before loading images
     views = parse_views(args.views) if args.views else None
     data = load_dataset(args.data, args.split, downscale=downscale, views=views)
+    assert data.images is not None  # loaded with its images (the default)
     args.out.mkdir(parents=True, exist_ok=True)
     per_view = []
     for index, camera, target in zip(data.indices, data.cameras, data.images):

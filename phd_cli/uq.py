@@ -326,6 +326,7 @@ def run_uq(args: argparse.Namespace) -> int:
     rows = []
     for i, (view, camera, index) in enumerate(zip(views, dataset.cameras, dataset.indices)):
         row: dict[str, Any] = {"index": index, "sigma_max": view.sigma_max, "sigma_mean": view.sigma_mean}
+        assert view.zeta is not None  # measured with keep_maps=True
         if dataset.images is not None:
             render = renderer.render(camera)[0]
             row.update(image_uq_metrics(view.zeta, render, dataset.images[i]))

@@ -200,6 +200,7 @@ class Viewer:
         with self.lock:
             view = uq.view_uncertainty(self.renderer, self.candidates[index], ratio=self.ratio, samples=self.samples,
                                        keep_maps=True)
+            assert view.mean is not None and view.zeta is not None  # keep_maps=True keeps them
             render = (view.mean.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
             heatmap = colorize(view.zeta)[0]
             self.render_image.image, self.heatmap_image.image = render, heatmap

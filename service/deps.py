@@ -17,7 +17,8 @@ ERRORS: dict[int | str, dict[str, Any]] = {
         (413, "Body too large"), (415, "Not a model this service reads"), (422, "Invalid field"),
         (429, "Work queue full: retry after Retry-After seconds"))
 }
-ACCEPTED = {202: {"model": Job, "description": "Queued as a job: poll GET /v1/jobs/{id}"}}
+ACCEPTED: dict[int | str, dict[str, Any]] = {
+    202: {"model": Job, "description": "Queued as a job: poll GET /v1/jobs/{id}"}}
 
 
 def service_state(request: Request) -> ServiceState:

@@ -109,7 +109,9 @@ def shown_default(name: str) -> str:
     for a computed default the first line of its function's docstring."""
     field = Settings.model_fields[name]
     if field.default_factory is not None:
-        return field.default_factory.__doc__.split("\n")[0].rstrip(".")
+        doc = field.default_factory.__doc__
+        assert doc is not None, f"{name}'s default function needs a docstring to be shown"
+        return doc.split("\n")[0].rstrip(".")
     value = field.default
     if value is None:
         return "unset"

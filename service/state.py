@@ -5,7 +5,7 @@ for a caller, queue work, ingest an upload). `service.deps` hands it to the rout
 from __future__ import annotations
 
 import asyncio
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from fastapi.responses import JSONResponse
@@ -32,7 +32,8 @@ class ServiceState:
     store: ModelStore
     ledger: MemoryLedger                # the memory budget, and the models in memory
     job_store: JobStore
-    jobs: JobManager | None = None
+    # Made by the app's lifespan (service.app.create_app), so every request sees it; unset before.
+    jobs: JobManager = field(init=False)
     executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
 
     def model(self, model_id: str, who: Principal, field: str | None = None) -> ModelRecord:

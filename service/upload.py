@@ -137,6 +137,8 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
         if part.file is not None:
             part.file.close()
             part.file = None
+        elif part.buffer is None:
+            pass                        # its headers never finished: no named field to store
         elif part.name == "cameras":
             upload.cameras = bytes(part.buffer)
         elif part.name == "name":

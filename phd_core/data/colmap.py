@@ -384,6 +384,7 @@ def load_colmap(path: str | Path, split: str = "train", *, downscale: float = 1,
     near = far = None
     if model.points is not None and len(model.points):
         points = torch.from_numpy(model.points)
+        assert model.colors is not None  # read_model reads points and colors together
         colors = torch.from_numpy(model.colors.astype(np.float32) / 255)
         near, far = _depth_range(cameras, points)
     return build_dataset(cameras, paths, path, split,

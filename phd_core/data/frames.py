@@ -181,7 +181,7 @@ def load_frames(json_path: Path, split: str, *, default_near_far: tuple[float | 
     cameras = [camera.scaled(downscale) for camera in full_res] if downscale != 1 else full_res
 
     images = alphas = None
-    if with_images:
+    if paths is not None:           # with_images
         images, alphas = _read_images(paths, indices, full_res, cameras[0], bg)
     return Dataset(cameras, images, alphas, indices, base, split, bg, near, far)
 

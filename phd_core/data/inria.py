@@ -63,7 +63,7 @@ def camera_from_entry(entry: Any, max_size: int = DEFAULT_MAX_SIZE) -> Camera:
         raise InputError("rotation", f"must be a 3x3 matrix, got shape {list(rotation.shape)}")
     if position.shape != (3,):
         raise InputError("position", f"must be 3 numbers, got shape {list(position.shape)}")
-    values = {}
+    values: dict[str, Any] = {}     # finite numbers; Camera refuses a size that is not a whole number
     for key in ("width", "height", "fx", "fy"):
         value = entry[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):

@@ -45,15 +45,17 @@ class Family:
     extension: str                                          # file extension the service stores it under
     sniff: Callable[[bytes], bool]                          # True for the first SNIFF_BYTES of its files
     load: Callable[[bytes, str, list[Camera] | None], Renderer]   # (content, name, training cameras or None)
-    beside: Callable[[Path, Renderer], Renderer] | None = None    # extras stored next to a model file
+    # The callables below are given only renderers this family loaded, so each takes its own
+    # renderer class: the parameter is Any (a Renderer would refuse them as too narrow).
+    beside: Callable[[Path, Any], Renderer] | None = None   # extras stored next to a model file
     trainer: str | None = None                              # "module:function" that `phd train` calls
     # The trainer's own options: a dataclass whose fields (made with `option`) are `phd train`
     # flags and are checked when it is built; None: the trainer takes only the common ones.
     train_options: type | None = None
-    memory: Callable[[Renderer, Camera], RenderMemory] | None = None   # bounds of one camera's render
+    memory: Callable[[Any, Camera], RenderMemory] | None = None   # bounds of one camera's render
                                                             # (None: unknown; the service assumes its worst case)
     # Renders over the colour given (a checked [r, g, b]); None: the model carries its own.
-    set_background: Callable[[Renderer, tuple[float, float, float]], None] | None = None
+    set_background: Callable[[Any, tuple[float, float, float]], None] | None = None
     units: str = "dropout units"                            # what its dropout units are: "splats"
     network: tuple[str, ...] = ()                           # describe() keys the API shows as its network's size
 

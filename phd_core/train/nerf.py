@@ -140,6 +140,7 @@ def fit(model: RadianceField, dataset: Dataset, settings: TrainSettings, *, iter
     rays = [camera_rays(camera) for camera in dataset.cameras]
     origins = torch.cat([r[0] for r in rays])                               # [P, 3]
     dirs = torch.cat([r[1] for r in rays])                                  # [P, 3]
+    assert dataset.images is not None, "fit needs a dataset loaded with its images"
     colors = dataset.images.reshape(-1, 3)                                  # [P, 3]
     alphas = dataset.alphas.reshape(-1) if dataset.alphas is not None else None
     table = [p for n, p in model.named_parameters() if n.startswith("encoding.")]

@@ -102,6 +102,11 @@ class TrainConfig:
             self.background = list(check_color(self.background, "background"))
         return self
 
+    @property
+    def background_rgb(self) -> Sequence[float] | None:
+        """`background` as `validate` leaves it: a checked [r, g, b] (a name resolved), or None."""
+        return cast("Sequence[float] | None", self.background)
+
 
 @dataclass(frozen=True)
 class Recipe:
@@ -136,6 +141,7 @@ def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
     inside = visual_hull(grid, data.cameras, data.alphas, threshold=0.5)
     colour_sum = torch.zeros(len(grid), 3, dtype=torch.float64)
     seen = torch.zeros(len(grid))
+    assert data.images is not None  # the trainers refuse a dataset loaded without them
     for cam, image in zip(data.cameras, data.images):
         pixel = footprint(cam, grid)
         colour_sum += torch.where(pixel.inside[:, None], image[pixel.v0, pixel.u0].double(), 0.0)
@@ -199,6 +205,7 @@ def background_shell(data: Dataset, centre: torch.Tensor, radius: float, count: 
     sphere = centre + radius * torch.stack([ring * azimuth.cos(), ring * azimuth.sin(), z], dim=1)   # [4B, 3]
     colour_sum = torch.zeros(total, 3, dtype=torch.float64)
     seen = torch.zeros(total, dtype=torch.float64)
+    assert data.images is not None  # the trainers refuse a dataset loaded without them
     for cam, image in zip(data.cameras, data.images):
         pixel = footprint(cam, sphere)
         colour_sum += torch.where(pixel.inside[:, None], image[pixel.v0, pixel.u0].double(), 0.0)
@@ -215,6 +222,7 @@ def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: Train
         points, colours = carve_points(data, centre, extent, config.init_points, gen)
         spacing = None
     else:
+        assert data.point_colors is not None  # the readers that give points give their colours
         points, colours = data.points.to(torch.float64), data.point_colors.to(torch.float64)
         spacing = neighbour_spacing(points)
     if data.alphas is None and config.background_splats > 0:
@@ -340,11 +348,12 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
     """Train `recipe`'s family on the `train` split of a capture (Blender, nerfstudio, COLMAP,
     LLFF) and write `out` (PLY) plus the sidecar `<stem>.json` with the training cameras, the
     views and the settings."""
-    config = TrainConfig(seed=seed, **overrides, **({} if iterations is None else {"iterations": iterations}))
+    extra: dict[str, Any] = {} if iterations is None else {"iterations": iterations}
+    config = TrainConfig(seed=seed, **overrides, **extra)
     source = locate(data, "train")[0].name            # the capture's format: its pose convention
     dataset = load_dataset(data, "train", downscale=downscale, views=views,
                            background=config.background or (1.0, 1.0, 1.0))
-    background = training_background(dataset, config.background)
+    background = training_background(dataset, config.background_rgb)
     started = time.perf_counter()
     model, history = fit(dataset, config, recipe, progress=progress)
     seconds = time.perf_counter() - started
@@ -386,7 +395,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
     model = seed_model(dataset, centre, extent, config, gen, recipe)
     extent = training_extent(dataset, extent)
     splats = Splats(model, config, extent)
-    background = torch.tensor(training_background(dataset, config.background))
+    background = torch.tensor(training_background(dataset, config.background_rgb))
     cam0 = dataset.cameras[0]
     budget = int(config.splats_per_pixel * cam0.width * cam0.height)
     n_iter = config.iterations
@@ -416,6 +425,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
         loss.backward()
         if step < densify_until:
             # Screen-space gradient in NDC units (pixels * W / 2), as the reference thresholds it.
+            assert out.means2d.grad is not None  # retain_grad() before backward() kept it
             g = out.means2d.grad.float() * torch.tensor([cam.width / 2, cam.height / 2])
             grad_sum += torch.where(out.visible, g.norm(dim=-1), 0.0)
             grad_count += out.visible.float()

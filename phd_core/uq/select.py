@@ -203,7 +203,7 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     if checked:
         for key, other in (("a", "b"), ("b", "a")):
             at_other = measure(key, levels[other], keep_full=True)
-            errors = [max(rmse(mine.image, theirs.image), CHECKED_RMSE_FLOOR)
+            errors = [max(rmse(_full(mine), _full(theirs)), CHECKED_RMSE_FLOOR)
                       for mine, theirs in zip(at_other, at_own[other])]
             error = sum(errors)
             per_score = error / max(sum(scores_of(key, levels[other], at_other)), 1e-12)
@@ -215,14 +215,21 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         score_a, score_b = view_scores["a"][i], view_scores["b"][i]
         choice, other = ("a", "b") if score_a <= score_b else ("b", "a")
         image = measured[choice][i].image
-        if images is not None:
-            _score_images(scores, measured["a"][i].image, measured["b"][i].image, image, images[i])
+        if images is not None:          # so both models were measured with keep_full
+            _score_images(scores, _full(measured["a"][i]), _full(measured["b"][i]), _full(measured[choice][i]),
+                          images[i])
         views.append(ViewSelection(index=i, choice=choice, score_a=score_a, score_b=score_b,
                                    image=image if keep_images else None,
                                    other_image=measured[other][i].image if keep_images == "both" else None))
     metrics = _selection_metrics(views, scores) if images is not None else None
     ticker.finish()
     return SelectionResult(views=views, metrics=metrics)
+
+
+def _full(view: ViewUncertainty) -> Tensor:
+    """The full render of a view measured with keep_full=True."""
+    assert view.image is not None
+    return view.image
 
 
 def _score_images(scores: dict[str, list], image_a: Tensor, image_b: Tensor, selected: Tensor,

@@ -270,6 +270,7 @@ class SurfelRenderer(SplatRenderer):
 
     kind = "2dgs"
     model_type = SurfelModel
+    model: SurfelModel          # __init__ refuses any other model (model_type)
     rasterizer = staticmethod(rasterize_surfels)
 
     def prepare(self, camera: Camera) -> View:

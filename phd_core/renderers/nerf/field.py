@@ -189,9 +189,10 @@ class RadianceField(nn.Module):
         c = config
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
+            self.encoding: HashEncoding | PositionalEncoding
             if c.encoding == "hash":
-                self.encoding: nn.Module = HashEncoding(c.hash_levels, c.hash_features, c.hash_log2_size,
-                                                        c.hash_base_resolution, c.hash_max_resolution)
+                self.encoding = HashEncoding(c.hash_levels, c.hash_features, c.hash_log2_size,
+                                             c.hash_base_resolution, c.hash_max_resolution)
             else:
                 self.encoding = PositionalEncoding(c.pos_freqs)
             self.dir_encoding = PositionalEncoding(c.dir_freqs)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Self
 
 import numpy as np
 import torch
@@ -70,8 +70,8 @@ class GaussianModel:
         """The model's tensors, in field order."""
         return self.means, self.log_scales, self.quats, self.opacity_logits, self.sh
 
-    def subset(self, index: torch.Tensor) -> "GaussianModel":
-        """The splats selected by `index`: [M] integer indices or a [G] bool mask."""
+    def subset(self, index: torch.Tensor | slice) -> Self:
+        """The splats selected by `index`: [M] integer indices, a [G] bool mask or a slice."""
         return type(self)(self.means[index], self.log_scales[index], self.quats[index],
                              self.opacity_logits[index], self.sh[index])
 

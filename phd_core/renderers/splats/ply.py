@@ -167,6 +167,7 @@ def _vertex_columns(data: bytes) -> tuple[dict[str, np.ndarray], int]:
         return {name: values[:, j] for j, (name, _) in enumerate(vertex.properties)}, count
 
     order = _FORMATS[fmt]
+    assert order is not None  # every format but ascii (returned above) has a byte order
     for element in before:
         dtype = element.fixed_dtype(order)
         if dtype is None:
@@ -174,6 +175,7 @@ def _vertex_columns(data: bytes) -> tuple[dict[str, np.ndarray], int]:
                                            "property, so the vertex data cannot be located")
         offset += element.count * dtype.itemsize
     dtype = vertex.fixed_dtype(order)
+    assert dtype is not None  # list properties were rejected above
     available = len(data) - offset
     if available < count * dtype.itemsize:
         raise InputError("ply.vertex", f"truncated: the header declares {count} vertices of "
