@@ -18,7 +18,7 @@ from typing import Any
 
 from phd_core.errors import InputError
 from phd_core.scene import Camera
-from phd_core.uq.candidates import GENERATORS, candidate_cameras, parse_spec
+from phd_core.uq.candidates import GENERATORS, candidate_cameras, check_option_names, parse_spec
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -49,6 +49,7 @@ def scene_sources(args: argparse.Namespace, renderer: Any = None) -> tuple[list[
 
 def make(spec: str, renderer: Any = None, cameras: list[Camera] | None = None, points: Any = None) -> list[Camera]:
     name, count, options = parse_spec(spec)
+    check_option_names(name, options)
     return candidate_cameras(name, count, cameras=cameras, points=points, renderer=renderer, **options)
 
 

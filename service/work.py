@@ -31,7 +31,7 @@ from phd_core.renderers import (
 from phd_core.renderers.visibility import PASS_FRAGMENT_BYTES, PASS_UNIT_BYTES, visibility_bytes
 from phd_core.scene import Camera, cameras_from_json
 from phd_core.uq import Progress
-from phd_core.uq.candidates import candidate_cameras
+from phd_core.uq.candidates import candidate_cameras, check_option_names
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
 from phd_core.uq.strategies import get_strategy
@@ -275,9 +275,10 @@ def generated_candidates(record: ModelRecord, body: RankRequest, settings: Setti
     if spec.count > settings.max_candidates:
         raise invalid("candidates.count", f"{spec.count} poses exceed the cap of {settings.max_candidates} per request")
     training = stored_cameras(record)
-    # The ignores below: an option named cameras, points or renderer binds to (or collides with)
-    # candidate_cameras' own parameters, a TypeError rather than a 422 (issue 27 report): left as is.
+    # The ignores below: the options' values are the schema's numbers, which mypy cannot match
+    # with candidate_cameras' typed parameters; their names are checked first.
     try:
+        check_option_names(spec.generator, spec.options)
         if training:
             poses = candidate_cameras(spec.generator, spec.count, cameras=training,
                                       **spec.options)  # type: ignore[arg-type]

@@ -149,6 +149,11 @@ def test_malformed_capture_input_is_a_4xx(svc_start, output_folder) -> None:
                          "candidates.options.tilt"),
                         ({"candidates": {"generator": "orbit", "count": 3, "options": {"rings": 9}}},
                          "candidates.options.rings"),
+                        # candidate_cameras' own parameters are no option: they would bind to them
+                        ({"candidates": {"generator": "orbit", "count": 3, "options": {"cameras": 3}}},
+                         "candidates.options.cameras"),
+                        ({"candidates": {"generator": "orbit", "count": 3, "options": {"points": 3}}},
+                         "candidates.options.points"),
                         ({"candidates": {"generator": "orbit", "count": 0}}, "candidates.count"),
                         ({}, None),
                         ({"candidates": {"generator": "orbit"}, "cameras": [svc_cameras(1)[0].to_frame()]}, None)):

@@ -18,7 +18,7 @@ import inspect
 import math
 import re
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import torch
 
@@ -69,6 +69,19 @@ def _derived(frame: SceneFrame, points: torch.Tensor | None) -> dict[str, Any]:
     return values
 
 
+OWN_PARAMETERS = ("count", "cameras", "points", "renderer")   # candidate_cameras' own, never a generator option
+
+
+def check_option_names(generator: str, options: Mapping[str, Any]) -> None:
+    """Refuse an option named like one of `candidate_cameras`' own parameters: passed as
+    **options it would bind to that parameter (or collide with it) instead of reaching the
+    generator. Callers that forward a user's options check them with this first."""
+    for key in options:
+        if key in OWN_PARAMETERS:
+            raise InputError(f"options.{key}", f"{key!r} is not an option of generator {generator!r}: it names "
+                                               "the scene the poses are placed around, which the caller gives")
+
+
 def candidate_cameras(generator: str, count: int, *, cameras: Sequence[Camera] | None = None,
                       points: torch.Tensor | None = None, renderer: object | None = None,
                       **options: Any) -> list[Camera]:
@@ -90,8 +103,8 @@ def candidate_cameras(generator: str, count: int, *, cameras: Sequence[Camera] |
     accepted = inspect.signature(entry.generate).parameters
     takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in accepted.values())
     for key in options:
-        if key in ("count", "cameras", "points") or (key not in accepted and not takes_any):
-            takes = sorted(k for k in accepted if k not in ("count", "cameras", "points"))
+        if key in OWN_PARAMETERS or (key not in accepted and not takes_any):
+            takes = sorted(k for k in accepted if k not in OWN_PARAMETERS)
             raise InputError(f"options.{key}", f"generator {generator!r} takes {', '.join(takes) or 'no options'}")
     frame = scene_frame(cameras, points) if cameras or points is not None else None
     kwargs = dict(options)
