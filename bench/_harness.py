@@ -28,6 +28,7 @@ from phd_core.data import Dataset, load_blender, load_dataset
 from phd_core.io import write_bytes_atomic, write_json_atomic
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, write_ply
 from phd_core.renderers.splats import SH_C0
+from phd_core.scene import Camera
 from phd_core.train.gs3d import TrainConfig, fit, training_background
 from phd_core.uq.candidates import hemisphere_cameras
 
@@ -255,6 +256,39 @@ def donut_model(splats: int = SPLATS, seed: int = 0) -> GaussianModel:
     colour = (colour + 0.08 * torch.randn(splats, 3, generator=g, **f64)).clamp(0, 1)
     return GaussianModel(means.float(), log_scales.float(), quats.float(), logits.float(),
                          ((colour - 0.5) / SH_C0)[:, None, :].float())
+
+
+
+SPACING = 2.0           # scene units between neighbouring copies (a donut is about 2.3 across)
+SH3_STD = 0.08          # std of the seeded higher SH coefficients of an SH-3 model
+
+
+def grid_offsets(copies: int) -> torch.Tensor:
+    """[copies, 3] centres of the copies: a near-square grid in z = 0, centred on the origin."""
+    cols = math.ceil(math.sqrt(copies))
+    index = torch.arange(copies)
+    cells = torch.stack([index % cols, index // cols], -1).double()
+    cells -= cells.mean(0)
+    return torch.cat([cells * SPACING, torch.zeros(copies, 1, dtype=torch.float64)], -1)
+
+
+def tiled_model(copies: int, sh_degree: int, seed: int = 0) -> GaussianModel:
+    """`copies` donuts side by side (`grid_offsets`) with SH degree `sh_degree`."""
+    donut = donut_model(seed=seed)
+    g = donut.num_splats
+    k = (sh_degree + 1) ** 2
+    higher = torch.randn(g * copies, k - 1, 3, generator=torch.Generator().manual_seed(seed + 1)) * SH3_STD
+    offsets = grid_offsets(copies).float().repeat_interleave(g, 0)             # [G, 3]
+    return GaussianModel(means=donut.means.repeat(copies, 1) + offsets, log_scales=donut.log_scales.repeat(copies, 1),
+                         quats=donut.quats.repeat(copies, 1), opacity_logits=donut.opacity_logits.repeat(copies),
+                         sh=torch.cat([donut.sh.repeat(copies, 1, 1), higher], 1).contiguous())
+
+
+def donut_cameras(width: int, height: int, count: int, split: str = "test") -> list[Camera]:
+    """The first `count` poses of donut_200's `split` at width x height."""
+    cameras = load_blender(DONUT, split, with_images=False).cameras
+    step = max(1, len(cameras) // count)
+    return [c.resized(width, height) for c in cameras[::step][:count]]
 
 
 def child(args: list[str], env: dict[str, str] | None = None, cwd: Path = ROOT) -> dict:

@@ -6,9 +6,9 @@ camera (`prepare_view`, then N masked renders) with either version's fragments.
 
 The earlier `gs3d/kernels.py` is read from git and loaded beside the current one (its relative
 imports resolve against today's package, which holds for any revision whose kernels import the
-same names). Model: bench_scale's 1,003,728-splat SH-3 tiling of the donut; cameras: donut_200's
-ring poses. Writes bench/results/fragments.json and the table between the `bench:fragments`
-markers of docs/performance.md.
+same names). Model: the harness's 1,003,728-splat SH-3 tiling of the donut (`tiled_model`, as
+bench_scale uses); cameras: donut_200's ring poses. Writes bench/results/fragments.json and
+the table between the `bench:fragments` markers of docs/performance.md.
 """
 
 from __future__ import annotations
@@ -24,8 +24,7 @@ from pathlib import Path
 import numba
 import torch
 
-from bench._harness import DOCS, RESULTS, ROOT, write_doc, write_result
-from bench.bench_scale import candidate_cameras, tiled_model
+from bench._harness import DOCS, RESULTS, ROOT, donut_cameras, tiled_model, write_doc, write_result
 from phd_core.renderers.gs3d import kernels, render
 from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, front_to_back, prepare_view
 from phd_core.renderers.splats import DEFAULT_TILE
@@ -75,7 +74,7 @@ def main() -> None:
     for width in args.widths:
         height = width * 3 // 4
         seconds: dict[str, list[float]] = {"before": [], "now": [], "camera_before": [], "camera_now": []}
-        for camera in candidate_cameras(width, height, args.cameras):
+        for camera in donut_cameras(width, height, args.cameras):
             means2d, conics, opacities, extents, depths, visible = kernels.project_splats(
                 model.means, model.quats, model.log_scales, model.opacity_logits, camera, NEAR_PLANE, DILATION)
             ids = front_to_back(visible, depths)

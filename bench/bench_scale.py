@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import gc
 import json
-import math
 import os
 import subprocess
 import sys
@@ -38,50 +37,18 @@ from bench._harness import (
     RESULTS,
     ROOT,
     child,
-    donut_model,
+    donut_cameras,
     load_at_start,
     load_average,
     machine,
     svg_plot,
+    tiled_model,
     write_result,
 )
-from phd_core.data import load_blender
 from phd_core.eval.uq import kendall_tau_b
-from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, write_ply
+from phd_core.renderers.gs3d import GaussianRenderer, write_ply
 from phd_core.scene import Camera
 from phd_core.uq.strategies import DEFAULT_STRATEGY
-
-SPACING = 2.0           # scene units between neighbouring copies (a donut is about 2.3 across)
-SH3_STD = 0.08          # std of the seeded higher SH coefficients of an SH-3 model
-
-
-def grid_offsets(copies: int) -> torch.Tensor:
-    """[copies, 3] centres of the copies: a near-square grid in z = 0, centred on the origin."""
-    cols = math.ceil(math.sqrt(copies))
-    index = torch.arange(copies)
-    cells = torch.stack([index % cols, index // cols], -1).double()
-    cells -= cells.mean(0)
-    return torch.cat([cells * SPACING, torch.zeros(copies, 1, dtype=torch.float64)], -1)
-
-
-def tiled_model(copies: int, sh_degree: int, seed: int = 0) -> GaussianModel:
-    """`copies` donuts side by side (`grid_offsets`) with SH degree `sh_degree`."""
-    donut = donut_model(seed=seed)
-    g = donut.num_splats
-    k = (sh_degree + 1) ** 2
-    higher = torch.randn(g * copies, k - 1, 3, generator=torch.Generator().manual_seed(seed + 1)) * SH3_STD
-    offsets = grid_offsets(copies).float().repeat_interleave(g, 0)             # [G, 3]
-    return GaussianModel(means=donut.means.repeat(copies, 1) + offsets, log_scales=donut.log_scales.repeat(copies, 1),
-                         quats=donut.quats.repeat(copies, 1), opacity_logits=donut.opacity_logits.repeat(copies),
-                         sh=torch.cat([donut.sh.repeat(copies, 1, 1), higher], 1).contiguous())
-
-
-def candidate_cameras(width: int, height: int, count: int, split: str = "test") -> list[Camera]:
-    """The first `count` poses of donut_200's `split` at width x height."""
-    cameras = load_blender(DONUT, split, with_images=False).cameras
-    step = max(1, len(cameras) // count)
-    return [c.resized(width, height) for c in cameras[::step][:count]]
-
 
 # ----------------------------------------------------------------------------- one model (child)
 
@@ -131,13 +98,13 @@ def measure_model(copies: int, sh: int, widths: list[int], samples: list[int], c
         renderer = load_model(ply)
         out = {"copies": copies, "sh": sh, "splats": renderer.num_units, "ply_mb": round(ply.stat().st_size / 2**20, 1),
                "load_s": round(time.perf_counter() - start, 3), "rss_after_load_mb": rss_mb("VmRSS")}
-    warm = candidate_cameras(20, 15, 1)[0]
+    warm = donut_cameras(20, 15, 1)[0]
     renderer.prepare(warm).render(torch.ones(2, renderer.num_units, dtype=torch.bool))   # kernels loaded
     keeps = {n: uq.keep_masks(uq.dropout_uniforms(renderer.num_units, n, 0), ratio) for n in samples}
     out["cells"] = []
     for width in widths:
         height = width * 3 // 4
-        cameras = candidate_cameras(width, height, candidates)
+        cameras = donut_cameras(width, height, candidates)
         stages = [stage_times(renderer, camera, keeps) for camera in cameras]
         mean = {key: sum(s[key] for s in stages) / len(stages) for key in stages[0]}
         for n in samples:
@@ -152,7 +119,7 @@ def measure_model(copies: int, sh: int, widths: list[int], samples: list[int], c
                                  "visible": round(mean["visible"]), "fragments": round(mean["fragments"])})
             print(copies, sh, out["cells"][-1], flush=True)
         if calibration_views and width in calibration_widths:
-            training = candidate_cameras(width, height, calibration_views, "train")
+            training = donut_cameras(width, height, calibration_views, "train")
             start = time.perf_counter()
             try:
                 result = uq.calibrate(renderer, training)
@@ -220,7 +187,7 @@ def profile(copies: int, sh: int, width: int, samples: int, cameras: int, ratio:
     from phd_core import uq
 
     renderer = GaussianRenderer(tiled_model(copies, sh))
-    poses = candidate_cameras(width, width * 3 // 4, cameras + 1)
+    poses = donut_cameras(width, width * 3 // 4, cameras + 1)
     keep = uq.keep_masks(uq.dropout_uniforms(renderer.num_units, samples, 0), ratio)
     renderer.prepare(poses[0]).render(keep)                                      # kernels loaded
     profiler = cProfile.Profile(time.process_time)       # CPU seconds: the machine may be shared
@@ -258,8 +225,8 @@ def coarse_trade(copies: int, sh: int, candidates: int, width: int, samples: int
     from phd_core import uq
 
     renderer = GaussianRenderer(tiled_model(copies, sh))
-    renderer.training_cameras = candidate_cameras(width, width * 3 // 4, 16, "train")
-    cameras = candidate_cameras(width, width * 3 // 4, candidates)
+    renderer.training_cameras = donut_cameras(width, width * 3 // 4, 16, "train")
+    cameras = donut_cameras(width, width * 3 // 4, candidates)
     renderer.prepare(cameras[0].resized(20, 15)).render()                       # kernels loaded
     out = {"copies": copies, "sh": sh, "splats": renderer.num_units, "candidates": len(cameras), "width": width,
            "height": width * 3 // 4, "samples": samples, "ratio": ratio, "rows": []}
