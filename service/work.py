@@ -385,18 +385,21 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     kept = 0
     rule = uq.SELECTION_RULES[body.rule]     # the schema admits registered names only
     if rule.relative:
-        for name, record in (("model_a", record_a), ("model_b", record_b)):
+        records = {"model_a": record_a, "model_b": record_b}
+        training: dict[str, list[Camera]] = {}
+        for name, record in records.items():
             if not record.training_frames:
                 raise invalid(name, f"the model has no training cameras, which rule '{body.rule}' needs: upload "
                               "it with its cameras, or use rule 'sigma_mean'")
-        own = {"model_a": level_views(stored_cameras(record_a)), "model_b": level_views(stored_cameras(record_b))}
-        for name, other, record in (("model_a", "model_b", record_a), ("model_b", "model_a", record_b)):
-            levels[name] = own[name]
-            if rule.coverage:   # every training view is rendered too, and what each view sees kept
-                levels[name] = stored_cameras(record)
-                kept += sum(visibility_bytes(record.num_units, c) for c in cameras + levels[name])
-            if rule.checked:    # also at the other's level views; both full renders kept there
-                levels[name] = levels[name] + own[other]
+            training[name] = stored_cameras(record)
+        own = {name: level_views(cams) for name, cams in training.items()}
+        for name, other in (("model_a", "model_b"), ("model_b", "model_a")):
+            # Its own level views; with coverage every training view (what each view sees is kept);
+            # checked: also the other's level views, where both full renders are kept.
+            levels[name] = (training[name] if rule.coverage else own[name]) + (own[other] if rule.checked else [])
+            if rule.coverage:
+                kept += sum(visibility_bytes(records[name].num_units, c) for c in cameras + levels[name])
+            if rule.checked:
                 kept += 2 * 12 * pixels(own[other])
         levels_rendered = 2 if rule.checked else 1       # its own, and the other's
         estimate += 2 * levels_rendered * uq.SELECTION_TRAINING_VIEWS * pixels(cameras[:1]) * samples
