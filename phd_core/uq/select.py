@@ -203,9 +203,8 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     if checked:
         for key, other in (("a", "b"), ("b", "a")):
             at_other = measure(key, levels[other], keep_full=True)
-            errors = [max(rmse(_full(mine), _full(theirs)), CHECKED_RMSE_FLOOR)
-                      for mine, theirs in zip(at_other, at_own[other])]
-            error = sum(errors)
+            error = sum(max(rmse(_full(mine), _full(theirs)), CHECKED_RMSE_FLOOR)
+                        for mine, theirs in zip(at_other, at_own[other]))
             per_score = error / max(sum(scores_of(key, levels[other], at_other)), 1e-12)
             view_scores[key] = [score * per_score for score in view_scores[key]]
 

@@ -78,8 +78,9 @@ def check_option_names(generator: str, options: Mapping[str, Any]) -> None:
     generator. Callers that forward a user's options check them with this first."""
     for key in options:
         if key in OWN_PARAMETERS:
-            raise InputError(f"options.{key}", f"{key!r} is not an option of generator {generator!r}: it names "
-                                               "the scene the poses are placed around, which the caller gives")
+            raise InputError(f"options.{key}", f"{key!r} is not an option of generator {generator!r}: the "
+                                               "caller sets it (the pose count, or the scene the poses are placed "
+                                               "around)")
 
 
 def candidate_cameras(generator: str, count: int, *, cameras: Sequence[Camera] | None = None,
@@ -103,7 +104,7 @@ def candidate_cameras(generator: str, count: int, *, cameras: Sequence[Camera] |
     accepted = inspect.signature(entry.generate).parameters
     takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in accepted.values())
     for key in options:
-        if key in OWN_PARAMETERS or (key not in accepted and not takes_any):
+        if key not in accepted and not takes_any:        # OWN_PARAMETERS never get here: they bind above
             takes = sorted(k for k in accepted if k not in OWN_PARAMETERS)
             raise InputError(f"options.{key}", f"generator {generator!r} takes {', '.join(takes) or 'no options'}")
     frame = scene_frame(cameras, points) if cameras or points is not None else None
