@@ -65,6 +65,8 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     p.add_argument("--strategies", nargs="+", default=SHIPPED, choices=list(STRATEGIES))
     p.add_argument("--samples", type=int, default=phd.DEFAULT_SAMPLES)
+    p.add_argument("--rerun", action="store_true", help="run the listed strategies again even where results are "
+                   "stored (rows from another machine set-up start from a differently trained initial model)")
     p.add_argument("--jobs", type=int, default=1, help="(scene, seed) tasks run in parallel, one thread each")
     p.add_argument("--results", type=Path, default=None, help="default: bench/results/nbv, or nbv_<R>px for a "
                    "--resolution R other than 50 (its own doc section and plots)")
@@ -128,7 +130,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     init = initial_views(train_data.cameras, args.initial, seed)
     result = stored or {"scene": scene, "seed": seed, "protocol": protocol(args), "initial": init, "runs": {},
                         "spearman": {}}
-    todo = [s for s in args.strategies if s not in result["runs"] or s not in result["spearman"]]
+    todo = [s for s in args.strategies
+            if args.rerun or s not in result["runs"] or s not in result["spearman"]]
     if not todo:
         return f"{scene} seed {seed}: stored"
     started = time.perf_counter()
