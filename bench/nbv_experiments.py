@@ -12,6 +12,9 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
 - fvs_top: fvs_sigma_floor with sigma_top in place of sigma_mean.
 - fvs_prefilter: among the candidates at least as far from the captured poses as the
   median candidate, the highest sigma_mean (a coverage prefilter, then uncertainty).
+- visibility_sigma_angle0.25, visibility_sigma_angle1: the default with a sharper (`near`
+  falls to 1/e at 41 degrees, not 60) or broader (90 degrees) direction kernel: sharper, a
+  part's value follows its nearest captured direction more than the sum over all of them.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from torch import Tensor
 
 from phd_core.uq.strategies import STRATEGIES, Evidence, Selection, Strategy
 from phd_core.uq.strategies.base import by_score, centres, greedy
+from phd_core.uq.strategies.visibility import coverage_select
 
 
 def _k_median(evidence: Evidence, k: int, demand: Tensor, power: int) -> Selection:
@@ -57,7 +61,13 @@ def _k_median_strategy(demand: Callable[[Evidence], Tensor], power: int) -> Call
     return lambda evidence, k, seed: _k_median(evidence, k, demand(evidence), power)
 
 
-EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma_top", "sigma_area", "fvs_top")
+EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma_top", "sigma_area", "fvs_top",
+               "visibility_sigma_angle0.25", "visibility_sigma_angle1")
+
+
+def _visibility_angle(scale: float) -> Callable[[Evidence, int, int], Selection]:
+    return lambda evidence, k, seed: coverage_select(evidence, k, fragility=True, angle_scale=scale)
+
 
 for _strategy in (
         Strategy("kmedian", "greedy k-median over the candidate poses", _k_median_strategy(_uniform, 1),
@@ -70,5 +80,7 @@ for _strategy in (
         Strategy("sigma_top", "highest mean of the top 10 % of pixels' zeta",
                  lambda ev, k, seed: by_score(ev.sigma_top)),
         Strategy("sigma_area", "largest share of pixels with zeta above 0.05", lambda ev, k, seed: by_score(ev.area)),
-        Strategy("fvs_top", "distance times (sigma_top + its mean), greedy", _fvs_top)):
+        Strategy("fvs_top", "distance times (sigma_top + its mean), greedy", _fvs_top),
+        *(Strategy(f"visibility_sigma_angle{scale:g}", f"visibility_sigma with the direction kernel at {scale:g}",
+                   _visibility_angle(scale), uses_visibility=True) for scale in (0.25, 1.0))):
     STRATEGIES.register(_strategy)

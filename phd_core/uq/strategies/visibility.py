@@ -43,9 +43,9 @@ ANGLE_SCALE = 0.5        # 1 - cos(angle) at which `near` falls to 1/e (60 degre
 EMPTY_WEIGHT = 0.1       # a pixel of empty box against a pixel of unseen model (0.5 lost 1.1 dB on lego, docs/nbv.md)
 
 
-def near(a: Tensor, b: Tensor) -> Tensor:
+def near(a: Tensor, b: Tensor, scale: float = ANGLE_SCALE) -> Tensor:
     """[K] similarity of unit directions a, b [K, 3] (or b [3]): 1 when equal, falling with the angle."""
-    return torch.exp(-(1.0 - (a * b).sum(-1)) / ANGLE_SCALE)
+    return torch.exp(-(1.0 - (a * b).sum(-1)) / scale)
 
 
 def directions(points: Tensor, camera_centre: Tensor) -> Tensor:
@@ -78,7 +78,8 @@ class Candidate:
 class Coverage:
     """The candidates' novelty, conditioned on every view counted as captured so far."""
 
-    def __init__(self, candidates: list[Visibility], fragility: bool):
+    def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE):
+        self.angle_scale = angle_scale
         union = torch.unique(torch.cat([v.elements for v in candidates]))
         self.size = len(union)
         self.points = torch.zeros(self.size, 3, dtype=torch.float64)
@@ -107,8 +108,8 @@ class Coverage:
             touched = s > 0
             if touched.any():
                 toward = directions(self.points[cand.index[touched]], centre)
-                cand.novelty[touched] *= 1.0 - s[touched] * near(cand.dirs[touched], toward)
-            cand.axis_novelty *= 1.0 - float(near(cand.axis, axis))
+                cand.novelty[touched] *= 1.0 - s[touched] * near(cand.dirs[touched], toward, self.angle_scale)
+            cand.axis_novelty *= 1.0 - float(near(cand.axis, axis, self.angle_scale))
 
 
 def seen_share(vis: Visibility) -> Tensor:
@@ -123,12 +124,12 @@ def _mean_zeta(views: list[Visibility]) -> float:
     return valued / weight if weight > 0 else 0.0
 
 
-def coverage_select(evidence: Evidence, k: int, fragility: bool) -> Selection:
+def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: float = ANGLE_SCALE) -> Selection:
     """Greedy batch by coverage (module docstring); the rest follow by their value after it."""
     count = len(evidence.candidates)
     if evidence.candidate_views is None or evidence.captured_views is None:
         return FVS_SIGMA_FLOOR.select(evidence, k, 0)
-    coverage = Coverage(evidence.candidate_views, fragility)
+    coverage = Coverage(evidence.candidate_views, fragility, angle_scale)
     for vis in evidence.captured_views:
         coverage.capture(vis)
     taken = [False] * count
