@@ -15,6 +15,8 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
 - visibility_sigma_angle0.25, visibility_sigma_angle1: the default with a sharper (`near`
   falls to 1/e at 41 degrees, not 60) or broader (90 degrees) direction kernel: sharper, a
   part's value follows its nearest captured direction more than the sum over all of them.
+- visibility_sigma_fvs: the default's value times the candidate's distance to the nearest
+  captured (or picked) centre: what the model has not seen, spread as FVS spreads.
 """
 
 from __future__ import annotations
@@ -62,7 +64,7 @@ def _k_median_strategy(demand: Callable[[Evidence], Tensor], power: int) -> Call
 
 
 EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma_top", "sigma_area", "fvs_top",
-               "visibility_sigma_angle0.25", "visibility_sigma_angle1")
+               "visibility_sigma_angle0.25", "visibility_sigma_angle1", "visibility_sigma_fvs")
 
 
 def _visibility_angle(scale: float) -> Callable[[Evidence, int, int], Selection]:
@@ -82,5 +84,7 @@ for _strategy in (
         Strategy("sigma_area", "largest share of pixels with zeta above 0.05", lambda ev, k, seed: by_score(ev.area)),
         Strategy("fvs_top", "distance times (sigma_top + its mean), greedy", _fvs_top),
         *(Strategy(f"visibility_sigma_angle{scale:g}", f"visibility_sigma with the direction kernel at {scale:g}",
-                   _visibility_angle(scale), uses_visibility=True) for scale in (0.25, 1.0))):
+                   _visibility_angle(scale), uses_visibility=True) for scale in (0.25, 1.0)),
+        Strategy("visibility_sigma_fvs", "visibility_sigma times the distance to the nearest captured centre",
+                 lambda ev, k, seed: coverage_select(ev, k, fragility=True, spread=True), uses_visibility=True)):
     STRATEGIES.register(_strategy)

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from ...renderers.visibility import Visibility
-from .base import Evidence, Selection, Strategy
+from .base import Evidence, Selection, Strategy, centres
 from .hybrid import FVS_SIGMA_FLOOR
 
 SEEN_SHARE = 0.25        # visible share at which a captured view counts as having seen an element
@@ -124,26 +124,38 @@ def _mean_zeta(views: list[Visibility]) -> float:
     return valued / weight if weight > 0 else 0.0
 
 
-def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: float = ANGLE_SCALE) -> Selection:
-    """Greedy batch by coverage (module docstring); the rest follow by their value after it."""
+def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: float = ANGLE_SCALE,
+                    spread: bool = False) -> Selection:
+    """Greedy batch by coverage (module docstring); the rest follow by their value after it.
+    spread: each value times the distance from the candidate's centre to the nearest captured
+    (or picked) one, as farthest-view sampling weighs (tried on the benchmark)."""
     count = len(evidence.candidates)
     if evidence.candidate_views is None or evidence.captured_views is None:
         return FVS_SIGMA_FLOOR.select(evidence, k, 0)
     coverage = Coverage(evidence.candidate_views, fragility, angle_scale)
     for vis in evidence.captured_views:
         coverage.capture(vis)
+    cand = centres(evidence.candidates)                                         # [C, 3]
+    nearest = (torch.cdist(cand, centres(evidence.captured)).min(dim=1).values
+               if spread and evidence.captured else torch.ones(count, dtype=torch.float64))
+
+    def value(i: int) -> float:
+        return coverage.candidates[i].value() * float(nearest[i])
+
     taken = [False] * count
     order, scores = [], [0.0] * count
     for _ in range(min(k, count)):
-        values = [-float("inf") if taken[i] else c.value() for i, c in enumerate(coverage.candidates)]
+        values = [-float("inf") if taken[i] else value(i) for i in range(count)]
         i = max(range(count), key=lambda j: (values[j], -j))         # the first maximum: lower index on ties
         order.append(i)
         scores[i] = values[i]
         taken[i] = True
         coverage.capture(evidence.candidate_views[i])
-    rest = [(coverage.candidates[i].value(), i) for i in range(count) if not taken[i]]
-    for value, i in rest:
-        scores[i] = value
+        if spread:
+            nearest = torch.minimum(nearest, (cand - cand[i]).norm(dim=1))
+    rest = [(value(i), i) for i in range(count) if not taken[i]]
+    for v, i in rest:
+        scores[i] = v
     return Selection(order + [i for _, i in sorted(rest, key=lambda item: (-item[0], item[1]))], scores)
 
 
