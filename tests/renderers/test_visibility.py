@@ -10,7 +10,7 @@ from reference.gaussians import render_reference
 from phd_core.renderers.gs2d import SurfelRenderer
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField
-from phd_core.renderers.visibility import fragment_visibility
+from phd_core.renderers.visibility import fragment_visibility, fragment_visibility_reference
 from phd_core.scene import look_at
 from support.surfels import random_surfels
 
@@ -48,15 +48,37 @@ def test_splat_weights_equal_a_float64_count_by_hand(seed: int) -> None:
     assert float(vis.valued.sum()) < float(vis.weight.sum())        # values in [0, 1)
 
 
-def test_fragment_sums_follow_the_compositors_stop_rule() -> None:
+@pytest.mark.parametrize("sums_of", [fragment_visibility, fragment_visibility_reference])
+def test_fragment_sums_follow_the_compositors_stop_rule(sums_of) -> None:
     # One pixel, three opaque fragments: the third would bring T below 1e-4 and is not used.
     row_ptr = torch.tensor([0, 3, 3])                       # a second pixel with nothing on it
     alpha = torch.tensor([0.99, 0.98, 0.99])
-    sums = fragment_visibility(row_ptr, alpha, torch.tensor([2, 0, 1]), 3, torch.tensor([2.0, 5.0]))
+    sums = sums_of(row_ptr, alpha, torch.tensor([2, 0, 1]), 3, torch.tensor([2.0, 5.0]))
     np.testing.assert_allclose(sums.weight.numpy(), [0.98 * 0.01, 0.0, 0.99], rtol=1e-6)
     np.testing.assert_allclose(sums.footprint.numpy(), [0.98, 0.99, 0.99], rtol=1e-6)
     np.testing.assert_allclose(sums.valued.numpy(), [2 * 0.98 * 0.01, 0.0, 2 * 0.99], rtol=1e-6)
     np.testing.assert_allclose(sums.left.numpy(), [0.01 * 0.02, 1.0], rtol=1e-5)
+
+
+@pytest.mark.parametrize("with_values", [True, False])
+def test_compiled_fragment_sums_match_the_torch_twin(with_values: bool) -> None:
+    # Random rows of 0-60 fragments, dense enough that many rows stop before their end, and
+    # elements shared between rows (the sums gather across pixels).
+    g = torch.Generator().manual_seed(4)
+    counts = torch.randint(0, 61, (300,), generator=g)
+    row_ptr = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
+    alpha = (torch.rand(int(counts.sum()), generator=g) * 0.99).float()
+    element = torch.randint(0, 500, (len(alpha),), generator=g)
+    values = torch.rand(300, generator=g, dtype=torch.float64) if with_values else None
+    fast = fragment_visibility(row_ptr, alpha, element, 500, values)
+    slow = fragment_visibility_reference(row_ptr, alpha, element, 500, values)
+    assert (slow.left < 1e-3).sum() > 50                   # many rows reach the stop rule
+    for a, b in [(fast.weight, slow.weight), (fast.footprint, slow.footprint), (fast.left, slow.left)]:
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-9, atol=1e-12)
+    if with_values:
+        np.testing.assert_allclose(fast.valued.numpy(), slow.valued.numpy(), rtol=1e-9, atol=1e-12)
+    else:
+        assert fast.valued is None and slow.valued is None
 
 
 def test_surfel_weights_add_up_to_the_rendered_alpha_and_empty_space_is_counted() -> None:
