@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 from reference.gaussians import render_reference
-from support.surfels import random_surfels
 
 from phd_core.errors import InputError
 from phd_core.renderers.gs2d import SurfelRenderer
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField
 from phd_core.scene import look_at
+from support.surfels import random_surfels
 
 GREY = (0.5, 0.4, 0.3)
 CAMERA = look_at((0.3, -3.0, 1.0), (0, 0, 0), width=20, height=14, fov_x=0.7)
