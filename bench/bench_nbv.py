@@ -17,6 +17,10 @@ strategy, so an interrupted run resumes; `--report` rewrites docs/nbv.md from th
     .venv/bin/python -m bench.bench_nbv --jobs 2 --seeds 0 --strategies sigma_mean kmedian kmedian_sigma \
         kmedian_sq fvs_prefilter                                  # the ones tried and not shipped
     .venv/bin/python -m bench.bench_nbv --report
+
+A run name `<strategy>+<signal>` (e.g. `visibility_sigma+premultiplied`) runs a dropout strategy
+with zeta and r_drop measured on that signal (phd_core.renderers.SIGNALS) instead of the
+paper's composited colour; the results carry the name as their strategy label.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from bench._harness import DATA, DOCS, RESULTS, fmt, machine, svg_plot, train, w
 from phd_core import uq as phd
 from phd_core.data import Dataset, load_dataset
 from phd_core.eval import psnr, rmse, spearman
+from phd_core.renderers import DEFAULT_SIGNAL, SIGNALS
 from phd_core.renderers.gs3d import GaussianRenderer
 from phd_core.uq.rank import add_fisher, visibility_evidence
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy
@@ -63,7 +68,8 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--test-views", type=int, default=40)
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    p.add_argument("--strategies", nargs="+", default=SHIPPED, choices=list(STRATEGIES))
+    p.add_argument("--strategies", nargs="+", default=SHIPPED, choices=run_names(),
+                   help="strategy names, or <strategy>+<signal> for a dropout strategy on another signal")
     p.add_argument("--samples", type=int, default=phd.DEFAULT_SAMPLES)
     p.add_argument("--rerun", action="store_true", help="run the listed strategies again even where results are "
                    "stored (rows from another machine set-up start from a differently trained initial model)")
@@ -75,6 +81,18 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--costs", action="store_true", help="time rank_views per candidate for every strategy on one "
                    "model (the first scene and seed), one run, to bench/results/nbv/costs.json")
     return p.parse_args()
+
+
+def run_names() -> list[str]:
+    """Every strategy, and each dropout strategy on each signal other than the default."""
+    return list(STRATEGIES) + [f"{name}+{signal}" for name, strategy in STRATEGIES.items() if strategy.uses_dropout
+                               for signal in SIGNALS if signal != DEFAULT_SIGNAL]
+
+
+def variant(name: str) -> tuple[str, str]:
+    """(strategy, signal) of a run name: `visibility_sigma+premultiplied`, or a plain strategy name."""
+    strategy, _, signal = name.partition("+")
+    return strategy, signal or DEFAULT_SIGNAL
 
 
 def tag(args: argparse.Namespace) -> str:
@@ -114,8 +132,8 @@ def load_split(args: argparse.Namespace, scene: str, split: str, **kw) -> Datase
                         **kw)
 
 
-def calibrated_ratio(renderer: GaussianRenderer, captured: list) -> float:
-    return phd.calibrate(renderer, captured).r_drop
+def calibrated_ratio(renderer: GaussianRenderer, captured: list, signal: str = DEFAULT_SIGNAL) -> float:
+    return phd.calibrate(renderer, captured, signal=signal).r_drop
 
 
 def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
@@ -138,13 +156,17 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     base = train(train_data, init, args.iterations, seed)
     base_psnr, base_rmse = test_errors(base, test)
     captured = [train_data.cameras[i] for i in init]
-    ratio = calibrated_ratio(base, captured)
-    test_evidence, _ = phd.candidate_evidence(base, test.cameras, ratio=ratio, samples=args.samples, seed=seed,
-                                              captured=captured, visibility=True,
-                                              fisher=any(get_strategy(n).uses_fisher for n in todo))
+    initial: dict[str, tuple[float, Evidence]] = {}     # by signal: r_drop of the initial model, test evidence
+    for signal in dict.fromkeys(variant(n)[1] for n in todo):
+        ratio = calibrated_ratio(base, captured, signal)
+        initial[signal] = ratio, phd.candidate_evidence(
+            base, test.cameras, ratio=ratio, samples=args.samples, seed=seed, captured=captured, visibility=True,
+            fisher=any(get_strategy(variant(n)[0]).uses_fisher for n in todo), signal=signal)[0]
     result["initial_seconds"] = round(time.perf_counter() - started, 1)
     for name in todo:
-        strategy = get_strategy(name)
+        strategy_name, signal = variant(name)
+        strategy = get_strategy(strategy_name)
+        ratio, test_evidence = initial[signal]
         result["spearman"][name] = spearman(strategy.select(test_evidence, 0, seed).scores, base_rmse)
         started = time.perf_counter()
         chosen, renderer, curve, ratios = list(init), base, [base_psnr], [ratio]
@@ -156,7 +178,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
             ranked_at = time.perf_counter()
             if strategy.uses_dropout:
                 ranked = phd.rank_views(renderer, candidates, ratio=ratios[-1], samples=args.samples,
-                                        seed=seed + round_, top_k=args.per_round, strategy=name, captured=captured)
+                                        seed=seed + round_, top_k=args.per_round, strategy=strategy_name,
+                                        captured=captured, signal=signal)
                 picks = [r.index for r in ranked]
             else:   # the same picks rank_views makes, without the dropout renders it would report
                 if strategy.uses_visibility:
@@ -172,7 +195,7 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
             renderer = train(train_data, chosen, args.iterations, seed)
             curve.append(test_errors(renderer, test)[0])
             if strategy.uses_dropout and round_ < args.rounds - 1:
-                ratios.append(calibrated_ratio(renderer, [train_data.cameras[i] for i in chosen]))
+                ratios.append(calibrated_ratio(renderer, [train_data.cameras[i] for i in chosen], signal))
         result["runs"][name] = {"psnr": curve, "chosen": chosen, "ratios": ratios, "cost_per_candidate": cost,
                                 "seconds": round(time.perf_counter() - started, 1)}
         write_result(path, result)
@@ -225,6 +248,9 @@ def summary(tasks: list[dict], name: str) -> dict | None:
 
 
 def label(name: str) -> str:
+    strategy, signal = variant(name)
+    if signal != DEFAULT_SIGNAL:
+        return f"{name} ({strategy} with zeta and r_drop on the {signal} signal)"
     return (f"**{name}** (default)" if name == DEFAULT_STRATEGY else
             f"{name} (tried, bench/nbv_experiments.py)" if name in EXPERIMENTS
             else name if name in STRATEGIES else f"{name} (tried, removed; docs/nbv.md says where its code is)")
@@ -341,9 +367,10 @@ def measure_costs(args: argparse.Namespace) -> dict:
     phd.rank_views(renderer, candidates[:2], ratio=ratio, samples=args.samples, strategy="fisher", captured=captured)
     costs = {}
     for name in args.strategies:
+        strategy, signal = variant(name)
         started = time.perf_counter()
         phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=seed, top_k=args.per_round,
-                       strategy=name, captured=captured)
+                       strategy=strategy, captured=captured, signal=signal)
         costs[name] = (time.perf_counter() - started) / len(candidates)
         print(f"{name}: {costs[name] * 1000:.1f} ms per candidate", flush=True)
     result = {"scene": scene, "seed": seed, "candidates": len(candidates), "captured": len(captured),

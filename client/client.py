@@ -338,10 +338,14 @@ class PHDClient:
     def calibrate(self, model_id: str, *, cameras: Cameras | None = None, epsilon: float | None = None,
                   step: float | None = None, samples: int | None = None, method: str = "linear", seed: int = 0,
                   downscale: float | None = None, width: int | None = None, height: int | None = None,
-                  run_async: bool = False, wait: bool = True, progress: ProgressCallback | None = None,
-                  poll_interval: float = 0.2, timeout: float | None = None) -> Calibration | Job:
-        """PH-Dropout calibration; uses the stored training cameras unless `cameras` is given."""
+                  signal: str | None = None, run_async: bool = False, wait: bool = True,
+                  progress: ProgressCallback | None = None, poll_interval: float = 0.2,
+                  timeout: float | None = None) -> Calibration | Job:
+        """PH-Dropout calibration; uses the stored training cameras unless `cameras` is given.
+        `signal`: what the error is measured on ('composited', the paper's and the default, or
+        'premultiplied': colour over black plus alpha); rank and select use it with this r_drop."""
         body = {"epsilon": epsilon, "step": step, "samples": samples, "method": method, "seed": seed,
+                "signal": signal,
                 "downscale": downscale, "width": width, "height": height, "async": run_async,
                 "training_cameras": None if cameras is None else camera_frames(cameras)}
         return self._work(f"/v1/models/{model_id}/calibrate", body, Calibration, wait, progress, poll_interval, timeout)
@@ -351,7 +355,7 @@ class PHDClient:
              dropout_ratio: float | None = None, top_k: int | None = None, strategy: str | None = None,
              captured: Cameras | None = None, heatmaps: str = "none", downscale: float | None = None,
              width: int | None = None, height: int | None = None, coarse: float | None = None,
-             refine: int | None = None, run_async: bool = False, wait: bool = True,
+             refine: int | None = None, signal: str | None = None, run_async: bool = False, wait: bool = True,
              progress: ProgressCallback | None = None, poll_interval: float = 0.2,
              timeout: float | None = None) -> RankResult | Job:
         """Candidate poses in the order to capture them (the service's default strategy unless `strategy`
@@ -359,7 +363,8 @@ class PHDClient:
         already taken, default the model's training cameras. Instead of `cameras`, `candidates` lets the
         service make the poses: a spec "orbit:64,rings=2" or {"generator": ..., "count": ..., "options": ...}.
         `coarse` (a scale in (0, 1)) ranks every candidate that much smaller first and re-ranks the best
-        `refine` at full size."""
+        `refine` at full size. `signal`: what zeta is measured on (default: the stored calibration's
+        when its r_drop is used)."""
         if isinstance(candidates, str):
             from phd_core.uq.candidates import parse_spec
 
@@ -368,7 +373,8 @@ class PHDClient:
         body = {"cameras": None if cameras is None else camera_frames(cameras), "candidates": candidates,
                 "samples": samples, "seed": seed, "dropout_ratio": dropout_ratio,
                 "top_k": top_k, "strategy": strategy, "heatmaps": heatmaps, "downscale": downscale,
-                "width": width, "height": height, "coarse": coarse, "refine": refine, "async": run_async,
+                "width": width, "height": height, "coarse": coarse, "refine": refine, "signal": signal,
+                "async": run_async,
                 "captured": None if captured is None else camera_frames(captured)}
         return self._work(f"/v1/models/{model_id}/rank", body, RankResult, wait, progress, poll_interval, timeout)
 
@@ -376,14 +382,15 @@ class PHDClient:
                ratio_a: float | None = None, ratio_b: float | None = None, rule: str | None = None,
                images: str = "none", both_images: bool = False,
                downscale: float | None = None, width: int | None = None, height: int | None = None,
-               run_async: bool = False, wait: bool = True, progress: ProgressCallback | None = None,
-               poll_interval: float = 0.2, timeout: float | None = None) -> SelectResult | Job:
+               signal: str | None = None, run_async: bool = False, wait: bool = True,
+               progress: ProgressCallback | None = None, poll_interval: float = 0.2,
+               timeout: float | None = None) -> SelectResult | Job:
         """Per view, which of two models to trust (rule: the service's default 'coverage_checked', or
         'coverage_sigma', 'distance_sigma', the paper's 'sigma_mean')."""
         body = {"model_a": model_a, "model_b": model_b, "cameras": camera_frames(cameras), "samples": samples,
                 "seed": seed, "ratio_a": ratio_a, "ratio_b": ratio_b, "rule": rule, "images": images,
                 "both_images": both_images or None, "downscale": downscale,
-                "width": width, "height": height, "async": run_async}
+                "width": width, "height": height, "signal": signal, "async": run_async}
         return self._work("/v1/select", body, SelectResult, wait, progress, poll_interval, timeout)
 
     def _work(self, path: str, body: dict, result_type: type[BaseModel], wait: bool,

@@ -18,6 +18,7 @@ from phd_core.errors import InputError
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
 from phd_core.executors import LOCAL, Executor, make_executor
 from phd_core.io import write_heatmap, write_json_atomic
+from phd_core.renderers import DEFAULT_SIGNAL, SIGNALS, signals_help
 from phd_core.scene import Camera
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
@@ -156,6 +157,9 @@ def _add_calibration_args(parser: argparse.ArgumentParser, *, standalone: bool =
                        help=f"masks per ratio (default {phd.DEFAULT_CALIBRATION_SAMPLES})")
     group.add_argument("--method", choices=("linear", "bisection"), default="linear",
                        help="linear scan (Algorithm 1) or bisection over the same nested masks")
+    group.add_argument("--signal", choices=list(SIGNALS), default=DEFAULT_SIGNAL,
+                       help="what the calibration error and zeta are measured on (default "
+                            f"{DEFAULT_SIGNAL}, the paper's): {signals_help()}")
     if standalone:
         group.add_argument("--seed", type=int, default=0, help="mask seed (default 0)")
     else:
@@ -223,7 +227,7 @@ def _training_cameras(renderer, downscale: float) -> list[Camera]:
 def _calibrate(args: argparse.Namespace, renderer, cameras: list[Camera]) -> phd.CalibrationResult:
     return phd.calibrate(renderer, cameras, epsilon=args.epsilon, step=args.step,
                          samples=args.calibration_samples, method=args.method, seed=args.seed,
-                         executor=args.executor)
+                         executor=args.executor, signal=args.signal)
 
 
 def _ratio(args: argparse.Namespace, renderer, cameras: list[Camera] | None = None
@@ -293,8 +297,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     except phd.CalibrationError as exc:
         _print_curve(exc, file=sys.stderr)
         raise
-    print(f"r_drop = {result.r_drop}  ({result.method}, epsilon {result.epsilon}, step {result.step}, "
-          f"{result.samples} masks, {len(cameras)} views, {renderer.num_units} units)")
+    print(f"r_drop = {result.r_drop}  ({result.method}, {result.signal}, epsilon {result.epsilon}, "
+          f"step {result.step}, {result.samples} masks, {len(cameras)} views, {renderer.num_units} units)")
     _print_curve(result)
     for warning in result.warnings:
         print(f"warning: {warning}", file=sys.stderr)
@@ -321,7 +325,7 @@ def run_uq(args: argparse.Namespace) -> int:
         warnings.extend(calibration["warnings"])
 
     views = phd.uncertainty(renderer, dataset.cameras, ratio=ratio, samples=args.samples, seed=args.seed,
-                            keep_maps=True, executor=args.executor)
+                            keep_maps=True, executor=args.executor, signal=args.signal)
     vmax = args.vmax if args.vmax is not None else max(v.sigma_max for v in views)
     rows = []
     for i, (view, camera, index) in enumerate(zip(views, dataset.cameras, dataset.indices)):
@@ -329,7 +333,8 @@ def run_uq(args: argparse.Namespace) -> int:
         assert view.zeta is not None  # measured with keep_maps=True
         if dataset.images is not None:
             render = renderer.render(camera)[0]
-            row.update(image_uq_metrics(view.zeta, render, dataset.images[i]))
+            # zeta's colour channels against the error of the colour (premultiplied: alpha's is left out)
+            row.update(image_uq_metrics(view.zeta[..., :3], render, dataset.images[i]))
         if not args.no_heatmaps:
             name = f"heatmaps/{args.split}_{index:04d}.png"
             row["heatmap"] = name
@@ -340,7 +345,8 @@ def run_uq(args: argparse.Namespace) -> int:
     report: dict[str, Any] = {
         "model": renderer.describe(), "data": str(args.data), "split": args.split,
         "dropout_ratio": ratio, "r_drop": calibration["r_drop"] if calibration else None,
-        "calibration": calibration, "samples": args.samples, "seed": args.seed, "ddof": 1,
+        "calibration": calibration, "signal": args.signal, "samples": args.samples, "seed": args.seed,
+        "ddof": 1,
         "sigma_max_bar": sigma_bar,
         "heatmap_scale": None if args.no_heatmaps else "zeta max over channels / heatmap_vmax, clipped to [0, 1]",
         "views": rows, "warnings": warnings,
@@ -376,9 +382,10 @@ def run_rank(args: argparse.Namespace) -> int:
         captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
                             top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor,
-                            coarse=args.coarse, refine=args.refine)
+                            coarse=args.coarse, refine=args.refine, signal=args.signal)
     convention = renderer.describe().get("camera_format")
-    result = {"strategy": args.strategy, "dropout_ratio": ratio, "calibration": calibration,
+    result = {"strategy": args.strategy, "signal": args.signal, "dropout_ratio": ratio,
+              "calibration": calibration,
               "samples": args.samples, "seed": args.seed, "coarse": args.coarse,
               "candidates": len(candidates), "order": [r.index for r in ranked], "camera_format": convention,
               "ranking": [{**r.to_dict(), "camera": poses[r.index].to_frame(),
@@ -411,9 +418,10 @@ def run_select(args: argparse.Namespace) -> int:
         ratios[key], calibrations[key] = (given, None) if given is not None else _ratio(args, renderer)
     result = phd.select_models(renderers["a"], renderers["b"], cameras, ratio_a=ratios["a"], ratio_b=ratios["b"],
                                samples=args.samples, seed=args.seed, images=images, rule=args.rule,
-                               executor=args.executor)
+                               executor=args.executor, signal=args.signal)
     counts = {key: sum(v.choice == key for v in result.views) for key in ("a", "b")}
-    report = {"rule": args.rule, "ratio_a": ratios["a"], "ratio_b": ratios["b"], "calibration_a": calibrations["a"],
+    report = {"rule": args.rule, "signal": args.signal, "ratio_a": ratios["a"], "ratio_b": ratios["b"],
+              "calibration_a": calibrations["a"],
               "calibration_b": calibrations["b"], "samples": args.samples, "seed": args.seed, "counts": counts,
               **result.to_dict(), "warnings": warnings}
     _emit(args.out, report, f"{len(cameras)} views ({args.rule}): a trusted for {counts['a']}, b for {counts['b']}")

@@ -13,12 +13,15 @@ each render's `RenderMemory` (bounds a model family computes by projecting the m
 camera: how many splats cover each pixel decides most of it, and no request size tells that):
 
     masks          samples x units x MASK_SAMPLE_UNIT_BYTES per model (uniform draws, keep-masks)
-    + accumulators pixels of the largest view x ACCUMULATOR_PIXEL_BYTES (the streamed std)
+    + accumulators pixels of the largest view x channels x ACCUMULATOR_CHANNEL_BYTES (the streamed std)
     + kept         what the job keeps across views (references, heat-map peaks, images, and the
                    prepared views calibration re-uses, at most VIEW_CACHE_BYTES)
     + the largest render's fixed part (projection, tile and fragment lists)
-    + batch x max(the largest render's per-mask part + pixels x CHUNK_PIXEL_BYTES,
-                  pixels x ENGINE_PIXEL_BYTES)
+    + batch x max(the largest render's per-mask part + pixels x (channels - 3) x 4
+                  + pixels x channels x CHUNK_CHANNEL_BYTES, pixels x channels x ENGINE_CHANNEL_BYTES)
+
+where channels are the signal's (3 composited; 4 premultiplied, whose images are one float32
+channel larger than the composited ones the families' bounds count).
 
 The masks, accumulators, kept bytes, the engine's per-mask terms and 3DGS's are sums of the
 shapes alive at a job's worst moment (the constants beside the code that allocates them:
@@ -48,7 +51,7 @@ from typing import Callable, Iterable, Iterator, Sequence
 from phd_core.allocator import release_freed_memory
 from phd_core.renderers import Renderer, RenderMemory, memory_probe_bytes
 from phd_core.uq import MAX_MASKS_PER_RENDER
-from phd_core.uq.sampling import CHUNK_PIXEL_BYTES, ENGINE_PIXEL_BYTES
+from phd_core.uq.sampling import CHUNK_CHANNEL_BYTES, ENGINE_CHANNEL_BYTES
 
 from .errors import ServiceError
 
@@ -56,9 +59,9 @@ MODEL_BYTES_PER_FILE_BYTE = 1       # a loaded model over its file (tensors <= t
 MODEL_BYTES_OVERHEAD = 1 << 20      # and the objects around them
 LOAD_BYTES_PER_FILE_BYTE = 4        # loading: the file read and its parse (ASCII PLY measured 2.5x)
 MASK_SAMPLE_UNIT_BYTES = 5          # a float32 uniform and a keep flag per sample and unit
-ACCUMULATOR_PIXEL_BYTES = 192       # RunningStd's float64 shift, mean, M2 [H, W, 3] (72) and at most five
-                                    # [H, W, 3] float64 merge terms at once (120); then zeta, the mean and
-                                    # the maps measured from them, less
+ACCUMULATOR_CHANNEL_BYTES = 64      # RunningStd's float64 shift, mean, M2 [H, W, C] (24 a channel) and at
+                                    # most five [H, W, C] float64 merge terms at once (40); then zeta, the
+                                    # mean and the maps measured from them, less
 DEFAULT_MASK_PIXEL_BYTES = 8192     # a family that gives no RenderMemory: per mask and pixel, assumed
 PNG_PIXEL_BYTES = 8                 # a result image kept as PNG (<= 3 bytes a pixel stored) or its base64 text
 
@@ -102,11 +105,13 @@ class MemoryPlan:
 
 
 def plan_work(models: Sequence[ModelSize], pixels: int, samples: int, kept_bytes: int, budget: int, *,
-              renders: RenderMemory | None = None, size_field: str, kept_field: str) -> MemoryPlan:
+              renders: RenderMemory | None = None, size_field: str, kept_field: str,
+              channels: int = 3) -> MemoryPlan:
     """The memory plan of one job, or a 413 naming the field to lower.
 
     pixels: of the largest view rendered; kept_bytes: what the job holds across views;
-    renders: the largest bounds of the job's renders (None: not known yet, a lower bound).
+    renders: the largest bounds of the job's renders (None: not known yet, a lower bound);
+    channels: of the signal's images (phd_core.renderers.SIGNALS).
     The plan fits beside its models in memory, and each model's load fits beside the others
     (`taking`); a model named twice (select a model against itself) is in memory once but
     draws its masks twice.
@@ -120,15 +125,16 @@ def plan_work(models: Sequence[ModelSize], pixels: int, samples: int, kept_bytes
         if need > budget:
             raise over_budget(model.field, need, budget, "a smaller model")
     room = budget - resident
-    fixed = sum(MASK_SAMPLE_UNIT_BYTES * samples * m.units for m in models) + pixels * ACCUMULATOR_PIXEL_BYTES
+    fixed = (sum(MASK_SAMPLE_UNIT_BYTES * samples * m.units for m in models)
+             + pixels * channels * ACCUMULATOR_CHANNEL_BYTES)
     # Before the renders are known, the projection that will bound them.
     fixed += renders.fixed if renders is not None else max(memory_probe_bytes(m.units) for m in models)
     if fixed + kept_bytes > room and kept_bytes:
         raise over_budget(kept_field, resident + fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
     # While a batch renders the engine still holds the previous one's images; its renderer
     # temporaries are gone once its images reach the engine's float64 terms.
-    per_mask = max(pixels * ENGINE_PIXEL_BYTES,
-                   (renders.per_mask if renders is not None else 0) + pixels * CHUNK_PIXEL_BYTES)
+    render = (renders.per_mask if renders is not None else 0) + pixels * 4 * (channels - 3)
+    per_mask = max(pixels * channels * ENGINE_CHANNEL_BYTES, render + pixels * channels * CHUNK_CHANNEL_BYTES)
     batch = min(MAX_MASKS_PER_RENDER, samples, (room - fixed - kept_bytes) // per_mask)
     if batch < 1:
         raise over_budget(size_field, resident + fixed + kept_bytes + per_mask, budget,

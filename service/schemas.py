@@ -18,7 +18,7 @@ from typing import Any, Callable, Literal, Union
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
 from phd_core.registry import Registry
-from phd_core.renderers import FAMILIES, Family
+from phd_core.renderers import DEFAULT_SIGNAL, FAMILIES, SIGNALS, Family, signals_help
 from phd_core.uq import DEFAULT_SELECTION_RULE, SELECTION_RULES, rules_help
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
@@ -45,6 +45,14 @@ def _registered(registry: Registry, name: str) -> str:
     if name not in registry:
         raise ValueError(registry.unknown(name))
     return name
+
+
+_SIGNAL_DOC = ("What zeta and the calibration error are measured on, one of the registry's signals: "
+               + signals_help() + ".")
+
+
+def _known_signal(name: str | None) -> str | None:
+    return None if name is None else _registered(SIGNALS, name)
 
 
 _CAMERAS_DOC = ("A list of Blender/nerfstudio frames, or a transforms.json object with a 'frames' "
@@ -98,6 +106,8 @@ class Calibration(_Response):
     method: str
     capped: bool
     warnings: list[str] = []
+    signal: str = Field(DEFAULT_SIGNAL, description="What the error was measured on (request field signal); rank "
+                        "and select measure zeta on it when they use this r_drop.")
     num_cameras: int = Field(description="How many training cameras the calibration rendered.")
     created_at: str
 
@@ -156,7 +166,10 @@ class CalibrateRequest(RenderSize):
     seed: int = Field(0, ge=0, le=2**63 - 1)
     training_cameras: CameraList | None = Field(None, description="Training cameras; default the stored ones. "
                                                 + _CAMERAS_DOC)
+    signal: str = Field(DEFAULT_SIGNAL, description=_SIGNAL_DOC, examples=list(SIGNALS))
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
+
+    _signal = field_validator("signal")(_known_signal)
 
 
 class CandidateSpec(_Request):
@@ -196,7 +209,11 @@ class RankRequest(RenderSize):
                                        "(faster for many candidates; agreement and price in docs/performance.md).")
     refine: int | None = Field(None, ge=1, description="With coarse: how many candidates are re-ranked at full "
                                "size (default 20 % of them, at least top_k).")
+    signal: str | None = Field(None, description=_SIGNAL_DOC + " Default: the stored calibration's when its r_drop "
+                               "is used, else " + DEFAULT_SIGNAL + ".", examples=list(SIGNALS))
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
+
+    _signal = field_validator("signal")(_known_signal)
 
     @field_validator("strategy")
     @classmethod
@@ -224,7 +241,11 @@ class SelectRequest(RenderSize):
                                 "or downloadable files.")
     both_images: bool = Field(False, description="With images: also the other model's render per view "
                               "(other_image_png / other_image_url), to compare the two.")
+    signal: str | None = Field(None, description=_SIGNAL_DOC + " Default: the stored calibrations' when their r_drop "
+                               "is used, else " + DEFAULT_SIGNAL + ".", examples=list(SIGNALS))
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
+
+    _signal = field_validator("signal")(_known_signal)
 
 
 # ----------------------------------------------------------------------------- work results
@@ -263,6 +284,7 @@ class RankResult(_Response):
     dropout_ratio: float
     ratio_source: Literal["request", "calibration"]
     strategy: str
+    signal: str = Field(DEFAULT_SIGNAL, description="What zeta was measured on.")
     samples: int
     seed: int
     width: int = Field(description="Render width of the first candidate.")
@@ -292,6 +314,7 @@ class SelectResult(_Response):
     ratio_a: float
     ratio_b: float
     rule: str
+    signal: str = Field(DEFAULT_SIGNAL, description="What zeta was measured on.")
     samples: int
     seed: int
     counts: dict[str, int] = Field(description="How many views chose a and b.")

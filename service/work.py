@@ -20,6 +20,7 @@ from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import (
+    DEFAULT_SIGNAL,
     FAMILIES,
     Renderer,
     RenderMemory,
@@ -27,6 +28,7 @@ from phd_core.renderers import (
     load_model,
     memory_probe_bytes,
     set_background,
+    signal_channels,
 )
 from phd_core.renderers.visibility import PASS_FRAGMENT_BYTES, PASS_UNIT_BYTES, visibility_bytes
 from phd_core.scene import Camera, cameras_from_json
@@ -151,6 +153,21 @@ def stored_ratio(record: ModelRecord, field: str, given: float | None) -> tuple[
     return float(record.calibration["r_drop"]), "calibration"
 
 
+def job_signal(given: str | None, ratios: list[tuple[ModelRecord, str]]) -> str:
+    """What a job measures zeta on: the request's signal, else that of the stored calibrations
+    whose r_drop it uses (ratios: (record, ratio source) per model), else the default. An r_drop
+    calibrated on another signal than the request's is a 409 naming `signal`."""
+    used = {record.id: record.calibration.get("signal", DEFAULT_SIGNAL) for record, source in ratios
+            if source == "calibration" and record.calibration is not None}
+    signal = given if given is not None else next(iter(used.values()), DEFAULT_SIGNAL)
+    for model_id, calibrated in used.items():
+        if calibrated != signal:
+            raise ServiceError(409, "signal_mismatch", f"model '{model_id}' was calibrated on the {calibrated} "
+                               f"signal, not {signal}: calibrate it with signal '{signal}', give the dropout "
+                               "ratio, or use its signal", "signal")
+    return signal
+
+
 def pixels(cameras: list[Camera]) -> int:
     return sum(c.width * c.height for c in cameras)
 
@@ -167,6 +184,7 @@ class Renders:
     kept_field: str = "cameras"
     keeps_views: bool = False       # calibration keeps prepared views for re-use (up to VIEW_CACHE_BYTES)
     visibility: bool = False        # a visibility pass follows each render (rank strategies that use it)
+    signal: str = DEFAULT_SIGNAL    # what the renders return (its channels size the engine's images)
     sizes: dict[str, int] = field(init=False)    # file bytes by model id
 
     def __post_init__(self) -> None:
@@ -178,7 +196,7 @@ class Renders:
         pixels = max(c.width * c.height for _, _, cameras in self.models for c in cameras)
         return plan_work([ModelSize(r.id, r.num_units, r.size_bytes, name) for r, name, _ in self.models], pixels,
                          self.samples, self.kept_bytes + kept_views, settings.memory_budget_bytes, renders=bounds,
-                         size_field="downscale", kept_field=self.kept_field)
+                         size_field="downscale", kept_field=self.kept_field, channels=signal_channels(self.signal))
 
     def bounds(self, renderers: dict[str, Renderer], progress: Progress) -> tuple[RenderMemory, int]:
         """The largest bounds of the renders, and what calibration's prepared views keep."""
@@ -248,13 +266,15 @@ def calibrate_job(record: ModelRecord, body: CalibrateRequest, settings: Setting
     step = body.step or uq.DEFAULT_STEP
     estimate = pixels(cameras) * (1 + samples * int(1 / step))
     # One pass renders LOOKAHEAD ratios of `samples` masks per view; it keeps float32 references.
-    renders = Renders([(record, "model_id", cameras)], samples * uq.LOOKAHEAD, kept_bytes=12 * pixels(cameras),
-                      kept_field="training_cameras", keeps_views=True)
+    channels = signal_channels(body.signal)
+    renders = Renders([(record, "model_id", cameras)], samples * uq.LOOKAHEAD,
+                      kept_bytes=4 * channels * pixels(cameras), kept_field="training_cameras", keeps_views=True,
+                      signal=body.signal)
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[Calibration, dict[str, bytes]]:
         result = uq.calibrate(renderers[record.id], cameras, samples=samples, method=body.method, seed=body.seed,
-                              progress=progress, executor=executor, **options)
+                              progress=progress, executor=executor, signal=body.signal, **options)
         calibration = Calibration(**result.to_dict(), num_cameras=len(cameras), created_at=utc_now())
         if not store.set_calibration(record.id, calibration.model_dump()):
             raise not_found("model", record.id)
@@ -307,6 +327,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     convention = record.describe.get("camera_format")        # poses go back in the source's terms too
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
     ratio, source = stored_ratio(record, "dropout_ratio", body.dropout_ratio)
+    signal = job_signal(body.signal, [(record, source)])
     captured = (stored_cameras(record) if body.captured is None else
                 parse_cameras(body.captured, body, settings, field="captured", cap=settings.max_training_cameras))
     heatmaps = body.heatmaps != "none"
@@ -324,7 +345,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     seen = sum(visibility_bytes(record.num_units, c) for c in cameras + captured) if visibility else 0
     renders = Renders([(record, "model_id", cameras + (captured if visibility else []))], samples,
                       kept_bytes=kept + seen, kept_field="heatmaps" if kept >= seen else "downscale",
-                      visibility=visibility)
+                      visibility=visibility, signal=signal)
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
@@ -332,7 +353,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
                                strategy=body.strategy, captured=captured, keep_peak=heatmaps,
                                progress=_span(progress, 0.0, split), executor=executor, coarse=body.coarse,
-                               refine=body.refine)
+                               refine=body.refine, signal=signal)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score, refined=r.refined, camera=poses[r.index].to_frame(),
                                  source_pose=source_pose(poses[r.index], convention)) for r in ranked]
@@ -354,7 +375,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
                                                            f"render_{view.index:04d}.png", artifacts, job_url)
                 done((k + 1) / len(views))
         result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, strategy=body.strategy,
-                            samples=samples,
+                            signal=signal, samples=samples,
                             seed=body.seed, width=cameras[0].width, height=cameras[0].height,
                             num_candidates=len(cameras), heatmap_vmax=vmax, camera_format=convention, views=views)
         return result, artifacts
@@ -377,8 +398,9 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
                job_url: Callable[[str], str], ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
     cameras = parse_cameras(body.cameras, body, settings, field="cameras", cap=settings.max_candidates)
     samples = check_samples(body.samples, settings, uq.DEFAULT_SAMPLES)
-    ratio_a, _ = stored_ratio(record_a, "ratio_a", body.ratio_a)
-    ratio_b, _ = stored_ratio(record_b, "ratio_b", body.ratio_b)
+    ratio_a, source_a = stored_ratio(record_a, "ratio_a", body.ratio_a)
+    ratio_b, source_b = stored_ratio(record_b, "ratio_b", body.ratio_b)
+    signal = job_signal(body.signal, [(record_a, source_a), (record_b, source_b)])
     images = body.images != "none"
     estimate = pixels(cameras) * (2 * samples + 2 * images)
     levels: dict[str, list[Camera]] = {"model_a": [], "model_b": []}      # rendered at their own size
@@ -408,7 +430,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
     kept += (2 * 12 + (1 + body.both_images) * PNG_PIXEL_BYTES) * pixels(cameras) if images else 0
     renders = Renders([(record_a, "model_a", cameras + levels["model_a"]),
                        (record_b, "model_b", cameras + levels["model_b"])], samples, kept_bytes=kept,
-                      kept_field="images", visibility=rule.coverage)
+                      kept_field="images", visibility=rule.coverage, signal=signal)
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[SelectResult, dict[str, bytes]]:
@@ -417,7 +439,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
                                   samples=samples, seed=body.seed, rule=body.rule,
                                   training_a=stored_cameras(record_a), training_b=stored_cameras(record_b),
                                   keep_images=("both" if body.both_images else True) if images else False,
-                                  progress=progress, executor=executor)
+                                  progress=progress, executor=executor, signal=signal)
         views: list[SelectedView] = []
         artifacts: dict[str, bytes] = {}
         for v in result.views:
@@ -432,6 +454,7 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
             views.append(view)
         counts = {"a": sum(v.choice == "a" for v in views), "b": sum(v.choice == "b" for v in views)}
         return SelectResult(model_a=record_a.id, model_b=record_b.id, ratio_a=ratio_a, ratio_b=ratio_b,
-                            rule=body.rule, samples=samples, seed=body.seed, counts=counts, views=views), artifacts
+                            rule=body.rule, signal=signal, samples=samples, seed=body.seed, counts=counts,
+                            views=views), artifacts
 
     return Bounded(renders, settings, ledger, work), float(estimate)

@@ -2,6 +2,7 @@
 
     protocol   the Renderer protocol PH-Dropout sees (render with keep-masks, prepare a View,
                num_units, training_cameras, describe)
+    signals    SIGNALS: what a render returns (colour over the background, or over black plus alpha)
     families   FAMILIES: what the library, the CLI and the service know of each family; load_model
     splats/    what the splat families share (maths, model, PLY and sidecar, renderer)
     gs3d/      3D Gaussian Splatting (rasteriser, compiled stages)
@@ -30,11 +31,13 @@ from .gs2d.family import GS2D
 from .gs3d.family import GS3D
 from .nerf.family import NERF
 from .protocol import CameraView, Renderer, RenderMemory, View, check_keep, memory_probe_bytes
+from .signals import DEFAULT_SIGNAL, PREMULTIPLIED, SIGNALS, Signal, signal_channels, signals_help
 
 for _family in (GS3D, NERF, GS2D):
     FAMILIES.register(_family)
 DEFAULT_FAMILY = GS3D.name      # what `phd train` trains unless told otherwise
 
-__all__ = ["DEFAULT_FAMILY", "FAMILIES", "SNIFF_BYTES", "CameraView", "Family", "RenderMemory", "Renderer", "View",
-           "UnknownModelError", "accepts_background", "check_keep", "family_of", "family_titles", "load_model",
-           "load_model_bytes", "memory_probe_bytes", "model_kind", "option", "set_background"]
+__all__ = ["DEFAULT_FAMILY", "DEFAULT_SIGNAL", "FAMILIES", "PREMULTIPLIED", "SIGNALS", "SNIFF_BYTES", "CameraView",
+           "Family", "RenderMemory", "Renderer", "Signal", "View", "UnknownModelError", "accepts_background",
+           "check_keep", "family_of", "family_titles", "load_model", "load_model_bytes", "memory_probe_bytes",
+           "model_kind", "option", "set_background", "signal_channels", "signals_help"]

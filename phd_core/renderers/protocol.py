@@ -8,6 +8,9 @@ order; ray sampling and the first layer) is computed once per call and shared by
 masks: that is where batched PH-Dropout gets its speed. `prepare` goes one step further:
 it does that work once for a camera and returns a `View` that renders any number of mask
 batches from it (calibration renders the same training views for every ratio it tries).
+`signal` (phd_core.renderers.signals) names what a render returns: the colour over the
+background (the paper's) or the colour over black plus alpha; every family composites both
+from one pass.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 
 from ..scene import Camera
+from .signals import DEFAULT_SIGNAL
 
 
 @runtime_checkable
@@ -31,8 +35,8 @@ class View(Protocol):
         """Memory the prepared state holds (callers bound how many views they keep)."""
         ...
 
-    def render(self, keep: torch.Tensor | None = None) -> torch.Tensor:
-        """Same as `Renderer.render(self.camera, keep)`."""
+    def render(self, keep: torch.Tensor | None = None, signal: str = DEFAULT_SIGNAL) -> torch.Tensor:
+        """Same as `Renderer.render(self.camera, keep, signal)`."""
         ...
 
 
@@ -45,8 +49,8 @@ class CameraView:
         self.renderer = renderer
         self.camera = camera
 
-    def render(self, keep: torch.Tensor | None = None) -> torch.Tensor:
-        return self.renderer.render(self.camera, keep)
+    def render(self, keep: torch.Tensor | None = None, signal: str = DEFAULT_SIGNAL) -> torch.Tensor:
+        return self.renderer.render(self.camera, keep, signal)
 
 
 @runtime_checkable
@@ -65,11 +69,14 @@ class Renderer(Protocol):
         """Number of dropout units (the width of a keep-mask)."""
         ...
 
-    def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
+    def render(self, camera: Camera, keep: torch.Tensor | None = None,
+               signal: str = DEFAULT_SIGNAL) -> torch.Tensor:
         """Render `camera` once per keep-mask.
 
         keep: [N, num_units] bool, True = unit kept; None renders the full model (N = 1).
-        Returns [N, H, W, 3] float32 RGB in [0, 1], composited on the background.
+        Returns [N, H, W, C] float32 in [0, 1], `signal`'s image (`signals.SIGNALS`): C = 3,
+        RGB composited on the background ("composited"), or C = 4, RGB over black plus
+        alpha ("premultiplied").
         Dropped units are zeroed; survivors are not rescaled (unless the renderer was
         built with an explicit rescale option).
         """

@@ -24,7 +24,7 @@ from torch import Tensor
 from ..errors import InputError, check_float, check_int
 from ..eval import ssim
 from ..executors import LOCAL, Executor
-from ..renderers import Renderer
+from ..renderers import DEFAULT_SIGNAL, Renderer
 from ..scene import Camera
 from .sampling import (
     PreparedViews,
@@ -33,6 +33,7 @@ from .sampling import (
     check_cameras,
     check_images,
     check_seed,
+    check_signal,
     check_step,
     dropout_uniforms,
     keep_masks,
@@ -75,6 +76,7 @@ class CalibrationResult:
     method: str             # "linear" | "bisection" | "ssim"
     capped: bool            # every ratio passed; r_drop capped at the largest multiple of step below 1
     warnings: list[str] = field(default_factory=list)
+    signal: str = DEFAULT_SIGNAL    # the images Error(r) was measured on (phd_core.renderers.SIGNALS)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -120,7 +122,8 @@ def _expected_passes(grid: int, method: str) -> int:
 
 
 def _finish_calibration(k: int, grid: int, step: float, probes: dict[int, float], *, epsilon: float,
-                        samples: int, seed: int, method: str, criterion: str) -> CalibrationResult:
+                        samples: int, seed: int, method: str, criterion: str,
+                        signal: str = DEFAULT_SIGNAL) -> CalibrationResult:
     ks = sorted(probes)
     ratios = [_grid_ratio(j, step) for j in ks]
     errors = [float(probes[j]) for j in ks]
@@ -137,7 +140,8 @@ def _finish_calibration(k: int, grid: int, step: float, probes: dict[int, float]
         warnings.append(f"every tested ratio up to {r_drop} stayed below epsilon={epsilon}: r_drop is capped "
                         f"at {r_drop} (never 1, which would drop every unit); epsilon is likely too large")
     return CalibrationResult(r_drop=r_drop, ratios=ratios, errors=errors, epsilon=epsilon, step=step,
-                             samples=samples, seed=seed, method=method, capped=capped, warnings=warnings)
+                             samples=samples, seed=seed, method=method, capped=capped, warnings=warnings,
+                             signal=signal)
 
 
 @dataclass
@@ -148,7 +152,8 @@ class CalibrationChunk:
 
     cameras: list[Camera]
     share: float                                  # of VIEW_CACHE_BYTES, for this chunk's prepared views
-    references: list[Tensor] = field(default_factory=list)   # [1, H, W, 3] full renders
+    signal: str = DEFAULT_SIGNAL                  # what the renders return (phd_core.renderers.SIGNALS)
+    references: list[Tensor] = field(default_factory=list)   # [1, H, W, C] full renders
     prepared: PreparedViews | None = None
 
     def views(self, renderer: Renderer) -> PreparedViews:
@@ -160,11 +165,12 @@ class CalibrationChunk:
         return {**self.__dict__, "prepared": None}
 
 
-def reference_renders(cameras: list[Camera], renderer: Renderer, share: float) -> CalibrationChunk:
+def reference_renders(cameras: list[Camera], renderer: Renderer, share: float,
+                      signal: str = DEFAULT_SIGNAL) -> CalibrationChunk:
     """A chunk with the full model's render of each camera (what an executor runs first)."""
-    chunk = CalibrationChunk(cameras, share)
+    chunk = CalibrationChunk(cameras, share, signal)
     views = chunk.views(renderer)
-    chunk.references = [render_masks(views[i], None) for i in range(len(views))]
+    chunk.references = [render_masks(views[i], None, signal) for i in range(len(views))]
     return chunk
 
 
@@ -175,7 +181,7 @@ def dropout_errors(chunk: CalibrationChunk, renderer: Renderer, keep: Tensor, sa
     errors = []
     for i, reference in enumerate(chunk.references):
         per_mask = torch.cat([part.to(torch.float64, copy=True).sub_(reference).abs_().sum(dim=(1, 2, 3))  # [m]
-                              for part in masked_renders(views[i], keep)])
+                              for part in masked_renders(views[i], keep, chunk.signal)])
         errors.append((per_mask.view(-1, samples).sum(dim=1) / (samples * reference.numel())).tolist())
     return errors
 
@@ -183,14 +189,16 @@ def dropout_errors(chunk: CalibrationChunk, renderer: Renderer, keep: Tensor, sa
 def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float = DEFAULT_EPSILON,
               step: float = DEFAULT_STEP, samples: int = DEFAULT_CALIBRATION_SAMPLES,
               method: str = "linear", seed: int = 0, progress: Progress | None = None,
-              executor: Executor = LOCAL) -> CalibrationResult:
+              executor: Executor = LOCAL, signal: str = DEFAULT_SIGNAL) -> CalibrationResult:
     """Algorithm 1: the largest dropout ratio whose mean absolute error on the training
     views stays below `epsilon`.
 
     Error(r) = mean over views (each view weighs the same), masks, pixels and channels of
     |F(x; theta) - F(x; D(theta, r))|, with the same `samples` nested masks for every r.
     `executor` (phd_core.executors) renders chunks of views, anywhere; each chunk's full
-    renders stay shared between the ratios. Raises CalibrationError when r_drop would be 0.
+    renders stay shared between the ratios. `signal`: the images the error is measured on
+    (phd_core.renderers.SIGNALS; the default is the paper's, "composited"); the result records
+    it, and zeta must be measured on the same signal. Raises CalibrationError when r_drop would be 0.
     """
     epsilon = check_float(epsilon, "epsilon")
     if epsilon <= 0:
@@ -200,6 +208,7 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
     seed = check_seed(seed)
     if method not in ("linear", "bisection"):
         raise InputError("method", f"must be 'linear' or 'bisection', got {method!r}")
+    signal = check_signal(signal)
     cameras = check_cameras(cameras)
 
     grid = _grid_size(step)
@@ -211,7 +220,8 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
         ticker.tick(len(chunks[i]))
 
     # Prepared views are kept across ratios within VIEW_CACHE_BYTES in all (split among chunks).
-    prepared = executor.map(partial(reference_renders, share=1 / len(chunks)), chunks, model, done=tick)
+    prepared = executor.map(partial(reference_renders, share=1 / len(chunks), signal=signal), chunks, model,
+                            done=tick)
     views = [executor.share(chunk) for chunk in prepared]
     uniforms = dropout_uniforms(renderer.num_units, samples, seed)
     probes: dict[int, float] = {}
@@ -230,7 +240,8 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
     if method == "linear":                                          # the one-by-one scan's curve
         probes = {j: e for j, e in probes.items() if j <= k + 1}
     result = _finish_calibration(k, grid, step, probes, epsilon=epsilon, samples=samples, seed=seed,
-                                 method=method, criterion="mean absolute error")
+                                 method=method, criterion=f"mean absolute error on the {signal} images",
+                                 signal=signal)
     ticker.finish()
     return result
 

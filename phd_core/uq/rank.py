@@ -11,7 +11,7 @@ import torch
 
 from ..errors import InputError, check_float, check_int
 from ..executors import LOCAL, Executor
-from ..renderers import Renderer
+from ..renderers import DEFAULT_SIGNAL, Renderer
 from ..renderers.visibility import ReportsVisibility, Visibility, reports_visibility
 from ..scene import Camera
 from .sampling import Progress, check_cameras
@@ -37,14 +37,15 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
                        samples: int = DEFAULT_SAMPLES, seed: int = 0, captured: Sequence[Camera] | None = None,
                        keep_peak: bool = False, progress: Progress | None = None,
                        executor: Executor = LOCAL, visibility: bool = False,
-                       fisher: bool = False) -> tuple[Evidence, list[ViewUncertainty]]:
+                       fisher: bool = False, signal: str = DEFAULT_SIGNAL) -> tuple[Evidence, list[ViewUncertainty]]:
     """What a strategy sees: the candidates' PH-Dropout statistics under one draw of N
     sub-models, and the captured poses (default: the model's training cameras); with the
     per-view measurements (keeping zeta's channel max when keep_peak). With `visibility`
     (and a family that reports it) also what each candidate and captured view sees of the model;
-    with `fisher`, each view's Fisher information (`add_fisher`)."""
+    with `fisher`, each view's Fisher information (`add_fisher`). `signal`: what zeta is
+    measured on (phd_core.renderers.SIGNALS)."""
     views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, keep_peak=keep_peak,
-                        progress=progress, executor=executor, keep_visibility=visibility)
+                        progress=progress, executor=executor, keep_visibility=visibility, signal=signal)
     captured = captured_cameras(renderer, captured)
 
     def stat(name: str) -> torch.Tensor:
@@ -122,7 +123,8 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
                seed: int = 0, top_k: int | None = None, strategy: str = DEFAULT_STRATEGY,
                captured: Sequence[Camera] | None = None, keep_peak: bool = False,
                progress: Progress | None = None, executor: Executor = LOCAL,
-               coarse: float | None = None, refine: int | None = None) -> list[RankedView]:
+               coarse: float | None = None, refine: int | None = None,
+               signal: str = DEFAULT_SIGNAL) -> list[RankedView]:
     """Candidates in the order the strategy would capture them; ties go to the lower index.
 
     top_k keeps the first k, a batch meant to be captured together (all when k exceeds the
@@ -131,7 +133,8 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     keep_peak keeps each returned view's zeta channel max, so heat maps need no second render
     (4 bytes a pixel for every candidate until the ranking is known).
     `executor` (phd_core.executors) renders the candidates in chunks, anywhere: the same
-    masks go to every chunk, so the ranking is the local one.
+    masks go to every chunk, so the ranking is the local one. `signal`: what zeta is measured
+    on (phd_core.renderers.SIGNALS; rank at a ratio calibrated on the same signal).
 
     Coarse to fine (`coarse`, a scale in (0, 1)): every candidate is ranked at `coarse`
     times its size, then the best `refine` (default: COARSE_REFINE_SHARE of them, at least
@@ -146,11 +149,11 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     if coarse is not None:
         return coarse_to_fine(renderer, cameras, coarse, refine, ratio=ratio, samples=samples, seed=seed,
                               top_k=top_k, strategy=strategy, captured=captured, keep_peak=keep_peak,
-                              progress=progress, executor=executor)
+                              progress=progress, executor=executor, signal=signal)
     evidence, views = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed,
                                          captured=captured, keep_peak=keep_peak, progress=progress,
                                          executor=executor, visibility=chosen.uses_visibility,
-                                         fisher=chosen.uses_fisher)
+                                         fisher=chosen.uses_fisher, signal=signal)
     count = len(evidence.candidates)
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]

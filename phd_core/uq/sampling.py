@@ -16,21 +16,21 @@ import torch
 from torch import Tensor
 
 from ..errors import InputError, check_float, check_int
-from ..renderers import Renderer, View
+from ..renderers import DEFAULT_SIGNAL, SIGNALS, Renderer, View, signal_channels
 from ..scene import Camera
 
 MAX_MASKS_PER_RENDER = 64          # masks per renderer.render call (bounds renderer memory)
 _MASK_BATCH: ContextVar[int] = ContextVar("mask_batch", default=MAX_MASKS_PER_RENDER)
 VIEW_CACHE_BYTES = 256 << 20       # prepared views a computation keeps for re-use (PreparedViews)
 
-# What the engine holds for each keep-mask and pixel of a batch, beside the renderer's own work
-# (service.budget adds these to a family's RenderMemory). While a batch renders, the loop that
-# consumes `masked_renders` still holds the previous batch's images: [m, H, W, 3] float32, 12 bytes.
-# Once a batch is rendered: its images (12) and one float64 copy that both `RunningStd.add` (the
-# offsets) and calibration (the absolute differences) work on in place (24). `_checked` takes only
-# the batch's minimum and maximum.
-CHUNK_PIXEL_BYTES = 12
-ENGINE_PIXEL_BYTES = 36
+# What the engine holds for each keep-mask, pixel and channel of a batch (C channels: the
+# signal's, 3 or 4), beside the renderer's own work (service.budget adds these to a family's
+# RenderMemory). While a batch renders, the loop that consumes `masked_renders` still holds the
+# previous batch's images: [m, H, W, C] float32, 4 bytes a channel. Once a batch is rendered: its
+# images (4) and one float64 copy that both `RunningStd.add` (the offsets) and calibration (the
+# absolute differences) work on in place (8). `_checked` takes only the batch's minimum and maximum.
+CHUNK_CHANNEL_BYTES = 4
+ENGINE_CHANNEL_BYTES = 12
 
 Progress = Callable[[float], None]
 
@@ -95,6 +95,14 @@ def check_images(images: Tensor, cameras: list[Camera], name: str = "images") ->
     return images.to(torch.float32)
 
 
+def check_signal(signal: Any) -> str:
+    """The name of a registered signal (phd_core.renderers.SIGNALS): what zeta and the
+    calibration error are measured on."""
+    if not isinstance(signal, str):
+        raise InputError("signal", f"must be a signal name, got {type(signal).__name__}")
+    return SIGNALS.lookup(signal, "signal").name
+
+
 def check_dtype(dtype: Any) -> torch.dtype:
     if dtype not in (torch.float32, torch.float64):
         raise InputError("dtype", f"accumulation dtype must be torch.float32 or torch.float64, got {dtype}")
@@ -137,28 +145,29 @@ def limit_mask_batch(masks: int) -> Iterator[None]:
         _MASK_BATCH.reset(token)
 
 
-def masked_renders(view: View, keep: Tensor) -> Iterator[Tensor]:
+def masked_renders(view: View, keep: Tensor, signal: str = DEFAULT_SIGNAL) -> Iterator[Tensor]:
     """The renders of a prepared view (`Renderer.prepare`) under keep [N, U], `mask_batch()`
-    masks at a time: [m, H, W, 3] float32 chunks, checked for shape and finiteness."""
+    masks at a time: [m, H, W, C] float32 chunks of `signal`'s images, checked for shape and
+    finiteness."""
     for chunk in keep.split(mask_batch()):
-        yield _checked(view.render(chunk), chunk.shape[0], view.camera)
+        yield _checked(view.render(chunk, signal), chunk.shape[0], view.camera, signal)
 
 
-def render_masks(view: View, keep: Tensor | None) -> Tensor:
+def render_masks(view: View, keep: Tensor | None, signal: str = DEFAULT_SIGNAL) -> Tensor:
     """Render a prepared view with a batch of keep-masks (None = full model), all N at once
-    in memory. Returns [N, H, W, 3] float32. Statistics over many masks use `masked_renders`.
+    in memory. Returns [N, H, W, C] float32. Statistics over many masks use `masked_renders`.
     """
     if keep is None:
-        return _checked(view.render(), 1, view.camera)
-    parts = list(masked_renders(view, keep))
+        return _checked(view.render(None, signal), 1, view.camera, signal)
+    parts = list(masked_renders(view, keep, signal))
     return torch.cat(parts) if len(parts) > 1 else parts[0]
 
 
-def _checked(images: Tensor, count: int, camera: Camera) -> Tensor:
-    shape = (count, camera.height, camera.width, 3)
+def _checked(images: Tensor, count: int, camera: Camera, signal: str) -> Tensor:
+    shape = (count, camera.height, camera.width, signal_channels(signal))
     if tuple(images.shape) != shape:
         raise RuntimeError(f"renderer returned shape {list(images.shape)}, expected {list(shape)}")
-    low, high = torch.aminmax(images)                       # NaN and +-inf reach them; no [N, H, W, 3] temporary
+    low, high = torch.aminmax(images)                       # NaN and +-inf reach them; no [N, H, W, C] temporary
     if not (torch.isfinite(low) and torch.isfinite(high)):
         raise RuntimeError("renderer returned NaN or infinite pixel values")
     return images.to(torch.float32)

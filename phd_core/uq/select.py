@@ -18,7 +18,7 @@ from ..errors import InputError
 from ..eval import ensemble_efficiency, psnr, rmse, ssim
 from ..executors import LOCAL, Executor
 from ..registry import Registry
-from ..renderers import Renderer
+from ..renderers import DEFAULT_SIGNAL, Renderer
 from ..renderers.visibility import Visibility, reports_visibility
 from ..scene import Camera
 from .rank import view_visibility
@@ -30,6 +30,7 @@ from .sampling import (
     check_ratio,
     check_samples,
     check_seed,
+    check_signal,
     dropout_uniforms,
     keep_masks,
 )
@@ -121,7 +122,8 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
                   ratio_b: float, samples: int = DEFAULT_SAMPLES, seed: int = 0, images: Tensor | None = None,
                   rule: str = DEFAULT_SELECTION_RULE, training_a: Sequence[Camera] | None = None,
                   training_b: Sequence[Camera] | None = None, keep_images: bool | str = False,
-                  progress: Progress | None = None, executor: Executor = LOCAL) -> SelectionResult:
+                  progress: Progress | None = None, executor: Executor = LOCAL,
+                  signal: str = DEFAULT_SIGNAL) -> SelectionResult:
     """Per view, pick the model with the lower score (each at its own dropout ratio).
 
     rule "sigma_mean" (the paper): the mean zeta of the view. Rule "distance_sigma": the
@@ -144,11 +146,13 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     with the higher SSIM. keep_images: True keeps the chosen model's full render per view,
     "both" also the other model's (to show the two side by side). `executor`
     (phd_core.executors) runs the masked renders in chunks, anywhere; the full renders of
-    the chosen models stay in this process.
+    the chosen models stay in this process. `signal`: what zeta is measured on
+    (phd_core.renderers.SIGNALS); the full renders are composited whatever it is.
     """
     ratio_a, ratio_b = check_ratio(ratio_a, "ratio_a"), check_ratio(ratio_b, "ratio_b")
     samples, _ = check_samples(samples, 1)
     seed = check_seed(seed)
+    signal = check_signal(signal)
     cameras = check_cameras(cameras)
     chosen = SELECTION_RULES.lookup(rule, "rule")
     if images is not None:
@@ -173,7 +177,7 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
         """Each view under model `key`'s masks, on the executor."""
         chunks = executor.split(views)
         parts = executor.map(partial(measure_views, ddof=1, keep_maps=False, dtype=torch.float64,
-                                     keep_full=keep_full, keep_visibility=chosen.coverage), chunks,
+                                     keep_full=keep_full, keep_visibility=chosen.coverage, signal=signal), chunks,
                              executor.share(renderers[key]), keeps[key], done=lambda i: ticker.tick(len(chunks[i])))
         return [view for part in parts for view in part]
 

@@ -1,5 +1,7 @@
 """Uncertainty: zeta = per-pixel, per-channel standard deviation over N masked renders;
 sigma_max = max of zeta over H, W, C; sigma-max-bar = mean of sigma_max over views (Appendix A.1).
+The channels are the signal's (`phd_core.renderers.SIGNALS`): RGB over the background (the
+paper's), or RGB over black plus alpha.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from torch import Tensor
 
 from ..errors import InputError
 from ..executors import LOCAL, Executor
-from ..renderers import Renderer, View
+from ..renderers import DEFAULT_SIGNAL, Renderer, View
 from ..renderers.visibility import Visibility, reports_visibility
 from ..scene import Camera
 from .sampling import (
@@ -25,6 +27,7 @@ from .sampling import (
     check_ratio,
     check_samples,
     check_seed,
+    check_signal,
     dropout_uniforms,
     keep_masks,
     masked_renders,
@@ -44,8 +47,8 @@ class ViewUncertainty:
     sigma_mean: float               # mean of zeta over H, W, C
     sigma_top: float = 0.0          # mean of the top TOP_SHARE of pixels' zeta (max over C): an upper-quantile mean
     area: float = 0.0               # share of pixels whose zeta (max over C) exceeds AREA_THRESHOLD
-    mean: Tensor | None = None      # [H, W, 3] float32 mean image over the N samples (keep_maps=True)
-    zeta: Tensor | None = None      # [H, W, 3] float32 per-pixel per-channel std (keep_maps=True)
+    mean: Tensor | None = None      # [H, W, C] float32 mean image over the N samples (keep_maps=True)
+    zeta: Tensor | None = None      # [H, W, C] float32 per-pixel per-channel std (keep_maps=True)
     peak: Tensor | None = None      # [H, W] float32 zeta's max over channels, what a heat map draws (keep_peak=True)
     image: Tensor | None = None     # [H, W, 3] float32 the full model's render, from the same prepared view (keep_full)
     visibility: Visibility | None = None   # what the view sees of the model, zeta's channel max per element
@@ -53,9 +56,10 @@ class ViewUncertainty:
 
 def measure_view(view: View, keep: Tensor, ddof: int, keep_maps: bool, dtype: torch.dtype,
                  keep_peak: bool = False, keep_full: bool = False,
-                 visibility: Callable[[View, Tensor], Visibility] | None = None) -> ViewUncertainty:
+                 visibility: Callable[[View, Tensor], Visibility] | None = None,
+                 signal: str = DEFAULT_SIGNAL) -> ViewUncertainty:
     running = RunningStd(dtype)                               # never holds all N renders
-    for chunk in masked_renders(view, keep):                  # [m, H, W, 3]
+    for chunk in masked_renders(view, keep, signal):          # [m, H, W, C]
         running.add(chunk)
     zeta, mean = running.result(ddof)
     peak = zeta.amax(dim=-1)                                  # [H, W]
@@ -73,32 +77,33 @@ def measure_view(view: View, keep: Tensor, ddof: int, keep_maps: bool, dtype: to
 
 def measure_views(cameras: list[Camera], renderer: Renderer, keep: Tensor, *, ddof: int, keep_maps: bool,
                   dtype: torch.dtype, keep_peak: bool = False, keep_full: bool = False,
-                  keep_visibility: bool = False) -> list[ViewUncertainty]:
+                  keep_visibility: bool = False, signal: str = DEFAULT_SIGNAL) -> list[ViewUncertainty]:
     """measure_view for a chunk of cameras (what an executor runs): one `prepare` per camera
-    serves the N masked renders and, with keep_full, the full model's render; with
-    keep_visibility (and a family that reports it), what the view sees of the model."""
+    serves the N masked renders of `signal` and, with keep_full, the full model's composited
+    render; with keep_visibility (and a family that reports it), what the view sees of the model."""
     visibility = renderer.visibility if keep_visibility and reports_visibility(renderer) else None
-    return [measure_view(renderer.prepare(camera), keep, ddof, keep_maps, dtype, keep_peak, keep_full, visibility)
-            for camera in cameras]
+    return [measure_view(renderer.prepare(camera), keep, ddof, keep_maps, dtype, keep_peak, keep_full, visibility,
+                         signal) for camera in cameras]
 
 
 def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, samples: int = DEFAULT_SAMPLES,
                      seed: int = 0, ddof: int = 1, keep_maps: bool = False,
-                     dtype: torch.dtype = torch.float64) -> ViewUncertainty:
+                     dtype: torch.dtype = torch.float64, signal: str = DEFAULT_SIGNAL) -> ViewUncertainty:
     """zeta, sigma_max and sigma_mean of one view from `samples` masked renders (one batched pass).
 
     ddof=1 (default) is the unbiased sample std and needs samples >= 2; ddof=0 is the
-    population std. `dtype` is the accumulation precision of the std.
+    population std. `dtype` is the accumulation precision of the std; `signal` the images
+    zeta is measured on (phd_core.renderers.SIGNALS).
     """
     return uncertainty(renderer, [camera], ratio=ratio, samples=samples, seed=seed, ddof=ddof,
-                       keep_maps=keep_maps, dtype=dtype)[0]
+                       keep_maps=keep_maps, dtype=dtype, signal=signal)[0]
 
 
 def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
                 samples: int = DEFAULT_SAMPLES, seed: int = 0, ddof: int = 1, keep_maps: bool = False,
                 keep_peak: bool = False, progress: Progress | None = None,
                 dtype: torch.dtype = torch.float64, executor: Executor = LOCAL,
-                keep_visibility: bool = False) -> list[ViewUncertainty]:
+                keep_visibility: bool = False, signal: str = DEFAULT_SIGNAL) -> list[ViewUncertainty]:
     """view_uncertainty for every camera under the SAME N sub-models (one draw from `seed`).
 
     keep_maps keeps zeta and the mean image of every view (24 bytes a pixel); keep_peak only
@@ -106,18 +111,20 @@ def uncertainty(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
     keep_visibility keeps what each view sees of the model (`Renderer.visibility`, with zeta's
     channel max per element) where the family reports it.
     `executor` (phd_core.executors) runs chunks of cameras, anywhere; the masks are drawn
-    here and shipped, so every executor gives the same numbers.
+    here and shipped, so every executor gives the same numbers. `signal`: what zeta is
+    measured on (phd_core.renderers.SIGNALS; the paper's is the default, "composited").
     """
     ratio = check_ratio(ratio)
     samples, ddof = check_samples(samples, ddof)
     seed = check_seed(seed)
     dtype = check_dtype(dtype)
+    signal = check_signal(signal)
     cameras = check_cameras(cameras)
     keep = keep_masks(dropout_uniforms(renderer.num_units, samples, seed), ratio)
     ticker = ProgressTicker(progress, len(cameras))
     chunks = executor.split(cameras)
     parts = executor.map(partial(measure_views, ddof=ddof, keep_maps=keep_maps, dtype=dtype, keep_peak=keep_peak,
-                                 keep_visibility=keep_visibility), chunks,
+                                 keep_visibility=keep_visibility, signal=signal), chunks,
                          executor.share(renderer), keep, done=lambda i: ticker.tick(len(chunks[i])))
     ticker.finish()
     return [view for part in parts for view in part]

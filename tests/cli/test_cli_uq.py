@@ -242,6 +242,21 @@ def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
     assert exit_info.value.code == 2 and "invalid choice: 'sharpest'" in err and "fvs_sigma" in err
 
 
+def test_rank_measures_on_the_signal_it_is_given(files, capsys) -> None:
+    argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
+            SIZE, "--dropout-ratio", 0.4, "--samples", 5]
+    candidates = [away_camera(SIZE)] + ring_cameras(4, size=SIZE, height=0.5)
+    code, out, _ = run(capsys, *argv, "--signal", "premultiplied")
+    expected = phd.rank_views(load_model(files["model"]), candidates, ratio=0.4, samples=5, signal="premultiplied")
+    result = strict_json(out)
+    assert code == 0 and result["signal"] == "premultiplied" and result["order"] == [r.index for r in expected]
+    assert [r["sigma_max"] for r in result["ranking"]] == pytest.approx([r.sigma_max for r in expected], abs=1e-12)
+    with pytest.raises(SystemExit) as exit_info:
+        run(capsys, *argv, "--signal", "straight")
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "--signal" in err and "invalid choice: 'straight'" in err
+
+
 @pytest.mark.parametrize("extra, field", [
     (["--samples", "1"], "samples"), (["--dropout-ratio", "1.5"], "ratio"), (["--top-k", "0"], "top_k"),
     (["--downscale", "0"], "downscale"), (["--coarse", "1.5"], "coarse"), (["--refine", "3"], "refine"),

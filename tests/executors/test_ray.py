@@ -127,7 +127,7 @@ def test_errors_in_the_work_come_back_as_themselves(cluster) -> None:
     from phd_core.errors import InputError
 
     class Broken(BlobRenderer):
-        def render(self, camera, keep=None):
+        def render(self, camera, keep=None, signal="composited"):
             raise InputError("cameras", "this camera cannot be rendered")
 
     with pytest.raises(InputError) as info:                         # not wrapped, not retried

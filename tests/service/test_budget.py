@@ -275,3 +275,17 @@ def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(
     assert visibility_bytes(10**6, views[0]) == (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * 4 * 40 * 40
     # The 300x300 captured views' fragments, walked by the visibility pass, outweigh the 40x40 renders.
     assert seen_plan.bytes > plain_plan.bytes + PASS_FRAGMENT_BYTES * 300 * 300
+
+
+def test_the_premultiplied_signal_plans_its_fourth_channel():
+    pixels, per_mask = 200 * 200, RenderMemory(fixed=0, kept=0, per_mask=36 * 200 * 200)
+    three, four = (plan_work(MODEL, pixels, 64, 0, 4 << 30, renders=per_mask, size_field="downscale",
+                             kept_field="cameras", channels=c) for c in (3, 4))
+    assert three.mask_batch == four.mask_batch == 64
+    # A float64 accumulator channel (64 bytes a pixel), and per mask the render's and the engine's
+    # float32 copy of the fourth channel (4 + 4 bytes a pixel).
+    assert four.bytes - three.bytes == pixels * 64 + 64 * pixels * 8
+    tight = 16 * 48 * pixels + pixels * 192 + model_bytes(20_000) + 64 * 300 * 5 + (1 << 20)
+    assert plan(pixels, 64, tight, renders=per_mask).mask_batch > plan_work(
+        MODEL, pixels, 64, 0, tight, renders=per_mask, size_field="downscale", kept_field="cameras",
+        channels=4).mask_batch

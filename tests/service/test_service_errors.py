@@ -167,6 +167,7 @@ def test_invalid_cameras_and_parameters_get_422(svc_small):
         ({"heatmaps": "jpeg"}, "heatmaps"),
         ({"strategy": "sharpest"}, "strategy"),
         ({"strategy": 3}, "strategy"),
+        ({"signal": "straight"}, "signal"),
         ({"captured": [_frame(fl_x=-1)]}, "captured[0].fl_x"),
         ({"sample": 4}, "sample"),                                                         # a typo
     ]
@@ -180,6 +181,7 @@ def test_invalid_cameras_and_parameters_get_422(svc_small):
     calibrate = f"{server.url}/v1/models/{model_id}/calibrate"
     expect_error(httpx.post(calibrate, json={"epsilon": 0}), 422, "invalid_input", "epsilon")
     expect_error(httpx.post(calibrate, json={"method": "ssim"}), 422, "invalid_input", "method")
+    expect_error(httpx.post(calibrate, json={"signal": "straight"}), 422, "invalid_input", "signal")
     # r_drop = 0 (epsilon too small for this model) is a clear 422, not a crash.
     error = expect_error(httpx.post(calibrate, json={"epsilon": 1e-9, "step": 0.5, "samples": 2,
                                                "training_cameras": [_frame()]}), 422, "calibration_failed", "epsilon")

@@ -15,7 +15,7 @@ import math
 
 import torch
 
-from phd_core.renderers import CameraView, check_keep
+from phd_core.renderers import DEFAULT_SIGNAL, CameraView, check_keep, signal_channels
 from phd_core.scene import Camera, look_at
 
 
@@ -68,7 +68,8 @@ class BlobRenderer:
     def prepare(self, camera: Camera) -> CameraView:
         return CameraView(self, camera)
 
-    def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
+    def render(self, camera: Camera, keep: torch.Tensor | None = None,
+               signal: str = DEFAULT_SIGNAL) -> torch.Tensor:
         self.calls += 1
         keep = check_keep(keep, self.num_units)
         if keep is None:
@@ -76,12 +77,16 @@ class BlobRenderer:
         alpha = keep.to(torch.float64)[:, :, None, None] * self.alphas(camera)[None]   # [N, U, H, W]
         if self.compositing == "additive":
             weights = alpha / max(self.num_units, 1)                     # sum over units <= 1
+            color, covered = torch.einsum("nuhw,uc->nhwc", weights, self.colors), weights.sum(1)
             image = self.background - torch.einsum("nuhw,uc->nhwc", weights, self.background - self.colors)
         else:
             # Unit order: transmittance before unit g is prod_{j<g} (1 - alpha_j).
             transmittance = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha], 1), 1)
-            image = (torch.einsum("nuhw,uc->nhwc", alpha * transmittance[:, :-1], self.colors)
-                     + transmittance[:, -1, :, :, None] * self.background)
+            color = torch.einsum("nuhw,uc->nhwc", alpha * transmittance[:, :-1], self.colors)
+            covered = 1 - transmittance[:, -1]
+            image = color + transmittance[:, -1, :, :, None] * self.background
+        if signal_channels(signal) == 4:                                 # colour over black plus alpha
+            image = torch.cat([color, covered[..., None]], -1)
         return image.to(torch.float32).clamp(0, 1)
 
 
@@ -105,7 +110,8 @@ class ConstantRenderer:
     def prepare(self, camera: Camera) -> CameraView:
         return CameraView(self, camera)
 
-    def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
+    def render(self, camera: Camera, keep: torch.Tensor | None = None,
+               signal: str = DEFAULT_SIGNAL) -> torch.Tensor:
         keep = check_keep(keep, self.num_units)
         n = 1 if keep is None else keep.shape[0]
         if self.value is not None:
@@ -114,6 +120,8 @@ class ConstantRenderer:
             y = torch.linspace(0.1, 0.9, camera.height)[:, None, None]
             x = torch.linspace(0.2, 0.7, camera.width)[None, :, None]
             image = (0.3 * y + 0.6 * x + torch.tensor([0.0, 0.05, 0.1])).clamp(0, 1) / 3 + 1 / 7
+        if signal_channels(signal) == 4:                                 # opaque everywhere
+            image = torch.cat([image, torch.ones_like(image[..., :1])], -1)
         return image.to(torch.float32).expand(n, -1, -1, -1).clone()
 
 

@@ -197,8 +197,8 @@ def test_uncertainty_arguments_are_validated(blobs: BlobRenderer, kwargs: dict, 
 
 def test_broken_renderer_output_is_reported() -> None:
     class NaNRenderer(ConstantRenderer):
-        def render(self, camera, keep=None):
-            out = super().render(camera, keep)
+        def render(self, camera, keep=None, signal="composited"):
+            out = super().render(camera, keep, signal)
             out[:, 0, 0, 0] = math.nan
             return out
 

@@ -215,7 +215,8 @@ def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tens
     values = torch.cat(columns, dim=-1)                                  # [E, 4] or [E, 8]
     acc_v, acc_a, rgb = composite_images(composite, frags, values, keep, proj.ids[splat], pairs, tile,
                                          camera.width, camera.height, background)
-    out = SurfelOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all, visible=visible)
+    out = SurfelOutput(rgb=rgb, color=acc_v[..., :3], alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all,
+                       visible=visible)
     if geometry:
         out.normal = acc_v[..., 4:7]
         out.distortion = (acc_a * acc_v[..., 7] - acc_v[..., 3].square()).clamp_min(0.0)

@@ -43,6 +43,7 @@ from ...scene.rotations import quaternion_to_rotation
 from ..composite import pick_compositor
 from ..composite.fused import composite_indexed
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
+from ..signals import DEFAULT_SIGNAL, over, signal_image
 from ..splats.maths import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -178,7 +179,8 @@ def rasterize(model: GaussianModel, camera: Camera, background: torch.Tensor,
     values = torch.cat([proj.colors.float(), proj.depths.float()[:, None]], dim=-1)[splat]  # [E, 4]
     acc_v, acc_a, rgb = composite_images(composite, frags, values, keep, proj.ids[splat], pairs, tile,
                                          camera.width, camera.height, background)
-    return RenderOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all, visible=visible)
+    return RenderOutput(rgb=rgb, color=acc_v[..., :3], alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all,
+                        visible=visible)
 
 
 @dataclass
@@ -205,19 +207,24 @@ class SplatView:
         return sum(t.numel() * t.element_size() for t in (self.units, self.values, self.row_ptr, self.alpha,
                                                          self.log_1ma, self.index, self.means2d, self.visible))
 
-    def render_full(self, keep: torch.Tensor | None = None) -> RenderOutput:
+    def accumulate(self, keep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Colour over black and camera depth [N, H, W, 4], alpha [N, H, W]: one per keep-mask."""
         keep = check_keep(keep, self.num_units)
         acc_v, acc_a = composite_indexed(self.row_ptr, self.alpha, self.index, self.units, keep, self.values,
                                          self.log_1ma)
         cam = self.camera
         acc_v = untile(acc_v, self.pairs, self.tile, cam.width, cam.height)                     # [N, H, W, 4]
         acc_a = untile(acc_a[..., None], self.pairs, self.tile, cam.width, cam.height)[..., 0]  # [N, H, W]
-        rgb = (1.0 - acc_a)[..., None].clamp_min(0.0) * self.background      # [N, H, W, 3], then in place
-        rgb += acc_v[..., :3]
-        return RenderOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=self.means2d, visible=self.visible)
+        return acc_v, acc_a
 
-    def render(self, keep: torch.Tensor | None = None) -> torch.Tensor:
-        return self.render_full(keep).rgb.clamp_(0.0, 1.0)
+    def render_full(self, keep: torch.Tensor | None = None) -> RenderOutput:
+        acc_v, acc_a = self.accumulate(keep)
+        return RenderOutput(rgb=over(acc_v[..., :3], acc_a, self.background), color=acc_v[..., :3], alpha=acc_a,
+                            depth=acc_v[..., 3], means2d=self.means2d, visible=self.visible)
+
+    def render(self, keep: torch.Tensor | None = None, signal: str = DEFAULT_SIGNAL) -> torch.Tensor:
+        acc_v, acc_a = self.accumulate(keep)
+        return signal_image(signal, acc_v[..., :3], acc_a, self.background)
 
 
 @torch.no_grad()
@@ -246,7 +253,8 @@ def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor,
 # offsets); and per keep-mask: its flags by splat (the kernel's [G, m] copy, 1 byte each) and, per grid
 # pixel, what `SplatView.render` holds at its worst moment: the tiled values and alpha [m, S, 4 + 1] float32
 # (20 bytes) while the values are untiled (16), or the untiled ones (20) with the background weight (4) and
-# the image it starts (12; the values are added and the image clamped in place): 36.
+# the image it starts (12; the values are added and the image clamped in place): 36; the premultiplied
+# signal holds the untiled ones (20) with its [m, H, W, 4] image (16): 36 as well.
 SPLAT_BYTES = 128
 VISIBLE_BYTES, SH_COEFF_BYTES = 64, 32
 PAIR_BYTES, PAIR_PIXEL_BYTES = 4, 4

@@ -10,6 +10,7 @@ from torch import Tensor
 
 from ...scene import Camera
 from ..protocol import CameraView, RenderMemory, View, check_keep
+from ..signals import DEFAULT_SIGNAL, over, signal_image
 from ..visibility import FragmentSums, Visibility, reduce_to_visibility
 from .config import CHUNK_ELEMENTS, CHUNK_SAMPLES, NeRFConfig
 from .field import RadianceField
@@ -50,6 +51,7 @@ def nerf_memory(renderer: "NeRFRenderer", camera: Camera) -> RenderMemory:
 @dataclass
 class NeRFOutput:
     rgb: Tensor     # [N, H, W, 3] composited on the background
+    color: Tensor   # [N, H, W, 3] premultiplied: composited on black
     alpha: Tensor   # [N, H, W] accumulated opacity
     depth: Tensor   # [N, H, W] alpha-weighted distance along the ray (divide by alpha for the mean)
 
@@ -79,22 +81,33 @@ class NeRFRenderer:
     def config(self) -> NeRFConfig:
         return self.model.config
 
+    @property
+    def background(self) -> Tensor:
+        return torch.tensor(self.config.background, dtype=torch.float32)
+
     @torch.no_grad()
-    def render_full(self, camera: Camera, keep: Tensor | None = None) -> NeRFOutput:
+    def over_black(self, camera: Camera, keep: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """`camera` rendered once per keep-mask over black: colour [N, H, W, 3], alpha and depth [N, H, W]."""
         keep = check_keep(keep, self.num_units)
         n = 1 if keep is None else keep.shape[0]
         origins, dirs = camera_rays(camera)
         rays_per_chunk = max(1, CHUNK_SAMPLES // self.config.samples)
+        black = torch.zeros(3)
         parts = [render_rays(self.model, origins[i:i + rays_per_chunk], dirs[i:i + rays_per_chunk], keep=keep,
-                             rescale=self.rescale, use_grid=self.use_grid)
+                             rescale=self.rescale, use_grid=self.use_grid, background=black)
                  for i in range(0, origins.shape[0], rays_per_chunk)]
         h, w = camera.height, camera.width
-        return NeRFOutput(torch.cat([p.rgb for p in parts], 1).view(n, h, w, 3),
-                          torch.cat([p.alpha for p in parts], 1).view(n, h, w),
-                          torch.cat([p.depth for p in parts], 1).view(n, h, w))
+        return (torch.cat([p.rgb for p in parts], 1).view(n, h, w, 3),
+                torch.cat([p.alpha for p in parts], 1).view(n, h, w),
+                torch.cat([p.depth for p in parts], 1).view(n, h, w))
 
-    def render(self, camera: Camera, keep: Tensor | None = None) -> Tensor:
-        return self.render_full(camera, keep).rgb.clamp(0.0, 1.0)
+    def render_full(self, camera: Camera, keep: Tensor | None = None) -> NeRFOutput:
+        color, alpha, depth = self.over_black(camera, keep)
+        return NeRFOutput(over(color, alpha, self.background), color, alpha, depth)
+
+    def render(self, camera: Camera, keep: Tensor | None = None, signal: str = DEFAULT_SIGNAL) -> Tensor:
+        color, alpha, _ = self.over_black(camera, keep)
+        return signal_image(signal, color, alpha, self.background)
 
     def prepare(self, camera: Camera) -> CameraView:
         """Every NeRF sample goes through the masked trunk, so there is no mask-independent

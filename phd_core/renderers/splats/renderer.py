@@ -21,6 +21,7 @@ from ...errors import InputError
 from ...scene import Camera, cameras_from_json, pixels_in_box
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR
 from ..protocol import View
+from ..signals import DEFAULT_SIGNAL, signal_image
 from ..visibility import Visibility, fragment_visibility, reduce_to_visibility, robust_box
 from .maths import DEFAULT_TILE, Pairs, tile_layout
 from .model import GaussianModel
@@ -34,6 +35,7 @@ FISHER_PROBES = 4       # random projections per view in `SplatRenderer.fisher`
 @dataclass
 class RenderOutput:
     rgb: torch.Tensor       # [N, H, W, 3] composited on the background
+    color: torch.Tensor     # [N, H, W, 3] premultiplied: composited on black (rgb without the background)
     alpha: torch.Tensor     # [N, H, W] accumulated opacity
     depth: torch.Tensor     # [N, H, W] alpha-weighted camera depth (divide by alpha for the mean)
     means2d: torch.Tensor   # [G, 2] screen positions (autograd leaf for densification stats)
@@ -80,8 +82,10 @@ class SplatRenderer(ABC):
         """The full model's fragments of `view`'s camera, grouped by pixel: (row_ptr [S + 1],
         alpha [E], splat [E], pixel [S] in tile layout, the tile grid)."""
 
-    def render(self, camera: Camera, keep: torch.Tensor | None = None) -> torch.Tensor:
-        return self.render_full(camera, keep).rgb.clamp(0.0, 1.0)
+    def render(self, camera: Camera, keep: torch.Tensor | None = None,
+               signal: str = DEFAULT_SIGNAL) -> torch.Tensor:
+        out = self.render_full(camera, keep)
+        return signal_image(signal, out.color, out.alpha, self.background)
 
     def fisher(self, camera: Camera, probes: int = FISHER_PROBES, seed: int = 0) -> torch.Tensor:
         """[G, 5] float64: the diagonal of J^T J of this view's render (J: d pixels / d parameters),
