@@ -24,6 +24,7 @@ import time
 import torch
 
 from bench._harness import DOCS, RESULTS, donut_cameras, machine, tiled_model, write_doc, write_result
+from phd_core.allocator import bounded_heap
 from phd_core.renderers import visibility as vis_module
 from phd_core.renderers.gs3d import GaussianRenderer
 
@@ -37,6 +38,7 @@ def status_kb(field: str) -> int:
 def child(copies: int, size: int, version: str) -> dict:
     """Prepare one ring view of the tiled model, then time the pass with `version`'s sums."""
     torch.set_num_threads(1)
+    bounded_heap()                                                     # the service's malloc settings
     renderer = GaussianRenderer(tiled_model(copies, 3))
     camera = donut_cameras(size, size * 3 // 4, 1)[0]
     view = renderer.prepare(camera)
@@ -82,8 +84,8 @@ def main() -> None:
     write_result(RESULTS / "visibility.json", {"machine": machine(), "rows": rows})
     lines = [f"Command: `OMP_NUM_THREADS=1 .venv/bin/python -m bench.bench_visibility --copies "
              f"{' '.join(map(str, args.copies))} --sizes {' '.join(map(str, args.sizes))}` (one thread, one ring pose "
-             "of the tiled SH-3 donut model, median of 3 passes; memory: the peak RSS the pass adds over the "
-             "prepared view, each version in its own process).", "",
+             "of the tiled SH-3 donut model, median of 3 passes; memory: the peak RSS the passes add over the "
+             "prepared view, each version in its own process under the service's malloc settings).", "",
              "| splats | size | fragments | torch twin s | compiled s | speed-up | torch twin MB | compiled MB | "
              "weights agree |", "|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
