@@ -290,11 +290,12 @@ TILE_BLOCK = 4      # tiles per parallel work item of `_composite_pairs` (scratc
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _composite_pairs(start, splat, means2d, conics, opacities, cutoffs, tiles_x, tile, width, height, unit, keep_t,
                      values, out_values, out_alpha):  # pragma: no cover
-    """Stages 3 and 4 in one pass, without fragments: each pixel walks its tile's pairs
-    (start, splat as `_tile_lists` returns them) front to back, evaluates each splat's alpha
-    there as `_pair_alpha` does (float64, kept as float32 when >= ALPHA_MIN) and composites it
-    for every mask as `_composite_kernel` does (`_blend`), until every mask is spent. So a
-    pixel only evaluates the splats down to where its last mask stops.
+    """Stages 3 and 4 in one pass, without fragments: each tile walks its pairs (start, splat
+    as `_tile_lists` returns them) front to back; each pair's alpha at each of the tile's
+    pixels still open is evaluated as `_pair_alpha` does (float64, kept as float32 when
+    >= ALPHA_MIN) and composited there for every mask as `_composite_kernel` does (`_blend`).
+    A pixel closes when all its masks are spent, a tile when all its pixels are: the splats
+    behind that point are never evaluated.
 
     cutoffs [V]: log(ALPHA_MIN / opacity) - 1e-6 (`_pair_alpha`'s, once per splat); unit [V]
     int64 (keep row of each splat); keep_t [U, N] bool; values [V, C] float32. Writes
@@ -304,28 +305,38 @@ def _composite_pairs(start, splat, means2d, conics, opacities, cutoffs, tiles_x,
     masks = keep_t.shape[1]
     channels = values.shape[1]
     for block in numba.prange((tiles + TILE_BLOCK - 1) // TILE_BLOCK):
-        log_t = np.empty(masks)                     # log transmittance per mask
-        trans = np.empty(masks)                     # the same, exp'd
-        live = np.empty(masks, dtype=np.uint8)      # 1 until the mask's transmittance is spent
+        log_t = np.empty((pixels, masks))           # log transmittance per pixel and mask
+        trans = np.empty((pixels, masks))           # the same, exp'd
+        live = np.empty((pixels, masks), dtype=np.uint8)   # 1 until the mask's transmittance is spent
         weight = np.empty(masks)                    # this fragment's weight per mask (0: skipped)
-        acc = np.empty((channels + 1, masks))       # colour/depth sums, then accumulated alpha
+        acc = np.empty((pixels, channels + 1, masks))      # colour/depth sums, then accumulated alpha
+        open_ = np.empty(pixels, dtype=np.uint8)   # 1 while a pixel inside the image has a live mask
         for t in range(block * TILE_BLOCK, min(tiles, (block + 1) * TILE_BLOCK)):
             x0 = (t % tiles_x) * tile
             y0 = (t // tiles_x) * tile
+            pending = 0
             for p in range(pixels):
-                _pixel_start(log_t, trans, live, acc)
-                px, py = x0 + p % tile, y0 + p // tile
-                if px < width and py < height:
-                    for k in range(start[t], start[t + 1]):
-                        v = splat[k]
-                        a = _alpha(means2d, conics, opacities, v, px, py, cutoffs[v])
-                        if a < ALPHA_MIN:
-                            continue
-                        a = np.float64(np.float32(a))
-                        step = np.float64(np.float32(math.log1p(-a)))
-                        if _blend(a, step, keep_t[unit[v]], values[v], log_t, trans, live, weight, acc) == 0:
-                            break
-                _pixel_store(acc, t * pixels + p, out_values, out_alpha)
+                _pixel_start(log_t[p], trans[p], live[p], acc[p])
+                open_[p] = x0 + p % tile < width and y0 + p // tile < height
+                pending += open_[p]
+            for k in range(start[t], start[t + 1]):
+                if pending == 0:
+                    break
+                v = splat[k]
+                keep_row, values_row = keep_t[unit[v]], values[v]
+                for p in range(pixels):
+                    if open_[p] == 0:
+                        continue
+                    a = _alpha(means2d, conics, opacities, v, x0 + p % tile, y0 + p // tile, cutoffs[v])
+                    if a < ALPHA_MIN:
+                        continue
+                    a = np.float64(np.float32(a))
+                    step = np.float64(np.float32(math.log1p(-a)))
+                    if _blend(a, step, keep_row, values_row, log_t[p], trans[p], live[p], weight, acc[p]) == 0:
+                        open_[p] = 0
+                        pending -= 1
+            for p in range(pixels):
+                _pixel_store(acc[p], t * pixels + p, out_values, out_alpha)
 
 
 def composite_pairs(start: torch.Tensor, splat: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor,
