@@ -4,20 +4,11 @@ camera (`prepare_view`, then N masked renders) with either version's fragments.
 
     .venv/bin/python -m bench.bench_fragments --before 852c250
 
-With `--lazy` instead: a whole camera of a prepared view rendered through its fragments
-(`render.render_fragments`: stage 3, then the fused compositor) against the default render,
-which evaluates each pair's alpha inside the compositing pass; both from the same
-`prepare_view`, alternating in one process, at each thread count, the images compared (1e-6).
-Models: the 45,624-splat donut (SH 0, issue 11's) and the 1,003,728-splat tiling (SH 3).
-
-    .venv/bin/python -m bench.bench_fragments --lazy
-
 The earlier `gs3d/kernels.py` is read from git and loaded beside the current one (its relative
 imports resolve against today's package, which holds for any revision whose kernels import the
 same names). Model: the harness's 1,003,728-splat SH-3 tiling of the donut (`tiled_model`, as
 bench_scale uses); cameras: donut_200's ring poses. Writes bench/results/fragments.json and
-the table between the `bench:fragments` markers of docs/performance.md (`--lazy`:
-bench/results/lazy.json and the `bench:lazy` markers).
+the table between the `bench:fragments` markers of docs/performance.md.
 """
 
 from __future__ import annotations
@@ -33,20 +24,9 @@ from pathlib import Path
 import numba
 import torch
 
-from bench._harness import (
-    DOCS,
-    RESULTS,
-    ROOT,
-    donut_cameras,
-    donut_model,
-    load_average,
-    machine,
-    tiled_model,
-    write_doc,
-    write_result,
-)
+from bench._harness import DOCS, RESULTS, ROOT, donut_cameras, tiled_model, write_doc, write_result
 from phd_core.renderers.gs3d import kernels, render
-from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, front_to_back, prepare_view, render_fragments
+from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, front_to_back, prepare_view
 from phd_core.renderers.splats import DEFAULT_TILE
 from phd_core.uq import dropout_uniforms, keep_masks
 
@@ -64,79 +44,9 @@ def kernels_at(revision: str):
     return module
 
 
-def lazy_rows(model, label: str, sizes: list[tuple[int, int]], threads: list[int], cameras: int, repeats: int,
-              samples: int, ratio: float) -> list[dict]:
-    """Whole camera (prepare_view and one render of `samples` masks) with the fragment path and
-    the lazy one, median seconds over `cameras` x `repeats` calls each (after a warm-up)."""
-    keep = keep_masks(dropout_uniforms(model.num_splats, samples, 0), ratio)
-    background = torch.ones(3)
-    paths = {"fragments": render_fragments, "lazy": render.SplatView.render_full}
-    rows = []
-    for width, height in sizes:
-        poses = donut_cameras(width, height, cameras)
-        counts = []
-        for camera in poses:
-            view = prepare_view(model, camera, background)
-            _, alpha, _ = view.fragments()
-            held = sum(t.numel() * t.element_size() for t in (view.units, view.values, view.means2d, view.visible))
-            offsets = 8 * ((len(view.pair_start) - 1) * view.tile ** 2 + 1)       # row_ptr
-            counts.append((len(alpha), view.nbytes, held + offsets + 12 * len(alpha)))  # alpha, log1p, index
-            ours, twin = view.render_full(keep), render_fragments(view, keep)
-            for name in ("rgb", "alpha", "depth"):      # depth: 1e-6 of its scale (float32 sums of depths)
-                a, b = getattr(ours, name), getattr(twin, name)
-                diff, scale = (a - b).abs().max().item(), max(1.0, b.abs().max().item())
-                assert diff <= 1e-6 * scale, f"{name}: the lazy render and the fragment path differ by {diff:.3g}"
-        for count in threads:
-            torch.set_num_threads(count)
-            numba.set_num_threads(count)
-            seconds: dict[str, list[float]] = {name: [] for name in paths}
-            for camera in poses:
-                for repeat in range(1 + repeats):
-                    for name, path in paths.items():
-                        started = time.perf_counter()
-                        path(prepare_view(model, camera, background), keep)
-                        if repeat:
-                            seconds[name].append(time.perf_counter() - started)
-            row = {"model": label, "splats": model.num_splats, "size": f"{width}x{height}", "threads": count,
-                   "fragments": max(c[0] for c in counts), "lazy_view_mb": max(c[1] for c in counts) / 2**20,
-                   "fragment_view_mb": max(c[2] for c in counts) / 2**20,
-                   **{f"{name}_s": statistics.median(values) for name, values in seconds.items()}}
-            rows.append(row)
-            print(row, flush=True)
-    return rows
-
-
-def lazy_main(args: argparse.Namespace) -> None:
-    started = load_average()
-    rows = []
-    if args.small:
-        rows += lazy_rows(donut_model(), "donut SH 0", [(100, 100), (200, 200)], args.threads, args.cameras,
-                          args.repeats, args.samples, args.ratio)
-    rows += lazy_rows(tiled_model(args.copies, 3), "tiled SH 3", [(w, w * 3 // 4) for w in args.widths],
-                      args.threads, args.cameras, args.repeats, args.samples, args.ratio)
-    write_result(RESULTS / "lazy.json", {"machine": machine(load_average_at_start=started), "rows": rows,
-                                         "samples": args.samples, "ratio": args.ratio})
-    lines = [f"Command: `nice -n 10 .venv/bin/python -m bench.bench_fragments --lazy` ({args.cameras} ring cameras "
-             f"of donut_200, median of {args.repeats} calls each, both paths alternating in one process, the same "
-             f"N = {args.samples} masks at ratio {args.ratio}; the images agree to 1e-6, depth to 1e-6 of its largest "
-             "value). Whole camera: "
-             "`prepare_view` and one render of the masks. \"view MB\": the largest prepared view's "
-             "`nbytes`; the fragment path's: what a view held before, its fragments included.", "",
-             "| model | splats | size | threads | fragments | fragment path s | lazy s | speed-up "
-             "| view MB fragment path | lazy |", "|---|---|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['model']} | {r['splats']:,} | {r['size']} | {r['threads']} | {r['fragments']:,} | "
-              f"{r['fragments_s']:.3f} | {r['lazy_s']:.3f} | {r['fragments_s'] / r['lazy_s']:.2f}x | "
-              f"{r['fragment_view_mb']:.1f} | {r['lazy_view_mb']:.1f} |" for r in rows]
-    write_doc(DOCS / "performance.md", "\n".join(lines), section="lazy")
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--before", help="the git revision to compare with")
-    p.add_argument("--lazy", action="store_true", help="compare the lazy render with the fragment path instead")
-    p.add_argument("--small", action=argparse.BooleanOptionalAction, default=True,
-                   help="with --lazy: the 45,624-splat donut too")
-    p.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="with --lazy: thread counts")
+    p.add_argument("--before", required=True, help="the git revision to compare with")
     p.add_argument("--copies", type=int, default=22, help="donut copies (22: 1,003,728 splats)")
     p.add_argument("--widths", type=int, nargs="+", default=[200, 400], help="image widths (height 3/4)")
     p.add_argument("--cameras", type=int, default=4)
@@ -144,11 +54,6 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=16, help="masks N of the whole-camera timing")
     p.add_argument("--ratio", type=float, default=0.5, help="dropout ratio of those masks")
     args = p.parse_args()
-    if args.lazy:
-        lazy_main(args)
-        return
-    if args.before is None:
-        p.error("give --before REVISION (or --lazy)")
     torch.set_num_threads(1)
     numba.set_num_threads(1)
     before = kernels_at(args.before)

@@ -27,59 +27,6 @@ from ..splats.maths import LAUNCH_LOCK, LOG_T_MIN, Fragments
 PIXEL_BLOCK = 64    # pixels per parallel work item (scratch space is allocated per block)
 
 
-@numba.njit(inline="always")
-def _blend(a, step, keep_row, values_row, log_t, trans, live, weight, acc):  # pragma: no cover
-    """One fragment of alpha `a` (float64 of a float32) and step = log1p(-a) (the same) for
-    every mask at once: keep_row [N] the flags of its unit, values_row [C] its values; updates
-    log_t, trans, live and acc ([C + 1, N]: sums, then accumulated alpha) in place and
-    returns how many masks are still live.
-
-    The loops over the N masks have no branches (selects instead), so they run as SIMD
-    lanes; state is laid out mask-last for that. The stop rule reads the log
-    transmittance; the weight uses the same transmittance kept as a float64 running
-    value (T - alpha T, one exp fewer per fragment and mask)."""
-    masks = log_t.shape[0]
-    channels = values_row.shape[0]
-    alive = 0
-    for n in range(masks):
-        after = log_t[n] + step
-        kept = live[n] & keep_row[n]                # the mask keeps this unit, still live
-        room = np.uint8(after >= LOG_T_MIN)         # 0: this fragment would spend the pixel
-        use = kept & room
-        live[n] &= room | (1 - kept)                # a kept fragment without room stops the mask
-        w = a * trans[n] if use else 0.0
-        weight[n] = w
-        log_t[n] = after if use else log_t[n]
-        trans[n] -= w
-        alive += live[n]
-    for c in range(channels):
-        x = np.float64(values_row[c])
-        for n in range(masks):
-            acc[c, n] += weight[n] * x
-    for n in range(masks):
-        acc[channels, n] += weight[n]
-    return alive
-
-
-@numba.njit(inline="always")
-def _pixel_start(log_t, trans, live, acc):  # pragma: no cover
-    """A pixel's compositing state before its first fragment (every mask live, nothing summed)."""
-    log_t[:] = 0.0
-    trans[:] = 1.0
-    live[:] = 1
-    acc[:] = 0.0
-
-
-@numba.njit(inline="always")
-def _pixel_store(acc, s, out_values, out_alpha):  # pragma: no cover
-    """Pixel s's sums into out_values [N, S, C] and out_alpha [N, S]."""
-    channels = acc.shape[0] - 1
-    for n in range(acc.shape[1]):
-        for c in range(channels):
-            out_values[n, s, c] = acc[c, n]
-        out_alpha[n, s] = acc[channels, n]
-
-
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _composite_kernel(row_ptr, alpha, log_1ma, index, unit, keep_t, values, out_values,
                       out_alpha):  # pragma: no cover
@@ -87,7 +34,12 @@ def _composite_kernel(row_ptr, alpha, log_1ma, index, unit, keep_t, values, out_
     alpha [E] float32 and log_1ma = log1p(-alpha) [E] float32 (as the reference takes it);
     index [E] int32 (value row of each fragment); unit [V] int64 (keep row of each value row);
     keep_t [U, N] bool (one unit's N flags share a cache line); values [V, C] float32.
-    Writes out_values [N, S, C] and out_alpha [N, S] (float32, all); each fragment is `_blend`."""
+    Writes out_values [N, S, C] and out_alpha [N, S] (float32, all).
+
+    The loops over the N masks have no branches (selects instead), so they run as SIMD
+    lanes; state is laid out mask-last for that. The stop rule reads the log
+    transmittance; the weight uses the same transmittance kept as a float64 running
+    value (T - alpha T, one exp fewer per fragment and mask)."""
     num_pixels = row_ptr.shape[0] - 1
     masks = keep_t.shape[1]
     channels = values.shape[1]
@@ -99,14 +51,39 @@ def _composite_kernel(row_ptr, alpha, log_1ma, index, unit, keep_t, values, out_
         weight = np.empty(masks)                    # this fragment's weight per mask (0: skipped)
         acc = np.empty((channels + 1, masks))       # colour/depth sums, then accumulated alpha
         for s in range(block * PIXEL_BLOCK, min(num_pixels, (block + 1) * PIXEL_BLOCK)):
-            _pixel_start(log_t, trans, live, acc)
+            log_t[:] = 0.0
+            trans[:] = 1.0
+            live[:] = 1
+            acc[:] = 0.0
             for e in range(row_ptr[s], row_ptr[s + 1]):
+                a = np.float64(alpha[e])
+                step = np.float64(log_1ma[e])
                 v = index[e]
-                alive = _blend(np.float64(alpha[e]), np.float64(log_1ma[e]), keep_t[unit[v]], values[v],
-                               log_t, trans, live, weight, acc)
+                u = unit[v]
+                alive = 0
+                for n in range(masks):
+                    after = log_t[n] + step
+                    kept = live[n] & keep_t[u, n]               # the mask keeps this unit, still live
+                    room = np.uint8(after >= LOG_T_MIN)         # 0: this fragment would spend the pixel
+                    use = kept & room
+                    live[n] &= room | (1 - kept)                # a kept fragment without room stops the mask
+                    w = a * trans[n] if use else 0.0
+                    weight[n] = w
+                    log_t[n] = after if use else log_t[n]
+                    trans[n] -= w
+                    alive += live[n]
+                for c in range(channels):
+                    x = np.float64(values[v, c])
+                    for n in range(masks):
+                        acc[c, n] += weight[n] * x
+                for n in range(masks):
+                    acc[channels, n] += weight[n]
                 if alive == 0:
                     break
-            _pixel_store(acc, s, out_values, out_alpha)
+            for n in range(masks):
+                for c in range(channels):
+                    out_values[n, s, c] = acc[c, n]
+                out_alpha[n, s] = acc[channels, n]
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -201,16 +178,20 @@ def _launch(row_ptr: torch.Tensor, alpha: torch.Tensor, log_1ma: torch.Tensor, i
 
 
 def composite_indexed(row_ptr: torch.Tensor, alpha: torch.Tensor, index: torch.Tensor, unit: torch.Tensor,
-                      keep: torch.Tensor | None, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                      keep: torch.Tensor | None, values: torch.Tensor,
+                      log_1ma: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite S pixels once per keep-mask (see the module docstring for the layout).
 
-    keep: [N, U] bool or None (every unit kept, N = 1). Returns (accumulated values [N, S, C],
-    accumulated alpha [N, S]) float32, pixel s of row_ptr.
+    keep: [N, U] bool or None (every unit kept, N = 1); log_1ma: log1p(-alpha) [E] float32
+    when the caller keeps it (a prepared view), else computed here. Returns (accumulated
+    values [N, S, C], accumulated alpha [N, S]) float32, pixel s of row_ptr.
     """
-    return _launch(row_ptr, alpha, torch.log1p(-alpha.float()), index, *keep_columns(keep, unit), values)
+    if log_1ma is None:
+        log_1ma = torch.log1p(-alpha.float())
+    return _launch(row_ptr, alpha, log_1ma, index, *_keep_columns(keep, unit), values)
 
 
-def keep_columns(keep: torch.Tensor | None, unit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _keep_columns(keep: torch.Tensor | None, unit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(unit, keep_t [U, N]) for the kernels: keep None is one mask keeping every unit.
     Units are looked up in any order: one unit's N flags share a cache line ([U, N] copy, small)."""
     if keep is None:
@@ -225,7 +206,7 @@ def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
 
     Returns (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
     """
-    sums, alpha = _Composite.apply(frags.alpha, values, frags.row_ptr, *keep_columns(keep, unit))
+    sums, alpha = _Composite.apply(frags.alpha, values, frags.row_ptr, *_keep_columns(keep, unit))
     totals = sums.new_zeros(sums.shape[0], num_pixels, sums.shape[-1]).index_copy(1, frags.pixel, sums)
     acc_alpha = alpha.new_zeros(alpha.shape[0], num_pixels).index_copy(1, frags.pixel, alpha)
     return totals, acc_alpha

@@ -20,7 +20,6 @@ import numpy as np
 import torch
 
 from ...scene import Camera
-from ..composite.fused import _blend, _pixel_start, _pixel_store
 from ..splats.maths import ALPHA_MAX, ALPHA_MIN, LAUNCH_LOCK, SH_C0, SH_C1, SH_C2, SH_C3
 
 
@@ -241,116 +240,25 @@ def _gather(start, splat, pair_alpha, row_ptr, alpha, index):  # pragma: no cove
                     cursor[p] = e + 1
 
 
-def tile_pairs(means2d: torch.Tensor, extents: torch.Tensor, width: int, height: int,
-               tile: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
-    """Stage 2 for V projected splats in front-to-back order (means2d, extents [V, 2] float64):
-    (start [T + 1] int64, splat [M] int32, tiles_x, tiles_y); the pairs of tile t, front to
-    back, are splat[start[t]:start[t + 1]]."""
-    tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
-    with LAUNCH_LOCK:
-        start, splat = _tile_lists(means2d.detach().double().contiguous().numpy(),
-                                   extents.detach().double().contiguous().numpy(), tiles_x, tiles_y, tile)
-    return torch.from_numpy(start), torch.from_numpy(splat), tiles_x, tiles_y
-
-
-def pair_fragments(start: torch.Tensor, splat: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor,
-                   opacities: torch.Tensor, width: int, height: int, tile: int
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Stage 3 from stage 2's lists (`tile_pairs`) and the V splats' means2d [V, 2], conics
-    [V, 3], opacities [V] (float64): (row_ptr [T * P + 1] int64, alpha [E] float32, index [E]
-    int32 into the V splats); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1]."""
-    tiles_x = math.ceil(width / tile)
-    means2d_np, conics_np, opacities_np = (t.detach().double().contiguous().numpy()
-                                           for t in (means2d, conics, opacities))
-    start_np, splat_np = start.numpy(), splat.numpy()
-    row_ptr = np.zeros((len(start) - 1) * tile * tile + 1, np.int64)
-    with LAUNCH_LOCK:
-        pair_alpha = np.empty((len(splat_np), tile * tile), np.float32)      # [M, P]
-        _pair_alpha(start_np, splat_np, means2d_np, conics_np, opacities_np, tiles_x, tile, width, height,
-                    pair_alpha, row_ptr)
-        np.cumsum(row_ptr, out=row_ptr)
-        alpha = np.empty(row_ptr[-1], np.float32)
-        index = np.empty(row_ptr[-1], np.int32)
-        _gather(start_np, splat_np, pair_alpha, row_ptr, alpha, index)
-    return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index)
-
-
 def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, extents: torch.Tensor,
                     width: int, height: int, tile: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, int]:
     """Stages 2 and 3 for V projected splats in front-to-back order (means2d [V, 2], conics
-    [V, 3], opacities [V], extents [V, 2], float64): `pair_fragments` of `tile_pairs`, with
-    the grid: (row_ptr, alpha, index, tiles_x, tiles_y)."""
-    start, splat, tiles_x, tiles_y = tile_pairs(means2d, extents, width, height, tile)
-    return (*pair_fragments(start, splat, means2d, conics, opacities, width, height, tile), tiles_x, tiles_y)
+    [V, 3], opacities [V], extents [V, 2], float64).
 
-
-TILE_BLOCK = 4      # tiles per parallel work item of `_composite_pairs` (scratch space is allocated per block)
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _composite_pairs(start, splat, means2d, conics, opacities, cutoffs, tiles_x, tile, width, height, unit, keep_t,
-                     values, out_values, out_alpha):  # pragma: no cover
-    """Stages 3 and 4 in one pass, without fragments: each tile walks its pairs (start, splat
-    as `_tile_lists` returns them) front to back; each pair's alpha at each of the tile's
-    pixels still open is evaluated as `_pair_alpha` does (float64, kept as float32 when
-    >= ALPHA_MIN) and composited there for every mask as `_composite_kernel` does (`_blend`).
-    A pixel closes when all its masks are spent, a tile when all its pixels are: the splats
-    behind that point are never evaluated.
-
-    cutoffs [V]: log(ALPHA_MIN / opacity) - 1e-6 (`_pair_alpha`'s, once per splat); unit [V]
-    int64 (keep row of each splat); keep_t [U, N] bool; values [V, C] float32. Writes
-    out_values [N, T * P, C] and out_alpha [N, T * P] in tile layout (pixels past the image: 0)."""
-    pixels = tile * tile
-    tiles = start.shape[0] - 1
-    masks = keep_t.shape[1]
-    channels = values.shape[1]
-    for block in numba.prange((tiles + TILE_BLOCK - 1) // TILE_BLOCK):
-        log_t = np.empty((pixels, masks))           # log transmittance per pixel and mask
-        trans = np.empty((pixels, masks))           # the same, exp'd
-        live = np.empty((pixels, masks), dtype=np.uint8)   # 1 until the mask's transmittance is spent
-        weight = np.empty(masks)                    # this fragment's weight per mask (0: skipped)
-        acc = np.empty((pixels, channels + 1, masks))      # colour/depth sums, then accumulated alpha
-        open_ = np.empty(pixels, dtype=np.uint8)   # 1 while a pixel inside the image has a live mask
-        for t in range(block * TILE_BLOCK, min(tiles, (block + 1) * TILE_BLOCK)):
-            x0 = (t % tiles_x) * tile
-            y0 = (t // tiles_x) * tile
-            pending = 0
-            for p in range(pixels):
-                _pixel_start(log_t[p], trans[p], live[p], acc[p])
-                open_[p] = x0 + p % tile < width and y0 + p // tile < height
-                pending += open_[p]
-            for k in range(start[t], start[t + 1]):
-                if pending == 0:
-                    break
-                v = splat[k]
-                keep_row, values_row = keep_t[unit[v]], values[v]
-                for p in range(pixels):
-                    if open_[p] == 0:
-                        continue
-                    a = _alpha(means2d, conics, opacities, v, x0 + p % tile, y0 + p // tile, cutoffs[v])
-                    if a < ALPHA_MIN:
-                        continue
-                    a = np.float64(np.float32(a))
-                    step = np.float64(np.float32(math.log1p(-a)))
-                    if _blend(a, step, keep_row, values_row, log_t[p], trans[p], live[p], weight, acc[p]) == 0:
-                        open_[p] = 0
-                        pending -= 1
-            for p in range(pixels):
-                _pixel_store(acc[p], t * pixels + p, out_values, out_alpha)
-
-
-def composite_pairs(start: torch.Tensor, splat: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor,
-                    opacities: torch.Tensor, cutoffs: torch.Tensor, width: int, height: int, tile: int,
-                    unit: torch.Tensor, keep_t: torch.Tensor, values: torch.Tensor
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """`_composite_pairs` for N masks (keep_t [U, N] bool, unit [V] long, values [V, C]);
-    the splats' arrays as `pair_fragments` takes them, float64, contiguous. Returns
-    (accumulated values [N, T * P, C], accumulated alpha [N, T * P]) float32, tile layout."""
-    masks, pixels, channels = keep_t.shape[1], (len(start) - 1) * tile * tile, values.shape[1]
-    out_values = torch.empty(masks, pixels, channels, dtype=torch.float32)
-    out_alpha = torch.empty(masks, pixels, dtype=torch.float32)
+    Returns (row_ptr [T * P + 1] int64, alpha [E] float32, index [E] int32 into the V splats,
+    tiles_x, tiles_y); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1].
+    """
+    tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
+    means2d_np, conics_np, opacities_np, extents_np = (t.detach().double().contiguous().numpy()
+                                                       for t in (means2d, conics, opacities, extents))
+    row_ptr = np.zeros(tiles_x * tiles_y * tile * tile + 1, np.int64)
     with LAUNCH_LOCK:
-        _composite_pairs(start.numpy(), splat.numpy(), means2d.numpy(), conics.numpy(), opacities.numpy(),
-                         cutoffs.numpy(), math.ceil(width / tile), tile, width, height, unit.numpy(),
-                         keep_t.numpy(), values.numpy(), out_values.numpy(), out_alpha.numpy())
-    return out_values, out_alpha
+        start, splat = _tile_lists(means2d_np, extents_np, tiles_x, tiles_y, tile)
+        pair_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P]
+        _pair_alpha(start, splat, means2d_np, conics_np, opacities_np, tiles_x, tile, width, height, pair_alpha,
+                    row_ptr)
+        np.cumsum(row_ptr, out=row_ptr)
+        alpha = np.empty(row_ptr[-1], np.float32)
+        index = np.empty(row_ptr[-1], np.int32)
+        _gather(start, splat, pair_alpha, row_ptr, alpha, index)
+    return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index), tiles_x, tiles_y

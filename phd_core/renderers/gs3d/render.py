@@ -41,7 +41,7 @@ from ...errors import InputError
 from ...scene import Camera
 from ...scene.rotations import quaternion_to_rotation
 from ..composite import pick_compositor
-from ..composite.fused import composite_indexed, keep_columns
+from ..composite.fused import composite_indexed
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
 from ..splats.maths import (
     ALPHA_MAX,
@@ -57,7 +57,7 @@ from ..splats.maths import (
 )
 from ..splats.model import GaussianModel
 from ..splats.renderer import NEAR_PLANE, RenderOutput, SplatRenderer
-from .kernels import composite_pairs, pair_fragments, project_splats, splat_values, tile_pairs
+from .kernels import project_splats, splat_fragments, splat_values
 
 DILATION = 0.3          # px^2 added to the 2D covariance diagonal (anti-aliasing low-pass)
 
@@ -183,26 +183,18 @@ def rasterize(model: GaussianModel, camera: Camera, background: torch.Tensor,
 
 @dataclass
 class SplatView:
-    """One camera's mask-independent state (stages 1-2 and the SH colour), composited per batch
-    of keep-masks. Built by `GaussianRenderer.prepare`; a `phd_core.renderers.View`.
-
-    It keeps the tile/splat pairs, not the fragments: a render evaluates each pair's alpha
-    inside the compositing pass (`kernels.composite_pairs`), so a pixel costs only the splats
-    down to where its last mask stops, and no [fragments] arrays are held. `fragments` builds
-    them (stage 3) when they are asked for: for visibility, and for `render_fragments`, the
-    tested twin of a render."""
+    """One camera's mask-independent state (stages 1-3), composited per batch of keep-masks
+    by the fused kernel. Built by `GaussianRenderer.prepare`; a `phd_core.renderers.View`."""
 
     camera: Camera
     background: torch.Tensor  # [3]
     num_units: int          # G, the width of a keep-mask
     units: torch.Tensor     # [V] long, the model splat of each visible splat (front to back)
     values: torch.Tensor    # [V, 4] float32 colour and camera depth of each visible splat
-    centres: torch.Tensor   # [V, 2] float64 screen position of each visible splat
-    conics: torch.Tensor    # [V, 3] float64 inverse 2D covariance (a, b, c)
-    opacities: torch.Tensor  # [V] float64
-    cutoffs: torch.Tensor   # [V] float64 log(ALPHA_MIN / opacity) - 1e-6: no alpha >= 1/255 below this exponent
-    pair_start: torch.Tensor  # [T + 1] int64: tile t's pairs are pair_splat[pair_start[t]:pair_start[t + 1]]
-    pair_splat: torch.Tensor  # [M] int32 visible splat of each tile/splat pair, front to back within a tile
+    row_ptr: torch.Tensor   # [T * P + 1] long, fragments of pixel q (tile layout): row_ptr[q]:row_ptr[q + 1]
+    alpha: torch.Tensor     # [E] float32
+    log_1ma: torch.Tensor   # [E] float32, log1p(-alpha): mask-independent, so computed once
+    index: torch.Tensor     # [E] int32, the visible splat of each fragment
     pairs: Pairs            # grid only (tiles_x, tiles_y), for untile
     tile: int
     means2d: torch.Tensor   # [G, 2] screen positions of all splats
@@ -210,29 +202,13 @@ class SplatView:
 
     @property
     def nbytes(self) -> int:
-        return sum(t.numel() * t.element_size() for t in (
-            self.units, self.values, self.centres, self.conics, self.opacities, self.cutoffs, self.pair_start,
-            self.pair_splat, self.means2d, self.visible))
-
-    def fragments(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Stage 3: (row_ptr [T * P + 1], alpha [E] float32, index [E] int32 into the visible
-        splats), the fragments of pixel q (tile layout) row_ptr[q]:row_ptr[q + 1]."""
-        cam = self.camera
-        return pair_fragments(self.pair_start, self.pair_splat, self.centres, self.conics, self.opacities,
-                              cam.width, cam.height, self.tile)
+        return sum(t.numel() * t.element_size() for t in (self.units, self.values, self.row_ptr, self.alpha,
+                                                         self.log_1ma, self.index, self.means2d, self.visible))
 
     def render_full(self, keep: torch.Tensor | None = None) -> RenderOutput:
-        cam = self.camera
-        unit, keep_t = keep_columns(check_keep(keep, self.num_units), self.units)
-        return self.images(*composite_pairs(self.pair_start, self.pair_splat, self.centres, self.conics,
-                                            self.opacities, self.cutoffs, cam.width, cam.height, self.tile,
-                                            unit, keep_t, self.values))
-
-    def render(self, keep: torch.Tensor | None = None) -> torch.Tensor:
-        return self.render_full(keep).rgb.clamp_(0.0, 1.0)
-
-    def images(self, acc_v: torch.Tensor, acc_a: torch.Tensor) -> RenderOutput:
-        """The render of accumulated values [N, T * P, 4] and alpha [N, T * P] (tile layout)."""
+        keep = check_keep(keep, self.num_units)
+        acc_v, acc_a = composite_indexed(self.row_ptr, self.alpha, self.index, self.units, keep, self.values,
+                                         self.log_1ma)
         cam = self.camera
         acc_v = untile(acc_v, self.pairs, self.tile, cam.width, cam.height)                     # [N, H, W, 4]
         acc_a = untile(acc_a[..., None], self.pairs, self.tile, cam.width, cam.height)[..., 0]  # [N, H, W]
@@ -240,31 +216,26 @@ class SplatView:
         rgb += acc_v[..., :3]
         return RenderOutput(rgb=rgb, alpha=acc_a, depth=acc_v[..., 3], means2d=self.means2d, visible=self.visible)
 
-
-def render_fragments(view: SplatView, keep: torch.Tensor | None = None) -> RenderOutput:
-    """`view.render_full(keep)` through its fragments (stage 3, then the fused compositor):
-    the path before alphas were evaluated inside the compositing pass, kept as its twin."""
-    row_ptr, alpha, index = view.fragments()
-    return view.images(*composite_indexed(row_ptr, alpha, index, view.units, check_keep(keep, view.num_units),
-                                          view.values))
+    def render(self, keep: torch.Tensor | None = None) -> torch.Tensor:
+        return self.render_full(keep).rgb.clamp_(0.0, 1.0)
 
 
 @torch.no_grad()
 def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor, *, tile: int = DEFAULT_TILE,
                  near: float = NEAR_PLANE) -> SplatView:
-    """Stages 1-2 for `camera`, compiled (`kernels.py`); SH colours of the visible splats only."""
+    """Stages 1-3 for `camera`, compiled (`kernels.py`); SH colours of the visible splats only."""
     means2d, conics, opacities, extents, depths, visible = project_splats(
         model.means, model.quats, model.log_scales, model.opacity_logits, camera, near, DILATION)
     ids = front_to_back(visible, depths)
-    centres, opacities = means2d[ids], opacities[ids]
-    start, splat, tiles_x, tiles_y = tile_pairs(centres, extents[ids], camera.width, camera.height, tile)
+    row_ptr, alpha, index, tiles_x, tiles_y = splat_fragments(means2d[ids], conics[ids], opacities[ids],
+                                                              extents[ids], camera.width, camera.height, tile)
     empty = torch.empty(0, dtype=torch.long)
     grid = Pairs(tile=empty, splat=empty, tile_start=empty, tiles_x=tiles_x, tiles_y=tiles_y)
     values = splat_values(model.means, model.sh, ids, camera, depths)
     return SplatView(camera=camera, background=background.float(), num_units=model.num_splats, units=ids,
-                     values=values, centres=centres, conics=conics[ids], opacities=opacities,
-                     cutoffs=torch.log(ALPHA_MIN / opacities) - 1e-6, pair_start=start, pair_splat=splat,
-                     pairs=grid, tile=tile, means2d=means2d.float(), visible=visible)
+                     values=values, row_ptr=row_ptr, alpha=alpha, log_1ma=torch.log1p(-alpha),
+                     index=index, pairs=grid, tile=tile,
+                     means2d=means2d.float(), visible=visible)
 
 
 # What `prepare_view` and a SplatView render hold, in bytes per item (upper envelopes of the peaks
@@ -340,5 +311,5 @@ class GaussianRenderer(SplatRenderer):
     def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, Pairs]:
         if not isinstance(view, SplatView):
             view = prepare_view(self.model, view.camera, self.background, tile=self.tile, near=self.near)
-        row_ptr, alpha, index = view.fragments()
-        return row_ptr, alpha, view.units[index.long()], torch.arange(len(row_ptr) - 1), view.pairs
+        rows = torch.arange(len(view.row_ptr) - 1)
+        return view.row_ptr, view.alpha, view.units[view.index.long()], rows, view.pairs
