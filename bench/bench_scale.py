@@ -434,7 +434,10 @@ splats get small boxes. Only the survivors are sorted, coloured and rasterised. 
 
 What is left grows with the fragments: every visible splat at every pixel where its alpha
 reaches 1/255, hidden ones included. They cannot be cut at `prepare`: a keep-mask may drop
-the splats in front, and a prepared view serves any masks.
+the splats in front, and a prepared view serves any masks. Nor did evaluating them lazily pay
+(each alpha computed inside the compositing pass, down to where a pixel's last mask stops;
+"Tried: alphas inside the compositing pass" below): 16 masks at ratio 0.5 still composite
+about half of a 1M-splat view's fragments and 91 % of the 45k donut's.
 
 ![seconds per candidate against splats](scale_time.svg)
 
