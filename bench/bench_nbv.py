@@ -49,7 +49,8 @@ from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_s
 
 EXPERIMENTS = nbv_experiments.EXPERIMENTS
 DOC = DOCS / "nbv.md"
-SHIPPED = ["random", "fvs", "sigma_max", "fvs_sigma", "fvs_sigma_floor", "visibility", "visibility_sigma"]
+SHIPPED = ["random", "fvs", "sigma_max", "fvs_sigma", "fvs_sigma_floor", "visibility", "visibility_sigma",
+           "visibility_sigma_fvs"]
 PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma"]   # curves per round
 # Image width per scene where it is not --resolution (square): the real capture is 4:3, 80x60 px
 # at the default resolution (as its training benchmark, docs/formats.md).

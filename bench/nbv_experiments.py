@@ -12,11 +12,9 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
 - fvs_top: fvs_sigma_floor with sigma_top in place of sigma_mean.
 - fvs_prefilter: among the candidates at least as far from the captured poses as the
   median candidate, the highest sigma_mean (a coverage prefilter, then uncertainty).
-- visibility_sigma_angle0.25, visibility_sigma_angle1: the default with a sharper (`near`
-  falls to 1/e at 41 degrees, not 60) or broader (90 degrees) direction kernel: sharper, a
-  part's value follows its nearest captured direction more than the sum over all of them.
-- visibility_sigma_fvs: the default's value times the candidate's distance to the nearest
-  captured (or picked) centre: what the model has not seen, spread as FVS spreads.
+- visibility_sigma_angle0.25: visibility_sigma with a sharper direction kernel (`near` falls
+  to 1/e at 41 degrees, not 60): a part's value follows its nearest captured direction more
+  than the sum over all of them.
 """
 
 from __future__ import annotations
@@ -64,11 +62,11 @@ def _k_median_strategy(demand: Callable[[Evidence], Tensor], power: int) -> Call
 
 
 EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma_top", "sigma_area", "fvs_top",
-               "visibility_sigma_angle0.25", "visibility_sigma_angle1", "visibility_sigma_fvs")
+               "visibility_sigma_angle0.25")
 
 
-def _visibility_angle(scale: float) -> Callable[[Evidence, int, int], Selection]:
-    return lambda evidence, k, seed: coverage_select(evidence, k, fragility=True, angle_scale=scale)
+def _visibility_sharp(evidence: Evidence, k: int, seed: int) -> Selection:
+    return coverage_select(evidence, k, fragility=True, angle_scale=0.25)
 
 
 for _strategy in (
@@ -83,8 +81,6 @@ for _strategy in (
                  lambda ev, k, seed: by_score(ev.sigma_top)),
         Strategy("sigma_area", "largest share of pixels with zeta above 0.05", lambda ev, k, seed: by_score(ev.area)),
         Strategy("fvs_top", "distance times (sigma_top + its mean), greedy", _fvs_top),
-        *(Strategy(f"visibility_sigma_angle{scale:g}", f"visibility_sigma with the direction kernel at {scale:g}",
-                   _visibility_angle(scale), uses_visibility=True) for scale in (0.25, 1.0)),
-        Strategy("visibility_sigma_fvs", "visibility_sigma times the distance to the nearest captured centre",
-                 lambda ev, k, seed: coverage_select(ev, k, fragility=True, spread=True), uses_visibility=True)):
+        Strategy("visibility_sigma_angle0.25", "visibility_sigma with the direction kernel at 0.25",
+                 _visibility_sharp, uses_visibility=True)):
     STRATEGIES.register(_strategy)

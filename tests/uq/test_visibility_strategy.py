@@ -54,7 +54,7 @@ def ranking(name: str, renderer: GaussianRenderer, candidates: list, captured: l
     return get_strategy(name).select(visibility_evidence(renderer, candidates, captured), k, 0)
 
 
-@pytest.mark.parametrize("name", ["visibility", "visibility_sigma"])
+@pytest.mark.parametrize("name", ["visibility", "visibility_sigma", "visibility_sigma_fvs"])
 def test_a_part_hidden_behind_an_occluder_from_every_captured_view_ranks_its_view_first(name: str) -> None:
     renderer = open_box()
     # Captured: a ring at the height of the walls; the walls hide the inside from all of them.
@@ -77,7 +77,7 @@ def test_cameras_at_one_centre_looking_different_ways_score_by_what_they_see() -
     captured = [camera((0.0, 0.0, 0.0), (1.0, 0.0, 0.0))]
     candidates = [camera((0.0, 0.0, 0.0), (1.0, 0.0, 0.0)), camera((0.0, 0.0, 0.0), (-1.0, 0.0, 0.0)),
                   camera((0.0, 0.0, 0.0), (0.0, 1.0, 0.0))]            # the last sees nothing
-    for name in ("visibility", "visibility_sigma"):
+    for name in ("visibility", "visibility_sigma", "visibility_sigma_fvs"):
         selection = ranking(name, renderer, candidates, captured, 1)
         assert selection.order[0] == 1                                 # faces the unseen cluster
         # The seen side is worth little: only what the captured view saw less than a quarter of
@@ -88,7 +88,7 @@ def test_cameras_at_one_centre_looking_different_ways_score_by_what_they_see() -
     assert len(set(fvs.scores)) == 1
 
 
-@pytest.mark.parametrize("name", ["visibility", "visibility_sigma"])
+@pytest.mark.parametrize("name", ["visibility", "visibility_sigma", "visibility_sigma_fvs"])
 def test_identical_candidates_never_share_a_batch(name: str) -> None:
     renderer = open_box()
     captured = [camera((5.0, 0.0, 0.2))]
