@@ -20,7 +20,8 @@ on 4 workers; its peak over its idle RSS before the first upload, next to the bu
     OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python -m bench.bench_memory [--budgets 1 4] [--only NAME ...]
 
 Writes bench/results/memory.json (merged with the rows already there when --only is given)
-and prints the table docs/reliability.md shows.
+and prints the table docs/reliability.md shows. Two runs at once write a file each (--out);
+`--merge FILE ...` alone adds their rows to memory.json and prints the table.
 """
 
 from __future__ import annotations
@@ -410,11 +411,11 @@ def table(rows: list[dict]) -> str:
 COMMAND = "OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python -m bench.bench_memory"
 
 
-def save(rows: dict[str, dict]) -> list[dict]:
-    """Write the rows to OUT (after every row: a sweep stopped half way keeps what it measured)."""
+def save(rows: dict[str, dict], out: Path = OUT) -> list[dict]:
+    """Write the rows to `out` (after every row: a sweep stopped half way keeps what it measured)."""
     ordered = sorted((r for r in rows.values() if "states" not in r), key=lambda r: r["budget_bytes"])
     ordered += [r for r in rows.values() if "states" in r]
-    write_result(OUT, {"machine": machine(), "command": COMMAND, "rows": ordered})
+    write_result(out, {"machine": machine(), "command": COMMAND, "rows": ordered})
     return ordered
 
 
@@ -423,27 +424,33 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="rows whose name contains one of these ('concurrent': the crowds)")
     parser.add_argument("--budgets", nargs="*", type=float, default=[1, 4], help="GiB, each row at each")
     parser.add_argument("--concurrent-budget", type=int, default=GIB)
+    parser.add_argument("--out", type=Path, default=OUT, help="results file (two runs at once need one each)")
+    parser.add_argument("--merge", type=Path, nargs="*", default=[], help="results files whose rows join --out's")
     args = parser.parse_args()
-    previous = json.loads(OUT.read_text()) if OUT.exists() and args.only else {"rows": []}
+    previous = json.loads(args.out.read_text()) if args.out.exists() and (args.only or args.merge) else {"rows": []}
     rows = {r["name"]: r for r in previous["rows"]}
+    rows.update({r["name"]: r for path in args.merge for r in json.loads(path.read_text())["rows"]})
+    def chosen(name: str) -> bool:     # --merge alone measures nothing
+        return any(word in name for word in args.only) if args.only else not args.merge
+
     sweep = [replace(row, name=f"{row.name} [{budget:g} GiB]", budget=int(budget * GIB))
              for budget in args.budgets for row in SWEEP]
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         for row in sweep:
-            if args.only and not any(word in row.name for word in args.only):
+            if not chosen(row.name):
                 continue
             rows[row.name] = measure(row, root)
-            save(rows)
+            save(rows, args.out)
             print(json.dumps({k: v for k, v in rows[row.name].items() if k != "options"}), flush=True)
         for crowd in CROWDS:
-            if not args.only or any(word in crowd.name for word in args.only):
+            if chosen(crowd.name):
                 result = concurrent(root, args.concurrent_budget, crowd)
                 rows[result["name"]] = result
-                save(rows)
+                save(rows, args.out)
                 print(json.dumps(result), flush=True)
-    print(table(save(rows)))
-    print(f"wrote {OUT}")
+    print(table(save(rows, args.out)))
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
