@@ -269,6 +269,8 @@ SWEEP = [
         training=8, body={"rule": "distance_sigma"}),
     Row("3dgs select coverage_checked (default) 2x400", "select", ["3dgs-50k-small", "3dgs-50k-large"], 400, 8,
         views=2, training=8),
+    Row("3dgs select coverage_checked (default) 50k small vs 50k small 2x200", "select",
+        ["3dgs-50k-small", "3dgs-50k-small-b"], 200, 8, views=2, training=4),
     Row("3dgs 50k small visibility_sigma 4 candidates x400, 8 captured", "rank", ["3dgs-50k-small"], 400, 16,
         views=4, training=8, body={"strategy": "visibility_sigma"}),
     Row("donut 45k 400 N=64 heatmaps=base64 2x", "rank", ["3dgs-45k-donut"], 400, 64, views=2,
