@@ -20,7 +20,8 @@ on 4 workers; its peak over its idle RSS before the first upload, next to the bu
     OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python -m bench.bench_memory [--budgets 1 4] [--only NAME ...]
 
 Writes bench/results/memory.json (merged with the rows already there when --only is given)
-and prints the table docs/reliability.md shows.
+and prints the table docs/reliability.md shows. Two runs at once write a file each (--out);
+`--merge FILE ...` alone adds their rows to memory.json and prints the table.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from pathlib import Path
 import httpx
 import torch
 
-from bench._harness import RESULTS, donut_model, machine, write_result
+from bench._harness import RESULTS, donut_cameras, donut_model, machine, tiled_model, write_result
 from client import PHDClient
 from phd_core.executors import LOCAL
 from phd_core.renderers.gs2d import SurfelModel, write_surfel_ply
@@ -45,6 +46,7 @@ from phd_core.renderers.gs2d.render import surfel_counts
 from phd_core.renderers.gs3d import GaussianModel, write_ply
 from phd_core.renderers.gs3d.render import splat_counts
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, save_nerf
+from phd_core.scene import Camera
 from service.budget import MemoryLedger
 from service.errors import ServiceError
 from service.schemas import CalibrateRequest, RankRequest, SelectRequest
@@ -94,6 +96,7 @@ MODELS = {   # name: how to write it
     "3dgs-300-attack": lambda p: write_ply(splats(GaussianModel, 300, 0.06, sh_degree=1), p),
     "3dgs-45k-donut": lambda p: write_ply(donut_model(), p),
     "3dgs-1m-donuts": lambda p: write_ply(tiled(donut_model(), 22), p),          # 1,003,728 splats
+    "3dgs-3m-donuts-sh3": lambda p: write_ply(tiled_model(66, 3), p),          # 3,011,184 splats, bench_scale's
     "2dgs-1k-large": lambda p: write_surfel_ply(splats(SurfelModel, 1000, 0.05), p),
     "2dgs-50k-small": lambda p: write_surfel_ply(splats(SurfelModel, 50_000, 0.005), p),
     "2dgs-50k-large": lambda p: write_surfel_ply(splats(SurfelModel, 50_000, 0.02), p),
@@ -153,16 +156,23 @@ class Row:
     body: dict = field(default_factory=dict)
     budget: int = 4 * GIB
     repeats: int = 1                 # the request run this many times in the one server
+    donut_ring: bool = False         # donut_200's ring poses at size x 3/4 size (a tiled grid's), else svc_cameras
+
+    def cameras(self, count: int, size: int, split: str = "test") -> list[Camera]:
+        """`count` poses at `size` pixels wide: candidates ("test") or training cameras ("train")."""
+        if self.donut_ring:
+            return donut_cameras(size, size * 3 // 4, count, split)
+        return svc_cameras(count, size=size, phase=0.3 if split == "test" else 0.0)
 
     def request(self, ids: list[str], size: int, samples: int) -> tuple[str, dict]:
-        frames = [c.to_frame() for c in svc_cameras(self.views, size=size, phase=0.3)]
+        frames = [c.to_frame() for c in self.cameras(self.views, size)]
         body = {"samples": samples, "seed": 0, **self.body}
         if self.route == "rank":
             return f"/v1/models/{ids[0]}/rank", {"cameras": frames, "dropout_ratio": 0.1, **body}
         if self.route == "select":
             return "/v1/select", {"model_a": ids[0], "model_b": ids[-1], "cameras": frames, "ratio_a": 0.1,
                                   "ratio_b": 0.1, **body}
-        training = [c.to_frame() for c in svc_cameras(self.training, size=size)]
+        training = [c.to_frame() for c in self.cameras(self.training, size, "train")]
         return f"/v1/models/{ids[0]}/calibrate", {"training_cameras": training, "epsilon": 0.5, **body}
 
 
@@ -198,8 +208,10 @@ def measure(row: Row, root: Path) -> dict:
     server = serve(data_dir, PHD_MEMORY_BUDGET_BYTES=str(row.budget))
     try:
         with PHDClient(server.url, timeout=600) as phd:
-            cameras = svc_cameras(row.training, size=row.size) if row.training else None
+            cameras = row.cameras(row.training, row.size, "train") if row.training else None
+            start_rss = reset_peak(server.proc.pid)                   # the uploads' own peak too
             ids = [phd.upload_model(model_file(root, name), cameras=cameras).id for name in row.models]
+            upload_peak = vm(server.proc.pid, "VmHWM") - start_rss
         warm = submit(server.url, *row.request(ids, 16, 2))          # every code path compiled and warmed
         assert warm["state"] == "succeeded" or (warm.get("error") or {}).get("code") == "over_memory_budget", warm
         path, body = row.request(ids, row.size, row.samples)
@@ -216,8 +228,8 @@ def measure(row: Row, root: Path) -> dict:
         server.kill()
     result = {"name": row.name, "route": row.route, "models": row.models, "size": row.size, "samples": row.samples,
               "views": row.views, "options": row.body, "budget_bytes": row.budget, **outcome,
-              "seconds": round(seconds, 1), "idle_rss_bytes": idle, "peak_over_idle_bytes": peak,
-              "within_budget": peak <= row.budget}
+              "seconds": round(seconds, 1), "upload_peak_bytes": upload_peak, "idle_rss_bytes": idle,
+              "peak_over_idle_bytes": peak, "within_budget": peak <= row.budget}
     if len(peaks) > 1:
         result["peaks_bytes"] = peaks
     try:
@@ -254,7 +266,11 @@ SWEEP = [
     Row("3dgs select 50k vs 50k images=both 2x400", "select", ["3dgs-50k-small", "3dgs-50k-small-b"], 400, 16,
         views=2, body={"images": "files", "both_images": True, "rule": "sigma_mean"}),
     Row("3dgs select distance_sigma 2x400", "select", ["3dgs-50k-small", "3dgs-50k-large"], 400, 8, views=2,
-        training=8),
+        training=8, body={"rule": "distance_sigma"}),
+    Row("3dgs select coverage_checked (default) 2x400", "select", ["3dgs-50k-small", "3dgs-50k-large"], 400, 8,
+        views=2, training=8),
+    Row("3dgs select coverage_checked (default) 50k small vs 50k small 2x200", "select",
+        ["3dgs-50k-small", "3dgs-50k-small-b"], 200, 8, views=2, training=4),
     Row("3dgs 50k small visibility_sigma 4 candidates x400, 8 captured", "rank", ["3dgs-50k-small"], 400, 16,
         views=4, training=8, body={"strategy": "visibility_sigma"}),
     Row("donut 45k 400 N=64 heatmaps=base64 2x", "rank", ["3dgs-45k-donut"], 400, 64, views=2,
@@ -267,8 +283,15 @@ SWEEP = [
     Row("1M splats (22 donuts) 400 N=16", "rank", ["3dgs-1m-donuts"], 400, 16),
     Row("1M splats (22 donuts) 800 N=64 heatmaps=files", "rank", ["3dgs-1m-donuts"], 800, 64,
         body={"heatmaps": "files"}),
+    Row("1M splats (22 donuts) 400 N=16 strategy=sigma_max", "rank", ["3dgs-1m-donuts"], 400, 16,
+        body={"strategy": "sigma_max"}),
     Row("1M splats (22 donuts) calibrate 2x200", "calibrate", ["3dgs-1m-donuts"], 200, 4, training=2,
         body={"samples": 4, "step": 0.25}),
+    Row("3M splats SH-3 (66 donuts) 200x150 N=16", "rank", ["3dgs-3m-donuts-sh3"], 200, 16, donut_ring=True),
+    Row("3M splats SH-3 (66 donuts) 200x150 N=16 strategy=sigma_max", "rank", ["3dgs-3m-donuts-sh3"], 200, 16,
+        body={"strategy": "sigma_max"}, donut_ring=True),
+    Row("3M splats SH-3 (66 donuts) calibrate 4x200x150", "calibrate", ["3dgs-3m-donuts-sh3"], 200, 8, training=4,
+        body={"samples": 8, "step": 0.25}, donut_ring=True),
     Row("2dgs 1k large 400 N=32", "rank", ["2dgs-1k-large"], 400, 32),
     Row("2dgs 50k small 400 N=32", "rank", ["2dgs-50k-small"], 400, 32),
     Row("2dgs 50k large 300 N=16", "rank", ["2dgs-50k-large"], 300, 16),
@@ -390,11 +413,11 @@ def table(rows: list[dict]) -> str:
 COMMAND = "OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python -m bench.bench_memory"
 
 
-def save(rows: dict[str, dict]) -> list[dict]:
-    """Write the rows to OUT (after every row: a sweep stopped half way keeps what it measured)."""
+def save(rows: dict[str, dict], out: Path = OUT) -> list[dict]:
+    """Write the rows to `out` (after every row: a sweep stopped half way keeps what it measured)."""
     ordered = sorted((r for r in rows.values() if "states" not in r), key=lambda r: r["budget_bytes"])
     ordered += [r for r in rows.values() if "states" in r]
-    write_result(OUT, {"machine": machine(), "command": COMMAND, "rows": ordered})
+    write_result(out, {"machine": machine(), "command": COMMAND, "rows": ordered})
     return ordered
 
 
@@ -403,27 +426,33 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="rows whose name contains one of these ('concurrent': the crowds)")
     parser.add_argument("--budgets", nargs="*", type=float, default=[1, 4], help="GiB, each row at each")
     parser.add_argument("--concurrent-budget", type=int, default=GIB)
+    parser.add_argument("--out", type=Path, default=OUT, help="results file (two runs at once need one each)")
+    parser.add_argument("--merge", type=Path, nargs="*", default=[], help="results files whose rows join --out's")
     args = parser.parse_args()
-    previous = json.loads(OUT.read_text()) if OUT.exists() and args.only else {"rows": []}
+    previous = json.loads(args.out.read_text()) if args.out.exists() and (args.only or args.merge) else {"rows": []}
     rows = {r["name"]: r for r in previous["rows"]}
+    rows.update({r["name"]: r for path in args.merge for r in json.loads(path.read_text())["rows"]})
+    def chosen(name: str) -> bool:     # --merge alone measures nothing
+        return any(word in name for word in args.only) if args.only else not args.merge
+
     sweep = [replace(row, name=f"{row.name} [{budget:g} GiB]", budget=int(budget * GIB))
              for budget in args.budgets for row in SWEEP]
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         for row in sweep:
-            if args.only and not any(word in row.name for word in args.only):
+            if not chosen(row.name):
                 continue
             rows[row.name] = measure(row, root)
-            save(rows)
+            save(rows, args.out)
             print(json.dumps({k: v for k, v in rows[row.name].items() if k != "options"}), flush=True)
         for crowd in CROWDS:
-            if not args.only or any(word in crowd.name for word in args.only):
+            if chosen(crowd.name):
                 result = concurrent(root, args.concurrent_budget, crowd)
                 rows[result["name"]] = result
-                save(rows)
+                save(rows, args.out)
                 print(json.dumps(result), flush=True)
-    print(table(save(rows)))
-    print(f"wrote {OUT}")
+    print(table(save(rows, args.out)))
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
