@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
+from phd_core.renderers.visibility import Visibility
 from phd_core.scene import look_at
 from phd_core.uq import select_models
 from phd_core.uq.rank import add_fisher, visibility_evidence
-from phd_core.uq.strategies import get_strategy
+from phd_core.uq.strategies import Evidence, get_strategy
 from phd_core.uq.strategies.visibility import Coverage
 from support.toy_renderers import BlobRenderer, ring_cameras
 
@@ -204,3 +205,24 @@ def test_candidates_that_see_nothing_of_the_model_rank_without_error() -> None:
     away = [camera((5.0, 0.0, 0.2), (12.0, 0.0, 0.2)), camera((0.0, 5.0, 0.2), (0.0, 12.0, 0.2))]
     selection = get_strategy("visibility").select(visibility_evidence(renderer, away, captured), 2, 0)
     assert sorted(selection.order) == [0, 1] and selection.scores == [0.0, 0.0]
+
+
+def test_the_default_takes_the_farther_of_two_candidates_that_see_the_same_unseen_parts() -> None:
+    # Two candidates see the same element, unseen by the captured view, equally (hand-built
+    # Visibility: same element, weight and direction), from centres 10 and 15 away from the
+    # captured one. Coverage alone ties them (the lower index wins); the default weighs the
+    # distance to the nearest captured centre and takes the farther one.
+    def seen(cam, element: int) -> Visibility:
+        one = torch.ones(1, dtype=torch.float64)
+        return Visibility(camera=cam, elements=torch.tensor([element]), points=torch.zeros(1, 3, dtype=torch.float64),
+                          weight=50 * one, footprint=50 * one, valued=None, empty=0.0, in_box=0)
+    captured = camera((5.0, 0.0, 0.0))
+    near_one, far_one = camera((-5.0, 0.0, 0.0)), camera((-10.0, 0.0, 0.0))
+    zeros = torch.zeros(2, dtype=torch.float64)
+    evidence = Evidence([near_one, far_one], [captured], zeros, zeros,
+                        candidate_views=[seen(near_one, 1), seen(far_one, 1)], captured_views=[seen(captured, 0)])
+    coverage_only = get_strategy("visibility_sigma").select(evidence, 0, 0)      # scores before any pick
+    assert coverage_only.scores[0] == coverage_only.scores[1] and coverage_only.order[0] == 0
+    default = get_strategy("visibility_sigma_fvs").select(evidence, 0, 0)
+    assert default.order[0] == 1
+    assert default.scores[1] == pytest.approx(1.5 * default.scores[0])        # 15 against 10 from the captured centre

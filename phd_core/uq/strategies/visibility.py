@@ -190,13 +190,13 @@ def _visibility_sigma(evidence: Evidence, k: int, seed: int) -> Selection:
     return coverage_select(evidence, k, fragility=True)
 
 
-VISIBILITY = Strategy("visibility", "the candidate showing most of what no captured view saw unhidden from a nearby "
-                      "direction (the model's own coverage, occlusion included), picked greedily", _visibility,
-                      uses_dropout=False, uses_visibility=True)
 def _visibility_sigma_fvs(evidence: Evidence, k: int, seed: int) -> Selection:
     return coverage_select(evidence, k, fragility=True, spread=True)
 
 
+VISIBILITY = Strategy("visibility", "the candidate showing most of what no captured view saw unhidden from a nearby "
+                      "direction (the model's own coverage, occlusion included), picked greedily", _visibility,
+                      uses_dropout=False, uses_visibility=True)
 VISIBILITY_SIGMA = Strategy("visibility_sigma", "as visibility, each part weighted by its PH-Dropout fragility "
                             "(zeta on its pixels), so fragile parts count even when seen", _visibility_sigma,
                             uses_visibility=True)
