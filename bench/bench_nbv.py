@@ -51,7 +51,8 @@ EXPERIMENTS = nbv_experiments.EXPERIMENTS
 DOC = DOCS / "nbv.md"
 SHIPPED = ["random", "fvs", "sigma_max", "fvs_sigma", "fvs_sigma_floor", "visibility", "visibility_sigma",
            "visibility_sigma_fvs"]
-PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma"]   # curves per round
+# curves per round
+PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma", "visibility_sigma_fvs"]
 # Image width per scene where it is not --resolution (square): the real capture is 4:3, 80x60 px
 # at the default resolution (as its training benchmark, docs/formats.md).
 WIDTH_SCALE = {"cup_colmap": 1.6}
