@@ -70,6 +70,20 @@ class Timing:
         return self.times[0]
 
 
+def vm(pid: int, key: str) -> int:
+    """A /proc/<pid>/status memory figure in bytes (VmRSS, VmHWM)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+    raise KeyError(key)
+
+
+def reset_peak(pid: int) -> int:
+    """Start VmHWM again from the current RSS (clear_refs 5); returns that RSS."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
+    return vm(pid, "VmRSS")
+
+
 def timed(fn: Callable[[], Any], repeats: int = 1) -> Timing:
     """Call `fn` `repeats` times, timing each call by the wall clock (time.perf_counter)."""
     times, result = [], None

@@ -38,7 +38,7 @@ from pathlib import Path
 import httpx
 import torch
 
-from bench._harness import RESULTS, donut_cameras, donut_model, machine, tiled_model, write_result
+from bench._harness import RESULTS, donut_cameras, donut_model, machine, reset_peak, tiled_model, vm, write_result
 from client import PHDClient
 from phd_core.executors import LOCAL
 from phd_core.renderers.gs2d import SurfelModel, write_surfel_ply
@@ -113,20 +113,6 @@ def model_file(root: Path, name: str) -> Path:
 
 
 # ----------------------------------------------------------------------------- one server
-
-def vm(pid: int, key: str) -> int:
-    """A /proc/<pid>/status memory figure in bytes (VmRSS, VmHWM)."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) * 1024
-    raise KeyError(key)
-
-
-def reset_peak(pid: int) -> int:
-    """Start VmHWM again from the current RSS (clear_refs 5); returns that RSS."""
-    Path(f"/proc/{pid}/clear_refs").write_text("5")
-    return vm(pid, "VmRSS")
-
 
 def submit(url: str, path: str, body: dict) -> dict:
     """POST a job asynchronously and wait for it: its final state, or the refusal."""

@@ -43,6 +43,7 @@ from bench._harness import (
     machine,
     svg_plot,
     tiled_model,
+    vm,
     write_result,
 )
 from phd_core.eval.uq import kendall_tau_b
@@ -136,8 +137,7 @@ def measure_model(copies: int, sh: int, widths: list[int], samples: list[int], c
 
 def rss_mb(field: str) -> int:
     """This process's resident set (VmRSS) or its peak (VmHWM), MiB."""
-    line = next(line for line in open("/proc/self/status") if line.startswith(field))
-    return round(int(line.split()[1]) / 1024)
+    return round(vm(os.getpid(), field) / 2**20)
 
 
 # ----------------------------------------------------------------------------- the issue's target

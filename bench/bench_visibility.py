@@ -1,11 +1,11 @@
 """The visibility pass at real size: the compiled `fragment_visibility` against its torch twin.
 
-The default next-best-view strategy (`visibility_sigma`) runs one visibility pass per candidate
-and per captured view. Its sums over the fragments were torch cumulative sums holding ~9
+The visibility strategies (the default `visibility_sigma_fvs` among them) run one visibility
+pass per candidate and per captured view. Its sums over the fragments were torch cumulative sums holding ~9
 float64 arrays per fragment; at 1M splats and 200x150 px (7M fragments) that is ~0.9 GB per
 view, and the service refused such ranks under a 4 GiB budget. For each model and size, one
-child process per version prepares a view, then runs the pass (`renderer.visibility`) three
-times (the renderer's per-fragment element ids and the sums): median seconds, and the peak RSS
+child process per version prepares a view, then runs the pass (the renderer's per-fragment
+element ids, then the sums) three times: median seconds, and the peak RSS
 the passes add over the prepared view (VmHWM, reset by /proc/self/clear_refs just before them).
 Both versions' sums are compared in the parent.
 
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -23,16 +24,12 @@ import time
 
 import torch
 
-from bench._harness import DOCS, RESULTS, donut_cameras, machine, tiled_model, write_doc, write_result
+from bench._harness import DOCS, RESULTS, donut_cameras, machine, reset_peak, tiled_model, vm, write_doc, write_result
 from phd_core.allocator import bounded_heap
 from phd_core.renderers import visibility as vis_module
 from phd_core.renderers.gs3d import GaussianRenderer
 
 VERSIONS = {"compiled": vis_module.fragment_visibility, "torch twin": vis_module.fragment_visibility_reference}
-
-
-def status_kb(field: str) -> int:
-    return int(next(line for line in open("/proc/self/status") if line.startswith(field)).split()[1])
 
 
 def child(copies: int, size: int, version: str) -> dict:
@@ -48,15 +45,13 @@ def child(copies: int, size: int, version: str) -> dict:
         row_ptr, alpha, splat, _, _ = renderer.fragment_rows(view)
         return sums_of(row_ptr, alpha, splat, renderer.num_units)
     sums_of(torch.tensor([0, 2]), torch.tensor([0.5, 0.5]), torch.tensor([0, 1]), 2)   # compile on a toy
-    base = status_kb("VmRSS")
-    with open("/proc/self/clear_refs", "w") as f:
-        f.write("5")                                                   # VmHWM starts again from VmRSS
+    base = reset_peak(os.getpid())                                     # VmHWM starts again from VmRSS
     seconds = []
     for _ in range(3):
         start = time.perf_counter()
         sums = visibility_pass()
         seconds.append(time.perf_counter() - start)
-    return {"seconds": statistics.median(seconds), "added_mb": (status_kb("VmHWM") - base) / 1024,
+    return {"seconds": statistics.median(seconds), "added_mb": (vm(os.getpid(), "VmHWM") - base) / 2**20,
             "fragments": int(view.row_ptr[-1]), "splats": renderer.num_units,
             "weight_sum": float(sums.weight.sum())}
 
