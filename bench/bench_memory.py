@@ -39,7 +39,7 @@ import httpx
 import torch
 
 from bench._harness import RESULTS, donut_cameras, donut_model, machine, reset_peak, tiled_model, vm, write_result
-from client import PHDClient
+from client import PayloadTooLargeError, PHDClient
 from phd_core.executors import LOCAL
 from phd_core.renderers.gs2d import SurfelModel, write_surfel_ply
 from phd_core.renderers.gs2d.render import surfel_counts
@@ -189,14 +189,29 @@ def serve(data_dir: Path, **env: str) -> SvcProcess:
     return SvcProcess(data_dir, start_timeout=900, **env)
 
 
+def row_fields(row: Row) -> dict:
+    """What a result repeats of its request."""
+    return {"name": row.name, "route": row.route, "models": row.models, "size": row.size, "samples": row.samples,
+            "views": row.views, "options": row.body, "budget_bytes": row.budget}
+
+
 def measure(row: Row, root: Path) -> dict:
+    """One row in a fresh server: the upload's peak, then the request's peak over the idle RSS
+    (each of `repeats` runs), and the service's own plan of it; a model file over what the
+    budget can parse is refused at upload, and that refusal is the row."""
     data_dir = Path(tempfile.mkdtemp(dir=root))
     server = serve(data_dir, PHD_MEMORY_BUDGET_BYTES=str(row.budget))
     try:
         with PHDClient(server.url, timeout=600) as phd:
             cameras = row.cameras(row.training, row.size, "train") if row.training else None
             start_rss = reset_peak(server.proc.pid)                   # the uploads' own peak too
-            ids = [phd.upload_model(model_file(root, name), cameras=cameras).id for name in row.models]
+            try:
+                ids = [phd.upload_model(model_file(root, name), cameras=cameras).id for name in row.models]
+            except PayloadTooLargeError as exc:                      # the model itself is over the budget
+                return {**row_fields(row), "state": "refused", "error": {"code": exc.code, "field": exc.field,
+                                                                           "message": exc.message},
+                        "upload_peak_bytes": vm(server.proc.pid, "VmHWM") - start_rss, "peak_over_idle_bytes": 0,
+                        "within_budget": True, "plan_error": exc.message}
             upload_peak = vm(server.proc.pid, "VmHWM") - start_rss
         warm = submit(server.url, *row.request(ids, 16, 2))          # every code path compiled and warmed
         assert warm["state"] == "succeeded" or (warm.get("error") or {}).get("code") == "over_memory_budget", warm
@@ -212,8 +227,7 @@ def measure(row: Row, root: Path) -> dict:
         peak = max(peaks, default=0)
     finally:
         server.kill()
-    result = {"name": row.name, "route": row.route, "models": row.models, "size": row.size, "samples": row.samples,
-              "views": row.views, "options": row.body, "budget_bytes": row.budget, **outcome,
+    result = {**row_fields(row), **outcome,
               "seconds": round(seconds, 1), "upload_peak_bytes": upload_peak, "idle_rss_bytes": idle,
               "peak_over_idle_bytes": peak, "within_budget": peak <= row.budget}
     if len(peaks) > 1:
