@@ -5,10 +5,10 @@ step in float64 instead of a dozen [G, 3, 3] torch temporaries. Stages 2-3 follo
 rules as the torch stages (`phd_core.renderers.splats.maths.intersect`, `render.splat_alpha`,
 `splats.fragments`): a splat is listed in every tile its alpha >= 1/255 box overlaps, in
 depth order; at every pixel of the tile alpha = min(ALPHA_MAX, opacity * exp(-d^T conic d / 2))
-is evaluated (in float64) and kept when >= ALPHA_MIN. The output is the fused compositor's
-layout: fragments grouped by pixel over ALL T * P pixels of the tile grid (pixels outside
-the image have none), front to back within a pixel, each naming its projected splat.
-Tiles are spread over the cores.
+is kept when >= ALPHA_MIN (decided in float64; the kept alphas are one vectorised float32 exp).
+The output is the fused compositor's layout: fragments grouped by pixel over ALL T * P pixels
+of the tile grid (pixels outside the image have none), front to back within a pixel, each
+naming its projected splat. Runs of splats, then tiles, are spread over the cores.
 """
 
 from __future__ import annotations
@@ -155,87 +155,101 @@ def splat_values(means: torch.Tensor, sh: torch.Tensor, ids: torch.Tensor, camer
     return values
 
 
+PAIR_CHUNKS = 16    # runs of visible splats listed in parallel (each keeps a cursor per tile)
+NO_FRAGMENT = 1.0   # a pair's entry at a pixel it does not reach (a log alpha is never above 0)
+
+
 @numba.njit(cache=True, nogil=True)
-def _tile_lists(means2d, extents, tiles_x, tiles_y, tile):  # pragma: no cover
-    """Pairs ordered by (tile, depth): (start [T + 1] int64, splat [M] int32). Each splat's
-    tile box is `splats.intersect`'s; the splats arrive front to back, so appending them
-    tile by tile keeps depth order."""
+def _tile_lists(means2d, extents, tiles_x, tiles_y, tile, chunks):  # pragma: no cover
+    """Where the pairs go, before any is listed: box [V, 4] (each splat's tile box x0, y0, x1,
+    y1, `splats.intersect`'s), start [T + 1] (tile t's pairs are start[t]:start[t + 1]) and
+    cursor [chunks, T], the first slot of each run of splats in each tile. Runs are
+    consecutive in depth order and each tile holds them run after run, so the pairs of a
+    tile stay in depth order whichever run is listed first."""
     count = means2d.shape[0]
-    lo = np.empty((count, 2), np.int64)
-    hi = np.empty((count, 2), np.int64)
+    box = np.empty((count, 4), np.int64)
     limit = (tiles_x - 1, tiles_y - 1)
+    run = max(1, (count + chunks - 1) // chunks)
+    tiles = tiles_x * tiles_y
+    per_run = np.zeros((chunks, tiles), np.int64)
     for v in range(count):
         for k in range(2):
             centre = means2d[v, k] - 0.5                 # pixel centres sit at integer + 0.5
-            lo[v, k] = max(0, math.floor((centre - extents[v, k]) / tile))
-            hi[v, k] = min(limit[k], math.floor((centre + extents[v, k]) / tile))
-    start = np.zeros(tiles_x * tiles_y + 1, np.int64)
-    for v in range(count):
-        for ty in range(lo[v, 1], hi[v, 1] + 1):
-            for tx in range(lo[v, 0], hi[v, 0] + 1):
-                start[ty * tiles_x + tx + 1] += 1
-    start = np.cumsum(start)
-    fill = start[:-1].copy()
-    splat = np.empty(start[-1], np.int32)
-    for v in range(count):
-        for ty in range(lo[v, 1], hi[v, 1] + 1):
-            for tx in range(lo[v, 0], hi[v, 0] + 1):
-                t = ty * tiles_x + tx
-                splat[fill[t]] = v
-                fill[t] += 1
-    return start, splat
-
-
-@numba.njit(inline="always")
-def _alpha(means2d, conics, opacities, v, px, py, cutoff):  # pragma: no cover
-    """alpha of splat v at pixel (px, py); 0 without an exp where the exponent is below
-    `cutoff` (a bound under which alpha < ALPHA_MIN for sure)."""
-    dx = px + 0.5 - means2d[v, 0]
-    dy = py + 0.5 - means2d[v, 1]
-    power = -0.5 * (conics[v, 0] * dx * dx + conics[v, 2] * dy * dy) - conics[v, 1] * dx * dy
-    if power < cutoff:
-        return 0.0
-    return min(ALPHA_MAX, opacities[v] * math.exp(power))
+            box[v, k] = max(0, math.floor((centre - extents[v, k]) / tile))
+            box[v, 2 + k] = min(limit[k], math.floor((centre + extents[v, k]) / tile))
+        for ty in range(box[v, 1], box[v, 3] + 1):
+            for tx in range(box[v, 0], box[v, 2] + 1):
+                per_run[v // run, ty * tiles_x + tx] += 1
+    start = np.zeros(tiles + 1, np.int64)
+    cursor = np.empty((chunks, tiles), np.int64)
+    for t in range(tiles):
+        at = start[t]
+        for c in range(chunks):
+            cursor[c, t] = at
+            at += per_run[c, t]
+        start[t + 1] = at
+    return box, start, cursor
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _pair_alpha(start, splat, means2d, conics, opacities, tiles_x, tile, width, height, pair_alpha,
-                row_ptr):  # pragma: no cover
-    """pair_alpha[k, p]: alpha of pair k at pixel p of its tile (0 below ALPHA_MIN or outside
-    the image); row_ptr[1 + q]: number of fragments of pixel q (tile layout)."""
-    pixels = tile * tile
+def _pair_log_alpha(box, cursor, means2d, conics, opacities, tiles_x, tile, width, height, splat,
+                    pair_log_alpha):  # pragma: no cover
+    """Each visible splat, run by run, lists itself in every tile of its box (splat[k]) with
+    pair_log_alpha[k, p] = log(opacity) + power at pixel p of the tile where alpha >=
+    ALPHA_MIN (decided in float64), NO_FRAGMENT elsewhere and outside the image. Walking
+    splats rather than tiles reads each splat once; the exp is left to one vectorised call
+    over the fragments (`splat_fragments`)."""
+    chunks = cursor.shape[0]
+    count = means2d.shape[0]
+    run = max(1, (count + chunks - 1) // chunks)
+    for c in numba.prange(chunks):
+        for v in range(c * run, min(count, (c + 1) * run)):
+            log_opacity = math.log(opacities[v])
+            cutoff = math.log(ALPHA_MIN) - log_opacity       # alpha >= ALPHA_MIN <=> power >= cutoff
+            mx, my = means2d[v, 0], means2d[v, 1]
+            ca, cb, cc = conics[v, 0], conics[v, 1], conics[v, 2]
+            for ty in range(box[v, 1], box[v, 3] + 1):
+                rows = min(tile, height - ty * tile)
+                for tx in range(box[v, 0], box[v, 2] + 1):
+                    t = ty * tiles_x + tx
+                    k = cursor[c, t]
+                    cursor[c, t] = k + 1
+                    splat[k] = v
+                    cols = min(tile, width - tx * tile)
+                    for oy in range(tile):
+                        dy = ty * tile + oy + 0.5 - my
+                        for ox in range(tile):
+                            dx = tx * tile + ox + 0.5 - mx
+                            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                            kept = oy < rows and ox < cols and power >= cutoff
+                            pair_log_alpha[k, oy * tile + ox] = power + log_opacity if kept else NO_FRAGMENT
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _pixel_counts(start, pair_log_alpha, row_ptr):  # pragma: no cover
+    """row_ptr[1 + q]: the number of fragments of pixel q (tile layout)."""
+    pixels = pair_log_alpha.shape[1]
     for t in numba.prange(start.shape[0] - 1):
-        x0 = (t % tiles_x) * tile
-        y0 = (t // tiles_x) * tile
-        cols = min(tile, width - x0)
-        rows = min(tile, height - y0)
         for p in range(pixels):
-            row_ptr[1 + t * pixels + p] = 0
-        for k in range(start[t], start[t + 1]):
-            v = splat[k]
-            pair_alpha[k, :] = 0.0
-            cutoff = math.log(ALPHA_MIN / opacities[v]) - 1e-6     # alpha >= ALPHA_MIN needs power above it
-            for oy in range(rows):
-                for ox in range(cols):
-                    a = _alpha(means2d, conics, opacities, v, x0 + ox, y0 + oy, cutoff)
-                    if a >= ALPHA_MIN:
-                        pair_alpha[k, oy * tile + ox] = a
-                        row_ptr[1 + t * pixels + oy * tile + ox] += 1
+            n = 0
+            for k in range(start[t], start[t + 1]):
+                n += pair_log_alpha[k, p] != NO_FRAGMENT
+            row_ptr[1 + t * pixels + p] = n
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _gather(start, splat, pair_alpha, row_ptr, alpha, index):  # pragma: no cover
-    """The nonzero pair_alpha entries, pixel by pixel, front to back: one pass over a tile's
-    pairs (in depth order) appends each pair's fragments at its pixels' cursors."""
-    pixels = pair_alpha.shape[1]
+def _gather(start, splat, pair_log_alpha, row_ptr, log_alpha, index):  # pragma: no cover
+    """The fragments, pixel by pixel, front to back: one pass over a tile's pairs (in depth
+    order) appends each pair's fragments at its pixels' cursors."""
+    pixels = pair_log_alpha.shape[1]
     for t in numba.prange(start.shape[0] - 1):
         cursor = row_ptr[t * pixels:(t + 1) * pixels].copy()     # next free entry of each pixel
         for k in range(start[t], start[t + 1]):
             for p in range(pixels):
-                a = pair_alpha[k, p]
-                if a > 0.0:
+                a = pair_log_alpha[k, p]
+                if a != NO_FRAGMENT:
                     e = cursor[p]
-                    alpha[e] = a
+                    log_alpha[e] = a
                     index[e] = splat[k]
                     cursor[p] = e + 1
 
@@ -247,18 +261,24 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
 
     Returns (row_ptr [T * P + 1] int64, alpha [E] float32, index [E] int32 into the V splats,
     tiles_x, tiles_y); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1].
+    Which pixels a splat reaches is decided in float64; the alphas are one float32 exp over
+    the fragments (numpy's vectorised exp, 4e-7 of the float64 value), clamped at ALPHA_MAX.
     """
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
     means2d_np, conics_np, opacities_np, extents_np = (t.detach().double().contiguous().numpy()
                                                        for t in (means2d, conics, opacities, extents))
     row_ptr = np.zeros(tiles_x * tiles_y * tile * tile + 1, np.int64)
     with LAUNCH_LOCK:
-        start, splat = _tile_lists(means2d_np, extents_np, tiles_x, tiles_y, tile)
-        pair_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P]
-        _pair_alpha(start, splat, means2d_np, conics_np, opacities_np, tiles_x, tile, width, height, pair_alpha,
-                    row_ptr)
+        box, start, cursor = _tile_lists(means2d_np, extents_np, tiles_x, tiles_y, tile, PAIR_CHUNKS)
+        splat = np.empty(start[-1], np.int32)
+        pair_log_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P]
+        _pair_log_alpha(box, cursor, means2d_np, conics_np, opacities_np, tiles_x, tile, width, height, splat,
+                        pair_log_alpha)
+        _pixel_counts(start, pair_log_alpha, row_ptr)
         np.cumsum(row_ptr, out=row_ptr)
         alpha = np.empty(row_ptr[-1], np.float32)
         index = np.empty(row_ptr[-1], np.int32)
-        _gather(start, splat, pair_alpha, row_ptr, alpha, index)
+        _gather(start, splat, pair_log_alpha, row_ptr, alpha, index)
+    np.exp(alpha, out=alpha)
+    np.minimum(alpha, np.float32(ALPHA_MAX), out=alpha)
     return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index), tiles_x, tiles_y

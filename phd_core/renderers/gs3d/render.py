@@ -58,7 +58,7 @@ from ..splats.maths import (
 )
 from ..splats.model import GaussianModel
 from ..splats.renderer import NEAR_PLANE, RenderOutput, SplatRenderer
-from .kernels import project_splats, splat_fragments, splat_values
+from .kernels import PAIR_CHUNKS, project_splats, splat_fragments, splat_values
 
 DILATION = 0.3          # px^2 added to the 2D covariance diagonal (anti-aliasing low-pass)
 
@@ -249,7 +249,8 @@ def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor,
 # bench/bench_memory.py measures): per splat of the model (stage 1 in float64, what the view keeps of
 # every splat), per visible splat (depth order, gathered projection) and per SH coefficient of a
 # visible splat (its colour), per tile/splat pair and per pixel of its tile (the pair list, stage 3's
-# [M, P] alphas), per fragment (alpha, index, log(1 - alpha)), per pixel of the tile grid (fragment
+# [M, P] log alphas), per fragment (alpha, index, log(1 - alpha)), per tile (the pair counts and
+# cursors of each run of splats, `kernels._tile_lists`), per pixel of the tile grid (fragment
 # offsets); and per keep-mask: its flags by splat (the kernel's [G, m] copy, 1 byte each) and, per grid
 # pixel, what `SplatView.render` holds at its worst moment: the tiled values and alpha [m, S, 4 + 1] float32
 # (20 bytes) while the values are untiled (16), or the untiled ones (20) with the background weight (4) and
@@ -259,6 +260,7 @@ SPLAT_BYTES = 128
 VISIBLE_BYTES, SH_COEFF_BYTES = 64, 32
 PAIR_BYTES, PAIR_PIXEL_BYTES = 4, 4
 FRAGMENT_BYTES = 16
+TILE_BYTES = 16 * PAIR_CHUNKS
 GRID_PIXEL_BYTES = 24
 MASK_GRID_PIXEL_BYTES = 36
 
@@ -284,11 +286,12 @@ def view_memory(renderer: "GaussianRenderer", camera: Camera) -> RenderMemory:
                          f"memory bounds are measured for the fused compositor, not {renderer.compositor!r}")
     visible, pairs, fragments_ = splat_counts(renderer, camera)
     units, tile = renderer.num_units, renderer.tile
-    grid = math.ceil(camera.width / tile) * math.ceil(camera.height / tile) * tile * tile
+    tiles = math.ceil(camera.width / tile) * math.ceil(camera.height / tile)
+    grid = tiles * tile * tile
     kept = 9 * units + 24 * visible + 8 * grid + 12 * fragments_          # SplatView.nbytes at most
     fixed = (SPLAT_BYTES * units + (VISIBLE_BYTES + SH_COEFF_BYTES * renderer.model.sh.shape[1]) * visible
              + pairs * (PAIR_BYTES + PAIR_PIXEL_BYTES * tile * tile) + FRAGMENT_BYTES * fragments_
-             + GRID_PIXEL_BYTES * grid)
+             + TILE_BYTES * tiles + GRID_PIXEL_BYTES * grid)
     return RenderMemory(fixed=fixed, kept=kept, per_mask=units + MASK_GRID_PIXEL_BYTES * grid, fragments=fragments_)
 
 
