@@ -297,15 +297,20 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--json", type=Path, default=RESULTS / "scale.json")
     parser.add_argument("--out", type=Path, default=DOCS / "performance.md")
     parser.add_argument("--report-only", action="store_true", help="rewrite the docs from --json")
+    parser.add_argument("--note", help="how and on which code the run was made (kept in the JSON, shown in the docs)")
     return parser.parse_args()
 
 
 def main() -> None:
     args = parse_args()
-    if args.report_only:
-        write_report(args.out, json.loads(args.json.read_text()))
-        return
     results = json.loads(args.json.read_text()) if args.json.exists() else {}
+    if args.note:
+        results["note"] = args.note
+    if args.report_only:
+        if args.note:
+            write_result(args.json, results)
+        write_report(args.out, results)
+        return
     results["machine"] = machine()
     command = "python -m bench.bench_scale " + " ".join(sys.argv[1:])
     results["commands"] = [c for c in results.get("commands", []) if c != command] + [command]
@@ -366,6 +371,11 @@ def write_report(path: Path, results: dict) -> None:
     svg_plot(path.parent / "scale_time.svg", series, "thousand splats (log)", "s per candidate, N = 16", log_y=True)
 
 
+OLD_NOTE = ("**The machine was shared with a long benchmark holding both cores and this one ran at nice 19**, so "
+            "absolute times are pessimistic (a 45k-splat camera that prepares in 0.025 s on the idle machine of the "
+            "tables above took 0.1-0.2 s here); compare within this section.")
+
+
 def command_now(recorded: str) -> str:
     """A recorded command as it is typed now (runs before bench/_harness.py started the file as a script)."""
     return recorded.replace("python bench/" + "bench_scale.py", "python -m bench.bench_scale", 1)
@@ -396,13 +406,10 @@ Measured by `bench/bench_scale.py` (issue 24); raw numbers in `bench/results/sca
 (one after another, each adding to the JSON; the baseline directory holds `git archive a0bdc7c
 phd_core phd_cli`, the code before issue 24):
 
-{chr(10).join('    ' + command_now(c).replace('python ', 'nice -n 19 .venv/bin/python ', 1) for c in r['commands'])}
+{chr(10).join('    ' + command_now(c).replace('python ', '.venv/bin/python ', 1) for c in r['commands'])}
 
 Machine: {m['cpus']} cores, {m['platform']}, Python {m['python']}, torch {m['torch']}; load average
-{load_at_start(m)} at the start and {m.get('load_average_at_end')} at the end: **the machine was shared
-with a long benchmark holding both cores and this one ran at nice 19**, so absolute times are
-pessimistic (a 45k-splat camera that prepares in 0.025 s on the idle machine of the tables
-above took 0.1-0.2 s here); compare within this section.
+{load_at_start(m)} at the start and {m.get('load_average_at_end')} at the end. {r.get('note', OLD_NOTE)}
 
 Models (`tiled_model` in the benchmark): copies of the 45,624-splat synthetic donut side by side
 on a grid 2.0 apart (a donut is 2.3 across, so neighbours overlap), SH 3 with seeded higher
@@ -428,9 +435,9 @@ splats get small boxes. Only the survivors are sorted, coloured and rasterised. 
   Fusing the two (count each pixel's fragments, then write each alpha into its slot, no
   [pairs, 16] array) was tried and measured: it cost 0.50 CPU s per camera against 0.34 for
   the two kernels (1M splats, 200x150, one thread, the same 5.1M fragments, three rounds), as
-  every pair is evaluated twice; so the two kernels stay. **The grid tables of this section
-  were measured with that fused pass in** (commit 54f002c, reverted after): their "fragments"
-  column overstates today's stage by about 1.45x; the profile below has both.
+  every pair is evaluated twice; so the two kernels stay. Since then the first lists the pairs
+  splat by splat and leaves the exp to one vectorised call ("Fragments listed splat by splat"
+  below: 1.3-1.5x on this stage at 1M splats); the note above says which code each table ran.
 
 What is left grows with the fragments: every visible splat at every pixel where its alpha
 reaches 1/255, hidden ones included. They cannot be cut at `prepare`: a keep-mask may drop
