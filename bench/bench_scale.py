@@ -143,19 +143,25 @@ def rss_mb(field: str) -> int:
 # ----------------------------------------------------------------------------- the issue's target
 
 def phd_rank(ply: Path, candidates: Path, out: Path, width: int, height: int, samples: int, ratio: float,
-             pythonpath: str | None = None) -> dict:
+             pythonpath: str | None = None, strategy: str | None = None) -> dict:
     """`phd rank` of the candidates in a child process: wall, user, system seconds, peak RSS;
-    with `pythonpath`, the phd_core found there (an older checkout) instead of this one."""
+    with `pythonpath`, the phd_core found there (an older checkout) instead of this one; with
+    `strategy`, that strategy instead of the checkout's default."""
     env = {"PYTHONPATH": pythonpath} if pythonpath else None
+    chosen = ["--strategy", strategy] if strategy else []
     return child(PHD + ["rank", "--model", str(ply), "--candidates", str(candidates), "--width", str(width),
                         "--height", str(height), "--samples", str(samples), "--dropout-ratio", str(ratio),
-                        "--out", str(out)], env, Path(pythonpath) if pythonpath else ROOT)
+                        *chosen, "--out", str(out)], env, Path(pythonpath) if pythonpath else ROOT)
+
+
+BASELINE_STRATEGY = "fvs_sigma_floor"   # the default strategy of the code before issue 24 (a0bdc7c)
 
 
 def rank_target(copies: int, sh: int, candidates: int, width: int, samples: int, ratio: float,
                 baseline: str | None) -> dict:
     """The issue's case: `phd rank` of `candidates` ring poses at width x 3/4 width, N = samples,
-    on the tiled model, whole process (load included); before (the checkout at `baseline`) and now."""
+    on the tiled model, whole process (load included): before (the checkout at `baseline`, its
+    default strategy), now with that same strategy (the same work), and now with today's default."""
     with tempfile.TemporaryDirectory() as tmp:
         ply = Path(tmp) / "tiled.ply"
         write_ply(tiled_model(copies, sh), ply)
@@ -166,10 +172,13 @@ def rank_target(copies: int, sh: int, candidates: int, width: int, samples: int,
         height = width * 3 // 4
         out = {"copies": copies, "sh": sh, "candidates": candidates, "width": width, "height": height,
                "samples": samples, "ratio": ratio}
-        runs = {"now": None} if baseline is None else {"before": baseline, "now": None}
-        for name, path in runs.items():
-            out[name] = phd_rank(ply, poses, Path(tmp) / f"{name}.json", width, height, samples, ratio, path)
-            out[name]["order"] = json.loads((Path(tmp) / f"{name}.json").read_text())["order"]
+        runs = [("now", None, BASELINE_STRATEGY), ("now, default strategy", None, None)]
+        if baseline is not None:
+            runs.insert(0, ("before", baseline, None))
+        for name, path, strategy in runs:
+            out[name] = phd_rank(ply, poses, Path(tmp) / "ranking.json", width, height, samples, ratio, path, strategy)
+            out[name]["strategy"] = strategy or (BASELINE_STRATEGY if path else DEFAULT_STRATEGY)
+            out[name]["order"] = json.loads((Path(tmp) / "ranking.json").read_text())["order"]
             print("rank target", name, {k: v for k, v in out[name].items() if k != "order"}, flush=True)
         if baseline is not None:
             out["same_order"] = out["before"]["order"] == out["now"]["order"]
@@ -491,22 +500,26 @@ def missing_note(models: list[dict]) -> str:
 
 
 def target_report(t: dict) -> str:
-    runs = [(name, t[name]) for name in ("before", "now") if name in t]
-    rows = [f"| {name} | {x['wall_s']:.1f} | {x['user_s']:.1f} | {x['system_s']:.1f} | "
-            f"{(x['user_s'] + x['system_s']) / 2:.1f} | {x['peak_rss_mb']:,} |" for name, x in runs]
-    same = "" if "same_order" in t and not t["same_order"] else ""
+    runs = [(name, t[name]) for name in ("before", "now", "now, default strategy") if name in t]
+    rows = [f"| {name} | {x.get('strategy', BASELINE_STRATEGY)} | {x['wall_s']:.1f} | {x['user_s']:.1f} | "
+            f"{x['system_s']:.1f} | {(x['user_s'] + x['system_s']) / 2:.1f} | {x['peak_rss_mb']:,} |"
+            for name, x in runs]
+    same = ""
     if "same_order" in t:
-        same = f"\nThe two rankings are {'identical' if t['same_order'] else 'NOT identical'}.\n"
+        same = (f"\nBefore and now (the same strategy) ranked the candidates "
+                f"{'identically' if t['same_order'] else 'NOT identically'}.\n")
     return f"""
 ### The issue's case: `phd rank`, {t['candidates']} candidates, {t['copies'] * 45_624:,} splats SH {t['sh']}
 
 {t['width']}x{t['height']}, N = {t['samples']}, --dropout-ratio {t['ratio']}, whole process (start-up and load
-included); "before", where present, is the code before issue 24 (the merge base, run from a
-`git archive` of it), "now" this branch, in the same run. Target: < 30 s for 100 candidates.
-On a shared machine the CPU seconds are the fairer figure.
+included); "before" is the code before issue 24 (the merge base, run from a `git archive` of it)
+with its default strategy, "now" this code with that same strategy (the same work), and "now,
+default strategy" with today's default, which adds a visibility pass per view and the coverage
+selection; all in the same run. Target: < 30 s for 100 candidates. On a shared machine the CPU
+seconds are the fairer figure.
 
-| code | wall s | user s | system s | CPU s / 2 cores | peak RSS MB |
-|---|---|---|---|---|---|
+| code | strategy | wall s | user s | system s | CPU s / 2 cores | peak RSS MB |
+|---|---|---|---|---|---|---|
 {chr(10).join(rows)}
 {same}"""
 

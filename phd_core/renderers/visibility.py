@@ -65,7 +65,7 @@ class Visibility:
 PASS_FRAGMENT_BYTES = 16
 PASS_UNIT_BYTES = 64
 KEPT_ELEMENT_BYTES = 56
-# A strategy's working copy of an element (`phd_core.uq.strategies.visibility.Candidate`): index,
+# A strategy's working copy of an element (`phd_core.uq.strategies.visibility.Coverage`): index,
 # direction, weight, novelty (8 + 24 + 2 x 8).
 COVERAGE_ELEMENT_BYTES = 48
 

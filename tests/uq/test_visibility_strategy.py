@@ -108,9 +108,9 @@ def test_a_pick_lowers_the_value_of_candidates_that_see_the_same_parts() -> None
     coverage = Coverage(evidence.candidate_views, fragility=False)
     for vis in evidence.captured_views:
         coverage.capture(vis)
-    before = [c.value() for c in coverage.candidates]
+    before = [coverage.value(c) for c in range(len(candidates))]
     coverage.capture(evidence.candidate_views[0])                       # pick the first
-    after = [c.value() for c in coverage.candidates]
+    after = [coverage.value(c) for c in range(len(candidates))]
     assert after[0] < 0.05 * before[0]                                  # nothing left to see from there
     assert after[1] < 0.3 * before[1]                                   # its near twin saw the same walls
     assert after[2] > 0.7 * before[2]                                   # the inside, seen from above, barely moved

@@ -35,8 +35,6 @@ two identical candidates never share a batch. Families that cannot report visibi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 
@@ -67,42 +65,59 @@ def viewing_axis(vis: Visibility) -> Tensor:
     return -vis.camera.c2w[:3, 2].double()
 
 
-@dataclass
-class Candidate:
-    """One candidate's elements, in the index of the union of every view's elements."""
-
-    index: Tensor       # [K_c] long
-    dirs: Tensor        # [K_c, 3] element -> camera directions
-    weight: Tensor      # [K_c] pixels each fills, times its fragility
-    novelty: Tensor     # [K_c] what the captured (and picked) views left unseen, updated by each pick
-    empty: float
-    axis: Tensor        # [3]
-    axis_novelty: float
-
-    def value(self) -> float:
-        return float((self.weight * self.novelty).sum()) + EMPTY_WEIGHT * self.empty * self.axis_novelty
+CAPTURE_CHUNK = 1 << 18  # candidate elements a capture updates at once (bounds its temporaries)
 
 
 class Coverage:
-    """The candidates' novelty, conditioned on every view counted as captured so far."""
+    """The candidates' novelty, conditioned on every view counted as captured so far.
+
+    Every candidate's elements sit in one list, candidate c's at entries offsets[c]:offsets[c + 1]
+    (`index` into the union of all their elements, the direction from each element to the
+    candidate's camera, its weight: pixels it fills times its fragility, and its novelty), so
+    counting a view as captured updates all candidates in a few vectorised steps instead of a
+    loop over candidates; at a million splats and 100 candidates that loop was most of a
+    ranking's time (docs/performance.md).
+    """
 
     def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE):
         self.angle_scale = angle_scale
-        union = torch.unique(torch.cat([v.elements for v in candidates]))
-        self.size = len(union)
-        self.points = torch.zeros(self.size, 3, dtype=torch.float64)
+        self.union = torch.unique(torch.cat([v.elements for v in candidates]))
+        self.size = len(self.union)
+        self.points = torch.zeros(self.size, 3, dtype=torch.float64)                  # [U, 3]
+        counts = torch.tensor([len(v.elements) for v in candidates], dtype=torch.long)
+        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])  # [C + 1]
+        total = int(self.offsets[-1])
+        self.index = torch.empty(total, dtype=torch.long)                            # [S]
+        self.dirs = torch.empty(total, 3, dtype=torch.float64)                       # [S, 3]
+        self.weight = torch.empty(total, dtype=torch.float64)                        # [S]
+        self.novelty = torch.ones(total, dtype=torch.float64)                        # [S]
         reference = _mean_zeta(candidates) if fragility else 0.0
-        self.candidates = []
-        for vis in candidates:
-            index = torch.searchsorted(union, vis.elements)
-            self.points[index] = vis.points
-            weight = vis.weight.clone()
+        for c, vis in enumerate(candidates):
+            part = slice(int(self.offsets[c]), int(self.offsets[c + 1]))
+            self.index[part] = torch.searchsorted(self.union, vis.elements)
+            self.points[self.index[part]] = vis.points
+            self.dirs[part] = directions(vis.points, vis.camera.center)
+            self.weight[part] = vis.weight
             if fragility and reference > 0 and vis.valued is not None:
-                weight *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
-            self.candidates.append(Candidate(index, directions(vis.points, vis.camera.center), weight,
-                                             torch.ones(len(index), dtype=torch.float64),
-                                             vis.empty, viewing_axis(vis), 1.0))
-        self.union = union
+                self.weight[part] *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
+        self.empty = [vis.empty for vis in candidates]
+        self.axes = torch.stack([viewing_axis(vis) for vis in candidates])            # [C, 3]
+        self.axis_novelty = [1.0] * len(candidates)
+        self.sums = [self._sum(c) for c in range(len(candidates))]
+
+    def _sum(self, c: int) -> float:
+        """Candidate c's weight times novelty, summed over its elements."""
+        part = slice(int(self.offsets[c]), int(self.offsets[c + 1]))
+        return float((self.weight[part] * self.novelty[part]).sum())
+
+    def value(self, c: int) -> float:
+        """What candidate c would show that no view counted as captured saw (module docstring)."""
+        return self.sums[c] + EMPTY_WEIGHT * self.empty[c] * self.axis_novelty[c]
+
+    def share(self, c: int) -> float:
+        """The share of candidate c's image of the model left unseen (0 when it shows none)."""
+        total = float(self.weight[int(self.offsets[c]):int(self.offsets[c + 1])].sum())
+        return self.sums[c] / total if total > 0 else 0.0
 
     def capture(self, vis: Visibility) -> None:
         """Count `vis` as captured: every candidate's novelty of the elements it saw falls."""
@@ -110,14 +125,22 @@ class Coverage:
         known = self.union[index] == vis.elements if self.size else torch.zeros(len(index), dtype=torch.bool)
         dense = torch.zeros(self.size, dtype=torch.float64)
         dense[index[known]] = seen_share(vis)[known]
-        centre, axis = vis.camera.center, viewing_axis(vis)
-        for cand in self.candidates:
-            s = dense[cand.index]
-            touched = s > 0
-            if touched.any():
-                toward = directions(self.points[cand.index[touched]], centre)
-                cand.novelty[touched] *= 1.0 - s[touched] * near(cand.dirs[touched], toward, self.angle_scale)
-            cand.axis_novelty *= 1.0 - float(near(cand.axis, axis, self.angle_scale))
+        centre = vis.camera.center
+        changed = []
+        for start in range(0, len(self.index), CAPTURE_CHUNK):
+            s = dense[self.index[start:start + CAPTURE_CHUNK]]
+            touched = (s > 0).nonzero().squeeze(1)
+            if len(touched):
+                entries = touched + start
+                toward = directions(self.points[self.index[entries]], centre)
+                self.novelty[entries] *= 1.0 - s[touched] * near(self.dirs[entries], toward, self.angle_scale)
+                changed.append(entries)
+        axis_near = near(self.axes, viewing_axis(vis), self.angle_scale).tolist()
+        self.axis_novelty = [n * (1.0 - a) for n, a in zip(self.axis_novelty, axis_near)]
+        if changed:                      # entries ascend, so their candidates do too
+            owners = torch.searchsorted(self.offsets, torch.cat(changed), right=True) - 1
+            for c in torch.unique_consecutive(owners).tolist():
+                self.sums[c] = self._sum(c)
 
 
 def seen_share(vis: Visibility) -> Tensor:
@@ -151,7 +174,7 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: fl
     floor = SPREAD_FLOOR * float(nearest.mean()) or 1.0                         # all at captured centres: 1
 
     def value(i: int) -> float:
-        return coverage.candidates[i].value() * max(float(nearest[i]), floor)
+        return coverage.value(i) * max(float(nearest[i]), floor)
 
     taken = [False] * count
     order, scores = [], [0.0] * count
@@ -178,8 +201,7 @@ def uncovered_share(views: list[Visibility], captured: list[Visibility]) -> Tens
     coverage = Coverage(views, fragility=False)
     for vis in captured:
         coverage.capture(vis)
-    return torch.tensor([float((c.weight * c.novelty).sum() / c.weight.sum()) if c.weight.sum() > 0 else 0.0
-                         for c in coverage.candidates], dtype=torch.float64)
+    return torch.tensor([coverage.share(c) for c in range(len(views))], dtype=torch.float64)
 
 
 def _visibility(evidence: Evidence, k: int, seed: int) -> Selection:
