@@ -10,6 +10,7 @@ shared fixtures as `tests.support`, without editing sys.path.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
 import os
 import platform
@@ -20,6 +21,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 from typing import Any, Callable
 
 import torch
@@ -118,6 +120,25 @@ def machine_text(record: str | dict[str, Any]) -> str:
 def load_at_start(record: dict[str, Any]) -> list[float]:
     """The load average when the run started (older result files: load_average_at_start)."""
     return record.get("load_average_at_start", record.get("load_average"))
+
+
+def module_at(revision: str, path: str) -> ModuleType:
+    """The module at `path` (e.g. phd_core/renderers/gs3d/kernels.py) as it was at `revision`,
+    loaded beside today's as a sibling in the same package, so its relative imports resolve
+    against today's code (which holds while the names it imports exist)."""
+    source = subprocess.run(["git", "show", f"{revision}:{path}"], cwd=ROOT, check=True, capture_output=True,
+                            text=True).stdout
+    package = ".".join(Path(path).with_suffix("").parts[:-1])
+    name = f"{package}.{Path(path).stem}_at_{revision}"
+    file = Path(tempfile.mkdtemp()) / f"{Path(path).stem}_at_{revision}.py"
+    file.write_text(source)
+    spec = importlib.util.spec_from_file_location(name, file)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    module.__package__ = package
+    sys.modules[name] = module                      # dataclasses look their module up while it loads
+    spec.loader.exec_module(module)
+    return module
 
 
 # ----------------------------------------------------------------------------- result files

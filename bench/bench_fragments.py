@@ -16,34 +16,17 @@ markers of docs/performance.md.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
-import subprocess
-import tempfile
 import time
-from pathlib import Path
 
 import numba
 import torch
 
-from bench._harness import DOCS, RESULTS, ROOT, donut_cameras, tiled_model, write_doc, write_result
+from bench._harness import DOCS, RESULTS, donut_cameras, module_at, tiled_model, write_doc, write_result
 from phd_core.renderers.gs3d import kernels, render
 from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, front_to_back, prepare_view
 from phd_core.renderers.splats import DEFAULT_TILE
 from phd_core.uq import dropout_uniforms, keep_masks
-
-
-def kernels_at(revision: str):
-    """`phd_core.renderers.gs3d.kernels` as it was at `revision`, as a module of today's package."""
-    source = subprocess.run(["git", "show", f"{revision}:phd_core/renderers/gs3d/kernels.py"], cwd=ROOT,
-                            check=True, capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "kernels_before.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("phd_core.renderers.gs3d.kernels_before", path)
-    module = importlib.util.module_from_spec(spec)
-    module.__package__ = "phd_core.renderers.gs3d"
-    spec.loader.exec_module(module)
-    return module
 
 
 def main() -> None:
@@ -59,7 +42,7 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(1)
     numba.set_num_threads(1)
-    before = kernels_at(args.before)
+    before = module_at(args.before, "phd_core/renderers/gs3d/kernels.py")
     background = torch.ones(3)
     rows = []
     for copies in args.copies:
