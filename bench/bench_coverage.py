@@ -1,7 +1,7 @@
 """The coverage selection of the visibility strategies at real size: today's against a git
 revision's, on the same evidence, with the orders and scores compared exactly.
 
-    .venv/bin/python -m bench.bench_coverage --before 0fb47d1 [--copies 1 22] [--candidates 30]
+    .venv/bin/python -m bench.bench_coverage --before 44f7c96 [--copies 1 22] [--candidates 30]
 
 Once the views are rendered, a visibility strategy picks greedily: every pick is counted as
 captured and lowers the novelty of what every other candidate sees, so ordering C candidates
