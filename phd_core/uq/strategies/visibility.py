@@ -71,12 +71,13 @@ CAPTURE_CHUNK = 1 << 18  # candidate elements a capture updates at once (bounds 
 class Coverage:
     """The candidates' novelty, conditioned on every view counted as captured so far.
 
-    Every candidate's elements sit in one list, candidate c's at entries offsets[c]:offsets[c + 1]
-    (`index` into the union of all their elements, the direction from each element to the
-    candidate's camera, its weight: pixels it fills times its fragility, and its novelty), so
-    counting a view as captured updates all candidates in a few vectorised steps instead of a
-    loop over candidates; at a million splats and 100 candidates that loop was most of a
-    ranking's time (docs/performance.md).
+    The elements of the candidates still in play sit in one list, the i-th such candidate's
+    (number ids[i]) at entries offsets[i]:offsets[i + 1]: `index` into the union of all their
+    elements, the direction from each element to the candidate's camera, its weight (pixels it
+    fills times its fragility) and its novelty. Counting a view as captured updates them all in
+    a few vectorised steps; a candidate `retire`d (picked) leaves the list once half of it is
+    retired. At a million splats and 100 candidates, a loop over the candidates per capture was
+    most of a ranking's time (docs/performance.md).
     """
 
     def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE):
@@ -100,14 +101,22 @@ class Coverage:
             self.weight[part] = vis.weight
             if fragility and reference > 0 and vis.valued is not None:
                 self.weight[part] *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
+        self.ids = list(range(len(candidates)))           # the candidate of each stored run of entries
+        self.position = {c: c for c in self.ids}          # and the run of each candidate
+        self.retired: set[int] = set()
         self.empty = [vis.empty for vis in candidates]
         self.axes = torch.stack([viewing_axis(vis) for vis in candidates])            # [C, 3]
         self.axis_novelty = [1.0] * len(candidates)
         self.sums = [self._sum(c) for c in range(len(candidates))]
 
+    def _part(self, c: int) -> slice:
+        """Candidate c's entries (c still in the list)."""
+        i = self.position[c]
+        return slice(int(self.offsets[i]), int(self.offsets[i + 1]))
+
     def _sum(self, c: int) -> float:
         """Candidate c's weight times novelty, summed over its elements."""
-        part = slice(int(self.offsets[c]), int(self.offsets[c + 1]))
+        part = self._part(c)
         return float((self.weight[part] * self.novelty[part]).sum())
 
     def value(self, c: int) -> float:
@@ -116,31 +125,48 @@ class Coverage:
 
     def share(self, c: int) -> float:
         """The share of candidate c's image of the model left unseen (0 when it shows none)."""
-        total = float(self.weight[int(self.offsets[c]):int(self.offsets[c + 1])].sum())
+        total = float(self.weight[self._part(c)].sum())
         return self.sums[c] / total if total > 0 else 0.0
 
     def capture(self, vis: Visibility) -> None:
         """Count `vis` as captured: every candidate's novelty of the elements it saw falls."""
         index = torch.searchsorted(self.union, vis.elements).clamp_max(max(self.size - 1, 0))
         known = self.union[index] == vis.elements if self.size else torch.zeros(len(index), dtype=torch.bool)
-        dense = torch.zeros(self.size, dtype=torch.float64)
-        dense[index[known]] = seen_share(vis)[known]
-        centre = vis.camera.center
+        seen, toward = torch.zeros(self.size, dtype=torch.float64), torch.zeros(self.size, 3, dtype=torch.float64)
+        seen[index[known]] = seen_share(vis)[known]                                   # [U]
+        toward[index[known]] = directions(self.points[index[known]], vis.camera.center)  # [U, 3]
         changed = []
         for start in range(0, len(self.index), CAPTURE_CHUNK):
-            s = dense[self.index[start:start + CAPTURE_CHUNK]]
+            chunk = self.index[start:start + CAPTURE_CHUNK]
+            s = seen[chunk]
             touched = (s > 0).nonzero().squeeze(1)
             if len(touched):
                 entries = touched + start
-                toward = directions(self.points[self.index[entries]], centre)
-                self.novelty[entries] *= 1.0 - s[touched] * near(self.dirs[entries], toward, self.angle_scale)
+                self.novelty[entries] *= 1.0 - s[touched] * near(self.dirs[entries], toward[chunk[touched]],
+                                                                  self.angle_scale)
                 changed.append(entries)
         axis_near = near(self.axes, viewing_axis(vis), self.angle_scale).tolist()
         self.axis_novelty = [n * (1.0 - a) for n, a in zip(self.axis_novelty, axis_near)]
         if changed:                      # entries ascend, so their candidates do too
             owners = torch.searchsorted(self.offsets, torch.cat(changed), right=True) - 1
-            for c in torch.unique_consecutive(owners).tolist():
-                self.sums[c] = self._sum(c)
+            for i in torch.unique_consecutive(owners).tolist():
+                if self.ids[i] not in self.retired:
+                    self.sums[self.ids[i]] = self._sum(self.ids[i])
+
+    def retire(self, c: int) -> None:
+        """Candidate c is out of play (picked): its value is no longer needed. Once half of the
+        stored entries are retired candidates', they leave the list (each capture after costs less)."""
+        self.retired.add(c)
+        counts = self.offsets[1:] - self.offsets[:-1]
+        gone = torch.tensor([i in self.retired for i in self.ids])
+        if 2 * int(counts[gone].sum()) <= len(self.index):
+            return
+        keep = torch.repeat_interleave(~gone, counts)
+        self.index, self.dirs, self.weight, self.novelty = (t[keep] for t in (self.index, self.dirs, self.weight,
+                                                                              self.novelty))
+        self.ids = [i for i, out in zip(self.ids, gone.tolist()) if not out]
+        self.position = {c: i for i, c in enumerate(self.ids)}
+        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts[~gone].cumsum(0)])
 
 
 def seen_share(vis: Visibility) -> Tensor:
@@ -185,6 +211,7 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: fl
         scores[i] = values[i]
         taken[i] = True
         coverage.capture(evidence.candidate_views[i])
+        coverage.retire(i)
         if spread:
             nearest = torch.minimum(nearest, (cand - cand[i]).norm(dim=1))
     rest = [(value(i), i) for i in range(count) if not taken[i]]
