@@ -66,8 +66,10 @@ PASS_FRAGMENT_BYTES = 16
 PASS_UNIT_BYTES = 64
 KEPT_ELEMENT_BYTES = 56
 # A strategy's working copy of an element (`phd_core.uq.strategies.visibility.Coverage`): index,
-# direction, weight, novelty (8 + 24 + 2 x 8).
-COVERAGE_ELEMENT_BYTES = 48
+# direction, weight, novelty (8 + 24 + 2 x 8), and what counting a view as captured holds per
+# element of the union (seen share and direction, 8 + 24; the union is at most every listed
+# element); retiring picked candidates copies at most half of one array (12), less than that.
+COVERAGE_ELEMENT_BYTES = 80
 
 
 def visibility_bytes(num_units: int, camera: Camera) -> int:

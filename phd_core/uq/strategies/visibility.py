@@ -65,7 +65,7 @@ def viewing_axis(vis: Visibility) -> Tensor:
     return -vis.camera.c2w[:3, 2].double()
 
 
-CAPTURE_CHUNK = 1 << 18  # candidate elements a capture updates at once (bounds its temporaries)
+CAPTURE_CHUNK = 1 << 16  # candidate elements a capture updates at once (its temporaries: ~7 MB)
 
 
 class Coverage:
@@ -162,8 +162,10 @@ class Coverage:
         if 2 * int(counts[gone].sum()) <= len(self.index):
             return
         keep = torch.repeat_interleave(~gone, counts)
-        self.index, self.dirs, self.weight, self.novelty = (t[keep] for t in (self.index, self.dirs, self.weight,
-                                                                              self.novelty))
+        self.index = self.index[keep]             # one array at a time: at most half of one is copied at once
+        self.dirs = self.dirs[keep]
+        self.weight = self.weight[keep]
+        self.novelty = self.novelty[keep]
         self.ids = [i for i, out in zip(self.ids, gone.tolist()) if not out]
         self.position = {c: i for i, c in enumerate(self.ids)}
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts[~gone].cumsum(0)])
