@@ -446,7 +446,7 @@ splats get small boxes. Only the survivors are sorted, coloured and rasterised. 
   the two kernels (1M splats, 200x150, one thread, the same 5.1M fragments, three rounds), as
   every pair is evaluated twice; so the two kernels stay. Since then the first lists the pairs
   splat by splat and leaves the exp to one vectorised call ("Fragments listed splat by splat"
-  below: 1.3-1.5x on this stage at 1M splats); the note above says which code each table ran.
+  below: 1.4-1.5x on this stage at 1M splats); the note above says which code each table ran.
 
 What is left grows with the fragments: every visible splat at every pixel where its alpha
 reaches 1/255, hidden ones included. They cannot be cut at `prepare`: a keep-mask may drop
