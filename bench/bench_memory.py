@@ -383,6 +383,43 @@ def concurrent(root: Path, budget: int, crowd: Crowd) -> dict:
             "peak_over_idle_bytes": peak, "within_budget": peak <= budget}
 
 
+# ----------------------------------------------------------------------------- replan
+
+def replan(rows: dict[str, dict], root: Path) -> list[dict]:
+    """Every accepted row of the results planned again by today's code, without running it:
+    its recorded peak against the plan it would get now (a plan change shows which rows to
+    measure again). One server at 4 GiB holds the uploads; each model is uploaded once per
+    set of training cameras."""
+    data_dir = root / "replan"
+    data_dir.mkdir()
+    server = serve(data_dir, PHD_MEMORY_BUDGET_BYTES=str(4 * GIB))
+    uploaded: dict[tuple, str] = {}
+    out = []
+    try:
+        with PHDClient(server.url, timeout=1800) as phd:
+            for budget in (1, 4):
+                for base in SWEEP:
+                    row = replace(base, name=f"{base.name} [{budget:g} GiB]", budget=budget * GIB)
+                    recorded = rows.get(row.name, {})
+                    if recorded.get("state") != "succeeded" or "estimate_bytes" not in recorded:
+                        continue
+                    ids = []
+                    for name in row.models:
+                        key = (name, row.training, row.size, row.donut_ring)
+                        if key not in uploaded:
+                            cameras = row.cameras(row.training, row.size, "train") if row.training else None
+                            uploaded[key] = phd.upload_model(model_file(root, name), cameras=cameras).id
+                        ids.append(uploaded[key])
+                    plan = plan_of(row, data_dir, ids, *row.request(ids, row.size, row.samples))["estimate_bytes"]
+                    out.append({"name": row.name, "peak_bytes": recorded["peak_over_idle_bytes"],
+                                "plan_then_bytes": recorded["estimate_bytes"], "plan_now_bytes": plan,
+                                "ratio_now": round(recorded["peak_over_idle_bytes"] / plan, 3)})
+                    print(json.dumps(out[-1]), flush=True)
+    finally:
+        server.kill()
+    return out
+
+
 # ----------------------------------------------------------------------------- report
 
 def table(rows: list[dict]) -> str:
@@ -428,7 +465,18 @@ def main() -> None:
     parser.add_argument("--concurrent-budget", type=int, default=GIB)
     parser.add_argument("--out", type=Path, default=OUT, help="results file (two runs at once need one each)")
     parser.add_argument("--merge", type=Path, nargs="*", default=[], help="results files whose rows join --out's")
+    parser.add_argument("--replan", action="store_true",
+                        help="plan every accepted row of --out again with today's code (nothing is run)")
     args = parser.parse_args()
+    if args.replan:
+        with tempfile.TemporaryDirectory() as tmp:
+            planned = replan({r["name"]: r for r in json.loads(args.out.read_text())["rows"]}, Path(tmp))
+        mib = lambda b: f"{b / 2**20:,.0f}"  # noqa: E731
+        print("| request | peak MiB | plan then MiB | plan now MiB | peak/plan now |\n|---|---|---|---|---|")
+        for r in sorted(planned, key=lambda r: -r["ratio_now"]):
+            print(f"| {r['name']} | {mib(r['peak_bytes'])} | {mib(r['plan_then_bytes'])} | "
+                  f"{mib(r['plan_now_bytes'])} | {r['ratio_now']:.2f} |")
+        return
     previous = json.loads(args.out.read_text()) if args.out.exists() and (args.only or args.merge) else {"rows": []}
     rows = {r["name"]: r for r in previous["rows"]}
     rows.update({r["name"]: r for path in args.merge for r in json.loads(path.read_text())["rows"]})
