@@ -116,6 +116,27 @@ def test_a_pick_lowers_the_value_of_candidates_that_see_the_same_parts() -> None
     assert after[2] > 0.7 * before[2]                                   # the inside, seen from above, barely moved
 
 
+def test_retired_candidates_leave_the_others_values_as_they_were() -> None:
+    """Picked candidates leave Coverage's list once they hold half of it: the candidates still in
+    play keep exactly the values they have when nobody is retired."""
+    renderer = open_box()
+    candidates = [camera((5.0 * math.cos(a), 5.0 * math.sin(a), 0.3 + 0.2 * math.sin(3 * a)))
+                  for a in torch.linspace(0.0, 2 * math.pi, 9)[:-1].tolist()] + [camera((0.0, 0.3, 5.0))]
+    evidence = visibility_evidence(renderer, candidates, [camera((5.0, 0.0, 0.2))])
+    kept, retiring = (Coverage(evidence.candidate_views, fragility=False) for _ in range(2))
+    for coverage in (kept, retiring):
+        for vis in evidence.captured_views:
+            coverage.capture(vis)
+    picks = [0, 4, 2, 6, 8, 1]
+    for step, i in enumerate(picks):
+        for coverage in (kept, retiring):
+            coverage.capture(evidence.candidate_views[i])
+        retiring.retire(i)
+        rest = [c for c in range(len(candidates)) if c not in picks[:step + 1]]
+        assert [retiring.value(c) for c in rest] == [kept.value(c) for c in rest]
+    assert len(retiring.ids) < len(candidates) and len(retiring.index) < len(kept.index)    # the list shrank
+
+
 def test_families_without_visibility_get_the_camera_centre_order() -> None:
     renderer = BlobRenderer.random(20, seed=1)
     ring = ring_cameras(8)
