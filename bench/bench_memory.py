@@ -385,6 +385,13 @@ def concurrent(root: Path, budget: int, crowd: Crowd) -> dict:
 
 # ----------------------------------------------------------------------------- replan
 
+def at_budgets(budgets: list[float]) -> list[Row]:
+    """Every SWEEP row at each budget (GiB), named with it as the results name it."""
+    return [replace(row, name=f"{row.name} [{budget:g} GiB]", budget=int(budget * GIB))
+            for budget in budgets for row in SWEEP]
+
+
+
 def replan(rows: dict[str, dict], root: Path) -> list[dict]:
     """Every accepted row of the results planned again by today's code, without running it:
     its recorded peak against the plan it would get now (a plan change shows which rows to
@@ -397,24 +404,22 @@ def replan(rows: dict[str, dict], root: Path) -> list[dict]:
     out = []
     try:
         with PHDClient(server.url, timeout=1800) as phd:
-            for budget in (1, 4):
-                for base in SWEEP:
-                    row = replace(base, name=f"{base.name} [{budget:g} GiB]", budget=budget * GIB)
-                    recorded = rows.get(row.name, {})
-                    if recorded.get("state") != "succeeded" or "estimate_bytes" not in recorded:
-                        continue
-                    ids = []
-                    for name in row.models:
-                        key = (name, row.training, row.size, row.donut_ring)
-                        if key not in uploaded:
-                            cameras = row.cameras(row.training, row.size, "train") if row.training else None
-                            uploaded[key] = phd.upload_model(model_file(root, name), cameras=cameras).id
-                        ids.append(uploaded[key])
-                    plan = plan_of(row, data_dir, ids, *row.request(ids, row.size, row.samples))["estimate_bytes"]
-                    out.append({"name": row.name, "peak_bytes": recorded["peak_over_idle_bytes"],
-                                "plan_then_bytes": recorded["estimate_bytes"], "plan_now_bytes": plan,
-                                "ratio_now": round(recorded["peak_over_idle_bytes"] / plan, 3)})
-                    print(json.dumps(out[-1]), flush=True)
+            for row in at_budgets([1, 4]):
+                recorded = rows.get(row.name, {})
+                if recorded.get("state") != "succeeded" or "estimate_bytes" not in recorded:
+                    continue
+                ids = []
+                for name in row.models:
+                    key = (name, row.training, row.size, row.donut_ring)
+                    if key not in uploaded:
+                        cameras = row.cameras(row.training, row.size, "train") if row.training else None
+                        uploaded[key] = phd.upload_model(model_file(root, name), cameras=cameras).id
+                    ids.append(uploaded[key])
+                plan = plan_of(row, data_dir, ids, *row.request(ids, row.size, row.samples))["estimate_bytes"]
+                out.append({"name": row.name, "peak_bytes": recorded["peak_over_idle_bytes"],
+                            "plan_then_bytes": recorded["estimate_bytes"], "plan_now_bytes": plan,
+                            "ratio_now": round(recorded["peak_over_idle_bytes"] / plan, 3)})
+                print(json.dumps(out[-1]), flush=True)
     finally:
         server.kill()
     return out
@@ -483,8 +488,7 @@ def main() -> None:
     def chosen(name: str) -> bool:     # --merge alone measures nothing
         return any(word in name for word in args.only) if args.only else not args.merge
 
-    sweep = [replace(row, name=f"{row.name} [{budget:g} GiB]", budget=int(budget * GIB))
-             for budget in args.budgets for row in SWEEP]
+    sweep = at_budgets(args.budgets)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         for row in sweep:
