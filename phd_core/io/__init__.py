@@ -1,9 +1,10 @@
 """Writing files: atomic writes (`files`), the one PNG encoder (`png`) and zeta heat maps
-(`heatmap`). Every file the library, the CLI or the service writes goes through here."""
+(`heatmap`), results kept beside a model (`cache`). Every file the library, the CLI or the service writes goes through here."""
 
+from .cache import ModelCache
 from .files import fsync_path, write_bytes_atomic, write_json_atomic
 from .heatmap import colorize, write_heatmap
 from .png import png_bytes, write_png
 
-__all__ = ["colorize", "fsync_path", "png_bytes", "write_bytes_atomic", "write_heatmap", "write_json_atomic",
+__all__ = ["ModelCache", "colorize", "fsync_path", "png_bytes", "write_bytes_atomic", "write_heatmap", "write_json_atomic",
            "write_png"]
