@@ -33,7 +33,8 @@ from .errors import ServiceError, invalid
 
 MAX_FOLDER_FILES = 10_000       # files in one uploaded folder or zip
 MAX_PATH_PARTS = 32             # folders deep
-MAX_ZIP_RATIO = 1000            # a member that inflates more than this is refused (a zip bomb's mark)
+MAX_ZIP_RATIO = 500             # a member that inflates more than this is refused (a zip bomb's mark;
+                                # real PLYs, checkpoints and JSON inflate well below)
 SEARCH_DIRS = 2_000             # folders looked at for a trainer's output
 SKIPPED = ("__MACOSX", ".DS_Store")   # what archivers add beside a folder
 SIDECAR_SOURCE = "the sidecar its trainer wrote"   # a model's background_source when its sidecar set it
