@@ -40,7 +40,9 @@ class ApiError extends Error {
 const PLAIN = {
   unauthorized: () => "The server asks for an API key: type it at the top and press \"Use key\".",
   no_training_cameras: () => "This model has no training cameras. " + NO_CAMERAS_ADVICE,
-  not_calibrated: () => "This model is not calibrated yet: press \"Calibrate\" in section 1 first.",
+  not_calibrated: (m, field) => (field === "ratio_b" ?
+    "Model B is not calibrated yet: choose it under Model in section 1, press \"Calibrate\", then choose model A again." :
+    "This model is not calibrated yet: press \"Calibrate\" in section 1 first."),
   signal_mismatch: (m) => "The model was calibrated for another signal: calibrate it again. (" + m + ")",
   queue_full: () => "The server is busy with other work: try again in a few seconds.",
   busy: () => "The server's memory is taken by other work: try again in a few seconds.",
@@ -59,7 +61,8 @@ const PLAIN = {
   internal_error: () => "The server failed unexpectedly: tell whoever runs it (its log has the details).",
 };
 
-// Request fields -> what this page calls them.
+// Request fields -> what this page calls them (in the upload section, "cameras" are the training cameras).
+const UPLOAD_LABELS = { cameras: "the training cameras" };
 const LABELS = {
   samples: "samples", downscale: "downscale", width: "width", height: "height", top_k: "top k", seed: "seed",
   strategy: "strategy", cameras: "the candidate poses", candidates: "the generated candidates",
@@ -79,19 +82,20 @@ function plainText(message) {
     .replace(/\bmodel '[0-9a-f]{16}'/g, "the model");
 }
 
-function fieldLabel(field) {
+function fieldLabel(field, where) {
   if (!field) return null;
-  if (LABELS[field]) return LABELS[field];
+  const labels = where === "upload-message" ? Object.assign({}, LABELS, UPLOAD_LABELS) : LABELS;
+  if (labels[field]) return labels[field];
   const base = field.replace(/\[\d+\].*$/, "").replace(/\..*$/, "");
   const item = field.match(/\[(\d+)\]/);
-  return (LABELS[base] || base.replace(/_/g, " ")) + (item ? " (pose " + item[1] + ")" : "");
+  return (labels[base] || base.replace(/_/g, " ")) + (item ? " (pose " + item[1] + ")" : "");
 }
 
-function plain(err) {
+function plain(err, where) {
   if (!(err instanceof ApiError)) return "Something went wrong in the page: " + err;
   if (err.code === "page") return err.message;
-  if (PLAIN[err.code]) return PLAIN[err.code](err.message);
-  const label = fieldLabel(err.field);
+  if (PLAIN[err.code]) return PLAIN[err.code](err.message, err.field);
+  const label = fieldLabel(err.field, where);
   let text = plainText(err.message);
   if (err.field) text = text.replace(new RegExp("^" + err.field.replace(/[.[\]]/g, "\\$&") + ":\\s*"), "");
   return (label ? label.charAt(0).toUpperCase() + label.slice(1) + ": " : "") + text;
@@ -182,7 +186,7 @@ async function guarded(where, action) {
   try {
     await action();
   } catch (err) {
-    say(where, plain(err), "error");
+    say(where, plain(err, where), "error");
   }
 }
 
@@ -244,7 +248,7 @@ function framesOf(text, name) {
   if (frames.length === 0) throw new ApiError(`${name} holds an empty list of poses.`);
   frames.forEach((f, i) => {
     if (f === null || typeof f !== "object" || Array.isArray(f)) throw new ApiError(`Pose ${i} of ${name} is not an object.`);
-    if (!("transform_matrix" in f) && !("position" in f && "rotation" in f)) {
+    if (!("transform_matrix" in f) && !isEntry(f)) {
       const keys = Object.keys(f).slice(0, 6).map((k) => `"${k}"`).join(", ") || "none";
       throw new ApiError(`Pose ${i} of ${name} has no "transform_matrix" (nor a cameras.json "position" and "rotation"); its keys: ${keys}.`);
     }
@@ -252,8 +256,11 @@ function framesOf(text, name) {
   return frames.map((f) => Object.assign({}, defaults, f));
 }
 
-// True when some frame does not say its image size (a cameras.json entry always does).
-const lacksSize = (frames) => frames.some((f) => !("rotation" in f) && (f.w === undefined || f.h === undefined));
+// A reference trainer's cameras.json entry (it always says its image size).
+const isEntry = (f) => Array.isArray(f.position) && Array.isArray(f.rotation);
+const hasSize = (f) => isEntry(f) || (f.w !== undefined && f.h !== undefined);
+// True when some frame does not say its image size.
+const lacksSize = (frames) => !frames.every(hasSize);
 
 // Frames with the size fields' width and height where they give none; an error naming the fields.
 function sized(frames, prefix) {
@@ -262,7 +269,7 @@ function sized(frames, prefix) {
   if (!(w >= 1 && h >= 1)) {
     throw new ApiError("These poses do not say their image size: fill in width and height (in pixels).");
   }
-  return frames.map((f) => ("rotation" in f || (f.w !== undefined && f.h !== undefined) ? f : Object.assign({ w, h }, f)));
+  return frames.map((f) => (hasSize(f) ? f : Object.assign({ w, h }, f)));
 }
 
 // ------------------------------------------------------------------ models
@@ -804,6 +811,7 @@ function start() {
     e.preventDefault();
     state.key = $("api-key").value.trim();
     localStorage.setItem("phd-api-key", state.key);
+    say("model-message", "");
     guarded("message", () => loadModels($("model-select").value).then(() => say("message", "key saved in this browser")));
   });
   $("refresh-models").addEventListener("click", () => guarded("model-message", () => loadModels($("model-select").value)));
@@ -830,7 +838,7 @@ function start() {
   $("poses-download").addEventListener("click", () => guarded("rank-message", downloadPoses));
   $("select-form").addEventListener("submit", (e) => guarded("select-message", () => select(e)));
   readChoices();
-  guarded("model-message", () => loadModels());
+  guarded("message", () => loadModels());      // a missing key is said beside the key field
 }
 
 document.addEventListener("DOMContentLoaded", start);
