@@ -26,8 +26,8 @@ from pathlib import Path, PurePosixPath
 
 from phd_core.data import POSES
 from phd_core.renderers import SNIFF_BYTES, accepts_background, family_of, family_titles
-from phd_core.renderers.gs3d import write_ply
 from phd_core.renderers.outputs import OUTPUTS, read_output
+from phd_core.renderers.splats import write_ply  # trainers' folders hold splats
 
 from .errors import ServiceError, invalid
 

@@ -46,7 +46,6 @@ from phd_core.data.inria import is_inria_cameras
 from phd_core.errors import InputError, check_color
 from phd_core.io import fsync_path
 from phd_core.renderers import SNIFF_BYTES, family_titles, model_kind
-from phd_core.renderers.gs3d import SIDECAR_FORMAT
 
 from .errors import JSON_ERRORS, ServiceError, invalid, json_problem
 from .folders import SIDECAR_SOURCE, folder_target
@@ -263,11 +262,9 @@ def parse_camera_json(raw: bytes) -> Any:
 def unwrap_sidecar(source: Any, upload: Upload) -> Any:
     """Cameras given as the sidecar `phd train` wrote beside its PLY: its training cameras, and
     its background and capture format where the request gave none (the Python client's rule)."""
-    if not (isinstance(source, dict) and source.get("format") == SIDECAR_FORMAT):
-        return source
-    frames = source.get("training_cameras")
-    if not isinstance(frames, list):
-        raise invalid("cameras", "the training sidecar has no 'training_cameras' list")
+    if not (isinstance(source, dict) and isinstance(source.get("training_cameras"), list)):
+        return source                   # a sidecar is known by its list, as phd_core.data.load_cameras knows it
+    frames = source["training_cameras"]
     background = source.get("background")
     if upload.background is None and isinstance(background, list):
         upload.background, upload.background_source = json.dumps(background).encode(), SIDECAR_SOURCE
