@@ -92,6 +92,8 @@ class Health(_Response):
     status: Literal["ok"] = "ok"
     version: str
     api_version: str = API_VERSION
+    key_required: bool = Field(False, description="Whether the other routes need an API key (the web page asks for "
+                               "one before it calls them).")
 
 
 class Calibration(_Response):

@@ -38,7 +38,8 @@ class ApiError extends Error {
 // The service's error codes, as a person at this page would be told (the message follows
 // where it carries the particulars).
 const PLAIN = {
-  unauthorized: () => "The server asks for an API key: type it at the top and press \"Use key\".",
+  unauthorized: () => (state.key ? "The server refused this API key: check it and press \"Use key\" again." :
+    "The server asks for an API key: type it at the top and press \"Use key\"."),
   no_training_cameras: () => "This model has no training cameras. " + NO_CAMERAS_ADVICE,
   not_calibrated: (m, field) => (field === "ratio_b" ?
     "Model B is not calibrated yet: choose it under Model in section 1, press \"Calibrate\", then choose model A again." :
@@ -838,7 +839,14 @@ function start() {
   $("poses-download").addEventListener("click", () => guarded("rank-message", downloadPoses));
   $("select-form").addEventListener("submit", (e) => guarded("select-message", () => select(e)));
   readChoices();
-  guarded("message", () => loadModels());      // a missing key is said beside the key field
+  guarded("message", async () => {             // a missing key is said beside the key field, before any call
+    const health = (await apiJson("/health")).data;
+    if (health.key_required && !state.key) {
+      say("message", "This server asks for an API key: type it above and press \"Use key\".", "warning");
+      return;
+    }
+    await loadModels();
+  });
 }
 
 document.addEventListener("DOMContentLoaded", start);

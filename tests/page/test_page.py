@@ -21,7 +21,7 @@ from phd_core import uq
 from phd_core.data import candidate_name, export_cameras
 from phd_core.scene import camera_from_frame
 from phd_core.uq.candidates import candidate_cameras
-from support.fixtures import LEGO, svc_cameras
+from support.fixtures import LEGO, svc_cameras, svc_random_gaussians
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
@@ -268,7 +268,7 @@ def test_page_fits_a_phone_and_names_a_wrong_key(browser, models, tmp_path):
         browser.get(server.url + "/ui/")
         _set(browser, "api-key", "wrong")
         browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
-        _wait(browser, lambda d: "API key" in d_text(d, "message"), what="the 401 message")
+        _wait(browser, lambda d: "refused this API key" in d_text(d, "message"), what="the 401 message")
         said = d_text(browser, "message")                             # in words: no status, code or header
         assert "401" not in said and "unauthorized" not in said and "Authorization" not in said
         _open(browser, server)
@@ -355,11 +355,13 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     downloads = tmp_path / "downloads"
     downloads.mkdir()
     browser.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(downloads)})
+    browser.execute_script("localStorage.clear()")
     browser.get(server.url + "/ui/")
+    # The server needs a key (its /health says so): the page asks for it before calling anything else.
+    _wait(browser, lambda d: "asks for an API key" in d_text(d, "message"), what="the request for a key")
     _set(browser, "api-key", KEY)
     browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
     _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
-    _console_errors(browser)          # from here on none: before the key was typed, the model list answered 401
     assert browser.find_element(By.ID, "upload-details").get_attribute("open") is not None   # opened for a newcomer
     assert browser.find_element(By.ID, "view3d-section").get_attribute("hidden") is not None  # no 3D view script here
 
@@ -389,12 +391,18 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     assert Select(browser.find_element(By.ID, "model-b-select")).first_selected_option.get_attribute("value") == \
         model_b.id
 
-    # The same two files as a zip (what a user mails around): read by the same rules, with cameras.
+    # The same two files as a zip (what a user mails around), dropped: read by the same rules, with cameras.
     zipped = tmp_path / "run.zip"
     with zipfile.ZipFile(zipped, "w") as archive:
         for path in (svc_trained, sidecar):
             archive.write(path, f"run/{path.name}")
-    _choose_files(browser, "upload-file", zipped)
+    _choose_files(browser, "upload-file", zipped)       # then dropped on the box instead (the drop's path)
+    browser.execute_script(
+        "const input = document.getElementById('upload-file'), dt = new DataTransfer(); "
+        "for (const f of input.files) dt.items.add(f); input.value = ''; "
+        "document.getElementById('drop-zone').dispatchEvent(new DragEvent('drop', {dataTransfer: dt, bubbles: true, "
+        "cancelable: true}))")
+    _wait(browser, lambda d: d_text(d, "upload-picked") == "1 file: run.zip", what="the dropped zip")
     _set(browser, "upload-name", "from the zip")
     browser.find_element(By.ID, "upload-run").click()
     _wait(browser, lambda d: "Uploaded from the zip: 3dgs, 4 training cameras (blender). It is model B"
@@ -528,3 +536,29 @@ def test_api_docs_render_offline(browser, trained_server):
           .text.replace("\n", "").replace(" ", ""), what="the poses route in Swagger UI")
     icon = httpx.get(server.url + "/favicon.ico")
     assert icon.status_code == 200 and icon.headers["content-type"] == "image/svg+xml"
+
+
+def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, trained_server, tmp_path):
+    """A reference-trainer output folder picked whole (the folder input): its files go up by their
+    paths, its images stay behind, and the service reads it as the client does."""
+    from support.captures import write_output_folder
+
+    server = trained_server
+    folder = write_output_folder(tmp_path / "lego_out", svc_random_gaussians(200), svc_cameras(3))
+    (folder / "input.png").write_bytes(b"\x89PNG not needed")
+    browser.get(server.url + "/ui/")
+    _set(browser, "api-key", KEY)
+    browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
+    _wait(browser, lambda d: d_text(d, "message") == "key saved in this browser", what="the key")
+    browser.execute_script("document.getElementById('upload-details').open = true")
+    browser.find_element(By.ID, "upload-folder").send_keys(str(folder))
+    _wait(browser, lambda d: "(1 images left out" in d_text(d, "upload-picked"), what="the picked folder")
+    browser.find_element(By.ID, "upload-run").click()
+    _wait(browser, lambda d: "Uploaded lego_out: 3dgs, 3 training cameras (3dgs-output)" in d_text(d, "upload-message"),
+          what="the folder's model")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        uploaded = next(m for m in phd.list_models() if m.name == "lego_out")
+        expected = phd.upload_model(folder)
+        assert uploaded.sha256 == expected.sha256
+        assert phd.training_cameras(uploaded.id) == phd.training_cameras(expected.id)
+    assert _console_errors(browser) == []
