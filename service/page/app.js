@@ -386,16 +386,28 @@ async function readUploadCameras() {
   $("upload-size").hidden = !lacksSize(frames);
 }
 
-// The upload's form: one model file (with its cameras), a zip, or a folder's files by path.
-function uploadForm() {
-  const picked = pickedFiles().filter((p) => !IMAGES.test(p.path) || pickedFiles().length === 1);
+const stem = (path) => path.replace(/^.*\//, "").replace(/\.[^.]*$/, "");
+
+// The upload's form: one model file (with its cameras), a zip, or a folder's files by path. A
+// model picked with a camera file that is not its sidecar (<stem>.json) sends that file as its
+// training cameras.
+async function uploadForm() {
+  let picked = pickedFiles().filter((p) => !IMAGES.test(p.path) || pickedFiles().length === 1);
   if (picked.length === 0) throw new ApiError("Choose the model's files first (or drop them on the box).");
+  const json = picked.filter((p) => /\.json$/i.test(p.path));
+  const model = picked.filter((p) => !/\.json$/i.test(p.path));
+  let cameras = state.uploadCameras;
+  if (picked.length === 2 && json.length === 1 && stem(json[0].path) !== stem(model[0].path) && !cameras) {
+    const text = await json[0].file.text();
+    cameras = { text, frames: framesOf(text, json[0].path) };
+    $("upload-size").hidden = !lacksSize(cameras.frames);
+    picked = model;
+  }
   const form = new FormData();
   if (picked.length === 1 && /\.zip$/i.test(picked[0].path)) form.append("archive", picked[0].file, picked[0].path);
   else if (picked.length === 1) form.append("file", picked[0].file, picked[0].path);
   else picked.forEach((p) => form.append("files", p.file, p.path));
-  if (state.uploadCameras) {
-    const cameras = state.uploadCameras;
+  if (cameras) {
     form.append("cameras", lacksSize(cameras.frames) ? JSON.stringify(sized(cameras.frames, "upload")) : cameras.text);
   }
   if ($("upload-name").value.trim()) form.append("name", $("upload-name").value.trim());
@@ -404,7 +416,7 @@ function uploadForm() {
 
 async function upload(event) {
   event.preventDefault();
-  const { form, count } = uploadForm();
+  const { form, count } = await uploadForm();
   const keepA = currentModel();
   say("upload-message", `uploading ${count} file${count > 1 ? "s" : ""}...`);
   $("upload-run").disabled = true;

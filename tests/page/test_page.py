@@ -561,4 +561,24 @@ def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, traine
         expected = phd.upload_model(folder)
         assert uploaded.sha256 == expected.sha256
         assert phd.training_cameras(uploaded.id) == phd.training_cameras(expected.id)
+    # A PLY picked with a transforms file that is not its sidecar: the file goes up as its cameras,
+    # and as its frames say no image size, the page asks for it beside the upload.
+    cameras = tmp_path / "transforms_train.json"
+    cameras.write_text(json.dumps({"camera_angle_x": 0.7, "frames": [
+        {"transform_matrix": c.c2w.tolist()} for c in svc_cameras(3)]}))
+    browser.execute_script("document.getElementById('upload-folder').value = ''")
+    _choose_files(browser, "upload-file", folder / "point_cloud" / "iteration_30000" / "point_cloud.ply", cameras)
+    _set(browser, "upload-name", "with its transforms")
+    browser.find_element(By.ID, "upload-run").click()
+    _wait(browser, lambda d: "fill in width and height" in d_text(d, "upload-message"), what="the missing size")
+    assert browser.find_element(By.ID, "upload-size").is_displayed() and _in_view(browser, "upload-message")
+    _set(browser, "upload-width", 24)
+    _set(browser, "upload-height", 24)
+    browser.find_element(By.ID, "upload-run").click()
+    _wait(browser, lambda d: "Uploaded with its transforms: 3dgs, 3 training cameras" in d_text(d, "upload-message"),
+          what="the model with its transforms")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        stored = next(m for m in phd.list_models() if m.name == "with its transforms")
+        assert [(f["w"], f["h"]) for f in phd.training_cameras(stored.id)] == [(24, 24)] * 3
+        assert stored.camera_format == "nerfstudio"
     assert _console_errors(browser) == []
