@@ -825,6 +825,7 @@ function start() {
     state.key = $("api-key").value.trim();
     localStorage.setItem("phd-api-key", state.key);
     say("model-message", "");
+    state.modelId = null;                    // set up again: the 3D view takes the new key's headers
     guarded("message", () => loadModels($("model-select").value).then(() => say("message", "key saved in this browser")));
   });
   $("refresh-models").addEventListener("click", () => guarded("model-message", () => loadModels($("model-select").value)));
