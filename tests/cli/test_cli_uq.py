@@ -124,7 +124,7 @@ def test_a_trained_model_calibrates_and_ranks_with_its_stored_cameras(files, cur
     code, out, _ = run(capsys, "calibrate", "--model", trained, "--epsilon", epsilon, "--step", STEP, "--samples", 3)
     assert code == 0 and f"r_drop = {r_drop}" in out and "2 views" in out
 
-    code, out, _ = run(capsys, "rank", "--model", trained, "--candidates", files["candidates"], "--width", SIZE,
+    code, out, _ = run(capsys, "rank", "--json", "--model", trained, "--candidates", files["candidates"], "--width", SIZE,
                        "--height", SIZE, "--epsilon", epsilon, "--step", STEP, "--calibration-samples", 3,
                        "--samples", 3)
     result = strict_json(out)
@@ -207,11 +207,11 @@ def test_rank_orders_candidates(files, capsys) -> None:
     assert result["ranking"][0]["sigma_max"] == pytest.approx(expected[0].sigma_max, abs=1e-12)
     assert result["ranking"][-1]["sigma_max"] == 0.0
 
-    code, out, _ = run(capsys, "rank", "--model", files["model"], "--candidates", files["candidates"],
+    code, out, _ = run(capsys, "rank", "--json", "--model", files["model"], "--candidates", files["candidates"],
                        "--width", SIZE, "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5, "--top-k", 2)
     assert code == 0 and strict_json(out)["order"] == result["order"][:2]
 
-    code, out, _ = run(capsys, "rank", "--model", files["model"], "--candidates", files["candidates"],
+    code, out, _ = run(capsys, "rank", "--json", "--model", files["model"], "--candidates", files["candidates"],
                        "--width", SIZE, "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5, "--coarse", 0.5,
                        "--refine", 2)
     coarse = phd.rank_views(load_model(files["model"]), candidates, ratio=0.4, samples=5, coarse=0.5, refine=2)
@@ -220,7 +220,7 @@ def test_rank_orders_candidates(files, capsys) -> None:
 
 
 def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
-    argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
+    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
             SIZE, "--dropout-ratio", 0.4, "--samples", 5]
     candidates = [away_camera(SIZE)] + ring_cameras(4, size=SIZE, height=0.5)
     renderer = load_model(files["model"])
@@ -243,7 +243,7 @@ def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
 
 
 def test_rank_measures_on_the_signal_it_is_given(files, capsys) -> None:
-    argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
+    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
             SIZE, "--dropout-ratio", 0.4, "--samples", 5]
     candidates = [away_camera(SIZE)] + ring_cameras(4, size=SIZE, height=0.5)
     code, out, _ = run(capsys, *argv, "--signal", "premultiplied")
@@ -262,7 +262,7 @@ def test_rank_measures_on_the_signal_it_is_given(files, capsys) -> None:
     (["--downscale", "0"], "downscale"), (["--coarse", "1.5"], "coarse"), (["--refine", "3"], "refine"),
 ])
 def test_rank_rejects_bad_numbers(files, capsys, extra: list[str], field: str) -> None:
-    argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE,
+    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE,
             "--height", SIZE, *extra]
     if "--dropout-ratio" not in extra:
         argv += ["--dropout-ratio", "0.3"]
@@ -292,7 +292,7 @@ def test_background_flag_changes_what_calibration_sees(files, capsys) -> None:
 
 @pytest.mark.parametrize("values", [["purple"], ["0.5", "2", "0"], ["1", "1"], ["a", "b", "c"]])
 def test_a_bad_background_names_the_flag(files, capsys, values: list[str]) -> None:
-    code, _, err = run(capsys, "rank", "--model", files["model"], "--candidates", files["candidates"], "--width",
+    code, _, err = run(capsys, "rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width",
                        SIZE, "--height", SIZE, "--dropout-ratio", 0.3, "--background", *values)
     assert code == 2 and "background:" in err and "Traceback" not in err
 
