@@ -108,7 +108,7 @@ def test_ranked_generated_candidates_carry_their_poses_and_export_as_a_batch(cap
     chosen = [poses[entry["index"]] for entry in ranking]
     reloaded = load_cameras(colmap, split="all")                    # sorted by name = capture order
     assert max((a.c2w - b.c2w).abs().max().item() for a, b in zip(reloaded, chosen, strict=True)) < 1e-9
-    code, _, err = run(capsys, "rank", "--json", "--model", capture["folder"], "--candidates", "orbit:6", "--samples", 3,
+    code, _, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6", "--samples", 3,
                        "--dropout-ratio", 0.3, "--export", capture["root"] / "plan.yaml")
     assert code == 2 and "export:" in err and "plan.yaml" in err
 
@@ -202,8 +202,8 @@ def test_uq_and_rank_read_colmap_and_llff_captures(capture, capsys) -> None:
         report = json.loads((out / "report.json").read_text())
         assert [v["index"] for v in report["views"]] == [0, 1]                  # frames 0 and 8 by name
         assert all(v["rmse"] < 0.01 for v in report["views"])                   # the images are the model's renders
-        code, out, err = run(capsys, "rank", "--json", "--model", capture["folder"], "--candidates", data, "--samples", 3,
-                             "--dropout-ratio", 0.3)
+        code, out, err = run(capsys, "rank", "--json", "--model", capture["folder"], "--candidates", data,
+                             "--samples", 3, "--dropout-ratio", 0.3)
         assert code == 0 and json.loads(out)["candidates"] == 9, err
 
 

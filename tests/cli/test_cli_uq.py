@@ -124,9 +124,9 @@ def test_a_trained_model_calibrates_and_ranks_with_its_stored_cameras(files, cur
     code, out, _ = run(capsys, "calibrate", "--model", trained, "--epsilon", epsilon, "--step", STEP, "--samples", 3)
     assert code == 0 and f"r_drop = {r_drop}" in out and "2 views" in out
 
-    code, out, _ = run(capsys, "rank", "--json", "--model", trained, "--candidates", files["candidates"], "--width", SIZE,
-                       "--height", SIZE, "--epsilon", epsilon, "--step", STEP, "--calibration-samples", 3,
-                       "--samples", 3)
+    code, out, _ = run(capsys, "rank", "--json", "--model", trained, "--candidates", files["candidates"],
+                       "--width", SIZE, "--height", SIZE, "--epsilon", epsilon, "--step", STEP,
+                       "--calibration-samples", 3, "--samples", 3)
     result = strict_json(out)
     assert code == 0 and result["dropout_ratio"] == r_drop == result["calibration"]["r_drop"]
 
@@ -220,8 +220,8 @@ def test_rank_orders_candidates(files, capsys) -> None:
 
 
 def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
-    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
-            SIZE, "--dropout-ratio", 0.4, "--samples", 5]
+    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE,
+            "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5]
     candidates = [away_camera(SIZE)] + ring_cameras(4, size=SIZE, height=0.5)
     renderer = load_model(files["model"])
     code, out, _ = run(capsys, *argv, "--strategy", "sigma_max")
@@ -243,8 +243,8 @@ def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
 
 
 def test_rank_measures_on_the_signal_it_is_given(files, capsys) -> None:
-    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
-            SIZE, "--dropout-ratio", 0.4, "--samples", 5]
+    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE,
+            "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5]
     candidates = [away_camera(SIZE)] + ring_cameras(4, size=SIZE, height=0.5)
     code, out, _ = run(capsys, *argv, "--signal", "premultiplied")
     expected = phd.rank_views(load_model(files["model"]), candidates, ratio=0.4, samples=5, signal="premultiplied")
@@ -292,7 +292,7 @@ def test_background_flag_changes_what_calibration_sees(files, capsys) -> None:
 
 @pytest.mark.parametrize("values", [["purple"], ["0.5", "2", "0"], ["1", "1"], ["a", "b", "c"]])
 def test_a_bad_background_names_the_flag(files, capsys, values: list[str]) -> None:
-    code, _, err = run(capsys, "rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width",
+    code, _, err = run(capsys, "rank", "--model", files["model"], "--candidates", files["candidates"], "--width",
                        SIZE, "--height", SIZE, "--dropout-ratio", 0.3, "--background", *values)
     assert code == 2 and "background:" in err and "Traceback" not in err
 
