@@ -15,7 +15,7 @@ in that of the COLMAP folder ns-process-data started from.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -36,10 +36,11 @@ class OpenedModel:
     path: Path
     renderer: Renderer
     output: TrainerOutput | None = None         # a trainer's folder: what it holds (capture, split)
+    checked: set[Path] = field(default_factory=set)     # captures found in its frame (check_frame)
 
     @property
     def label(self) -> str:
-        return self.path.name or str(self.path)
+        return str(self.path)
 
 
 def open_model(path: Path, background: list[str] | None = None) -> OpenedModel:
@@ -98,8 +99,9 @@ def check_frame(model: OpenedModel, data: Path) -> None:
     holds images of the run's own capture (same names) at other poses. Otherwise (a capture of
     other views, a model without training cameras) it cannot be told, and a note says so."""
     training = list(model.renderer.training_cameras or [])
-    if not training:
+    if not training or Path(data).resolve() in model.checked:
         return
+    model.checked.add(Path(data).resolve())
     capture = _capture(data)
     if appearing(training, capture.cameras):
         return

@@ -122,8 +122,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render every view under --samples dropout masks of each model (each at its own ratio) "
                     "and choose, per view, the model with the lower score under --rule. With a split's images: "
                     "PSNR/SSIM of a, b and the selection.")
-    select.add_argument("--model-a", type=Path, required=True, help="the first model (any --model of `phd rank`: "
-                        "a model file or a trainer's output folder)")
+    select.add_argument("--model-a", type=Path, required=True, help="the first model: " + model_help())
     select.add_argument("--model-b", type=Path, required=True, help="the second model")
     add_background_arg(select, "splat models: the colour both are rendered over (default: each model's own)")
     views = select.add_mutually_exclusive_group()
