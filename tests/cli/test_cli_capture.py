@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import torch
 
-from phd_cli import main
 from phd_core import uq as phd
 from phd_core.data import load_cameras
 from phd_core.data.inria import camera_from_entry
@@ -22,16 +21,11 @@ from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.scene import Camera
 from phd_core.uq.candidates import candidate_cameras
 from support.captures import write_colmap, write_llff, write_output_folder
+from support.cli import run
 from support.toy_renderers import ring_cameras
 from support.trainers import gsplat_scene, splatfacto_scene
 
 SIZE, STEP = 16, 0.25
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture(scope="module")

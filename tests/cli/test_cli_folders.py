@@ -10,30 +10,22 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 import pytest
 
 from phd_cli import main
 from phd_core.renderers.gs3d import GaussianRenderer
 from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
-from support.captures import write_colmap
+from support.captures import write_colmap, write_images
+from support.cli import run
 from support.trainers import APPLIED_TRANSFORM, frame_names, gsplat_scene, move_camera, scene_cameras, splatfacto_scene
 
 LAYOUTS = ("cameras.json + point_cloud/iteration_*", "config.yml + dataparser_transforms.json", "ckpts/ckpt_*_rank*.pt")
 
 
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def write_images(folder: Path, names: list[str], cameras, renderer) -> None:
-    for name, camera in zip(names, cameras):
-        image = renderer.render(camera)[0].numpy()
-        (folder / name).parent.mkdir(parents=True, exist_ok=True)
-        iio.imwrite(folder / name, np.clip(image * 255 + 0.5, 0, 255).astype(np.uint8))
+def render_images(folder: Path, names: list[str], cameras, renderer) -> None:
+    """The capture's images: the user-frame model's renders at its cameras."""
+    write_images(folder, [renderer.render(c)[0].numpy() for c in cameras], names)
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +33,7 @@ def splatfacto(tmp_path_factory) -> dict:
     root = tmp_path_factory.mktemp("splatfacto")
     scene = splatfacto_scene(root)
     names = frame_names(len(scene["cameras"]))
-    write_images(root / "data" / "desk", names, scene["cameras"],
+    render_images(root / "data" / "desk" / "images", [Path(n).name for n in names], scene["cameras"],
                  GaussianRenderer(scene["user_model"], BACKGROUNDS["random"]))
     # nerfstudio's fraction split (0.9) over the frames sorted by name holds out the 9th of 10.
     order = sorted(range(len(names)), key=lambda i: names[i])
@@ -55,7 +47,7 @@ def gsplat(tmp_path_factory) -> dict:
     cameras = scene["training"]
     count = 10
     names = [f"IMG_{(7 * i) % count:04d}.png" for i in range(count)]
-    write_images(root / "data" / "garden" / "images", names, scene_cameras(count),
+    render_images(root / "data" / "garden" / "images", names, scene_cameras(count),
                  GaussianRenderer(scene["user_model"], (0.0, 0.0, 0.0)))
     assert len(cameras) == 8                           # test_every 8 over 10 images by name: 0 and 8 held out
     return {**scene, "root": root}

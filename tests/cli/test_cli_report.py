@@ -9,26 +9,21 @@ import argparse
 import json
 import shlex
 
-import imageio.v3 as iio
 import numpy as np
 import pytest
-import torch
 
 from phd_cli import build_parser, main
 from phd_cli.demo import next_steps
 from phd_cli.train import DEFAULT_ITERATIONS
 from phd_core.renderers import load_model
-from phd_core.renderers.gs3d import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
+from phd_core.renderers.gs3d import SIDECAR_FORMAT, sidecar_path, write_ply
+from support.captures import write_images
+from support.cli import run
+from support.fixtures import svc_random_gaussians
 from support.toy_renderers import ring_cameras
 
 SIZE, FOV = 16, 0.7
 BAR = "%|"          # what a tqdm bar line holds (percentage, then the bar)
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture(scope="module")
@@ -36,13 +31,7 @@ def files(tmp_path_factory) -> dict:
     """A 3DGS PLY with a sidecar naming its training cameras, a Blender-layout capture whose
     train split holds those cameras and whose images are the model's renders, and candidates."""
     root = tmp_path_factory.mktemp("cli_report")
-    g = torch.Generator().manual_seed(11)
-    count = 200
-    model = GaussianModel(means=(torch.rand(count, 3, generator=g) - 0.5) * 1.4,
-                          log_scales=torch.log(0.05 + 0.1 * torch.rand(count, 3, generator=g)),
-                          quats=torch.randn(count, 4, generator=g),
-                          opacity_logits=torch.rand(count, generator=g) * 4 - 1,
-                          sh=torch.randn(count, 1, 3, generator=g) * 0.5)
+    model = svc_random_gaussians(200, seed=11)
     path = root / "model.ply"
     write_ply(model, path)
     renderer = load_model(path)
@@ -51,12 +40,9 @@ def files(tmp_path_factory) -> dict:
                                               "training_cameras": [c.to_frame() for c in train]}))
     data = root / "data"
     for split, cameras in (("train", train), ("test", test)):
-        (data / split).mkdir(parents=True)
-        frames = []
-        for i, camera in enumerate(cameras):
-            image = renderer.render(camera)[0].numpy()
-            iio.imwrite(data / split / f"r_{i}.png", np.clip(image * 255 + 0.5, 0, 255).astype(np.uint8))
-            frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": camera.c2w.tolist()})
+        write_images(data / split, [renderer.render(c)[0].numpy() for c in cameras],
+                     [f"r_{i}.png" for i in range(len(cameras))])
+        frames = [{"file_path": f"./{split}/r_{i}", "transform_matrix": c.c2w.tolist()} for i, c in enumerate(cameras)]
         (data / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": FOV, "frames": frames}))
     candidates = root / "candidates.json"
     candidates.write_text(json.dumps([c.to_frame() for c in ring_cameras(7, size=SIZE, height=0.4)]))

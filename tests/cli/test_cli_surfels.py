@@ -13,14 +13,9 @@ from phd_core import uq
 from phd_core.renderers import load_model
 from phd_core.renderers.gs2d import read_surfel_ply
 from phd_core.uq.strategies import STRATEGIES
+from support.cli import run
 from support.fixtures import LEGO, svc_cameras
 from support.surfels import random_surfels, reference_layout_ply
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture(scope="module")

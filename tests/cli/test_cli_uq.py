@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from phd_cli import main
 from phd_core import uq as phd
 from phd_core.data import load_cameras, load_dataset
 from phd_core.eval import image_uq_metrics
 from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import GaussianModel, write_ply
+from support.cli import run
 from support.toy_renderers import away_camera, ring_cameras
 
 SIZE, FOV, STEP = 16, 0.7, 0.25
@@ -30,12 +30,6 @@ def strict_json(path_or_text) -> dict:
         raise AssertionError(f"JSON contains {constant}")
 
     return json.loads(text, parse_constant=reject)
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def frame(camera, file_path: str | None = None) -> dict:
