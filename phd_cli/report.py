@@ -94,7 +94,7 @@ def calibrated(args: argparse.Namespace, model: OpenedModel, cameras: list[Camer
                   f"{stored['created_at']} ({cache.path(CALIBRATION, settings, '.json')}); --recalibrate to run "
                   "it again")
         return result
-    with progress_bar(args, f"calibrate {model.label} ({len(cameras)} views)") as progress:
+    with progress_bar(args, f"calibrate {model.path.name} ({len(cameras)} views)") as progress:
         result = phd.calibrate(model.renderer, cameras, epsilon=args.epsilon, step=args.step,
                                samples=args.calibration_samples, method=args.method, seed=args.seed,
                                executor=args.executor, signal=args.signal, progress=progress)
