@@ -86,11 +86,13 @@ def model_views(model: OpenedModel, data: Path | None, split: str, *, views: int
 
 
 def same_capture(data: Path, capture: Path) -> bool:
-    """Whether `data` names `capture` (the folder or the file a capture format reads)."""
+    """Whether `data` names `capture`: read as the same format, the same file or a folder holding it
+    (a COLMAP scene folder holds its sparse/0 model)."""
     try:
-        return locate(data, "all")[1].resolve() == locate(capture, "all")[1].resolve()
+        (data_format, located), (capture_format, target) = locate(data, "all"), locate(capture, "all")
     except InputError:
         return False
+    return data_format is capture_format and target.resolve().is_relative_to(located.resolve())
 
 
 def check_frame(model: OpenedModel, data: Path) -> None:

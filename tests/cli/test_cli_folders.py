@@ -16,9 +16,17 @@ import pytest
 from phd_cli import main
 from phd_core.renderers.gs3d import GaussianRenderer
 from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
-from support.captures import write_colmap, write_images
+from support.captures import write_colmap, write_images, write_output_folder
 from support.cli import run
-from support.trainers import APPLIED_TRANSFORM, frame_names, gsplat_scene, move_camera, scene_cameras, splatfacto_scene
+from support.trainers import (
+    APPLIED_TRANSFORM,
+    frame_names,
+    gsplat_scene,
+    move_camera,
+    scene_cameras,
+    scene_splats,
+    splatfacto_scene,
+)
 
 LAYOUTS = ("cameras.json + point_cloud/iteration_*", "config.yml + dataparser_transforms.json", "ckpts/ckpt_*_rank*.pt")
 
@@ -92,6 +100,9 @@ def test_a_gsplat_run_renders_and_measures_its_held_out_frames(gsplat, capsys, t
     assert code == 0, err
     result = metrics(tmp_path / "render")
     assert [v["index"] for v in result["views"]] == [0, 8] and result["psnr"] > 40
+    code, _, err = run(capsys, "render", "--model", gsplat["folder"], "--data", gsplat["root"] / "data" / "garden",
+                       "--out", tmp_path / "named")                  # the run's capture named: the same frames
+    assert code == 0 and [v["index"] for v in metrics(tmp_path / "named")["views"]] == [0, 8], err
     code, _, err = run(capsys, "uq", "--model", gsplat["folder"], "--dropout-ratio", 0.3, "--samples", 3,
                        "--no-heatmaps", "--out", tmp_path / "uq")
     assert code == 0, err
@@ -101,6 +112,24 @@ def test_a_gsplat_run_renders_and_measures_its_held_out_frames(gsplat, capsys, t
                          "--ratio-a", 0.3, "--ratio-b", 0.2, "--samples", 3)
     assert code == 0, err
     assert len(json.loads(out)["views"]) == 2
+
+
+def test_a_reference_output_folder_renders_its_source_capture(capsys, tmp_path) -> None:
+    """cfg_args' source_path names the COLMAP capture; its own split (every 8th image by name) is the run's."""
+    cameras = scene_cameras(10)
+    model = scene_splats(300, seed=4)
+    capture = tmp_path / "garden"
+    renderer = GaussianRenderer(model, (0.0, 0.0, 0.0))
+    write_colmap(capture, cameras, binary=True, images=[renderer.render(c)[0].numpy() for c in cameras])
+    folder = write_output_folder(tmp_path / "output", model, [c for i, c in enumerate(cameras) if i % 8],
+                                 eval_split=False)
+    cfg = folder / "cfg_args"
+    cfg.write_text(cfg.read_text().replace("source_path='/data/x'", f"source_path='{capture}'"))
+    code, _, err = run(capsys, "render", "--model", folder, "--out", tmp_path / "render")
+    assert code == 0, err
+    result = metrics(tmp_path / "render")
+    # The capture's own test split: its images 0 and 8 by name, numbered within the split.
+    assert [v["index"] for v in result["views"]] == [0, 1] and result["split"] == "test" and result["psnr"] > 40
 
 
 def test_a_split_the_run_does_not_have_names_the_field(splatfacto, capsys, tmp_path) -> None:
