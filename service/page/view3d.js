@@ -129,7 +129,7 @@ const view = {
   headers: {}, modelId: null, header: null, points: null, positions: null,
   training: [], ranking: null, frusta: [], selected: null, pickCallbacks: [],
   mode: "colour", explained: null, explaining: null, radius: 1, centre: new THREE.Vector3(),
-  sortPending: true, touched: false, blobs: [],
+  sortPending: true, sortMs: null, touched: false, blobs: [],
 };
 
 function build(element) {
@@ -223,6 +223,7 @@ function makePoints({ header, arrays }) {
 function sortPoints() {
   if (!view.points || !view.sortPending) return;
   view.sortPending = false;
+  const started = performance.now();
   const p = view.positions, count = p.length / 3;
   const forward = new THREE.Vector3();
   view.camera.getWorldDirection(forward);
@@ -244,6 +245,7 @@ function sortPoints() {
   const order = index.array;
   for (let i = 0; i < count; i++) order[counts[keys[i]]++] = i;   // far (key 0) first
   index.needsUpdate = true;
+  view.sortMs = performance.now() - started;
 }
 
 // ------------------------------------------------------------------ frusta
@@ -357,8 +359,8 @@ function drawNow() {
   placeLabels();
 }
 
-// Look at the scene's centre from above and behind the mean training camera, far enough to
-// see every camera drawn.
+// Look at the scene's centre from 40 degrees above the mean training camera's side, far enough
+// to see every camera drawn.
 function fit() {
   const up = new THREE.Vector3(...(view.header ? view.header.up : [0, 0, 1])).normalize();
   const frames = view.training.concat(view.ranking ? view.ranking.views.map((v) => v.camera) : []);
@@ -377,7 +379,7 @@ function fit() {
   let away = frames.length ? mean.multiplyScalar(1 / frames.length).sub(centre) : new THREE.Vector3(1, -1, 0);
   away.addScaledVector(up, -away.dot(up));                      // horizontal part
   if (away.lengthSq() < 1e-12) away = new THREE.Vector3(1, 0, 0).cross(up).lengthSq() > 1e-6 ? new THREE.Vector3(1, 0, 0).cross(up) : new THREE.Vector3(0, 1, 0);
-  away.normalize().multiplyScalar(1.6 * reach).addScaledVector(up, 0.9 * reach);
+  away.normalize().multiplyScalar(1.5 * reach).addScaledVector(up, 1.25 * reach);     // 40 degrees above
   view.camera.up.copy(up);
   view.camera.near = reach / 200;
   view.camera.far = reach * 20;
@@ -588,10 +590,12 @@ function debug() {
     total: view.header ? view.header.total : 0, training: view.training.length, mode: view.mode,
     explained: view.explained ? Object.keys(view.explained.values) : [], selected: view.selected,
     frusta: view.frusta.map((f) => ({ index: f.index, rank: f.rank, rgb: f.rgb, centre: f.centre.toArray() })),
-    centre: view.centre.toArray(),
+    centre: view.centre.toArray(), sortMs: view.sortMs,
   };
 }
 
 // The style sheet travels with the script (one tag in the page): a same-origin file, as the CSP asks.
 document.head.append(el("link", { rel: "stylesheet", href: new URL("view3d.css", import.meta.url).pathname }));
-window.phdView3d = { mount, showRanking, onPick, select, setMode, debug, drawNow: () => drawNow() };
+// drawNow: draw at once (tests read the canvas after it); with resort, sort the points again first.
+window.phdView3d = { mount, showRanking, onPick, select, setMode, debug,
+  drawNow: (resort = false) => { view.sortPending = view.sortPending || resort; drawNow(); } };
