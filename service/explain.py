@@ -53,6 +53,8 @@ POINT_BYTES = 12 + 4 + 4            # what one point costs in the binary
 DRAW_UNIT_BYTES = 40                # the draw: importance, uniforms and keys (float64) per splat, and the ids
 NO_VALUE = 255                      # an explained quantity's byte for "no value"
 FRAGILITY_QUANTILE = 0.99           # the fragility drawn as the top colour: one hot splat does not wash out the rest
+COVERAGE_FULL = 3.0                 # views' worth of unhidden sight drawn as the top colour: enough to place a splat
+                                    # (two views triangulate it), whatever the number of training views
 
 
 # ----------------------------------------------------------------------------- the points
@@ -115,7 +117,7 @@ def quantize(values: torch.Tensor, scale: float) -> bytes:
 def explanation_values(result: Explanation, ids: torch.Tensor) -> tuple[dict[str, float], dict[str, str]]:
     """The scales and base64 bytes of each quantity at the points `ids`."""
     fragile = result.fragility[~torch.isnan(result.fragility)]
-    quantities = {"coverage": (result.coverage, float(result.coverage.max()) if len(result.coverage) else 0.0),
+    quantities = {"coverage": (result.coverage, COVERAGE_FULL),
                   "fragility": (result.fragility, float(np.quantile(fragile.numpy(), FRAGILITY_QUANTILE))
                                 if len(fragile) else 0.0)}
     if result.novelty is not None:

@@ -354,7 +354,7 @@ class ExplainResult(_Response):
     count: int = Field(description="Splats the values are for: the scene's points at `cap`, in their order.")
     cap: int
     scales: dict[str, float] = Field(description="Per quantity, the value its byte 254 stands for (bytes 0-254 "
-                                     "are linear from 0; coverage: its largest value, fragility: its 99th "
+                                     "are linear from 0; coverage: 3 views' worth, fragility: its 99th "
                                      "percentile, novelty: 1).")
     values: dict[str, str] = Field(description="Per quantity (coverage, fragility, novelty with a pick), base64 "
                                    "of one byte per point; 255: no value (a splat no view shows).")

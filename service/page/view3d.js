@@ -36,7 +36,7 @@ const RAMPS = {
 };
 const MODES = {
   colour: { label: "colour", legend: null },
-  coverage: { label: "coverage", legend: ["no captured view saw it", "seen well by many views"] },
+  coverage: { label: "coverage", legend: ["no captured view saw it", "seen well"] },
   fragility: { label: "fragility", legend: ["stable under dropout", "fragile (zeta high)"] },
   novelty: { label: "seen by #1", legend: ["seen before (or not by #1)", "newly seen by #1"] },
 };
@@ -379,7 +379,7 @@ function fit() {
   let away = frames.length ? mean.multiplyScalar(1 / frames.length).sub(centre) : new THREE.Vector3(1, -1, 0);
   away.addScaledVector(up, -away.dot(up));                      // horizontal part
   if (away.lengthSq() < 1e-12) away = new THREE.Vector3(1, 0, 0).cross(up).lengthSq() > 1e-6 ? new THREE.Vector3(1, 0, 0).cross(up) : new THREE.Vector3(0, 1, 0);
-  away.normalize().multiplyScalar(1.5 * reach).addScaledVector(up, 1.25 * reach);     // 40 degrees above
+  away.normalize().multiplyScalar(1.2 * reach).addScaledVector(up, 1.0 * reach);      // 40 degrees above
   view.camera.up.copy(up);
   view.camera.near = reach / 200;
   view.camera.far = reach * 20;
@@ -480,7 +480,7 @@ function drawLegend() {
   const mode = MODES[view.mode];
   if (mode.legend && view.explained && view.explained.values[view.mode]) {
     const scale = view.explained.result.scales[view.mode];
-    const unit = { coverage: " views", fragility: " zeta", novelty: " of the splat" }[view.mode];
+    const unit = { coverage: "+ views", fragility: " zeta", novelty: " of the splat" }[view.mode];
     parts.push(el("span", { class: "v3d-key" }, el("span", { text: `${mode.legend[0]} (0) ` }),
       el("span", { class: "v3d-ramp " + view.mode }), el("span", { text: ` ${mode.legend[1]} (${Number(scale).toPrecision(3)}${unit})` })));
     if (view.mode !== "coverage") parts.push(el("span", { class: "v3d-key" }, el("span", { class: "v3d-swatch unseen" }), el("span", { text: " no view shows it" })));
@@ -566,6 +566,7 @@ async function mount(element, { modelId, headers = {} }) {
 }
 
 function showRanking(result, { candidates = null } = {}) {
+  if (!view.renderer) throw new ViewError("mount the view on a model first");
   view.ranking = result;
   view.allCandidates = candidates;
   view.selected = null;

@@ -74,7 +74,7 @@ def test_explain_sends_phd_cores_values_for_the_scenes_points(svc_start, svc_mod
     direct = explain(renderer, train, ratio=0.2, samples=3, seed=1, pick=pick)
     ids = point_subset(importance(renderer.model), 150)
     assert (result["total"], result["count"], result["num_views"], result["ratio_source"]) == (300, 150, 3, "request")
-    assert result["scales"]["coverage"] == pytest.approx(float(direct.coverage.max()))
+    assert result["scales"]["coverage"] == 3.0             # three views' worth of sight: the top colour
     assert result["scales"]["novelty"] == 1.0
     fragile = direct.fragility[~torch.isnan(direct.fragility)]
     assert result["scales"]["fragility"] == pytest.approx(float(np.quantile(fragile.numpy(), 0.99)))
@@ -108,3 +108,15 @@ def test_explain_sends_phd_cores_values_for_the_scenes_points(svc_start, svc_mod
     assert bad_pick.status_code == 422 and bad_pick.json()["error"]["field"].startswith("pick")
     not_splats = httpx.get(f"{server.url}/v1/models/{nerf.id}/scene", headers=AUTH)
     assert not_splats.status_code == 422 and not_splats.json()["error"]["field"] == "model"
+
+
+def test_explain_is_planned_within_the_memory_budget(svc_start, svc_model_files):
+    """An explanation too large for the budget is a 413 naming the field to lower, before it runs."""
+    server = svc_start(memory_budget_bytes=24 << 20)
+    with PHDClient(server.url) as phd:
+        info = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(3))
+    body = {"samples": 3, "dropout_ratio": 0.2}
+    fits = httpx.post(f"{server.url}/v1/models/{info.id}/explain", json=body, timeout=60)
+    assert fits.status_code == 200, fits.text
+    big = httpx.post(f"{server.url}/v1/models/{info.id}/explain", json={**body, "width": 800, "height": 800})
+    assert big.status_code == 413 and big.json()["error"]["field"] == "downscale"
