@@ -571,7 +571,7 @@ function showRanking(result, { candidates = null } = {}) {
   view.allCandidates = candidates;
   view.selected = null;
   view.detail.hidden = true;
-  if (view.explained && view.explained.key !== JSON.stringify(pickFrame()) && view.mode === "novelty") setMode("novelty");
+  if (view.mode !== "colour") setMode(view.mode);        // a new first pick: explained again (novelty)
   if (!view.touched) fit();
   drawTraining();                           // frustum sizes follow the scene's reach
   drawCandidates();

@@ -189,6 +189,10 @@ def test_clicking_a_frustum_picks_it_and_shows_its_render_and_heat_map(browser, 
 def test_colour_modes_show_coverage_fragility_and_what_the_first_pick_sees(browser, ranked, tmp_path):
     server, model, ranking, candidates = ranked
     state = _open(browser, server, model)
+    _call(browser, "phdView3d.setMode('novelty')")          # before a ranking: said where the toggle is
+    status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status")
+    assert "rank first" in status.text and "error" in status.get_attribute("class")
+    _call(browser, "phdView3d.setMode('colour')")
     _call(browser, "phdView3d.showRanking(arguments[0], {candidates: arguments[1]})", ranking, candidates)
     x, y, _ = _project(state, state["centre"])
     area = (slice(int(y) - 30, int(y) + 31), slice(int(x) - 30, int(x) + 31))

@@ -91,11 +91,12 @@ def test_explain_sends_phd_cores_values_for_the_scenes_points(svc_start, svc_mod
         assert np.abs(got[known].astype(int) - expected).max() <= 1      # float32 vs float64 at a rounding edge
         assert len(np.unique(got[known])) > 5                              # the values vary over the model
 
-    # As a job: progress ends at 1 and the job's result is the same.
-    job = httpx.post(url, json={**body, "async": True}, headers=AUTH).json()
+    # As a job through the client: progress ends at 1 and the job's result is the same.
     with PHDClient(server.url, api_key=KEY) as phd:
-        finished = phd.wait_job(job["id"])
-        done = phd.get_job(job["id"])
+        job = phd.explain(info.id, pick=pick, samples=3, seed=1, dropout_ratio=0.2, cap=150, run_async=True,
+                          wait=False)
+        finished = phd.wait_job(job.id)
+        done = phd.get_job(job.id)
     assert done.kind == "explain" and done.progress == 1.0
     assert finished.model_dump(mode="json")["values"] == result["values"]
 
