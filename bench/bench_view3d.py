@@ -70,8 +70,9 @@ def screenshots(server: BackgroundServer, model: Path, out: Path, candidates: in
         call(driver, "phdView3d.select(arguments[0])", first)
         driver.execute_script("document.getElementById('view3d').scrollIntoView()")
         driver.find_element(By.ID, "view3d").screenshot(str(out / "view3d_rank.png"))
-        call(driver, "phdView3d.setMode('coverage')")
-        driver.find_element(By.ID, "view3d").screenshot(str(out / "view3d_coverage.png"))
+        for mode in ("coverage", "novelty"):
+            call(driver, f"phdView3d.setMode('{mode}')")
+            driver.find_element(By.ID, "view3d").screenshot(str(out / f"view3d_{mode}.png"))
         print(json.dumps({"model": str(model), "splats": info.num_units, "candidates": candidates, "top_k": top_k,
                           "first": first, "status": driver.find_element(By.CSS_SELECTOR, ".v3d-status").text}))
     finally:

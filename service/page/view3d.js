@@ -73,9 +73,9 @@ void main() {
   if (mode < 0.5) {
     vColour = rgba;
   } else if (value > 0.999) {  // byte 255: no view shows this splat
-    vColour = vec4(0.45, 0.47, 0.5, max(rgba.a, 0.35));
-  } else {
-    vColour = vec4(onRamp(value * 255.0 / 254.0), max(rgba.a, 0.35));
+    vColour = vec4(0.45, 0.47, 0.5, max(rgba.a, 0.15));
+  } else {                     // faint splats stay faint, but not invisible
+    vColour = vec4(onRamp(value * 255.0 / 254.0), max(rgba.a, 0.15));
   }
 }`;
 
@@ -154,7 +154,14 @@ function build(element) {
   element.append(el("div", { class: "v3d-bar" }, modes, progress), canvasBox, status, legend, detail);
   Object.assign(view, { root: element, stage: canvasBox, labels, status, legend, detail, progress, modes });
 
-  const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+  let renderer;
+  try {
+    renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+  } catch (err) {
+    say("this browser cannot draw the 3D view (no WebGL): " + err.message, true);
+    view.root = null;                    // built again on the next mount
+    throw new ViewError("no WebGL");
+  }
   renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
   renderer.setClearColor(BACKGROUND, 1);
   canvasBox.prepend(renderer.domElement);
@@ -359,32 +366,42 @@ function drawNow() {
   placeLabels();
 }
 
-// Look at the scene's centre from 40 degrees above the mean training camera's side, far enough
-// to see every camera drawn.
+// Look at the scene's centre from 40 degrees above the mean training camera's side, from the
+// nearest distance at which every camera drawn and the splats' box are in the picture.
 function fit() {
   const up = new THREE.Vector3(...(view.header ? view.header.up : [0, 0, 1])).normalize();
-  const frames = view.training.concat(view.ranking ? view.ranking.views.map((v) => v.camera) : []);
+  const frames = view.training.concat(view.ranking ? view.ranking.views.map((v) => v.camera) : [])
+    .concat(view.allCandidates || []);
   const b = view.header ? view.header.bounds : { min: [-1, -1, -1], max: [1, 1, 1] };
   const centre = new THREE.Vector3(...b.min).add(new THREE.Vector3(...b.max)).multiplyScalar(0.5);
-  const size = new THREE.Vector3(...b.max).sub(new THREE.Vector3(...b.min)).length() / 2 || 1;
-  let reach = size;
+  const shown = [0, 1, 2, 3, 4, 5, 6, 7].map((k) => new THREE.Vector3(k & 1 ? b.max[0] : b.min[0],
+    k & 2 ? b.max[1] : b.min[1], k & 4 ? b.max[2] : b.min[2]));
   const mean = new THREE.Vector3();
   for (const frame of frames) {
     const p = new THREE.Vector3().setFromMatrixPosition(frameCamera(frame).c2w);
-    reach = Math.max(reach, p.distanceTo(centre));
+    shown.push(p);
     mean.add(p);
   }
+  const reach = Math.max(...shown.map((p) => p.distanceTo(centre)), 1e-6);
   view.radius = reach;
   view.centre.copy(centre);
   let away = frames.length ? mean.multiplyScalar(1 / frames.length).sub(centre) : new THREE.Vector3(1, -1, 0);
   away.addScaledVector(up, -away.dot(up));                      // horizontal part
-  if (away.lengthSq() < 1e-12) away = new THREE.Vector3(1, 0, 0).cross(up).lengthSq() > 1e-6 ? new THREE.Vector3(1, 0, 0).cross(up) : new THREE.Vector3(0, 1, 0);
-  away.normalize().multiplyScalar(1.2 * reach).addScaledVector(up, 1.0 * reach);      // 40 degrees above
+  if (away.lengthSq() < 1e-12) away = new THREE.Vector3(1, 0, 0).cross(up);
+  if (away.lengthSq() < 1e-12) away = new THREE.Vector3(0, 1, 0).cross(up);
+  const direction = away.normalize().multiplyScalar(Math.cos(0.7)).addScaledVector(up, Math.sin(0.7));   // 40 degrees
   view.camera.up.copy(up);
   view.camera.near = reach / 200;
   view.camera.far = reach * 20;
-  view.camera.position.copy(centre).add(away);
   view.controls.target.copy(centre);
+  for (let distance = 0.8 * reach, k = 0; k < 40; k++, distance *= 1.08) {
+    view.camera.position.copy(centre).addScaledVector(direction, distance);
+    view.camera.lookAt(centre);
+    view.camera.updateMatrixWorld();
+    const fits = shown.every((p) => { const q = p.clone().project(view.camera); return q.z < 1 && Math.abs(q.x) < 0.9 && Math.abs(q.y) < 0.8; });
+    if (fits) break;
+  }
+  view.camera.far = view.camera.position.distanceTo(centre) + 4 * reach;
   view.camera.updateProjectionMatrix();
   view.controls.update();
   view.sortPending = true;
