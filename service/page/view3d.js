@@ -443,6 +443,7 @@ function pickFrame() {
 
 // The explain job for this model (and the ranking's first pick): run once per pick, as a job.
 async function explainModel() {
+  if (!view.header) throw new ViewError("this model has no splats to colour");
   const pick = pickFrame();
   if (view.mode === "novelty" && !pick) throw new ViewError("rank first: the first pick is what 'seen by #1' shows");
   const key = JSON.stringify(pick);
@@ -497,9 +498,9 @@ function drawLegend() {
   const mode = MODES[view.mode];
   if (mode.legend && view.explained && view.explained.values[view.mode]) {
     const scale = view.explained.result.scales[view.mode];
-    const unit = { coverage: "+ views", fragility: " zeta", novelty: " of the splat" }[view.mode];
+    const top = { coverage: `${scale}+ views`, fragility: `zeta ${Number(scale).toPrecision(3)}`, novelty: "all of it" }[view.mode];
     parts.push(el("span", { class: "v3d-key" }, el("span", { text: `${mode.legend[0]} (0) ` }),
-      el("span", { class: "v3d-ramp " + view.mode }), el("span", { text: ` ${mode.legend[1]} (${Number(scale).toPrecision(3)}${unit})` })));
+      el("span", { class: "v3d-ramp " + view.mode }), el("span", { text: ` ${mode.legend[1]} (${top})` })));
     if (view.mode !== "coverage") parts.push(el("span", { class: "v3d-key" }, el("span", { class: "v3d-swatch unseen" }), el("span", { text: " no view shows it" })));
   }
   view.legend.replaceChildren(...parts);
