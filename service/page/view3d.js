@@ -99,15 +99,25 @@ const el = (tag, attrs = {}, ...children) => {
   return node;
 };
 
-class ViewError extends Error {}
+class ViewError extends Error {
+  constructor(message, code = null) { super(message); this.code = code; }
+}
+
+// What the service's error codes mean to someone looking at the view (the rest: the server's message).
+const PLAIN = {
+  not_calibrated: "calibrate the model first: fragility is measured at its dropout ratio",
+  unauthorized: "the server needs the API key",
+  busy: "the server is busy: try again in a moment",
+  queue_full: "the server is busy: try again in a moment",
+};
 
 async function request(path, options = {}) {
   const response = await fetch(path, { method: options.method || "GET", headers: Object.assign({}, view.headers,
     options.json ? { "Content-Type": "application/json" } : {}), body: options.json ? JSON.stringify(options.json) : undefined });
   if (!response.ok) {
-    let text = `the server answered ${response.status}`;
-    try { text = (await response.json()).error.message; } catch (_) { /* not our error shape */ }
-    throw new ViewError(text);
+    let text = `the server answered ${response.status}`, code = null;
+    try { ({ message: text, code } = (await response.json()).error); } catch (_) { /* not our error shape */ }
+    throw new ViewError(PLAIN[code] || text, code);
   }
   return response;
 }
@@ -465,7 +475,7 @@ async function explainModel() {
           const job = await (await request("/v1/jobs/" + first.id)).json();
           view.progress.value = job.progress;
           if (job.state === "succeeded") { result = job.result; break; }
-          if (job.state === "failed") throw new ViewError(job.error.message);
+          if (job.state === "failed") throw new ViewError(PLAIN[job.error.code] || job.error.message, job.error.code);
           if (job.state === "cancelled") throw new ViewError("the explanation was cancelled");
           await new Promise((resolve) => setTimeout(resolve, Math.min(250, 40 + 20 * polls)));
         }
