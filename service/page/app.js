@@ -9,6 +9,7 @@ const state = {
   key: localStorage.getItem("phd-api-key") || "",
   models: [],
   modelId: null,       // the model the page last set itself up for (downscale, 3D view)
+  viewReady: false,    // the 3D view has drawn that model
   training: [],        // frames of the chosen model's training cameras
   candidates: [],      // the user's own frames (file mode), sent as the rank request's cameras
   candidatesSized: true, // false: the file's frames lack w/h, taken from the width/height fields
@@ -327,8 +328,12 @@ async function modelChosen() {
     const scale = String(defaultDownscale(state.training));
     $("cal-downscale").value = scale;
     $("rank-downscale").value = scale;
-    if (view3d() && model) view3d().mount($("view3d"), { modelId: model.id, headers: authHeaders() });
     await updateCandidates();
+    state.viewReady = false;
+    if (view3d() && model) {
+      await view3d().mount($("view3d"), { modelId: model.id, headers: authHeaders() });
+      state.viewReady = state.modelId === model.id;     // another model may have been chosen meanwhile
+    }
   } else {
     drawPlots();
   }

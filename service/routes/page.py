@@ -1,7 +1,8 @@
 """The web page and the API's own documentation, all served from files on this machine.
 
-The page is one HTML file, one script and one style sheet from service/page/ (plus what
-`PAGE_FILES` lists there). It is a client of the REST API like any other (it sends the API
+The page is one HTML file, its scripts, style sheets and icon from service/page/, and the 3D
+view's vendored three.js from service/page/vendor/ (`PAGE_FILES`: the page loads nothing from
+another host). It is a client of the REST API like any other (it sends the API
 key the user types on every call), so these routes need no key: they serve static files only.
 No inline scripts or styles, so a Content-Security-Policy of `script-src 'self'; style-src
 'self'` holds.
@@ -57,7 +58,8 @@ async def asset(name: str) -> FileResponse:
     if name not in PAGE_FILES:
         raise ServiceError(404, "not_found", f"the page has no file '{name}'", "name")
     path = PAGE_FILES[name]
-    return FileResponse(path, media_type=TYPES[path.suffix], headers={"Cache-Control": "no-cache"})
+    cache = "public, max-age=86400" if name.startswith("vendor/") else "no-cache"   # vendored files never change
+    return FileResponse(path, media_type=TYPES[path.suffix], headers={"Cache-Control": cache})
 
 
 @router.get("/favicon.ico")

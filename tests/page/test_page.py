@@ -363,13 +363,16 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
     _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
     assert browser.find_element(By.ID, "upload-details").get_attribute("open") is not None   # opened for a newcomer
-    assert browser.find_element(By.ID, "view3d-section").get_attribute("hidden") is not None  # no 3D view script here
 
     _choose_files(browser, "upload-file", svc_trained, sidecar)          # picked together, as trained
     assert d_text(browser, "upload-picked").startswith("2 files")
     browser.find_element(By.ID, "upload-run").click()
     _wait(browser, lambda d: "4 training cameras (blender)" in d_text(d, "model-info"), what="the uploaded model")
     assert "Uploaded model.ply: 3dgs, 4 training cameras (blender)" in d_text(browser, "upload-message")
+    # The 3D view (view3d.js) is mounted on the uploaded model by the page: its splats and 4 cameras.
+    _wait(browser, lambda d: d.execute_script("return state.viewReady"), what="the 3D view")
+    drawn = browser.execute_script("return phdView3d.debug()")
+    assert drawn["training"] == 4 and drawn["total"] == json.loads(sidecar.read_text())["num_splats"]
     # The model's images are 25 px (lego_200 at downscale 8): the page starts at downscale 1, the largest
     # render up to 100 px (for 200 px images it would be 2).
     assert [browser.find_element(By.ID, f).get_attribute("value") for f in ("cal-downscale", "rank-downscale")] == \
@@ -431,6 +434,12 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
     assert [c.find_element(By.CSS_SELECTOR, ".title").text for c in cards] == \
         [f"candidate {v.index} · rank #{v.rank + 1}" for v in expected.views]
+    # The ranking reached the 3D view: one frustum per returned pose, with its rank; a rank card's
+    # click selects its frustum, and a frustum's pick marks its card.
+    frusta = browser.execute_script("return phdView3d.debug().frusta")
+    assert sorted((f["index"], f["rank"]) for f in frusta) == sorted((v.index, v.rank) for v in expected.views)
+    cards[1].click()
+    assert browser.execute_script("return phdView3d.debug().selected") == expected.views[1].index
 
     # Download poses: the model's own convention (its capture was a Blender scene), the first 3.
     assert Select(browser.find_element(By.ID, "poses-format")).first_selected_option.get_attribute("value") == \

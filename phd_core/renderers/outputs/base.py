@@ -32,6 +32,14 @@ class TrainerOutput:
     camera_format: str | None = None       # the pose convention of the user's capture (phd_core.data.POSES)
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    capture: Path | None = None            # the capture the run read, as `phd_core.data.load_dataset` opens it
+    # The run's own split: "train" and "test" frames as indices into the capture's "all" split
+    # ({}: the capture's own splits are the run's).
+    splits: dict[str, list[int]] = field(default_factory=dict)
+
+    def renderer(self) -> GaussianRenderer:
+        """The splats with their training cameras and background."""
+        return GaussianRenderer(self.model, self.background, self.cameras or None, camera_format=self.camera_format)
 
 
 @dataclass(frozen=True)
@@ -72,9 +80,7 @@ def read_output(path: str | Path) -> TrainerOutput:
 
 def load_output(path: str | Path) -> GaussianRenderer:
     """A trainer's output folder as a renderer with its training cameras and background."""
-    output = read_output(path)
-    return GaussianRenderer(output.model, output.background, output.cameras or None,
-                            camera_format=output.camera_format)
+    return read_output(path).renderer()
 
 
 def empty_views(model: GaussianModel, cameras: list[Camera]) -> list[int]:

@@ -82,7 +82,8 @@ def read(folder: Path) -> TrainerOutput:
     test_every = config.get("test_every", 8)
     if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
         raise InputError("cfg.yml.test_every", f"must be a positive integer, got {test_every!r}")
-    training = [c for i, c in enumerate(cameras) if i % test_every] or cameras
+    trained = [i for i in range(len(cameras)) if i % test_every] or list(range(len(cameras)))
+    training = [cameras[i] for i in trained]
     if config.get("normalize_world_space", True) is False:
         candidates = {"none (normalize_world_space is off)": IDENTITY}
     else:
@@ -96,8 +97,9 @@ def read(folder: Path) -> TrainerOutput:
         warnings.append(f"no normalisation of gsplat's fits this checkpoint to {capture}: the SfM points lie "
                         f"{residual:.3g} camera distances from the nearest splat (wrong capture, or another trainer "
                         "version)")
+    splits = {"train": trained, "test": sorted(set(range(len(cameras))) - set(trained))}
     return TrainerOutput(model.transformed(frame.inverse()), training, background, source, frame=frame,
-                         notes=notes, warnings=warnings, camera_format="colmap")
+                         notes=notes, warnings=warnings, camera_format="colmap", capture=capture, splits=splits)
 
 
 def checkpoint_model(path: Path) -> GaussianModel:

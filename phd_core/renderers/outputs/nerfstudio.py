@@ -71,14 +71,14 @@ def read(folder: Path) -> TrainerOutput:
     model_config = _section(config, "pipeline", "model")
     stored = read_frame(folder / FRAME_FILE)                      # nerfstudio's original data frame -> model frame
     model, source = read_splats(folder, model_config.get("sh_degree", 3))
-    cameras, frame, notes = training_cameras(folder, config, stored)
+    cameras, frame, notes, capture, splits = training_cameras(folder, config, stored)
     background = model_config.get("background_color", "random")
     if background not in BACKGROUNDS:
         raise InputError("config.yml.background_color", f"must be one of {', '.join(BACKGROUNDS)}, got {background!r}")
     notes.insert(0, f"nerfstudio {method}: splats from {source.relative_to(folder)}, moved from the dataparser's "
                     f"frame (the user's scaled by {frame.scale:.6g}, turned and centred) into the user's")
     return TrainerOutput(model.transformed(frame.inverse()), cameras, BACKGROUNDS[background], source,
-                         frame=frame, notes=notes, camera_format="nerfstudio")
+                         frame=frame, notes=notes, camera_format="nerfstudio", capture=capture, splits=splits)
 
 
 def read_frame(path: Path) -> Similarity:
@@ -146,15 +146,17 @@ def checkpoint_model(path: Path, sh_degree: Any) -> GaussianModel:
 
 # ----------------------------------------------------------------------------- cameras and frame
 
-def training_cameras(folder: Path, config: dict, stored: Similarity) -> tuple[list[Camera], Similarity, list[str]]:
-    """(training cameras in transforms.json's frame, user frame -> model frame, notes)."""
+def training_cameras(folder: Path, config: dict, stored: Similarity
+                     ) -> tuple[list[Camera], Similarity, list[str], Path | None, dict[str, list[int]]]:
+    """(training cameras in transforms.json's frame, user frame -> model frame, notes,
+    transforms.json when found, the run's train/test frames as indices into it)."""
     parser = _section(config, "pipeline", "datamanager", "dataparser")
     data = yaml_path(parser.get("data")) or yaml_path(config.get("data"))
     json_path = _find_transforms(folder, data)
     if json_path is None:
         return [], stored, [f"no transforms.json found for config.yml's data path {data} (looked from the working "
                             f"directory and every folder above {folder}): the model has no training cameras, and "
-                            f"poses are in the frame {FRAME_FILE} maps from"]
+                            f"poses are in the frame {FRAME_FILE} maps from"], None, {}
     frames, meta = read_transforms(json_path)
     applied = meta.get("applied_transform")
     if applied is None and (json_path.parent / "colmap" / "sparse" / "0").is_dir():
@@ -168,7 +170,9 @@ def training_cameras(folder: Path, config: dict, stored: Similarity) -> tuple[li
     frame = frame.then(Similarity.make(1.0 / applied_scale, torch.eye(3), torch.zeros(3)))
     views = train_frames(frames, meta, parser)
     cameras = load_nerfstudio(json_path, views=views, with_images=False).cameras
-    return cameras, frame, [f"training cameras: {len(cameras)} of the {len(frames)} frames of {json_path}"]
+    held_out = sorted(set(range(len(frames))) - set(views))
+    return (cameras, frame, [f"training cameras: {len(cameras)} of the {len(frames)} frames of {json_path}"],
+            json_path, {"train": views, "test": held_out})
 
 
 def train_frames(frames: list, meta: dict, parser: dict) -> list[int]:
