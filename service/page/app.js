@@ -304,6 +304,7 @@ async function modelChosen() {
   const model = currentModel();
   const changed = (model ? model.id : null) !== state.modelId;
   state.modelId = model ? model.id : null;
+  if (changed) state.viewReady = false;       // until the 3D view has drawn this model
   state.training = [];
   $("model-warning").hidden = true;
   if (!model) {
@@ -329,7 +330,6 @@ async function modelChosen() {
     $("cal-downscale").value = scale;
     $("rank-downscale").value = scale;
     await updateCandidates();
-    state.viewReady = false;
     if (view3d() && model) {
       await view3d().mount($("view3d"), { modelId: model.id, headers: authHeaders() });
       state.viewReady = state.modelId === model.id;     // another model may have been chosen meanwhile
@@ -684,7 +684,8 @@ async function rank(event) {
     `${r.samples} samples, rendered at ${r.width} x ${r.height} px; ` +
     `heat maps share one scale: yellow = zeta ${fmt(r.heatmap_vmax)}, dark blue = 0`;
   drawPlots();
-  if (view3d()) view3d().showRanking(r);
+  const all = body.cameras && body.cameras.every((f) => f.transform_matrix) ? { candidates: body.cameras } : {};
+  if (view3d()) view3d().showRanking(r, all);        // with the user's own list: the unreturned ones too
   showDownload(r, model);
   await drawRankGrid(r);
   say("rank-message", "Ranked: capture candidate " + r.views[0].index + " first.");

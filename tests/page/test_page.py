@@ -367,8 +367,9 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     _choose_files(browser, "upload-file", svc_trained, sidecar)          # picked together, as trained
     assert d_text(browser, "upload-picked").startswith("2 files")
     browser.find_element(By.ID, "upload-run").click()
-    _wait(browser, lambda d: "4 training cameras (blender)" in d_text(d, "model-info"), what="the uploaded model")
-    assert "Uploaded model.ply: 3dgs, 4 training cameras (blender)" in d_text(browser, "upload-message")
+    _wait(browser, lambda d: "Uploaded model.ply: 3dgs, 4 training cameras (blender)" in d_text(d, "upload-message"),
+          what="the uploaded model")
+    assert "4 training cameras (blender)" in d_text(browser, "model-info")
     # The 3D view (view3d.js) is mounted on the uploaded model by the page: its splats and 4 cameras.
     _wait(browser, lambda d: d.execute_script("return state.viewReady"), what="the 3D view")
     drawn = browser.execute_script("return phdView3d.debug()")
