@@ -272,6 +272,8 @@ def test_page_fits_a_phone_and_names_a_wrong_key(browser, models, tmp_path):
         said = d_text(browser, "message")                             # in words: no status, code or header
         assert "401" not in said and "unauthorized" not in said and "Authorization" not in said
         _open(browser, server)
+        browser.execute_script("document.getElementById('upload-details').open = true; "
+                               "document.getElementById('poses-row').hidden = false")   # every control shown
         width = browser.execute_script("return [document.documentElement.scrollWidth, window.innerWidth]")
         assert width[0] <= width[1], f"the page scrolls sideways at a phone's width: {width}"
         browser.save_screenshot(str(tmp_path / "page_phone.png"))
