@@ -14,7 +14,7 @@ from .base import OUTPUTS, OutputFormat, TrainerOutput
 def read(folder: Path) -> TrainerOutput:
     found = read_output_folder(folder)
     return TrainerOutput(read_ply(found.ply), found.cameras, found.background, found.ply, ply=found.ply,
-                         camera_format="3dgs-output")
+                         camera_format="3dgs-output", name=f"{folder.resolve().name}/3dgs")
 
 
 OUTPUTS.register(OutputFormat("3dgs-output", "a reference 3DGS output folder (cameras.json + point_cloud/iteration_*)",
