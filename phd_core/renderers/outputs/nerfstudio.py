@@ -78,7 +78,16 @@ def read(folder: Path) -> TrainerOutput:
     notes.insert(0, f"nerfstudio {method}: splats from {source.relative_to(folder)}, moved from the dataparser's "
                     f"frame (the user's scaled by {frame.scale:.6g}, turned and centred) into the user's")
     return TrainerOutput(model.transformed(frame.inverse()), cameras, BACKGROUNDS[background], source,
-                         frame=frame, notes=notes, camera_format="nerfstudio")
+                         frame=frame, notes=notes, camera_format="nerfstudio", name=run_name(folder, config, method))
+
+
+def run_name(folder: Path, config: dict, method: str) -> str:
+    """"<experiment>/<method>" from config.yml (the folder is only the run's timestamp); without an
+    experiment_name, the folder two levels up (outputs/<experiment>/<method>/<timestamp>)."""
+    experiment = config.get("experiment_name")
+    if not isinstance(experiment, str) or not experiment:
+        experiment = folder.resolve().parent.parent.name
+    return f"{experiment}/{method}"
 
 
 def read_frame(path: Path) -> Similarity:
