@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import warnings
 from pathlib import Path
 
@@ -17,14 +18,17 @@ import torch
 
 from phd_core.data import load_colmap
 from phd_core.errors import InputError, ModelNote, ModelWarning
-from phd_core.renderers import load_model
-from phd_core.renderers.gs3d import GaussianRenderer
+from phd_core.renderers import load_model, load_model_bytes
+from phd_core.renderers.gs3d import GaussianRenderer, write_ply
 from phd_core.renderers.outputs import gsplat, read_output
 from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.renderers.splats import eval_sh, sh_rotation
+from phd_core.renderers.splats.ply import SIDECAR_FORMAT
+from phd_core.renderers.splats.renderer import NO_CAMERAS_NOTE
 from phd_core.scene import Camera
 from phd_core.scene.rotations import quaternion_to_rotation
 from support.trainers import (
+    APPLIED_TRANSFORM,
     cup_gsplat_run,
     dataparser_transform,
     gsplat_normalisation,
@@ -296,3 +300,53 @@ def test_splatfacto_frame_from_nerfstudios_own_orientation_of_the_cup(tmp_path) 
         output = read_output(folder)
     assert np.allclose(output.frame.matrix.numpy(), to_model, atol=1e-6)
     assert output.name == "cup/splatfacto"
+    # Moved away from its data, the run is read in the COLMAP model's frame, and says so.
+    shutil.rmtree(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        output = read_output(folder)
+    assert output.camera_format == "colmap" and "ns-process-data's applied_transform" in output.notes[1]
+    assert np.allclose(output.frame.matrix.numpy(), to_model @ applied, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- models whose frame is not the user's
+
+def test_a_bare_nerfstudio_export_says_its_frame_is_nerfstudios_and_names_the_run_folder(splatfacto, tmp_path) -> None:
+    export = splatfacto["folder"] / "exports" / "splat" / "splat.ply"
+    renderer, _, warned = loaded(export)
+    assert renderer.training_cameras is None
+    assert any("nerfstudio's exporter" in w and "outputs/<experiment>/splatfacto/<timestamp>/" in w for w in warned)
+    assert NO_CAMERAS_NOTE in warned
+    # The notes are the model's facts (the CLI's rank answers and the service's model details show them).
+    assert renderer.describe()["notes"] == warned
+    # The service parses uploads from bytes, cameras apart: the header's note comes with the model.
+    uploaded = load_model_bytes(export.read_bytes(), "splat.ply")
+    assert [n for n in uploaded.describe()["notes"] if "nerfstudio's exporter" in n] == warned[:1]
+
+
+def test_a_ply_without_cameras_is_noted_and_one_with_its_sidecar_is_not(tmp_path) -> None:
+    write_ply(scene_splats(20), tmp_path / "bare.ply")
+    renderer, _, warned = loaded(tmp_path / "bare.ply")
+    assert warned == [NO_CAMERAS_NOTE] and renderer.describe()["notes"] == [NO_CAMERAS_NOTE]
+    write_ply(scene_splats(20), tmp_path / "trained.ply")
+    (tmp_path / "trained.json").write_text(json.dumps({"format": SIDECAR_FORMAT, "training_cameras":
+                                                       [c.to_frame() for c in scene_cameras(2)]}))
+    renderer, _, warned = loaded(tmp_path / "trained.ply")
+    assert not warned and renderer.describe()["notes"] == []
+
+
+@pytest.mark.parametrize("applied,expected", [(True, "colmap"), (False, "nerfstudio")])
+def test_a_splatfacto_run_without_its_data_says_which_frame_its_poses_are_in(tmp_path, applied, expected) -> None:
+    scene = splatfacto_scene(tmp_path, applied=applied)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with_data = read_output(scene["folder"])
+        shutil.rmtree(tmp_path / "data")
+        without = read_output(scene["folder"])
+    assert with_data.camera_format == "nerfstudio" and without.camera_format == expected
+    assert not without.cameras and "no transforms.json found" in without.notes[1]
+    assert ("COLMAP model's" in without.notes[1]) == applied
+    # Without the data the frame is the one dataparser_transforms.json maps from: COLMAP's world
+    # (transforms.json's turned back by its applied_transform) or transforms.json's own.
+    applied_matrix = APPLIED_TRANSFORM if applied else np.eye(4)
+    assert np.allclose(without.frame.matrix.numpy(), with_data.frame.matrix.numpy() @ applied_matrix, atol=1e-9)

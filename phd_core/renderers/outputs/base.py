@@ -77,7 +77,7 @@ def load_output(path: str | Path) -> GaussianRenderer:
     """A trainer's output folder as a renderer with its training cameras and background."""
     output = read_output(path)
     return GaussianRenderer(output.model, output.background, output.cameras or None,
-                            camera_format=output.camera_format)
+                            camera_format=output.camera_format, notes=output.notes + output.warnings)
 
 
 def empty_views(model: GaussianModel, cameras: list[Camera]) -> list[int]:
