@@ -1,8 +1,11 @@
 """Trainers' output folders as they are: nerfstudio splatfacto (exported splat.ply or the
 checkpoint) and gsplat (checkpoint with its COLMAP capture), written the way those trainers
-write them (tests/support/trainers.py) from a scene in the user's frame. Loaded, a model
-renders each training view as the scene rendered directly does, with the training cameras
-in the user's frame; frames round-trip; what needs code or does not fit is refused or warned."""
+write them (tests/support/trainers.py) from a scene in the user's frame, on synthetic scenes
+and on the real cup capture (every gsplat sign pattern; the trainers' own normalisations,
+tests/support/frames_from_trainers.json). Loaded, a model renders each training view as the
+scene rendered directly does, with the training cameras in the user's frame; frames
+round-trip; what needs code or does not fit is refused or warned; a model whose frame is not
+the user's (a bare nerfstudio export, no cameras, a run without its data) says so."""
 
 from __future__ import annotations
 
@@ -244,6 +247,17 @@ def test_gsplat_frames_too_close_to_tell_are_decided_by_renders_against_the_phot
     assert_cup_run_recovered(scene, notes, warned, renderer)
     assert "judged by PSNR against the photos" in notes[0]
     assert notes[0].split("judged by PSNR against the photos: ")[1].count(" dB in ") == len(gsplat.SIGN_PATTERNS) + 1
+
+
+def test_gsplat_frames_judged_without_the_photos_are_warned_about(tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(gsplat, "RESIDUAL_MARGIN", 1e9)
+    scene = cup_gsplat_run(tmp_path, CUP)
+    shutil.copytree(CUP / "sparse", tmp_path / "cup" / "sparse")           # the capture without its images
+    config = scene["folder"] / "cfg.yml"
+    config.write_text(config.read_text().replace(f"data_dir: {CUP}", f"data_dir: {tmp_path / 'cup'}"))
+    _, notes, warned = loaded(scene["folder"])
+    assert "judged by alpha coverage" in notes[0]
+    assert any("chosen by how much of 2 views its splats cover" in w for w in warned), warned
 
 
 def test_gsplat_run_read_against_the_wrong_capture_is_warned_about(tmp_path) -> None:

@@ -118,6 +118,10 @@ def read(folder: Path) -> TrainerOutput:
                         f"{choice.residual:.3g} camera distances from the nearest splat"
                         + (f", {choice.residual / spacing:.1f} times their own spacing" if spacing else "")
                         + " (wrong capture, or another trainer version)")
+    if choice.renders is not None and choice.judged_by == "alpha coverage":
+        warnings.append(f"the frame of this gsplat checkpoint was chosen by how much of {RENDERED_VIEWS} views its "
+                        f"splats cover ({capture}'s photos could not be read), which tells frames apart poorly (a "
+                        "cluttered scene covers a view in a wrong frame too): render a training view to check")
     return TrainerOutput(model.transformed(choice.frame.inverse()), training, background, source, frame=choice.frame,
                          notes=notes, warnings=warnings, camera_format="colmap", name=f"{folder.resolve().name}/gsplat")
 
