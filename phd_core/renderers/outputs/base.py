@@ -34,6 +34,15 @@ class TrainerOutput:
                                            # falls back to the folder's name)
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    capture: Path | None = None            # the capture the run read, as `phd_core.data.load_dataset` opens it
+    # The run's own split: "train" and "test" frames as indices into the capture's "all" split
+    # ({}: the capture's own splits are the run's).
+    splits: dict[str, list[int]] = field(default_factory=dict)
+
+    def renderer(self) -> GaussianRenderer:
+        """The splats with their training cameras, background and what loading noted (its facts' notes)."""
+        return GaussianRenderer(self.model, self.background, self.cameras or None, camera_format=self.camera_format,
+                                notes=self.notes + self.warnings)
 
 
 @dataclass(frozen=True)
@@ -75,9 +84,7 @@ def read_output(path: str | Path) -> TrainerOutput:
 
 def load_output(path: str | Path) -> GaussianRenderer:
     """A trainer's output folder as a renderer with its training cameras and background."""
-    output = read_output(path)
-    return GaussianRenderer(output.model, output.background, output.cameras or None,
-                            camera_format=output.camera_format, notes=output.notes + output.warnings)
+    return read_output(path).renderer()
 
 
 def empty_views(model: GaussianModel, cameras: list[Camera]) -> list[int]:

@@ -102,7 +102,8 @@ def read(folder: Path) -> TrainerOutput:
     test_every = config.get("test_every", 8)
     if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
         raise InputError("cfg.yml.test_every", f"must be a positive integer, got {test_every!r}")
-    training = [c for i, c in enumerate(cameras) if i % test_every] or cameras
+    trained = [i for i in range(len(cameras)) if i % test_every] or list(range(len(cameras)))
+    training = [cameras[i] for i in trained]
     if config.get("normalize_world_space", True) is False:
         candidates = {"none (normalize_world_space is off)": IDENTITY}
     else:
@@ -122,8 +123,10 @@ def read(folder: Path) -> TrainerOutput:
         warnings.append(f"the frame of this gsplat checkpoint was chosen by how much of {RENDERED_VIEWS} views its "
                         f"splats cover ({capture}'s photos could not be read), which tells frames apart poorly (a "
                         "cluttered scene covers a view in a wrong frame too): render a training view to check")
+    splits = {"train": trained, "test": sorted(set(range(len(cameras))) - set(trained))}
     return TrainerOutput(model.transformed(choice.frame.inverse()), training, background, source, frame=choice.frame,
-                         notes=notes, warnings=warnings, camera_format="colmap", name=f"{folder.resolve().name}/gsplat")
+                         notes=notes, warnings=warnings, camera_format="colmap", capture=capture, splits=splits,
+                         name=f"{folder.resolve().name}/gsplat")
 
 
 def checkpoint_model(path: Path) -> GaussianModel:

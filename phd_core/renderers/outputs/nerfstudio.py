@@ -74,14 +74,15 @@ def read(folder: Path) -> TrainerOutput:
     model_config = _section(config, "pipeline", "model")
     stored = read_frame(folder / FRAME_FILE)                      # nerfstudio's original data frame -> model frame
     model, source = read_splats(folder, model_config.get("sh_degree", 3))
-    cameras, frame, camera_format, notes = training_cameras(folder, config, stored)
+    cameras, frame, camera_format, notes, capture, splits = training_cameras(folder, config, stored)
     background = model_config.get("background_color", "random")
     if background not in BACKGROUNDS:
         raise InputError("config.yml.background_color", f"must be one of {', '.join(BACKGROUNDS)}, got {background!r}")
     notes.insert(0, f"nerfstudio {method}: splats from {source.relative_to(folder)}, moved from the dataparser's "
                     f"frame (the user's scaled by {frame.scale:.6g}, turned and centred) into the user's")
     return TrainerOutput(model.transformed(frame.inverse()), cameras, BACKGROUNDS[background], source,
-                         frame=frame, notes=notes, camera_format=camera_format, name=run_name(folder, config, method))
+                         frame=frame, notes=notes, camera_format=camera_format, capture=capture, splits=splits,
+                         name=run_name(folder, config, method))
 
 
 def run_name(folder: Path, config: dict, method: str) -> str:
@@ -159,9 +160,10 @@ def checkpoint_model(path: Path, sh_degree: Any) -> GaussianModel:
 # ----------------------------------------------------------------------------- cameras and frame
 
 def training_cameras(folder: Path, config: dict, stored: Similarity
-                     ) -> tuple[list[Camera], Similarity, str | None, list[str]]:
+                     ) -> tuple[list[Camera], Similarity, str | None, list[str], Path | None, dict[str, list[int]]]:
     """(training cameras in transforms.json's frame, user frame -> model frame, the pose
-    convention of that frame, notes)."""
+    convention of that frame, notes, transforms.json when found, the run's train/test frames as
+    indices into it)."""
     parser = _section(config, "pipeline", "datamanager", "dataparser")
     data = yaml_path(parser.get("data")) or yaml_path(config.get("data"))
     json_path = _find_transforms(folder, data)
@@ -170,7 +172,7 @@ def training_cameras(folder: Path, config: dict, stored: Similarity
         return [], stored, camera_format, [
             f"no transforms.json found for config.yml's data path {data} (looked from the working directory and "
             f"every folder above {folder}): the model has no training cameras, and poses are in the frame "
-            f"{FRAME_FILE} maps from: {frame_name}"]
+            f"{FRAME_FILE} maps from: {frame_name}"], None, {}
     frames, meta = read_transforms(json_path)
     applied = meta.get("applied_transform")
     if applied is None and (json_path.parent / "colmap" / "sparse" / "0").is_dir():
@@ -185,7 +187,8 @@ def training_cameras(folder: Path, config: dict, stored: Similarity
     views = train_frames(frames, meta, parser)
     cameras = load_nerfstudio(json_path, views=views, with_images=False).cameras
     notes = [f"training cameras: {len(cameras)} of the {len(frames)} frames of {json_path}"]
-    return cameras, frame, "nerfstudio", notes
+    held_out = sorted(set(range(len(frames))) - set(views))
+    return cameras, frame, "nerfstudio", notes, json_path, {"train": views, "test": held_out}
 
 
 def frame_without_data(stored: Similarity, parser: dict) -> tuple[str | None, str]:
