@@ -27,6 +27,9 @@ working directory or to any folder above the output folder), split as the datapa
 (`eval_mode` fraction (default, train_split_fraction 0.9), interval, filename, all; or the
 file's own `train_filenames`). Background: `background_color` white or black; "random"
 (splatfacto's default) renders over (0.149, 0.1647, 0.2157), what splatfacto evaluates over.
+Without transforms.json the model loads in the frame dataparser_transforms.json maps from, and
+`frame_without_data` tells from the stored rotation whether that is the COLMAP model's (an
+applied_transform is folded in) or transforms.json's, which the pose format then names.
 """
 
 from __future__ import annotations
