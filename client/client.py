@@ -297,12 +297,12 @@ class PHDClient:
                 cameras = output.cameras                  # training views only, in the user's frame
                 camera_format = camera_format or output.camera_format
             background = output.background if background is None else background
+            name = name if name is not None else output.name      # the run, "<experiment>/<method>"
             if output.ply is None:         # splats moved out of the trainer's frame: upload them as a PLY
                 with tempfile.TemporaryDirectory(prefix="phd-upload-") as tmp:
-                    ply = Path(tmp) / f"{path.name}.ply"
+                    ply = Path(tmp) / f"{path.resolve().name}.ply"
                     write_ply(output.model, ply)
-                    return self.upload_model(ply, cameras, name if name is not None else path.name, background,
-                                             camera_format)
+                    return self.upload_model(ply, cameras, name, background, camera_format)
             path = output.ply
         sidecar = path.with_name(path.stem + ".json")
         if path.suffix.lower() == ".ply" and sidecar.is_file():

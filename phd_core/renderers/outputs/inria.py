@@ -17,7 +17,7 @@ def read(folder: Path) -> TrainerOutput:
     source = read_cfg_args(folder).get("source_path", "").strip("'\"")
     capture = next((p for p in data_candidates(folder, Path(source)) if p.is_dir()), None) if source else None
     return TrainerOutput(read_ply(found.ply), found.cameras, found.background, found.ply, ply=found.ply,
-                         camera_format="3dgs-output", capture=capture)
+                         camera_format="3dgs-output", capture=capture, name=f"{folder.resolve().name}/3dgs")
 
 
 OUTPUTS.register(OutputFormat("3dgs-output", "a reference 3DGS output folder (cameras.json + point_cloud/iteration_*)",
