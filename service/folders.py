@@ -45,7 +45,7 @@ class FolderModel:
     """The model found in an uploaded folder, with what its trainer wrote beside it."""
 
     model: Path                               # the model file to store
-    name: str                                 # the display name: the folder's (or the file's) name
+    name: str                                 # the display name: the run's (or the file's) name
     cameras: list[dict] | None = None         # training cameras as frames, in the user's frame
     background: list[float] | None = None
     background_source: str | None = None
@@ -137,7 +137,7 @@ def model_files(folder: Path) -> list[Path]:
 
 
 def read_folder(folder: Path, name: str, ply: Path) -> FolderModel:
-    """The model in an unpacked folder (named `name` when it has no folder of its own); splats
+    """The model in an unpacked folder (named `name` when its files sit at the top); splats
     a trainer stored in its own frame are written, moved into the user's, to `ply`."""
     output_folder = find_output(folder)
     if output_folder is not None:
@@ -147,7 +147,10 @@ def read_folder(folder: Path, name: str, ply: Path) -> FolderModel:
         if output.ply is None:
             write_ply(output.model, ply)
         title = next(o.title for o in OUTPUTS.in_order() if o.detect(output_folder))
-        return FolderModel(output.ply or ply, name if output_folder == folder else output_folder.name,
+        # The run's name as the reader gives it ("<experiment>/<method>", else the folder's), as the
+        # client names it; a zip holding the folder's files at its top is named after the zip.
+        run = name if output.name == folder.resolve().name else output.name
+        return FolderModel(output.ply or ply, run,
                            [c.to_frame() for c in output.cameras] or None, list(output.background),
                            f"{title}: its trainer's setting", output.camera_format, output.notes + output.warnings)
     models = model_files(folder)

@@ -566,11 +566,12 @@ def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, traine
     browser.find_element(By.ID, "upload-folder").send_keys(str(folder))
     _wait(browser, lambda d: "(1 images left out" in d_text(d, "upload-picked"), what="the picked folder")
     browser.find_element(By.ID, "upload-run").click()
-    _wait(browser, lambda d: "Uploaded lego_out: 3dgs, 3 training cameras (3dgs-output)" in d_text(d, "upload-message"),
+    _wait(browser, lambda d: "3dgs, 3 training cameras (3dgs-output)" in d_text(d, "upload-message"),
           what="the folder's model")
     with PHDClient(server.url, api_key=KEY) as phd:
-        uploaded = next(m for m in phd.list_models() if m.name == "lego_out")
-        expected = phd.upload_model(folder)
+        expected = phd.upload_model(folder)                 # named after the run, as the page's upload is
+        assert d_text(browser, "upload-message").startswith(f"Uploaded {expected.name}: ")
+        uploaded = next(m for m in phd.list_models() if m.name == expected.name and m.id != expected.id)
         assert uploaded.sha256 == expected.sha256
         assert phd.training_cameras(uploaded.id) == phd.training_cameras(expected.id)
     # A PLY picked with a transforms file that is not its sidecar: the file goes up as its cameras,

@@ -91,7 +91,7 @@ def test_a_folder_uploads_as_the_client_reads_it(svc_start, svc_trained, tmp_pat
         assert got["details"]["background_source"] == "the sidecar its trainer wrote"
         assert got["name"] == "model.ply"
     else:
-        assert got["name"] == folder.name
+        assert got["name"] == expected.name         # the run's name, as the client gives it
         # What the reader noted (the frame it undid, the checkpoint it read) is kept with the model.
         assert bool(got["details"].get("notes")) == (trainer != "reference 3DGS")
     assert _leftovers(server) == []
