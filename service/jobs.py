@@ -152,7 +152,13 @@ class JobManager:
                     return
                 job = self._waiting.popleft()
                 job.state, job.started_at = "running", utc_now()
-            self.on_change(job)
+            try:
+                self.on_change(job)
+            except ServiceError as exc:     # a full disk (507): no work whose result could not be kept
+                with self._cond:
+                    job.error = exc
+                    self._finish(job, "failed")
+                continue
             self._run(job)
 
     def _run(self, job: JobRecord) -> None:
@@ -182,6 +188,14 @@ class JobManager:
                 job.progress = 1.0
             self._finish(job, state)
 
+    def _persist_failure(self, job: JobRecord) -> None:
+        """Store a job failed for a full disk if the row fits (else it answers from memory)."""
+        try:
+            self.on_change(job)
+            job.on_disk = True
+        except ServiceError:
+            pass
+
     def _finish(self, job: JobRecord, state: str) -> None:
         """Mark a job final and forget the oldest finished jobs past `retention` (lock held)."""
         job.state, job.finished_at = state, utc_now()
@@ -189,7 +203,12 @@ class JobManager:
         try:
             self.on_change(job)          # artefacts and result on disk before anyone is told
             job.on_disk = True
-        except Exception:  # a full disk must not leave a job unfinished in memory
+        except ServiceError as exc:      # a full disk (507): a result that cannot be kept is not given
+            log.warning("job %s: its %s state could not be stored: %s", job.id, state, exc.message)
+            if state == "succeeded":
+                job.state, job.result, job.artifacts, job.error = "failed", None, {}, exc
+                self._persist_failure(job)
+        except Exception:  # a bug must not leave a job unfinished in memory
             log.error("job %s: could not persist its final state:\n%s", job.id, traceback.format_exc())
         job.done.set_result(job.result)
         if job.on_disk:
