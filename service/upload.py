@@ -91,8 +91,9 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
 
     def check_room(size: int) -> None:
         if size > free - keep_free:
-            raise insufficient_storage(f"the model file ({size} bytes)", "file", f"the upload would leave less than "
-                                       f"the {keep_free} bytes kept free on the service's disk ({free} free)")
+            kept = f", of which {keep_free} are kept free (PHD_KEEP_FREE_BYTES)" if keep_free else ""
+            raise insufficient_storage(f"the model file ({size} bytes)", "file",
+                                       f"the service's disk has {free} bytes free{kept}")
 
     if length.isdigit():
         check_room(int(length))
