@@ -105,6 +105,8 @@ def test_an_upload_on_a_full_disk_is_507_and_leaves_nothing(disk, served, svc_mo
     assert "the model file (" in refused.value.message and "could not be written" in refused.value.message
     stored_as_before(phd, model, job_id, heatmap)
     no_partial_files(disk, [model.id], [job_id])
+    scraped = httpx.get(f"{server.url}/metrics").text      # the operator sees it, also on a full disk
+    assert 'phd_error_answers_total{code="insufficient_storage",status="507"} 1.0' in scraped
 
     disk.free()                                   # space returns: the same upload succeeds
     again = phd.upload_model(svc_model_files["ply_b"], cameras=svc_cameras(3, size=12))
