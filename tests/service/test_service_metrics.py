@@ -44,7 +44,8 @@ def test_metrics_follow_uploads_jobs_refusals_and_bytes(svc_start, svc_model_fil
         expect_error(httpx.get(f"{server.url}/v1/models/nope", headers={"Authorization": f"Bearer {ADMIN}"}),
                      404, "model_not_found")
     expect_error(httpx.get(f"{server.url}/v1/models"), 401, "unauthorized")       # the guard's answers count too
-    expect_error(httpx.post(f"{server.url}/v1/models/{nerf.id}/rank", json={"cameras": [svc_cameras(1)[0].to_frame()], "samples": 2},
+    uncalibrated = {"cameras": [svc_cameras(1)[0].to_frame()], "samples": 2}
+    expect_error(httpx.post(f"{server.url}/v1/models/{nerf.id}/rank", json=uncalibrated,
                             headers={"Authorization": f"Bearer {ADMIN}"}), 409, "not_calibrated")
 
     m = scrape(server.url)
