@@ -50,6 +50,7 @@ DB_NAME = "phd.sqlite3"
 VERSION_FILE = "schema-version"
 FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 SQLITE_FULL = 13            # sqlite3.Error.sqlite_errorcode of "database or disk is full" (primary code)
+SQLITE_IOERR_SHMSIZE = 4874  # the write-ahead log's index could not grow: no room for it on the disk
 
 
 def utc_now() -> str:
@@ -124,7 +125,8 @@ def disk_full(exc: BaseException) -> bool:
     """Whether an exception says the disk (or the user's quota) is full."""
     if isinstance(exc, OSError):
         return exc.errno in FULL_ERRNOS
-    return isinstance(exc, sqlite3.Error) and (getattr(exc, "sqlite_errorcode", 0) & 0xFF) == SQLITE_FULL
+    code = getattr(exc, "sqlite_errorcode", 0) if isinstance(exc, sqlite3.Error) else 0
+    return code & 0xFF == SQLITE_FULL or code == SQLITE_IOERR_SHMSIZE
 
 
 @contextmanager
