@@ -17,6 +17,9 @@ import pytest
 
 from client import PHDClient
 from client.client import JobFailedError, ServerError
+from phd_core.errors import InputError
+from service.app import create_app
+from service.settings import Settings
 from service.store import DB_NAME, ModelStore
 from support.fixtures import expect_error, svc_cameras
 
@@ -272,3 +275,19 @@ def test_the_shared_file_write_is_507_on_a_full_disk_and_leaves_no_temp_file(dis
     store.write_file(target, b"second", "the coverage of model 'm'")
     assert target.read_bytes() == b"second"
     store.close()
+
+
+def test_a_start_on_a_full_disk_says_so_and_the_next_start_serves(disk, svc_start, svc_model_files):
+    """SQLite needs room for its log's index (32 KiB) to open the store: on a full disk the start
+    is refused with a clear message, nothing changed; once space returns the store is served."""
+    server = svc_start(data_dir=disk.root / "data", keep_free_bytes=0)
+    with PHDClient(server.url) as phd:
+        model = phd.upload_model(svc_model_files["ply"])
+    server.stop()
+    disk.fill()
+    with pytest.raises(InputError) as refused:
+        create_app(Settings(data_dir=disk.root / "data"))
+    assert refused.value.field == "data_dir" and "is full" in refused.value.reason
+    disk.free()
+    with PHDClient(svc_start(data_dir=disk.root / "data").url) as phd:
+        assert phd.list_models() == [model]
