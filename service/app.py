@@ -153,7 +153,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in ROUTERS:
         app.include_router(router)
     if settings.metrics:
-        state.metrics.watch(state)
+        state.metrics.watch(settings, store, job_store, state.ledger, lambda: state.jobs.waiting())
         app.include_router(metrics.router)
     app.add_middleware(Guard, settings=settings, keys=keys)
     app.add_middleware(Counting, metrics=state.metrics)    # outside the guard: its answers are counted too

@@ -11,20 +11,20 @@ registry, so two services in one process (tests, the demo) never mix their count
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Awaitable, Callable, Iterator
+from typing import Any, Awaitable, Callable, Iterator
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
-from .jobstore import FINAL_STATES
-from .store import SCHEMA_VERSION
-
-if TYPE_CHECKING:                       # service.state imports this module
-    from .jobs import JobRecord
-    from .state import ServiceState
+from .budget import MemoryLedger
+from .jobs import JobRecord
+from .jobstore import FINAL_STATES, JobStore
+from .settings import Settings
+from .store import SCHEMA_VERSION, ModelStore
 
 # Job durations from a tiny rank (a tenth of a second) to a heavy calibration (an hour).
 DURATION_BUCKETS = (0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300, 600, 1800, 3600)
@@ -46,9 +46,10 @@ class Metrics:
         self.wait = Histogram("phd_job_wait_seconds", "Time a job waited in the queue for a worker, by kind",
                               ["kind"], buckets=DURATION_BUCKETS, registry=self.registry)
 
-    def watch(self, state: ServiceState) -> None:
-        """Read the gauges of `state` at every scrape."""
-        self.registry.register(Scrape(state))
+    def watch(self, settings: Settings, store: ModelStore, job_store: JobStore, ledger: MemoryLedger,
+              waiting: Callable[[], int]) -> None:
+        """Read the gauges of these at every scrape (`waiting`: the jobs in the queue)."""
+        self.registry.register(Scrape(settings, store, job_store, ledger, waiting))
 
     def job_stored(self, job: JobRecord) -> None:
         """A job's state was stored: a final one is counted, with how long it waited and ran."""
@@ -63,30 +64,32 @@ class Metrics:
             self.duration.labels(job.kind).observe((finished - started).total_seconds())
 
 
+@dataclass
 class Scrape(Collector):
     """The gauges, read from the service when `/metrics` is scraped."""
 
-    def __init__(self, state: ServiceState):
-        self.state = state
+    settings: Settings
+    store: ModelStore
+    job_store: JobStore
+    ledger: MemoryLedger
+    waiting: Callable[[], int]
 
     def collect(self) -> Iterator[Metric]:
-        state = self.state
-        yield _gauge("phd_queue_depth", "Jobs waiting for a worker", state.jobs.waiting())
-        yield _gauge("phd_queue_capacity", "Jobs that may wait before work requests get 429", state.settings.queue_size)
-        yield _gauge("phd_workers", "Worker threads running jobs", state.settings.workers)
-        with state.store._connect() as db:
+        settings, store, ledger = self.settings, self.store, self.ledger
+        yield _gauge("phd_queue_depth", "Jobs waiting for a worker", self.waiting())
+        yield _gauge("phd_queue_capacity", "Jobs that may wait before work requests get 429", settings.queue_size)
+        yield _gauge("phd_workers", "Worker threads running jobs", settings.workers)
+        with store._connect() as db:
             jobs = db.execute("SELECT kind, state, COUNT(*) AS n FROM jobs GROUP BY kind, state").fetchall()
             models = db.execute("SELECT kind, COUNT(*) AS n FROM models GROUP BY kind").fetchall()
         yield _gauge("phd_jobs", "Jobs kept by the service (queued, running, and the finished ones retained), by "
                      "kind and state", [((r["kind"], r["state"]), r["n"]) for r in jobs], ["kind", "state"])
         yield _gauge("phd_models", "Models stored, by family", [((r["kind"],), r["n"]) for r in models], ["family"])
-        ledger = state.ledger
         yield _gauge("phd_memory_reserved_bytes", "Memory reserved in the budget: models in memory, running jobs, "
                      "upload parses", ledger.used)
         yield _gauge("phd_memory_budget_bytes", "The memory budget (PHD_MEMORY_BUDGET_BYTES)", ledger.budget)
         yield _gauge("phd_models_in_memory", "Models loaded in memory", len(ledger.loaded()))
-        store = state.store
-        stored = {"models": _size(store.models_dir), "jobs": _size(state.job_store.root),
+        stored = {"models": _size(store.models_dir), "jobs": _size(self.job_store.root),
                   "uploads_in_progress": _size(store.tmp_dir),
                   "database": sum(_size(store.db_path.with_name(store.db_path.name + end))
                                   for end in ("", "-wal", "-shm"))}
@@ -94,7 +97,7 @@ class Scrape(Collector):
                      [((what,), n) for what, n in stored.items()], ["what"])
         yield _gauge("phd_disk_free_bytes", "Free space on the data directory's disk", store.free_bytes())
         yield _gauge("phd_keep_free_bytes", "Free space an upload may not eat into (PHD_KEEP_FREE_BYTES)",
-                     state.settings.keep_free_bytes)
+                     settings.keep_free_bytes)
         yield _gauge("phd_store_schema_version", "Schema version of the store", SCHEMA_VERSION)
 
 
