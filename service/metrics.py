@@ -64,7 +64,7 @@ class Metrics:
             self.duration.labels(job.kind).observe((finished - started).total_seconds())
 
 
-@dataclass
+@dataclass(eq=False)         # registries keep collectors in a set: hashed by identity
 class Scrape(Collector):
     """The gauges, read from the service when `/metrics` is scraped."""
 
