@@ -14,6 +14,7 @@ A shutdown fails unfinished jobs with the code `interrupted`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import traceback
@@ -188,14 +189,6 @@ class JobManager:
                 job.progress = 1.0
             self._finish(job, state)
 
-    def _persist_failure(self, job: JobRecord) -> None:
-        """Store a job failed for a full disk if the row fits (else it answers from memory)."""
-        try:
-            self.on_change(job)
-            job.on_disk = True
-        except ServiceError:
-            pass
-
     def _finish(self, job: JobRecord, state: str) -> None:
         """Mark a job final and forget the oldest finished jobs past `retention` (lock held)."""
         job.state, job.finished_at = state, utc_now()
@@ -207,7 +200,9 @@ class JobManager:
             log.warning("job %s: its %s state could not be stored: %s", job.id, state, exc.message)
             if state == "succeeded":
                 job.state, job.result, job.artifacts, job.error = "failed", None, {}, exc
-                self._persist_failure(job)
+                with contextlib.suppress(ServiceError):     # its failed row may fit where the result did not
+                    self.on_change(job)
+                    job.on_disk = True
         except Exception:  # a bug must not leave a job unfinished in memory
             log.error("job %s: could not persist its final state:\n%s", job.id, traceback.format_exc())
         job.done.set_result(job.result)

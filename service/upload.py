@@ -89,14 +89,14 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
     free = shutil.disk_usage(temp_path.parent).free
     length = request.headers.get("content-length", "")
 
-    def check_room(size: int) -> None:
+    def check_room(size: int, what: str) -> None:
         if size > free - keep_free:
             kept = f", of which {keep_free} are kept free (PHD_KEEP_FREE_BYTES)" if keep_free else ""
-            raise insufficient_storage(f"the model file ({size} bytes)", "file",
+            raise insufficient_storage(f"{what} ({size} bytes)", "file",
                                        f"the service's disk has {free} bytes free{kept}")
 
     if length.isdigit():
-        check_room(int(length))
+        check_room(int(length), "the upload")
     upload = Upload(path=temp_path)
     digest = hashlib.sha256()
     part = _Part()
@@ -140,7 +140,7 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
             if upload.size > max_file_bytes:
                 raise ServiceError(413, "payload_too_large", f"the model file exceeds {max_file_bytes} bytes, the "
                                    "largest this service's memory budget can parse", "file")
-            check_room(upload.size)
+            check_room(upload.size, "the model file")
             part.file.write(chunk)
             return
         assert part.buffer is not None         # on_headers_finished set it for every non-file part

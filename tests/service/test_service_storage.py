@@ -105,7 +105,7 @@ def test_an_upload_on_a_full_disk_is_507_and_leaves_nothing(disk, served, svc_mo
     with pytest.raises(ServerError) as refused:           # refused by its Content-Length, before it is read
         phd.upload_model(svc_model_files["ply_b"], cameras=svc_cameras(3, size=12))
     assert (refused.value.status, refused.value.code, refused.value.field) == (507, "insufficient_storage", "file")
-    assert "the model file (" in refused.value.message and "could not be written" in refused.value.message
+    assert "the upload (" in refused.value.message and "could not be written" in refused.value.message
     stored_as_before(phd, model, job_id, heatmap)
     no_partial_files(disk, [model.id], [job_id])
     scraped = httpx.get(f"{server.url}/metrics").text      # the operator sees it, also on a full disk
@@ -245,7 +245,7 @@ def test_uploads_keep_the_free_space_setting(disk, svc_start, svc_model_files):
     url = f"{server.url}/v1/models"
     error = expect_error(httpx.post(url, files={"file": ("big.ply", big)}, timeout=60), 507, "insufficient_storage",
                          "file")
-    assert "kept free" in error["message"] and "the model file" in error["message"]
+    assert "kept free" in error["message"] and "the upload (" in error["message"]
 
     boundary = "b0undary"
     body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"big.ply\"\r\n\r\n".encode()
@@ -253,7 +253,7 @@ def test_uploads_keep_the_free_space_setting(disk, svc_start, svc_model_files):
     streamed = httpx.post(                        # no Content-Length: refused as the bytes arrive
         url, content=(body[i:i + (1 << 16)] for i in range(0, len(body), 1 << 16)),
                           headers={"content-type": f"multipart/form-data; boundary={boundary}"}, timeout=60)
-    expect_error(streamed, 507, "insufficient_storage", "file")
+    assert "the model file (" in expect_error(streamed, 507, "insufficient_storage", "file")["message"]
     assert Disk(disk.root).files("tmp") == [] and Disk(disk.root).files("models") == []
     with PHDClient(server.url) as phd:
         assert phd.upload_model(svc_model_files["ply"]).num_units == 300
