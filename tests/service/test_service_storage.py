@@ -10,6 +10,7 @@ import os
 import sqlite3
 import subprocess
 import time
+from contextlib import closing
 from pathlib import Path
 
 import httpx
@@ -94,7 +95,7 @@ def no_partial_files(disk: Disk, model_ids: list[str], job_ids: list[str]) -> No
     assert disk.files("tmp") == []
     assert [name.split(".")[0] for name in disk.files("models")] == sorted(model_ids)
     assert sorted({name.split("/")[0] for name in disk.files("jobs")}) == sorted(job_ids)
-    with sqlite3.connect(disk.root / "data" / DB_NAME) as db:
+    with closing(sqlite3.connect(disk.root / "data" / DB_NAME)) as db:
         assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
         assert sorted(r[0] for r in db.execute("SELECT id FROM models")) == sorted(model_ids)
 
@@ -176,11 +177,13 @@ def test_a_model_whose_record_does_not_fit_is_507_and_its_file_is_removed(disk, 
 
 
 def _job_fills_the_disk(disk: Disk, phd: PHDClient, job) -> JobFailedError:
-    """Fill the disk once the job is running (its running state stored), then wait for its end."""
+    """Fill the disk as soon as the job's running state is stored (its work has begun), then wait
+    for its end."""
     deadline = time.monotonic() + 120
-    while phd.get_job(job.id).progress == 0:
-        assert time.monotonic() < deadline and phd.get_job(job.id).state in ("queued", "running")
-        time.sleep(0.01)
+    with closing(sqlite3.connect(disk.root / "data" / DB_NAME)) as db:
+        while db.execute("SELECT state FROM jobs WHERE id = ?", (job.id,)).fetchone() != ("running",):
+            assert time.monotonic() < deadline and phd.get_job(job.id).state in ("queued", "running")
+            time.sleep(0.005)
     disk.fill()
     with pytest.raises(JobFailedError) as failed:
         phd.wait_job(job.id, poll_interval=0.05)
@@ -233,7 +236,7 @@ def test_a_job_that_cannot_be_queued_is_507(disk, served):
                          "insufficient_storage")
     assert "the queued state of job" in error["message"]
     stored_as_before(phd, model, job_id, heatmap)
-    with sqlite3.connect(disk.root / "data" / DB_NAME) as db:
+    with closing(sqlite3.connect(disk.root / "data" / DB_NAME)) as db:
         assert db.execute("SELECT COUNT(*) FROM jobs").fetchone() == (2,)   # the calibration and the ranking
 
 
