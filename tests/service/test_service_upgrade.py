@@ -9,6 +9,7 @@ import hashlib
 import json
 import shutil
 import sqlite3
+from contextlib import closing
 from pathlib import Path
 
 import httpx
@@ -40,7 +41,7 @@ def old_store(tmp_path) -> tuple[Path, dict]:
 
 def rows(db_path: Path) -> list[str]:
     """The database's content as SQL, the schema version aside."""
-    with sqlite3.connect(db_path) as db:
+    with closing(sqlite3.connect(db_path)) as db:
         return list(db.iterdump())
 
 
@@ -52,13 +53,13 @@ def file_digests(root: Path) -> dict[str, str]:
 def test_the_earlier_codes_store_is_migrated_and_reads_back_as_it_answered(old_store, svc_start):
     data, expected = old_store
     before = rows(data / DB_NAME)
-    with sqlite3.connect(data / DB_NAME) as db:
+    with closing(sqlite3.connect(data / DB_NAME)) as db:
         assert db.execute("PRAGMA user_version").fetchone() == (0,)     # the earlier code set no version
     server = svc_start(data_dir=data, api_key=expected["admin_key"], keys_file=expected["keys_file"])
 
     # Backed up first, as it was; then at the new version, in the database and the file.
     assert rows(data / f"{DB_NAME}.v0.bak") == before
-    with sqlite3.connect(data / DB_NAME) as db:
+    with closing(sqlite3.connect(data / DB_NAME)) as db:
         assert db.execute("PRAGMA user_version").fetchone() == (SCHEMA_VERSION,)
     assert (data / VERSION_FILE).read_text() == f"{SCHEMA_VERSION}\n"
 
@@ -83,12 +84,15 @@ def test_the_earlier_codes_store_is_migrated_and_reads_back_as_it_answered(old_s
         assert len(admin.list_models()) == len(expected["models"])
 
 
-def test_a_store_newer_than_the_code_is_refused_and_left_untouched(old_store):
+@pytest.mark.parametrize("newer", ["both", "database"])     # "database": a later release stopped before the file
+def test_a_store_newer_than_the_code_is_refused_and_left_untouched(old_store, newer):
     data, expected = old_store
     ModelStore(data).close()                                   # now at this code's version
-    (data / VERSION_FILE).write_text(f"{SCHEMA_VERSION + 1}\n")   # as a later release would leave it
-    with sqlite3.connect(data / DB_NAME) as db:
+    if newer == "both":
+        (data / VERSION_FILE).write_text(f"{SCHEMA_VERSION + 1}\n")
+    with closing(sqlite3.connect(data / DB_NAME)) as db:
         db.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+        db.commit()
     before = file_digests(data)
     with pytest.raises(InputError) as refused:
         create_app(Settings(data_dir=data))
