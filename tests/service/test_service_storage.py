@@ -117,26 +117,35 @@ def test_an_upload_on_a_full_disk_is_507_and_leaves_nothing(disk, served, svc_mo
     assert phd.get_model(again.id).num_units == 200
 
 
+BOUNDARY = "b0undary"
+FILE_PART = f"--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"b.ply\"\r\n\r\n".encode()
+
+
+def upload_filling_the_disk(url: str, disk: Disk, first: bytes, rest: bytes, written: int) -> httpx.Response:
+    """POST a multipart upload in two steps: `first`, then (once the server's temp file holds
+    `written` bytes) the disk is filled and `rest` follows."""
+    tmp = disk.root / "data" / "tmp"
+
+    def parts():
+        yield first
+        deadline = time.monotonic() + 30
+        while not any(tmp.iterdir()) or sum(p.stat().st_size for p in tmp.iterdir()) < written:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        disk.fill()
+        for i in range(0, len(rest), 1 << 16):
+            yield rest[i:i + (1 << 16)]
+
+    return httpx.post(f"{url}/v1/models", content=parts(), timeout=60,
+                      headers={"content-type": f"multipart/form-data; boundary={BOUNDARY}"})
+
+
 def test_a_disk_that_fills_during_an_upload_is_507_and_leaves_nothing(disk, served, svc_model_files):
     """The disk fills while the model's parts stream in (another writer took the space): the
     write that finds no room is 507 naming the model file, and its temp file goes."""
     server, phd, model, job_id, heatmap = served
-    boundary, tmp = "b0undary", disk.root / "data" / "tmp"
-    body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"b.ply\"\r\n\r\n".encode()
-            + svc_model_files["ply_b"].read_bytes() + bytes(1 << 20) + f"\r\n--{boundary}--\r\n".encode())
-
-    def parts():
-        yield body[:1 << 14]
-        deadline = time.monotonic() + 30
-        while not any(tmp.iterdir()):             # the server is writing the model's temp file
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
-        disk.fill()
-        for i in range(1 << 14, len(body), 1 << 16):
-            yield body[i:i + (1 << 16)]
-
-    answer = httpx.post(f"{server.url}/v1/models", content=parts(), timeout=60,
-                        headers={"content-type": f"multipart/form-data; boundary={boundary}"})
+    body = FILE_PART + svc_model_files["ply_b"].read_bytes() + bytes(1 << 20) + f"\r\n--{BOUNDARY}--\r\n".encode()
+    answer = upload_filling_the_disk(server.url, disk, body[:1 << 14], body[1 << 14:], written=0)
     error = expect_error(answer, 507, "insufficient_storage", "file")
     assert "the uploaded model file could not be written" in error["message"]
     stored_as_before(phd, model, job_id, heatmap)
@@ -150,24 +159,12 @@ def test_a_model_whose_record_does_not_fit_is_507_and_its_file_is_removed(disk, 
     fit, as SQLite's write-ahead journal cannot grow. The file moved into models/ goes again, no row
     stays, and the database is intact."""
     server, phd, model, job_id, heatmap = served
-    boundary, tmp, ply = "b0undary", disk.root / "data" / "tmp", svc_model_files["ply_b"].read_bytes()
+    ply = svc_model_files["ply_b"].read_bytes()
     cameras = json.dumps([c.to_frame() for c in svc_cameras(60, size=12)]).encode()
-    head = f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"b.ply\"\r\n\r\n".encode()
-    tail = (f"\r\n--{boundary}\r\nContent-Disposition: form-data; name=\"cameras\"\r\n\r\n".encode() + cameras
-            + f"\r\n--{boundary}\r\nContent-Disposition: form-data; name=\"name\"\r\n\r\nmany cameras"
-              f"\r\n--{boundary}--\r\n".encode())
-
-    def parts():
-        yield head + ply
-        deadline = time.monotonic() + 30
-        while sum(p.stat().st_size for p in tmp.iterdir()) < len(ply):     # the model file is on disk
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
-        disk.fill()
-        yield tail
-
-    answer = httpx.post(f"{server.url}/v1/models", content=parts(), timeout=60,
-                        headers={"content-type": f"multipart/form-data; boundary={boundary}"})
+    rest = (f"\r\n--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"cameras\"\r\n\r\n".encode() + cameras
+            + f"\r\n--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"name\"\r\n\r\nmany cameras"
+              f"\r\n--{BOUNDARY}--\r\n".encode())
+    answer = upload_filling_the_disk(server.url, disk, FILE_PART + ply, rest, written=len(ply))
     error = expect_error(answer, 507, "insufficient_storage", "file")
     assert "the record of model 'many cameras' could not be written" in error["message"]
     stored_as_before(phd, model, job_id, heatmap)
@@ -250,12 +247,10 @@ def test_uploads_keep_the_free_space_setting(disk, svc_start, svc_model_files):
                          "file")
     assert "kept free" in error["message"] and "the upload (" in error["message"]
 
-    boundary = "b0undary"
-    body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"big.ply\"\r\n\r\n".encode()
-            + big + f"\r\n--{boundary}--\r\n".encode())
+    body = FILE_PART + big + f"\r\n--{BOUNDARY}--\r\n".encode()
     streamed = httpx.post(                        # no Content-Length: refused as the bytes arrive
         url, content=(body[i:i + (1 << 16)] for i in range(0, len(body), 1 << 16)),
-                          headers={"content-type": f"multipart/form-data; boundary={boundary}"}, timeout=60)
+                          headers={"content-type": f"multipart/form-data; boundary={BOUNDARY}"}, timeout=60)
     assert "the model file (" in expect_error(streamed, 507, "insufficient_storage", "file")["message"]
     assert Disk(disk.root).files("tmp") == [] and Disk(disk.root).files("models") == []
     with PHDClient(server.url) as phd:
