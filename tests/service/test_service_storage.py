@@ -109,12 +109,18 @@ def test_an_upload_on_a_full_disk_is_507_and_leaves_nothing(disk, served, svc_mo
     assert "the upload (" in refused.value.message and "could not be written" in refused.value.message
     stored_as_before(phd, model, job_id, heatmap)
     no_partial_files(disk, [model.id], [job_id])
+    with pytest.raises(ServerError) as refused:           # a delete writes too: refused whole, the model kept
+        phd.delete_model(model.id)
+    assert refused.value.status == 507 and f"the removal of model '{model.id}'" in refused.value.message
+    stored_as_before(phd, model, job_id, heatmap)
     scraped = httpx.get(f"{server.url}/metrics").text      # the operator sees it, also on a full disk
-    assert 'phd_error_answers_total{code="insufficient_storage",status="507"} 1.0' in scraped
+    assert 'phd_error_answers_total{code="insufficient_storage",status="507"} 2.0' in scraped
 
     disk.free()                                   # space returns: the same upload succeeds
     again = phd.upload_model(svc_model_files["ply_b"], cameras=svc_cameras(3, size=12))
     assert phd.get_model(again.id).num_units == 200
+    phd.delete_model(model.id)
+    assert phd.list_models() == [phd.get_model(again.id)]
 
 
 BOUNDARY = "b0undary"
