@@ -41,6 +41,7 @@ RESULT = RESULTS / "soak.json"
 BUDGET = 1 << 30
 SIZE = 48                 # render size of every view (pixels a side)
 CHURN = 3                 # uploaded models kept at once beside the two fixed ones
+SETTLED = 5               # minutes after which the kept jobs (64) and the write-ahead log stop growing
 
 
 def folder_bytes(path: Path) -> int:
@@ -210,11 +211,20 @@ def table(result: dict[str, Any]) -> str:
         rows.append(f"| {s['minute']:.0f} | {s['rss_mib']:.0f} | {s['open_files']} | {s['data_dir_kib']:,} | "
                     f"{s['models_kib'] + s['jobs_kib']:,} | {s['sqlite_kib']:,} | {s['models']} | {s['jobs_kept']} | "
                     f"{s['memory_reserved_mib']:.0f} | {s['operations']:,} | {s['server_errors']} |")
+    settled = [s for s in result["samples"] if s["minute"] >= SETTLED]
+
+    def spread(key: str) -> str:
+        values = [s[key] for s in settled]
+        return f"{min(values):,.0f} to {max(values):,.0f}"
+
     ops = ", ".join(f"{n:,} {k}" for k, n in sorted(result["operations"].items()))
     statuses = ", ".join(f"{n:,} {k}" for k, n in sorted(result["statuses"].items()))
     latency = ", ".join(f"{k} {v} s" for k, v in sorted(result["latency_median_s"].items()))
     return "\n".join(rows) + (
-        f"\n\n{sum(result['operations'].values()):,} operations ({ops}); outcomes: {statuses}; "
+        f"\n\nFrom minute {SETTLED} on (the kept jobs and SQLite's write-ahead log at their plateau): RSS "
+        f"{spread('rss_mib')} MiB, open files {spread('open_files')}, data dir {spread('data_dir_kib')} KiB (models "
+        f"and jobs {spread('models_kib')} and {spread('jobs_kib')} KiB), SQLite {spread('sqlite_kib')} KiB. "
+        f"{sum(result['operations'].values()):,} operations ({ops}); outcomes: {statuses}; "
         f"{result['server_error_count']} server errors, {result.get('server_log_tracebacks', 'n/a')} tracebacks "
         f"in the server's log. Median latency: {latency}. Settings: {result['settings']}, {result['clients']} "
         f"clients each starting an operation every {result['interval_s']:g} s. Command: `{result['command']}`.")
