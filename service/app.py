@@ -14,6 +14,8 @@ error, FastAPI's own included, answers with `{"error": {"code", "message", "fiel
     POST   /v1/models/{id}/calibrate        PH-Dropout calibration -> r_drop, stored with the model
     POST   /v1/models/{id}/rank             candidate poses in the order to capture them
     POST   /v1/select                       per view, which of two models to trust
+    GET    /v1/models/{id}/scene            the splats as points for the page's 3D view (a binary)
+    POST   /v1/models/{id}/explain          per point: coverage, fragility, what a pick newly sees
     GET    /v1/jobs/{id}                    state, progress, result of a job
     DELETE /v1/jobs/{id}                    cancel a job
     GET    /v1/jobs/{id}/artifacts/{name}   a PNG a job produced (heat map, selected image)

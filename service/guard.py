@@ -35,6 +35,7 @@ DRAIN_LIMIT = 64 << 20
 MAX_HEADER_BYTES = 64 * 1024
 OPEN_PATHS: tuple[str, ...] = ("/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
 OPEN_PATHS += ("/", "/ui", "/ui/", "/ui/app.js", "/ui/app.css")   # the page's static files; its API calls send the key
+OPEN_PATHS += ("/ui/view3d.js", "/ui/view3d.css", "/ui/vendor/three.module.min.js", "/ui/vendor/OrbitControls.js")
 UPLOAD_PATH = "/v1/models"
 DOC_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")   # FastAPI's pages load their scripts from a CDN
 # Same-origin files only (the web page: HTML, one JS and one CSS file, images from the API or
