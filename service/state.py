@@ -19,6 +19,7 @@ from .errors import ServiceError, busy, not_found
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
 from .keys import Principal
+from .metrics import Metrics
 from .schemas import Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore
@@ -35,6 +36,7 @@ class ServiceState:
     # Made by the app's lifespan (service.app.create_app), so every request sees it; unset before.
     jobs: JobManager = field(init=False)
     executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
+    metrics: Metrics = field(default_factory=Metrics)      # what GET /metrics shows (service.metrics)
 
     def model(self, model_id: str, who: Principal, field: str | None = None) -> ModelRecord:
         """The model, or 404 when it does not exist or belongs to another key."""
@@ -66,6 +68,7 @@ class ServiceState:
     def persist_job(self, job: JobRecord) -> None:
         """JobManager's on_change: the job's state, and once final its artefacts, to disk."""
         self.job_store.save(job.to_schema(), job.owner, job.artifacts if job.state == "succeeded" else None)
+        self.metrics.job_stored(job)
 
     async def run(self, job_id: str, kind: str, work: Work, estimate: float, run_async: bool,
                   who: Principal) -> Any:
@@ -125,4 +128,5 @@ class ServiceState:
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)
         parse.keep(record.id, renderer, record.size_bytes)
+        self.metrics.uploads.labels(record.kind).inc()
         return record

@@ -55,7 +55,8 @@ async def upload_model(request: Request, svc: Service, who: Caller) -> JSONRespo
     temp = svc.store.new_temp_path()
     try:
         upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes,
-                                      largest_model_file(svc.settings.memory_budget_bytes))
+                                      largest_model_file(svc.settings.memory_budget_bytes),
+                                      keep_free=svc.settings.keep_free_bytes)
         kind = sniff_kind(upload.head)
         record = await asyncio.to_thread(svc.ingest, upload, kind, who)
     finally:
