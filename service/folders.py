@@ -37,6 +37,7 @@ MAX_ZIP_RATIO = 500             # a member that inflates more than this is refus
                                 # real PLYs, checkpoints and JSON inflate well below)
 SEARCH_DIRS = 2_000             # folders looked at for a trainer's output
 SKIPPED = ("__MACOSX", ".DS_Store")   # what archivers add beside a folder
+CLASHES = (FileExistsError, NotADirectoryError, IsADirectoryError)   # a path twice, or a file where a folder is
 SIDECAR_SOURCE = "the sidecar its trainer wrote"   # a model's background_source when its sidecar set it
 
 
@@ -108,7 +109,7 @@ def unpack_zip(archive: Path, folder: Path, max_bytes: int) -> int:
                         out.write(chunk)
             except (zipfile.BadZipFile, EOFError, NotImplementedError) as exc:
                 raise invalid("archive", f"cannot unpack '{member.filename}': {exc}") from None
-            except OSError:
+            except CLASHES:
                 raise invalid("archive", f"'{member.filename}' comes twice or clashes with a folder") from None
     return written
 

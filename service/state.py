@@ -24,9 +24,10 @@ from .folders import read_folder, unpack_zip
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
 from .keys import Principal
+from .metrics import Metrics
 from .schemas import Job, RenderSize
 from .settings import Settings
-from .store import ModelRecord, ModelStore
+from .store import ModelRecord, ModelStore, writing
 from .upload import (
     Upload,
     guess_background,
@@ -48,6 +49,7 @@ class ServiceState:
     # Made by the app's lifespan (service.app.create_app), so every request sees it; unset before.
     jobs: JobManager = field(init=False)
     executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
+    metrics: Metrics = field(default_factory=Metrics)      # what GET /metrics shows (service.metrics)
 
     def model(self, model_id: str, who: Principal, field: str | None = None) -> ModelRecord:
         """The model, or 404 when it does not exist or belongs to another key."""
@@ -79,6 +81,7 @@ class ServiceState:
     def persist_job(self, job: JobRecord) -> None:
         """JobManager's on_change: the job's state, and once final its artefacts, to disk."""
         self.job_store.save(job.to_schema(), job.owner, job.artifacts if job.state == "succeeded" else None)
+        self.metrics.job_stored(job)
 
     async def run(self, job_id: str, kind: str, work: Work, estimate: float, run_async: bool,
                   who: Principal) -> Any:
@@ -121,15 +124,17 @@ class ServiceState:
         ingested as the model file it holds, with what its trainer wrote beside it as the
         fields the request left out."""
         assert upload.folder is not None          # receive_upload set it for `files` and `archive` parts
+        field = "archive" if upload.archive is not None else "files"
         size = upload.size
-        if upload.archive is not None:
-            size = unpack_zip(upload.archive, upload.folder, largest_model_file(self.settings.memory_budget_bytes))
-        named = Path(upload.filename).stem if upload.filename else "folder"
-        try:
-            with self.ledger.reserve(load_bytes(size), timeout=self.settings.upload_wait):
-                found = read_folder(upload.folder, named, upload.path.with_suffix(".ply"))
-        except TimeoutError:
-            raise busy("archive" if upload.archive else "files", self.settings.retry_after) from None
+        with writing("the uploaded folder", field):        # a full disk: 507 (service.store.writing)
+            if upload.archive is not None:
+                size = unpack_zip(upload.archive, upload.folder, largest_model_file(self.settings.memory_budget_bytes))
+            named = Path(upload.filename).stem if upload.filename else "folder"
+            try:
+                with self.ledger.reserve(load_bytes(size), timeout=self.settings.upload_wait):
+                    found = read_folder(upload.folder, named, upload.path.with_suffix(".ply"))
+            except TimeoutError:
+                raise busy(field, self.settings.retry_after) from None
         os.replace(found.model, upload.path)
         with open(upload.path, "rb") as f:
             upload.head = f.read(SNIFF_BYTES)
@@ -169,6 +174,7 @@ class ServiceState:
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)
         parse.keep(record.id, renderer, record.size_bytes)
+        self.metrics.uploads.labels(record.kind).inc()
         return record
 
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -47,8 +48,9 @@ from phd_core.errors import InputError, check_color
 from phd_core.io import fsync_path
 from phd_core.renderers import SNIFF_BYTES, family_titles, model_kind
 
-from .errors import JSON_ERRORS, ServiceError, invalid, json_problem
-from .folders import SIDECAR_SOURCE, folder_target
+from .errors import JSON_ERRORS, ServiceError, insufficient_storage, invalid, json_problem
+from .folders import CLASHES, SIDECAR_SOURCE, folder_target
+from .store import writing
 
 MAX_NAME_BYTES = 256
 FIELDS = ("file", "files", "archive", "cameras", "name", "background", "camera_format")
@@ -86,18 +88,31 @@ class _Part:
 
 
 async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: int, max_file_bytes: int,
-                         folder_path: Path) -> Upload:
+                         folder_path: Path, keep_free: int = 0) -> Upload:
     """Parse the multipart body of `request`, writing the model to `temp_path` (then fsynced), a
     folder's `files` under `folder_path` and an `archive` to `folder_path`.zip.
 
     A model past `max_file_bytes` (what the memory budget can parse) is cut off with 413 as it
-    streams; so is a folder whose files add up past it. The caller deletes `temp_path` and the
+    streams; so is a folder whose files add up past it. A body that would leave less than
+    `keep_free` bytes free on the disk is refused with 507 up front (by its Content-Length) or as
+    it streams, and so is a write the full disk refuses. The caller deletes `temp_path` and the
     folder on any failure.
     """
     content_type, params = parse_options_header(request.headers.get("content-type", ""))
     if content_type != b"multipart/form-data" or not params.get(b"boundary"):
         raise ServiceError(415, "unsupported_media_type", "upload the model as multipart/form-data with a "
                            "'file' part (and optionally 'cameras' and 'name')", "file")
+    free = shutil.disk_usage(temp_path.parent).free
+    length = request.headers.get("content-length", "")
+
+    def check_room(size: int, what: str, field: str = "file") -> None:
+        if size > free - keep_free:
+            kept = f", of which {keep_free} are kept free (PHD_KEEP_FREE_BYTES)" if keep_free else ""
+            raise insufficient_storage(f"{what} ({size} bytes)", field,
+                                       f"the service's disk has {free} bytes free{kept}")
+
+    if length.isdigit():
+        check_room(int(length), "the upload")
     upload = Upload(path=temp_path)
     digest = hashlib.sha256()
     part = _Part()
@@ -140,7 +155,7 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
             try:
                 where.parent.mkdir(parents=True, exist_ok=True)
                 part.file = open(where, "xb")
-            except OSError:
+            except CLASHES:
                 raise invalid(part.name, f"'{filename}' comes twice or clashes with a folder") from None
             part.counted = True
         elif part.name == "file":
@@ -161,6 +176,7 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
                 raise ServiceError(413, "payload_too_large", f"the folder's files exceed {max_file_bytes} bytes, the "
                                    "largest this service's memory budget can read (leave out the images: the model "
                                    "and its cameras are enough)", part.name)
+            check_room(upload.size, "the folder's files", part.name)
             part.file.write(chunk)
             return
         if part.file is not None:
@@ -171,6 +187,7 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
             if upload.size > max_file_bytes:
                 raise ServiceError(413, "payload_too_large", f"the model file exceeds {max_file_bytes} bytes, the "
                                    "largest this service's memory budget can parse", "file")
+            check_room(upload.size, "the model file")
             part.file.write(chunk)
             return
         assert part.buffer is not None         # on_headers_finished set it for every non-file part
@@ -205,24 +222,28 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
     except FormParserError as exc:      # e.g. a boundary past the parser's 256 characters
         raise ServiceError(400, "invalid_multipart", f"the multipart boundary is refused: {exc}",
                            "Content-Type") from None
+    what = "the uploaded model file"      # its every write and flush: a full disk is 507 (service.store.writing)
     try:
-        async for chunk in request.stream():
-            parser.write(chunk)
-        parser.finalize()
+        with writing(what, "file"):
+            async for chunk in request.stream():
+                parser.write(chunk)
+            parser.finalize()
     except ClientDisconnect:
         raise ServiceError(400, "upload_incomplete", "the upload ended before the body was complete", "file") from None
     except FormParserError as exc:
         raise ServiceError(400, "invalid_multipart", f"malformed multipart body: {exc}", part.name or "file") from None
     finally:
         if part.file is not None:
-            part.file.close()
+            with writing(what, "file"):
+                part.file.close()
     if upload.folder is not None or upload.archive is not None:
         return upload                   # service.folders finds the model in it
     if not upload.has_file:
         raise invalid("file", "no 'file' part: the request must include the model file (or a folder's 'files' or "
                       "'archive')")
     upload.sha256 = digest.hexdigest()
-    await asyncio.to_thread(fsync_path, upload.path)
+    with writing(what, "file"):
+        await asyncio.to_thread(fsync_path, upload.path)
     return upload
 
 

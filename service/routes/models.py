@@ -62,7 +62,8 @@ async def upload_model(request: Request, svc: Service, who: Caller) -> JSONRespo
     folder = temp.with_suffix(".folder")   # a folder's files (service.folders)
     try:
         upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes,
-                                      largest_model_file(svc.settings.memory_budget_bytes), folder)
+                                      largest_model_file(svc.settings.memory_budget_bytes), folder,
+                                      keep_free=svc.settings.keep_free_bytes)
         if upload.folder is not None:
             record = await asyncio.to_thread(svc.ingest_folder, upload, who)
         else:

@@ -190,3 +190,13 @@ def test_downloaded_poses_are_what_phd_rank_export_writes(svc_start, svc_trained
     assert [f["file_path"] for f in own.json()["frames"]] == [f"images/rank00{k}_candidate000{k}.png" for k in range(3)]
     wrong = httpx.post(f"{server.url}/v1/models/{model.id}/poses", json={**body, "indices": [1]})
     assert wrong.status_code == 422 and "one index per camera" in wrong.json()["error"]["message"]
+
+
+def test_a_folder_left_by_a_crash_is_swept_at_start(svc_start, tmp_path) -> None:
+    """An upload's folder outlives its server only if the process died mid-upload: the next start removes it."""
+    left = tmp_path / "data" / "tmp" / "upload-0123.folder" / "run"
+    left.mkdir(parents=True)
+    (left / "model.ply").write_bytes(b"ply\n")
+    (left.parent.with_name("upload-0123.folder.zip")).write_bytes(b"PK")
+    server = svc_start()
+    assert _leftovers(server) == []
