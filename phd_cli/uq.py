@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from phd_core import uq as phd
-from phd_core.data import POSES, export_cameras, load_cameras, source_pose
+from phd_core.data import POSES, candidate_name, export_cameras, load_cameras, source_pose
 from phd_core.errors import InputError
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
 from phd_core.executors import LOCAL, Executor, make_executor
@@ -367,11 +367,6 @@ def run_uq(args: argparse.Namespace) -> int:
     for warning in warnings:
         print(f"warning: {warning}", file=sys.stderr)
     return 0
-
-
-def candidate_name(rank: int, index: int) -> str:
-    """The image a ranked candidate asks for: sorts in capture order and names the candidate."""
-    return f"rank{rank:03d}_candidate{index:04d}.png"
 
 
 def run_rank(args: argparse.Namespace) -> int:

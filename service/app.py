@@ -7,10 +7,13 @@ pool (`service.jobs`); nothing heavy runs on the event loop. Every
 error, FastAPI's own included, answers with `{"error": {"code", "message", "field"}}`.
 
     GET    /health                          liveness and version (never needs the API key)
-    POST   /v1/models                       upload a model (multipart: file, cameras, name)
+    GET    /ui/, /docs, /redoc              the web page and the API's documentation (local files only)
+    POST   /v1/models                       upload a model (multipart: file, cameras, name; or a folder's
+                                            files / a zip archive: service.folders)
     GET    /v1/models                       list models
     GET    /v1/models/{id}                  one model
     DELETE /v1/models/{id}                  delete it (file, metadata and calibration)
+    POST   /v1/models/{id}/poses            ranked poses as a capture tool's files (as `phd rank --export`)
     POST   /v1/models/{id}/calibrate        PH-Dropout calibration -> r_drop, stored with the model
     POST   /v1/models/{id}/rank             candidate poses in the order to capture them
     POST   /v1/select                       per view, which of two models to trust
@@ -148,6 +151,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             store.close()
 
     app = FastAPI(title="PH-Dropout service", version=phd_core.__version__, lifespan=lifespan,
+                  docs_url=None, redoc_url=None,      # served from local files by routes.page
                   description=f"Post hoc epistemic uncertainty for trained models ({', '.join(FAMILIES)}): "
                               "next-best-view ranking and per-view model selection.")
     app.state.service = state

@@ -17,6 +17,7 @@ from typing import Any, Callable, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
+from phd_core.data import POSES
 from phd_core.registry import Registry
 from phd_core.renderers import DEFAULT_SIGNAL, FAMILIES, SIGNALS, Family, signals_help
 from phd_core.uq import DEFAULT_SELECTION_RULE, SELECTION_RULES, rules_help
@@ -91,6 +92,8 @@ class Health(_Response):
     status: Literal["ok"] = "ok"
     version: str
     api_version: str = API_VERSION
+    key_required: bool = Field(False, description="Whether the other routes need an API key (the web page asks for "
+                               "one before it calls them).")
 
 
 class Calibration(_Response):
@@ -246,6 +249,29 @@ class SelectRequest(RenderSize):
     run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
 
     _signal = field_validator("signal")(_known_signal)
+
+
+class PosesRequest(_Request):
+    """Ranked poses to download as the files a capture tool reads (`phd rank --export` writes the same)."""
+
+    cameras: list[dict[str, Any]] = Field(description="The poses in capture order, as transforms frames at their "
+                                          "own size: a rank result's views[].camera.", min_length=1)
+    indices: list[int] | None = Field(None, description="Each pose's candidate index (views[].index): the images "
+                                      "to capture are named rank<k>_candidate<index>.png. Default 0, 1, 2, ...")
+    format: str | None = Field(None, description="One of the pose conventions: " + ", ".join(
+        f"{name} ({c.writes})" for name, c in POSES.items()) + ". Default: the model's camera_format, else "
+        "nerfstudio. A COLMAP text model comes as a zip of its three files.", examples=list(POSES))
+
+    @field_validator("format")
+    @classmethod
+    def _known_format(cls, name: str | None) -> str | None:
+        return None if name is None else _registered(POSES, name)
+
+    @model_validator(mode="after")
+    def _one_index_per_pose(self) -> "PosesRequest":
+        if self.indices is not None and len(self.indices) != len(self.cameras):
+            raise ValueError(f"give one index per camera: {len(self.indices)} indices for {len(self.cameras)} cameras")
+        return self
 
 
 class ExplainRequest(RenderSize):

@@ -266,10 +266,10 @@ class ModelStore:
         """Delete unfinished uploads and model files that no row refers to. Returns what went."""
         with self._connect() as db:
             known = {row["file"] for row in db.execute("SELECT file FROM models")}
-        removed = [p for p in self.tmp_dir.iterdir() if p.is_file()]
+        removed = list(self.tmp_dir.iterdir())    # files, and folders an upload was unpacked into (service.folders)
         removed += [p for p in self.models_dir.iterdir() if p.is_file() and p.name not in known]
         for path in removed:
-            path.unlink(missing_ok=True)
+            shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
         return removed
 
     # ------------------------------------------------------------------ writes

@@ -23,7 +23,7 @@ if not have_browser():
                 allow_module_level=True)
 from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
-from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
+from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
 
 KEY = "view3d-key"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -101,9 +101,10 @@ def _open(driver, server, model) -> dict:
     driver.get(server.url + "/health")          # the same origin, without the page's own calls
     driver.execute_script("localStorage.setItem('phd-api-key', arguments[0])", KEY)
     driver.get(server.url + "/ui/")
-    WebDriverWait(driver, 20).until(lambda d: d.execute_script("return !!window.phdView3d"))
-    _call(driver, "phdView3d.mount(document.getElementById('view3d'), {modelId: arguments[0], headers: arguments[1]})",
-          model.id, AUTH)
+    WebDriverWait(driver, 20).until(lambda d: d.execute_script("return !!window.phdView3d && state.models.length"))
+    Select(driver.find_element(By.ID, "model-select")).select_by_value(model.id)   # app.js mounts the view on it
+    WebDriverWait(driver, 30).until(lambda d: d.execute_script("return state.modelId === arguments[0] && "
+                                                               "state.viewReady", model.id))
     return driver.execute_script("return phdView3d.debug()")
 
 
