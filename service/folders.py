@@ -144,7 +144,7 @@ def read_folder(folder: Path, name: str, ply: Path) -> FolderModel:
     if output_folder is not None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")       # the same notes come back in the output, shown with the model
-            output = read_output(output_folder)
+            output = read_output(output_folder, within=folder)   # a capture it names is read only from the upload
         if output.ply is None:
             write_ply(output.model, ply)
         title = next(o.title for o in OUTPUTS.in_order() if o.detect(output_folder))

@@ -15,7 +15,14 @@ from typing import Any
 from fastapi.responses import JSONResponse
 
 from phd_core.executors import LOCAL, Executor
-from phd_core.renderers import FAMILIES, SNIFF_BYTES, accepts_background, load_model_bytes, set_background
+from phd_core.renderers import (
+    FAMILIES,
+    NO_CAMERAS_NOTE,
+    SNIFF_BYTES,
+    accepts_background,
+    load_model_bytes,
+    set_background,
+)
 from phd_core.scene import Camera
 
 from .budget import MemoryLedger, Reservation, largest_model_file, load_bytes
@@ -168,8 +175,13 @@ class ServiceState:
         facts["camera_format"] = camera_format or facts.get("camera_format")
         if background_source is not None:
             facts["background_source"] = background_source
-        if upload.notes:
-            facts["notes"] = upload.notes       # what reading its trainer's folder noted
+        # What loading the file noted, then what reading its trainer's folder noted; and a model
+        # stored without training cameras says so (its poses are in the file's frame).
+        notes = [*facts.get("notes", []), *upload.notes]
+        if not frames and NO_CAMERAS_NOTE not in notes:
+            notes.append(NO_CAMERAS_NOTE)
+        if notes:
+            facts["notes"] = notes
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)

@@ -30,14 +30,14 @@ from .families import (
 from .gs2d.family import GS2D
 from .gs3d.family import GS3D
 from .nerf.family import NERF
-from .protocol import CameraView, Renderer, RenderMemory, View, check_keep, memory_probe_bytes
+from .protocol import NO_CAMERAS_NOTE, CameraView, Renderer, RenderMemory, View, check_keep, memory_probe_bytes
 from .signals import DEFAULT_SIGNAL, PREMULTIPLIED, SIGNALS, Signal, signal_channels, signals_help
 
 for _family in (GS3D, NERF, GS2D):
     FAMILIES.register(_family)
 DEFAULT_FAMILY = GS3D.name      # what `phd train` trains unless told otherwise
 
-__all__ = ["DEFAULT_FAMILY", "DEFAULT_SIGNAL", "FAMILIES", "PREMULTIPLIED", "SIGNALS", "SNIFF_BYTES", "CameraView",
-           "Family", "RenderMemory", "Renderer", "Signal", "View", "UnknownModelError", "accepts_background",
-           "check_keep", "family_of", "family_titles", "load_model", "load_model_bytes", "memory_probe_bytes",
-           "model_kind", "option", "set_background", "signal_channels", "signals_help"]
+__all__ = ["DEFAULT_FAMILY", "DEFAULT_SIGNAL", "FAMILIES", "NO_CAMERAS_NOTE", "PREMULTIPLIED", "SIGNALS",
+           "SNIFF_BYTES", "CameraView", "Family", "RenderMemory", "Renderer", "Signal", "View", "UnknownModelError",
+           "accepts_background", "check_keep", "family_of", "family_titles", "load_model", "load_model_bytes",
+           "memory_probe_bytes", "model_kind", "option", "set_background", "signal_channels", "signals_help"]

@@ -23,6 +23,11 @@ import torch
 from ..scene import Camera
 from .signals import DEFAULT_SIGNAL
 
+# What a model loaded or uploaded with no training cameras carries in its facts' notes (any family).
+NO_CAMERAS_NOTE = ("the model has no training cameras: poses given and returned are in the frame its file holds "
+                   "the model in (check that it is your capture's), calibration needs cameras, and candidate poses "
+                   "are placed around the model")
+
 
 @runtime_checkable
 class View(Protocol):

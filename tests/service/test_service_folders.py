@@ -20,6 +20,7 @@ import pytest
 from client import PHDClient
 from phd_cli import main as phd
 from phd_core.data import POSES
+from phd_core.renderers.outputs import read_output
 from service.budget import largest_model_file
 from support.captures import write_output_folder
 from support.fixtures import svc_cameras, svc_random_gaussians
@@ -60,11 +61,9 @@ def test_a_folder_uploads_as_the_client_reads_it(svc_start, svc_trained, tmp_pat
         folder = source = write_output_folder(tmp_path / "output" / "lego", svc_random_gaussians(200),
                                               svc_cameras(3), white=True)
         zip_root = None
-    elif trainer == "splatfacto":
-        folder = source = splatfacto_scene(tmp_path, export_ply=False)["folder"]
-        zip_root = None
-    else:   # the capture gsplat read travels in the zip beside the run, where its cfg.yml says
-        folder = source = gsplat_scene(tmp_path)["folder"]
+    else:   # the capture the run read travels in the zip beside the run, where its config says
+        scene = splatfacto_scene(tmp_path, export_ply=False) if trainer == "splatfacto" else gsplat_scene(tmp_path)
+        folder = source = scene["folder"]
         zip_root = tmp_path
     server = svc_start()
     with PHDClient(server.url) as client:
@@ -94,6 +93,26 @@ def test_a_folder_uploads_as_the_client_reads_it(svc_start, svc_trained, tmp_pat
         assert got["name"] == expected.name         # the run's name, as the client gives it
         # What the reader noted (the frame it undid, the checkpoint it read) is kept with the model.
         assert bool(got["details"].get("notes")) == (trainer != "reference 3DGS")
+    assert _leftovers(server) == []
+
+
+@pytest.mark.parametrize("trainer", ["splatfacto", "gsplat"])
+def test_a_folder_is_read_without_a_capture_outside_the_upload(svc_start, tmp_path, trainer) -> None:
+    """A run's config names its capture by a path; uploaded alone, the service must not find that
+    path on its own disk (here the capture sits, readable, beside the run on the server's disk,
+    and the config names it by its absolute path): the model arrives without training cameras."""
+    scene = splatfacto_scene(tmp_path, export_ply=False) if trainer == "splatfacto" else gsplat_scene(tmp_path)
+    config = scene["folder"] / ("config.yml" if trainer == "splatfacto" else "cfg.yml")
+    named = "- data\n- desk" if trainer == "splatfacto" else "data/garden"      # YAML of a PosixPath, or a string
+    capture = tmp_path / "data" / ("desk" if trainer == "splatfacto" else "garden")
+    text = config.read_text()
+    assert named in text and capture.is_dir()
+    config.write_text(text.replace(named, f"- {capture}" if trainer == "splatfacto" else str(capture)))
+    assert read_output(scene["folder"]).cameras                 # read where it lies, the run has its cameras
+    server = svc_start()
+    answer = httpx.post(f"{server.url}/v1/models", files={"archive": ("run.zip", _zip(scene["folder"]))}, timeout=120)
+    assert answer.status_code == 201, answer.text
+    assert answer.json()["num_training_cameras"] == 0
     assert _leftovers(server) == []
 
 

@@ -16,6 +16,7 @@ import pytest
 from client import AuthenticationError, NotFoundError, PHDClient
 from phd_core import uq
 from phd_core.io import colorize, png_bytes
+from phd_core.renderers import NO_CAMERAS_NOTE
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 from support.fixtures import svc_cameras
 
@@ -68,6 +69,8 @@ def test_training_cameras_are_returned_as_stored(svc_start, svc_model_files):
             assert (frame["fl_x"], frame["w"], frame["h"]) == (pytest.approx(camera.fx), 24, 24)
         bare = phd.upload_model(svc_model_files["ply_b"])
         assert phd.training_cameras(bare.id) == []
+        # A model stored without training cameras says so with the model; one with them does not.
+        assert NO_CAMERAS_NOTE in bare.details["notes"] and NO_CAMERAS_NOTE not in info.details.get("notes", [])
         with pytest.raises(NotFoundError) as missing:
             phd.training_cameras("nope")
         assert missing.value.code == "model_not_found"

@@ -50,22 +50,23 @@ class OutputFormat:
     name: str
     title: str                                   # for messages: "a nerfstudio splatfacto output folder"
     detect: Callable[[Path], bool]               # True when a folder is this trainer's output
-    read: Callable[[Path], TrainerOutput]
+    read: Callable[[Path, Path | None], TrainerOutput]   # (folder, read nothing outside this folder unless None)
     order: int = 100                             # detection order, lowest first (`read_output`)
 
 
 OUTPUTS: Registry[OutputFormat] = Registry("trainer output folder")
 
 
-def read_output(path: str | Path) -> TrainerOutput:
+def read_output(path: str | Path, within: str | Path | None = None) -> TrainerOutput:
     """The first trainer output, by `order`, that recognises the folder, read; its notes and
     warnings are also issued as Python warnings (ModelNote, ModelWarning). The built-in
     ones look for different files (cameras.json + point_cloud/, config.yml, ckpts/); the
-    order decides for a folder holding more than one."""
+    order decides for a folder holding more than one. `within`: the capture a run names is
+    only looked for inside that folder (the service passes the upload's own folder)."""
     path = Path(path)
     for output_format in OUTPUTS.in_order():
         if output_format.detect(path):
-            output = output_format.read(path)
+            output = output_format.read(path, None if within is None else Path(within))
             output.name = output.name or path.resolve().name
             empty = empty_views(output.model, output.cameras)
             if output.cameras and len(empty) * 2 > len(output.cameras):
@@ -114,13 +115,13 @@ def sh_from_parts(dc: torch.Tensor, rest: torch.Tensor, field: str) -> torch.Ten
     return torch.cat([dc, rest], dim=1)
 
 
-def data_candidates(folder: Path, data: Path) -> list[Path]:
+def data_candidates(folder: Path, data: Path, within: Path | None = None) -> list[Path]:
     """Where the data path a trainer recorded may be now: itself when absolute, else relative
     to the working directory, the output folder or any folder above it (trainers record the
-    path as they were given it, relative to where they ran)."""
-    if data.is_absolute():
-        return [data]
-    return [base / data for base in (Path.cwd(), folder, *folder.resolve().parents)]
+    path as they were given it, relative to where they ran). `within`: only places inside that
+    folder (a folder uploaded to the service must not make it read the server's own files)."""
+    places = [data] if data.is_absolute() else [base / data for base in (Path.cwd(), folder, *folder.resolve().parents)]
+    return places if within is None else [p for p in places if p.resolve().is_relative_to(within.resolve())]
 
 
 def nearest_distances(points: torch.Tensor, targets: torch.Tensor, chunk: int = 128, k: int = 1) -> torch.Tensor:

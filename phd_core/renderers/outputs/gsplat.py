@@ -79,7 +79,7 @@ def detect(path: Path) -> bool:
     return path.is_dir() and any(CHECKPOINT.fullmatch(p.name) for p in (path / "ckpts").glob("ckpt_*.pt"))
 
 
-def read(folder: Path) -> TrainerOutput:
+def read(folder: Path, within: Path | None = None) -> TrainerOutput:
     checkpoints = {(int(m.group(1)), -int(m.group(2))): p for p in (folder / "ckpts").glob("ckpt_*.pt")
                    if (m := CHECKPOINT.fullmatch(p.name))}
     source = checkpoints[max(checkpoints)]                       # the latest step, rank 0 first
@@ -89,7 +89,7 @@ def read(folder: Path) -> TrainerOutput:
         raise InputError("cfg.yml", "must be a mapping (the trainer's Config)")
     if config.get("data_type", "colmap") != "colmap":
         raise InputError("cfg.yml.data_type", f"only COLMAP captures are read, got {config['data_type']!r}")
-    capture = _find_capture(folder, yaml_path(config.get("data_dir")))
+    capture = _find_capture(folder, yaml_path(config.get("data_dir")), within)
     background = (0.0, 0.0, 0.0)
     if capture is None:
         return TrainerOutput(model, [], background, source, warnings=[
@@ -310,8 +310,8 @@ def camera_spread(cameras: list[Camera]) -> float:
     return float((centres - centres.median(dim=0).values).norm(dim=-1).median()) or 1.0
 
 
-def _find_capture(folder: Path, data: Path | None) -> Path | None:
-    for candidate in [] if data is None else data_candidates(folder, data):
+def _find_capture(folder: Path, data: Path | None, within: Path | None) -> Path | None:
+    for candidate in [] if data is None else data_candidates(folder, data, within):
         model_dir = find_model(candidate) if candidate.is_dir() else None
         if model_dir is not None:
             return model_dir

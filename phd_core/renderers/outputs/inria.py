@@ -11,11 +11,11 @@ from ..gs3d import read_ply
 from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates
 
 
-def read(folder: Path) -> TrainerOutput:
+def read(folder: Path, within: Path | None = None) -> TrainerOutput:
     found = read_output_folder(folder)
     # cfg_args' source_path: the capture it trained on; its own splits are the run's (--eval holds out every 8th)
     source = read_cfg_args(folder).get("source_path", "").strip("'\"")
-    capture = next((p for p in data_candidates(folder, Path(source)) if p.is_dir()), None) if source else None
+    capture = next((p for p in data_candidates(folder, Path(source), within) if p.is_dir()), None) if source else None
     return TrainerOutput(read_ply(found.ply), found.cameras, found.background, found.ply, ply=found.ply,
                          camera_format="3dgs-output", capture=capture, name=f"{folder.resolve().name}/3dgs")
 

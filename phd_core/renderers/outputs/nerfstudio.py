@@ -66,7 +66,7 @@ def detect(path: Path) -> bool:
     return path.is_dir() and (path / "config.yml").is_file() and (path / FRAME_FILE).is_file()
 
 
-def read(folder: Path) -> TrainerOutput:
+def read(folder: Path, within: Path | None = None) -> TrainerOutput:
     config = read_yaml(folder / "config.yml")
     if not isinstance(config, dict):
         raise InputError("config.yml", "must be a mapping (nerfstudio's TrainerConfig)")
@@ -77,7 +77,7 @@ def read(folder: Path) -> TrainerOutput:
     model_config = _section(config, "pipeline", "model")
     stored = read_frame(folder / FRAME_FILE)                      # nerfstudio's original data frame -> model frame
     model, source = read_splats(folder, model_config.get("sh_degree", 3))
-    cameras, frame, camera_format, notes, capture, splits = training_cameras(folder, config, stored)
+    cameras, frame, camera_format, notes, capture, splits = training_cameras(folder, config, stored, within)
     background = model_config.get("background_color", "random")
     if background not in BACKGROUNDS:
         raise InputError("config.yml.background_color", f"must be one of {', '.join(BACKGROUNDS)}, got {background!r}")
@@ -162,14 +162,14 @@ def checkpoint_model(path: Path, sh_degree: Any) -> GaussianModel:
 
 # ----------------------------------------------------------------------------- cameras and frame
 
-def training_cameras(folder: Path, config: dict, stored: Similarity
+def training_cameras(folder: Path, config: dict, stored: Similarity, within: Path | None = None
                      ) -> tuple[list[Camera], Similarity, str | None, list[str], Path | None, dict[str, list[int]]]:
     """(training cameras in transforms.json's frame, user frame -> model frame, the pose
     convention of that frame, notes, transforms.json when found, the run's train/test frames as
     indices into it)."""
     parser = _section(config, "pipeline", "datamanager", "dataparser")
     data = yaml_path(parser.get("data")) or yaml_path(config.get("data"))
-    json_path = _find_transforms(folder, data)
+    json_path = _find_transforms(folder, data, within)
     if json_path is None:
         camera_format, frame_name = frame_without_data(stored, parser)
         return [], stored, camera_format, [
@@ -254,8 +254,8 @@ def train_frames(frames: list, meta: dict, parser: dict) -> list[int]:
     return [order[k] for k in chosen]
 
 
-def _find_transforms(folder: Path, data: Path | None) -> Path | None:
-    for candidate in [] if data is None else data_candidates(folder, data):
+def _find_transforms(folder: Path, data: Path | None, within: Path | None) -> Path | None:
+    for candidate in [] if data is None else data_candidates(folder, data, within):
         json_path = candidate if candidate.suffix == ".json" else candidate / "transforms.json"
         if json_path.is_file():
             return json_path

@@ -20,7 +20,7 @@ import torch
 from ...errors import InputError
 from ...scene import Camera, cameras_from_json, pixels_in_box
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR
-from ..protocol import View
+from ..protocol import NO_CAMERAS_NOTE, View
 from ..signals import DEFAULT_SIGNAL, signal_image
 from ..visibility import Visibility, fragment_visibility, reduce_to_visibility, robust_box
 from .maths import DEFAULT_TILE, Pairs, tile_layout
@@ -28,9 +28,6 @@ from .model import GaussianModel
 from .ply import read_sidecar
 
 NEAR_PLANE = 0.2
-NO_CAMERAS_NOTE = ("the model has no training cameras: poses given and returned are in the frame its file holds "
-                   "the splats in (check that it is your capture's), calibration needs cameras, and candidate poses "
-                   "are placed around the splats")
 SOLID_OPACITY = 0.05    # splats at least this opaque say where the scene is (`scene_box`)
 FISHER_PROBES = 4       # random projections per view in `SplatRenderer.fisher`
 
