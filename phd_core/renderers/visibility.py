@@ -55,6 +55,22 @@ class Visibility:
         """[K] float64 in [0, 1]: how much of each element's footprint is not hidden."""
         return (self.weight / self.footprint.clamp_min(1e-300)).clamp(0.0, 1.0)
 
+    def seen(self) -> "Seen":
+        """What a captured view's coverage needs of it (`Seen`)."""
+        return Seen(camera=self.camera, elements=self.elements, visible_share=self.visible_share)
+
+
+@dataclass
+class Seen:
+    """What a captured view saw, as far as the coverage strategies use it: which elements it
+    shows and how much of each is not hidden (`Visibility.visible_share`). SEEN_ELEMENT_BYTES
+    an element instead of a Visibility's KEPT_ELEMENT_BYTES; what a model's captured views saw
+    is stored in this form (`phd_core.uq.strategies.captured`)."""
+
+    camera: Camera
+    elements: Tensor          # [K] long, element ids, ascending
+    visible_share: Tensor     # [K] float64 in [0, 1]
+
 
 # What a visibility pass holds (a memory plan adds it to the view's render bounds), in bytes:
 # per fragment, the caller's int64 element of each fragment and the int64 index it is gathered
@@ -65,11 +81,17 @@ class Visibility:
 PASS_FRAGMENT_BYTES = 16
 PASS_UNIT_BYTES = 64
 KEPT_ELEMENT_BYTES = 56
-# A strategy's working copy of an element (`phd_core.uq.strategies.visibility.Coverage`): index,
-# direction, weight, novelty (8 + 24 + 2 x 8), and what counting a view as captured holds per
-# element of the union (seen share and direction, 8 + 24; the union is at most every listed
-# element); retiring picked candidates copies at most half of one array (12), less than that.
-COVERAGE_ELEMENT_BYTES = 80
+SEEN_ELEMENT_BYTES = 16
+# A strategy's working copy of a candidate's element (`phd_core.uq.strategies.visibility.Coverage`):
+# index, direction, weight, novelty, owner and its place in the by-element list (8 + 24 + 4 x 8), and
+# per element of the union (at most every listed element) its id, point and first entry (8 + 24 + 8)
+# and the sort that lists entries by element (16): 120. Counting a view as captured works on at most
+# CAPTURE_CHUNK entries at once, about COVERAGE_CAPTURE_BYTES whatever the views.
+COVERAGE_ELEMENT_BYTES = 120
+COVERAGE_CAPTURE_BYTES = 16 << 20
+# A captured view's Seen keeps ids and shares (8 + 8); stored, they are 12 bytes an element on disk,
+# read whole and converted (12 + 12 + 16 at once while one is loaded): SEEN_LOAD_ELEMENT_BYTES.
+SEEN_LOAD_ELEMENT_BYTES = 40
 
 
 def visibility_bytes(num_units: int, camera: Camera) -> int:
