@@ -4,6 +4,7 @@ Layout of the data directory:
 
     phd.sqlite3          metadata: table `models` (one row per model, calibration included)
     models/<id>.<ext>    the uploaded model file, byte for byte (.ply or .nerf)
+    models/<id>.<ext>.phd-cache/   results derived from it (`cache`), deleted with it
     tmp/                 uploads in progress (swept at startup)
 
 Crash safety comes from the order of operations. An upload is written to `tmp/`, fsynced,
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sqlite3
 import threading
 import uuid
@@ -26,7 +28,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from phd_core.io import fsync_path
+from phd_core.io import ModelCache, fsync_path
 from phd_core.renderers import FAMILIES
 
 DB_NAME = "phd.sqlite3"
@@ -104,7 +106,10 @@ class ModelStore:
         removed += [p for p in self.models_dir.iterdir() if p.is_file() and p.name not in known]
         for path in removed:
             path.unlink(missing_ok=True)
-        return removed
+        caches = [p for p in self.models_dir.iterdir() if p.is_dir() and p.name.removesuffix(".phd-cache") not in known]
+        for path in caches:
+            shutil.rmtree(path, ignore_errors=True)
+        return removed + caches
 
     # ------------------------------------------------------------------ writes
 
@@ -162,6 +167,7 @@ class ModelStore:
                 return False
             db.execute("DELETE FROM models WHERE id = ?", (model_id,))
         (self.models_dir / row["file"]).unlink(missing_ok=True)
+        shutil.rmtree(ModelCache(self.models_dir / row["file"]).dir, ignore_errors=True)
         return True
 
     # ------------------------------------------------------------------ reads
@@ -178,6 +184,11 @@ class ModelStore:
 
     def path(self, record: ModelRecord) -> Path:
         return self.models_dir / record.file
+
+    def cache(self, record: ModelRecord) -> ModelCache:
+        """Results derived from the model (what its captured views saw), kept beside its file and
+        deleted with it; each entry is written atomically and keyed by the model's sha256."""
+        return ModelCache(self.path(record), digest=record.sha256)
 
 
 def _record(row: sqlite3.Row) -> ModelRecord:

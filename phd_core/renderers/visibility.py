@@ -89,9 +89,10 @@ SEEN_ELEMENT_BYTES = 16
 # CAPTURE_CHUNK entries at once, about COVERAGE_CAPTURE_BYTES whatever the views.
 COVERAGE_ELEMENT_BYTES = 120
 COVERAGE_CAPTURE_BYTES = 16 << 20
-# A captured view's Seen keeps ids and shares (8 + 8); stored, they are 12 bytes an element on disk,
-# read whole and converted (12 + 12 + 16 at once while one is loaded): SEEN_LOAD_ELEMENT_BYTES.
-SEEN_LOAD_ELEMENT_BYTES = 40
+# A captured view's Seen keeps ids and shares (8 + 8); stored, they take 12 bytes an element, and
+# reading the entry or writing it holds the file's bytes, the tensors read or concatenated and a
+# copy of the bytes (at most 40 more): SEEN_STORED_BYTES an element of a stored view.
+SEEN_STORED_BYTES = 56
 
 
 def visibility_bytes(num_units: int, camera: Camera) -> int:
@@ -99,6 +100,12 @@ def visibility_bytes(num_units: int, camera: Camera) -> int:
     elements a pixel, and never more than the model's units."""
     elements = min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
     return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * elements
+
+
+def seen_bytes(num_units: int, camera: Camera) -> int:
+    """The most a captured view rendered for a rank holds: its Visibility while it is reduced to a
+    Seen, and the Seen, kept and stored (at most ELEMENTS_PER_PIXEL elements a pixel)."""
+    return (KEPT_ELEMENT_BYTES + SEEN_STORED_BYTES) * min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
 
 
 class ReportsVisibility(Renderer, Protocol):
