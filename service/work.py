@@ -368,14 +368,14 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     kept = kept if heatmaps else 0
     # A strategy that uses visibility keeps what every candidate sees (`visibility_bytes`, measured
     # with its dropout renders). What the captured poses saw comes from the model's stored coverage
-    # (read whole, `seen_bytes` of each stored element); the poses it lacks are rendered, one
+    # (read whole, SEEN_STORED_BYTES an element); the poses it lacks are rendered, one
     # visibility pass each, and kept in compact form (and stored, `captured_seen`).
     visibility = get_strategy(body.strategy).uses_visibility
     coverage = CapturedStore(store.cache(record)) if visibility and store is not None else None
     stored = coverage.index() if coverage is not None else {}
     fresh = [c for c in captured if camera_key(c) not in stored] if visibility else []
     seen = (sum(visibility_bytes(record.num_units, c) for c in cameras) + sum(stored.values()) * SEEN_STORED_BYTES
-            + sum(seen_bytes(record.num_units, c) for c in fresh) + COVERAGE_CAPTURE_BYTES) if visibility else 0
+            + seen_bytes(record.num_units, fresh) + COVERAGE_CAPTURE_BYTES) if visibility else 0
     renders = Renders([(record, "model_id", cameras + fresh)], samples, kept_bytes=kept + seen,
                       kept_field="heatmaps" if kept >= seen else "downscale", visibility=visibility, signal=signal)
     if visibility:          # over the budget for the strategy's own memory: say which strategy fits

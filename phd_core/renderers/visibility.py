@@ -18,7 +18,7 @@ for the 7M fragments of a 1M-splat model at 200x150).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, TypeGuard
+from typing import Protocol, Sequence, TypeGuard
 
 import numba
 import numpy as np
@@ -95,17 +95,21 @@ COVERAGE_CAPTURE_BYTES = 16 << 20
 SEEN_STORED_BYTES = 56
 
 
+def listed_elements(num_units: int, camera: Camera) -> int:
+    """The most elements a view's Visibility lists: ELEMENTS_PER_PIXEL a pixel, at most the model's units."""
+    return min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
+
+
 def visibility_bytes(num_units: int, camera: Camera) -> int:
-    """The most one view's Visibility and a strategy's copy of it hold: at most ELEMENTS_PER_PIXEL
-    elements a pixel, and never more than the model's units."""
-    elements = min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
-    return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * elements
+    """The most one view's Visibility and a strategy's copy of it hold."""
+    return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * listed_elements(num_units, camera)
 
 
-def seen_bytes(num_units: int, camera: Camera) -> int:
-    """The most a captured view rendered for a rank holds: its Visibility while it is reduced to a
-    Seen, and the Seen, kept and stored (at most ELEMENTS_PER_PIXEL elements a pixel)."""
-    return (KEPT_ELEMENT_BYTES + SEEN_STORED_BYTES) * min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
+def seen_bytes(num_units: int, cameras: Sequence[Camera]) -> int:
+    """The most the captured views a rank renders hold: each one's Seen, kept and stored, and one
+    Visibility at a time while it is reduced to its Seen."""
+    listed = [listed_elements(num_units, camera) for camera in cameras]
+    return SEEN_STORED_BYTES * sum(listed) + KEPT_ELEMENT_BYTES * max(listed, default=0)
 
 
 class ReportsVisibility(Renderer, Protocol):

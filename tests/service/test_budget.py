@@ -276,7 +276,7 @@ def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(
     # captured view the same, in the compact form it is kept and stored in.
     views, captured = svc_cameras(2, size=40, phase=0.5), svc_cameras(3, size=300)
     assert seen.kept_bytes - plain.kept_bytes == (sum(visibility_bytes(300, c) for c in views) + COVERAGE_CAPTURE_BYTES
-                                                  + sum(seen_bytes(300, c) for c in captured))
+                                                  + seen_bytes(300, captured))
     assert visibility_bytes(300, views[0]) == (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * 300
     assert visibility_bytes(10**6, views[0]) == (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * 4 * 40 * 40
     # The 300x300 captured views' fragments, walked by the visibility pass, outweigh the 40x40 renders.
