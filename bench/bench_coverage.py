@@ -64,6 +64,7 @@ def main() -> None:
     p.add_argument("--captured", type=int, default=6, help="donut_200 training poses counted as captured")
     p.add_argument("--strategies", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--section", default="coverage", help="the docs' section (and results file) to write")
     args = p.parse_args()
     torch.set_num_threads(1)
     before = module_at(args.before, "phd_core/uq/strategies/visibility.py")
@@ -93,10 +94,12 @@ def main() -> None:
                                  "before_updates": updates["before"], "now_updates": updates["now"],
                                  "identical": same})
                     print(rows[-1], flush=True)
-    write_result(RESULTS / "coverage.json", {"machine": machine(), "before": args.before, "rows": rows})
+    write_result(RESULTS / f"{args.section.replace('-', '_')}.json", {"machine": machine(), "before": args.before,
+                                                                      "rows": rows})
     lines = [f"Command: `nice -n 10 .venv/bin/python -m bench.bench_coverage --before {args.before} --copies "
              f"{' '.join(map(str, args.copies))} --candidates {' '.join(map(str, args.candidates))} --captured "
-             f"{args.captured} --strategies {' '.join(args.strategies)}` (one thread, both versions alternating on "
+             f"{args.captured} --width {args.width} --strategies {' '.join(args.strategies)} --section {args.section}` "
+             "(one thread, both versions alternating on "
              f"the same evidence, best of {args.repeats}; \"identical\": the same order and the same scores bit for "
              "bit; updates: candidate sums computed). Elements: the candidates' listed splats, summed.", "",
              "| splats | size | candidates | captured | elements | strategy | k | before s | now s | speed-up "
@@ -106,7 +109,7 @@ def main() -> None:
               f"{r['strategy']} | {r['k']} | {r['before_s']:.3f} | {r['now_s']:.3f} | "
               f"{r['before_s'] / r['now_s']:.2f}x | {r['before_updates']:,} | {r['now_updates']:,} | "
               f"{'yes' if r['identical'] else 'NO'} |" for r in rows]
-    write_doc(DOCS / "performance.md", "\n".join(lines), section="coverage")
+    write_doc(DOCS / "performance.md", "\n".join(lines), section=args.section)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,8 @@
 """What the default strategy costs against the paper's rule (issue 34): `phd rank`, whole process.
 
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.bench_default_cost --before main [--only donut nerf 1m ...]
+        [--count C] [--runs "before default" "now sigma_max" ...] [--out FILE]
+    .venv/bin/python -m bench.bench_default_cost --before main --report FILE...   (the docs' table)
 
 Per scene, `phd rank` in a child process (start-up and load included) of the scene's candidates,
 by the code at `--before` (a `git archive` of its phd_core and phd_cli) and by this checkout:
@@ -38,6 +40,7 @@ from bench._harness import (
     RESULTS,
     ROOT,
     child,
+    command,
     load_average,
     machine,
     tiled_model,
@@ -55,6 +58,10 @@ SCENES = {   # name: (candidate source, candidates, width, height, samples)
     "1m-uncaptured": (DONUT, 100, 200, 150, 16),
 }
 RATIO = 0.5
+RUNS = {  # label: (strategy, by the code before)
+    "before sigma_max": ("sigma_max", True), "before default": ("visibility_sigma_fvs", True),
+    "now sigma_max": ("sigma_max", False), "now default, cold": ("visibility_sigma_fvs", False),
+    "now default, warm": ("visibility_sigma_fvs", False)}
 
 
 def scene_model(name: str, folder: Path) -> Path:
@@ -86,28 +93,50 @@ def rank(model: Path, poses: Path, out: Path, width: int, height: int, samples: 
     return run
 
 
+def warm_up(folder: Path, before: Path) -> None:
+    """A small rank by both versions with both strategies, so neither pays numba's compilation
+    (its cache sits beside each version's code) in the runs measured."""
+    model = folder / "warm.ply"
+    write_ply(tiled_model(1, 3).subset(slice(0, 2000)), model)
+    train = load_blender(DONUT, "train", with_images=False).cameras[:3]
+    sidecar_path(model).write_text(json.dumps({"format": SIDECAR_FORMAT, "background": [1.0, 1.0, 1.0],
+                                               "training_cameras": [c.to_frame() for c in train]}))
+    poses = folder / "warm-candidates.json"
+    frames = json.loads((DONUT / "transforms_test.json").read_text())
+    poses.write_text(json.dumps({**frames, "frames": frames["frames"][:3]}))
+    for code in (before, None):
+        for strategy in ("sigma_max", "visibility_sigma_fvs"):
+            rank(model, poses, folder / "warm-ranking.json", 20, 20, 4, strategy, code)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--before", required=True, help="the git revision to compare with")
     p.add_argument("--only", nargs="*", default=list(SCENES), choices=list(SCENES))
-    p.add_argument("--report", action="store_true", help="only write the docs' table from the results file")
+    p.add_argument("--count", type=int, help="candidates per scene instead of the scene's own number")
+    p.add_argument("--runs", nargs="*", default=list(RUNS), choices=list(RUNS))
+    p.add_argument("--out", type=Path, default=RESULTS / "default_cost.json", help="results file (adds to it)")
+    p.add_argument("--report", nargs="*", type=Path, metavar="RESULTS",
+                   help="only write the docs' table from these results files")
     args = p.parse_args()
-    if args.report:
-        write_doc(DOCS / "performance.md", report(json.loads((RESULTS / "default_cost.json").read_text())),
-                  section="default-cost")
+    if args.report is not None:
+        write_doc(DOCS / "performance.md", "\n\n".join(report(json.loads(path.read_text()))
+                                                         for path in args.report), section="default-cost")
         return
     results = {"machine": machine(omp_num_threads=os.environ.get("OMP_NUM_THREADS")), "before": args.before,
-               "scenes": {}}
-    if (RESULTS / "default_cost.json").exists():      # scenes measured in earlier runs stay
-        results["scenes"] = json.loads((RESULTS / "default_cost.json").read_text())["scenes"]
+               "command": command(), "scenes": {}}
+    if args.out.exists():      # scenes measured in earlier runs stay
+        results["scenes"] = json.loads(args.out.read_text())["scenes"]
     with tempfile.TemporaryDirectory() as tmp:
         before = Path(tmp) / "before"
         before.mkdir()
         archive = subprocess.run(["git", "archive", args.before, "phd_core", "phd_cli"], cwd=ROOT, check=True,
                                  capture_output=True).stdout
         subprocess.run(["tar", "-x", "-C", str(before)], input=archive, check=True)
+        warm_up(Path(tmp), before)
         for name in args.only:
             source, count, width, height, samples = SCENES[name]
+            count = args.count or count
             folder = Path(tmp) / name
             folder.mkdir()
             model = scene_model(name, folder)
@@ -116,25 +145,22 @@ def main() -> None:
             poses = folder / "candidates.json"
             poses.write_text(json.dumps(frames))
             runs = {}
-            for label, strategy, code in (("before sigma_max", "sigma_max", before),
-                                          ("before default", "visibility_sigma_fvs", before),
-                                          ("now sigma_max", "sigma_max", None),
-                                          ("now default, cold", "visibility_sigma_fvs", None),
-                                          ("now default, warm", "visibility_sigma_fvs", None)):
-                runs[label] = rank(model, poses, folder / "ranking.json", width, height, samples, strategy, code)
+            for label in args.runs:
+                strategy, old = RUNS[label]
+                runs[label] = rank(model, poses, folder / "ranking.json", width, height, samples, strategy,
+                                   before if old else None)
                 runs[label]["load"] = load_average()
                 print(name, label, {k: v for k, v in runs[label].items() if k not in ("order", "scores")}, flush=True)
             results["scenes"][name] = {"candidates": count, "size": f"{width}x{height}", "samples": samples,
                                        "runs": runs}
-            write_result(RESULTS / "default_cost.json", results)
-    write_doc(DOCS / "performance.md", report(results), section="default-cost")
+            write_result(args.out, results)
 
 
 def report(results: dict) -> str:
-    threads = results["machine"].get("omp_num_threads") or "torch's default"
-    lines = [f"Command: `OMP_NUM_THREADS={results['machine'].get('omp_num_threads') or ''} nice -n 10 .venv/bin/python "
-             f"-m bench.bench_default_cost --before {results['before']}` (`phd rank` in a child process each, start-up "
-             f"and load included, {threads} threads; "
+    threads = results["machine"].get("omp_num_threads") or "torch's default (2)"
+    ran = results.get("command", "python -m bench.bench_default_cost --before main --only donut nerf")
+    lines = [f"Command: `{ran}` (`phd rank` in a child process each, start-up and load included, "
+             f"{threads} threads; "
              f"{machine_note(results)}). \"default / sigma_max\": the ratio of the two strategies' CPU seconds "
              "(and wall seconds) by the same code; \"same picks\": the default's order and scores now equal the "
              "code before's, bit for bit.", "",
@@ -145,11 +171,11 @@ def report(results: dict) -> str:
         runs = scene["runs"]
         for label, run in runs.items():
             code = label.split()[0]
-            paper = runs[f"{code} sigma_max"]
+            paper = runs.get(f"{code} sigma_max")
             ratio = (f"{cpu(run) / cpu(paper):.2f}x ({run['wall_s'] / paper['wall_s']:.2f}x)"
-                     if "default" in label else "")
+                     if "default" in label and paper else "")
             same = ""
-            if label.startswith("now default"):
+            if label.startswith("now default") and "before default" in runs:
                 before = runs["before default"]
                 same = "yes" if run["order"] == before["order"] and run["scores"] == before["scores"] else "NO"
             lines.append(f"| {name} | {scene['candidates']} | {scene['size']} | {scene['samples']} | {label} | "
