@@ -382,7 +382,8 @@ def run_rank(args: argparse.Namespace) -> int:
         # Only the poses matter here: frames without w/h get a placeholder size.
         captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
     # What the captured views saw is kept beside the model (computed once per model and set of poses).
-    store = CapturedStore(ModelCache(args.model)) if STRATEGIES[args.strategy].uses_visibility else None
+    store = (CapturedStore(ModelCache(args.model), default=renderer.training_cameras)
+             if STRATEGIES[args.strategy].uses_visibility else None)
     ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
                             top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor,
                             coarse=args.coarse, refine=args.refine, signal=args.signal, captured_store=store)

@@ -371,7 +371,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     # (read whole, SEEN_STORED_BYTES an element); the poses it lacks are rendered, one
     # visibility pass each, and kept in compact form (and stored, `captured_seen`).
     visibility = get_strategy(body.strategy).uses_visibility
-    coverage = CapturedStore(store.cache(record)) if visibility and store is not None else None
+    coverage = (CapturedStore(store.cache(record), default=stored_cameras(record))
+                if visibility and store is not None else None)
     stored = coverage.index() if coverage is not None else {}
     fresh = [c for c in captured if camera_key(c) not in stored] if visibility else []
     seen = (sum(visibility_bytes(record.num_units, c) for c in cameras) + sum(stored.values()) * SEEN_STORED_BYTES

@@ -91,3 +91,18 @@ def test_other_renderer_settings_or_a_changed_model_render_again(tmp_path: Path)
     passes.clear()
     captured_seen(renderer, rig, CapturedStore(ModelCache(tmp_path / "model.ply")))
     assert len(passes) == 2
+
+
+def test_the_models_own_captured_set_replaces_another_stored_first(tmp_path: Path) -> None:
+    renderer, passes = counting_renderer(tmp_path / "model.ply")
+    training, other = svc_cameras(3, size=24), svc_cameras(2, size=24, phase=0.7)
+    store = CapturedStore(ModelCache(tmp_path / "model.ply"), default=training)
+    captured_seen(renderer, other, store)                       # the first rank asked for another set
+    assert set(store.index()) == {camera_key(c) for c in other}
+    captured_seen(renderer, training, store)                    # the default rank: now it is kept
+    assert set(store.index()) == {camera_key(c) for c in training}
+    captured_seen(renderer, other, store)                       # and stays
+    assert set(store.index()) == {camera_key(c) for c in training}
+    passes.clear()
+    captured_seen(renderer, training, store)
+    assert passes == []

@@ -10,8 +10,11 @@ with it). A view is found by its camera's exact pose, intrinsics and size, so:
 - a rank whose captured poses are all stored renders none of them;
 - a rank whose poses extend the stored set (a rig's captures since) renders only the new ones
   and stores the larger set, so asking again after each batch costs what changed;
+- a rank with the model's own captured set (its training cameras) stores that set in place of
+  any other that does not hold it, so the default rank is the one served however the first
+  rank asked;
 - any other set is served from the store where it can and rendered where it cannot, and the
-  stored set stays as it was (the first set stored is the one to keep: the training cameras).
+  stored set stays as it was.
 
 The renderer's settings that change what a view sees (family, tile, near plane, grid) are stored
 with the views; other settings start the entry afresh.
@@ -54,10 +57,19 @@ def _untext(tensor: Tensor) -> Any:
 
 
 class CapturedStore:
-    """The stored views of one model (a `ModelCache` entry, and a small index of it for memory plans)."""
+    """The stored views of one model (a `ModelCache` entry, and a small index of it for memory plans);
+    `default`: the model's own captured set (its training cameras), the one to keep."""
 
-    def __init__(self, cache: ModelCache):
+    def __init__(self, cache: ModelCache, default: Sequence[Camera] | None = None):
         self.cache = cache
+        self.default = {camera_key(camera) for camera in default or []}
+
+    def keeps(self, stored: set[str], asked: set[str]) -> bool:
+        """Whether a rank asking for `asked` replaces the `stored` set with the views it has: when
+        it extends it, or holds the default set that `stored` lacks (module docstring)."""
+        if not asked or asked == stored:
+            return False
+        return stored <= asked or (bool(self.default) and self.default <= asked and not self.default <= stored)
 
     def index(self) -> dict[str, int]:
         """{camera key: elements} of the stored views, without reading them ({} when none)."""
@@ -103,6 +115,6 @@ def captured_seen(renderer: ReportsVisibility, cameras: Sequence[Camera],
         if key not in views:
             seen = renderer.visibility(renderer.prepare(camera)).seen()
             views[key] = (seen.elements, seen.visible_share)
-    if (not stored and views) or (stored.keys() <= set(keys) and len(views) > len(stored)):
-        store.save(settings, {key: views[key] for key in dict.fromkeys(list(stored) + keys)})
+    if store.keeps(set(stored), set(keys)):
+        store.save(settings, {key: views[key] for key in dict.fromkeys(keys)})
     return [Seen(camera, *views[key]) for key, camera in zip(keys, cameras)]
