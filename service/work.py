@@ -32,7 +32,6 @@ from phd_core.renderers import (
 )
 from phd_core.renderers.visibility import (
     COVERAGE_CAPTURE_BYTES,
-    PASS_FRAGMENT_BYTES,
     PASS_UNIT_BYTES,
     SEEN_STORED_BYTES,
     seen_bytes,
@@ -235,8 +234,7 @@ class Renders:
                 bound = (RenderMemory(0, 0, DEFAULT_MASK_PIXEL_BYTES * camera.width * camera.height)
                          if memory is None else memory(renderer, camera))
                 if self.visibility:
-                    bound = replace(bound, fixed=bound.fixed + PASS_FRAGMENT_BYTES * bound.fragments
-                                    + PASS_UNIT_BYTES * record.num_units)
+                    bound = replace(bound, fixed=bound.fixed + PASS_UNIT_BYTES * record.num_units)
                 found.append(bound)
                 kept += bound.kept
         return RenderMemory.largest(found), min(kept, VIEW_CACHE_BYTES) if self.keeps_views else 0

@@ -73,12 +73,10 @@ class Seen:
 
 
 # What a visibility pass holds (a memory plan adds it to the view's render bounds), in bytes:
-# per fragment, the caller's int64 element of each fragment and the int64 index it is gathered
-# through (2 x 8; `fragment_visibility` itself holds nothing per fragment); per unit of the model,
+# nothing per fragment (`fragment_visibility` walks the lists the renders use in place); per unit of the model,
 # the three float64 sums and what `reduce_to_visibility` gathers of them (ids, points: 8 + 24),
 # rounded up; and what a Visibility keeps per element it lists (ids, points, weight, footprint,
 # valued: 8 + 24 + 3 x 8).
-PASS_FRAGMENT_BYTES = 16
 PASS_UNIT_BYTES = 64
 KEPT_ELEMENT_BYTES = 56
 SEEN_ELEMENT_BYTES = 16
@@ -135,12 +133,14 @@ class FragmentSums:
     left: Tensor              # [S] float64 transmittance at the end of each row's fragments
 
 
-def fragment_visibility(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_elements: int,
+def fragment_visibility(row_ptr: Tensor, alpha: Tensor, index: Tensor, units: Tensor, num_elements: int,
                         row_values: Tensor | None = None) -> FragmentSums:
     """Sum compositing weights per element over S pixel rows of fragments, in one compiled pass.
 
     row_ptr [S + 1]: the fragments of row s are row_ptr[s]:row_ptr[s + 1], front to back;
-    alpha [E]; element [E] long in [0, num_elements); row_values [S] (e.g. zeta) or None.
+    alpha [E]; fragment e belongs to element units[index[e]] (index [E] of any integer type,
+    units [V] long in [0, num_elements)): the lists a prepared view keeps, walked in place, with
+    no per-fragment array made for the pass; row_values [S] (e.g. zeta) or None.
     """
     rows = len(row_ptr) - 1
     weight, footprint = np.zeros(num_elements), np.zeros(num_elements)
@@ -148,14 +148,15 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_ele
     left = np.empty(rows)
     values = (row_values.double().contiguous().numpy() if row_values is not None else np.zeros(0))
     _visibility_kernel(row_ptr.long().contiguous().numpy(), alpha.detach().contiguous().numpy(),
-                       element.long().contiguous().numpy(), values, weight, footprint, valued, left)
+                       index.contiguous().numpy(), units.long().contiguous().numpy(), values, weight, footprint,
+                       valued, left)
     return FragmentSums(weight=torch.from_numpy(weight), footprint=torch.from_numpy(footprint),
                         valued=None if row_values is None else torch.from_numpy(valued),
                         left=torch.from_numpy(left))
 
 
 @numba.njit(cache=True, nogil=True)
-def _visibility_kernel(row_ptr, alpha, element, row_values, weight, footprint, valued,
+def _visibility_kernel(row_ptr, alpha, index, units, row_values, weight, footprint, valued,
                        left):  # pragma: no cover
     """Per row, front to back: every fragment adds its alpha to its element's footprint; until
     the fragment that would bring the row's transmittance below T_MIN, it adds alpha times the
@@ -167,7 +168,7 @@ def _visibility_kernel(row_ptr, alpha, element, row_values, weight, footprint, v
         used = True
         for e in range(row_ptr[s], row_ptr[s + 1]):
             a = np.float64(alpha[e])
-            u = element[e]
+            u = units[index[e]]
             footprint[u] += a
             if used:
                 after = log_t + np.log1p(-a)
@@ -182,9 +183,10 @@ def _visibility_kernel(row_ptr, alpha, element, row_values, weight, footprint, v
         left[s] = np.exp(log_t)
 
 
-def fragment_visibility_reference(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_elements: int,
+def fragment_visibility_reference(row_ptr: Tensor, alpha: Tensor, index: Tensor, units: Tensor, num_elements: int,
                                   row_values: Tensor | None = None) -> FragmentSums:
     """`fragment_visibility` in pure torch (its tested twin): the same sums by cumulative sums."""
+    element = units.long()[index.long()]                                       # [E]
     alpha = alpha.double()
     counts = row_ptr[1:] - row_ptr[:-1]                                        # [S]
     row = torch.repeat_interleave(torch.arange(len(counts)), counts)          # [E] the row of each fragment
