@@ -33,6 +33,7 @@ from phd_core.renderers import (
 from phd_core.renderers.visibility import (
     COVERAGE_CAPTURE_BYTES,
     PASS_UNIT_BYTES,
+    SEEN_LOADED_BYTES,
     SEEN_STORED_BYTES,
     seen_bytes,
     visibility_bytes,
@@ -366,14 +367,15 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     kept = kept if heatmaps else 0
     # A strategy that uses visibility keeps what every candidate sees (`visibility_bytes`, measured
     # with its dropout renders). What the captured poses saw comes from the model's stored coverage
-    # (read whole, SEEN_STORED_BYTES an element); the poses it lacks are rendered, one
-    # visibility pass each, and kept in compact form (and stored, `captured_seen`).
+    # (read whole); the poses it lacks are rendered, one visibility pass each, kept in compact form
+    # and stored with the rest (`captured_seen`; a rank that renders none writes nothing).
     visibility = get_strategy(body.strategy).uses_visibility
     coverage = (CapturedStore(store.cache(record), default=stored_cameras(record))
                 if visibility and store is not None else None)
     stored = coverage.index() if coverage is not None else {}
     fresh = [c for c in captured if camera_key(c) not in stored] if visibility else []
-    seen = (sum(visibility_bytes(record.num_units, c) for c in cameras) + sum(stored.values()) * SEEN_STORED_BYTES
+    read = SEEN_STORED_BYTES if fresh else SEEN_LOADED_BYTES
+    seen = (sum(visibility_bytes(record.num_units, c) for c in cameras) + sum(stored.values()) * read
             + seen_bytes(record.num_units, fresh) + COVERAGE_CAPTURE_BYTES) if visibility else 0
     renders = Renders([(record, "model_id", cameras + fresh)], samples, kept_bytes=kept + seen,
                       kept_field="heatmaps" if kept >= seen else "downscale", visibility=visibility, signal=signal)

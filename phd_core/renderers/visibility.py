@@ -87,9 +87,12 @@ SEEN_ELEMENT_BYTES = 16
 # CAPTURE_CHUNK entries at once, about COVERAGE_CAPTURE_BYTES whatever the views.
 COVERAGE_ELEMENT_BYTES = 120
 COVERAGE_CAPTURE_BYTES = 16 << 20
-# A captured view's Seen keeps ids and shares (8 + 8); stored, they take 12 bytes an element, and
-# reading the entry or writing it holds the file's bytes, the tensors read or concatenated and a
-# copy of the bytes (at most 40 more): SEEN_STORED_BYTES an element of a stored view.
+# A captured view's Seen keeps ids and shares (8 + 8); stored, they take 12 bytes an element.
+# Reading the entry holds the file's bytes, the tensors read and the ids widened (12 + 12 + 8):
+# SEEN_LOADED_BYTES an element of a stored view. A rank that also writes the entry holds, beside
+# the kept views, the tensors concatenated, the serialised bytes and their copy (12 x 3):
+# SEEN_STORED_BYTES an element of every view it stores.
+SEEN_LOADED_BYTES = 32
 SEEN_STORED_BYTES = 56
 
 

@@ -15,7 +15,7 @@ from phd_core.renderers.visibility import (
     COVERAGE_CAPTURE_BYTES,
     COVERAGE_ELEMENT_BYTES,
     KEPT_ELEMENT_BYTES,
-    SEEN_STORED_BYTES,
+    SEEN_LOADED_BYTES,
     seen_bytes,
     visibility_bytes,
 )
@@ -303,7 +303,7 @@ def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(
     again, again_plan = plan("visibility_sigma")
     assert len(again.models[0][2]) == len(plain.models[0][2])
     assert again.kept_bytes - plain.kept_bytes == (sum(visibility_bytes(300, c) for c in views) + COVERAGE_CAPTURE_BYTES
-                                                   + SEEN_STORED_BYTES * sum(stored.values()))
+                                                   + SEEN_LOADED_BYTES * sum(stored.values()))
     assert again_plan.bytes < seen_plan.bytes
     # Deleting the model deletes what was stored with it.
     cache_dir = service.store.cache(record).dir
