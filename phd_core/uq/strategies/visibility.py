@@ -76,14 +76,15 @@ CAPTURE_CHUNK = 1 << 16  # captured elements, then candidate entries, a capture 
 class Coverage:
     """The candidates' novelty, conditioned on every view counted as captured so far.
 
-    The elements of the candidates still in play sit in one list, the i-th such candidate's
-    (number ids[i]) at entries offsets[i]:offsets[i + 1]: `index` into the union of all their
-    elements, the direction from each element to the candidate's camera, its weight (pixels it
-    fills times its fragility) and its novelty. The entries are also listed by element
-    (`grouped`, `first`), so counting a view as captured touches only the entries of the
-    elements it saw, in a few vectorised steps. A candidate's value is summed again only when
-    it is asked for after a capture changed it (`updates` counts those sums): a lazy greedy
-    asks for few. A candidate `retire`d (picked) leaves the list once half of it is retired.
+    The elements of the candidates still in play sit in one list of entries ordered by element
+    (those of union element u at first[u]:first[u + 1], one per candidate that lists u): `index`
+    into the union of all their elements, the direction from each element to the candidate's
+    camera, its weight (pixels it fills times its fragility), its novelty and its candidate
+    (`owner`); a candidate's entries are at `where[c]`, ascending. Counting a view as captured
+    walks the runs of the elements it saw, in one compiled pass. A candidate's value is summed
+    again only when it is asked for after a capture changed it (`updates` counts those sums): a
+    lazy greedy asks for few. A candidate `retire`d (picked) leaves the list once half of it is
+    retired.
     """
 
     def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE):
@@ -92,24 +93,27 @@ class Coverage:
         self.size = len(self.union)
         self.points = torch.zeros(self.size, 3, dtype=torch.float64)                  # [U, 3]
         counts = torch.tensor([len(v.elements) for v in candidates], dtype=torch.long)
-        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])  # [C + 1]
-        total = int(self.offsets[-1])
-        self.index = torch.empty(total, dtype=torch.long)                            # [S]
-        self.dirs = torch.empty(total, 3, dtype=torch.float64)                       # [S, 3]
-        self.weight = torch.empty(total, dtype=torch.float64)                        # [S]
-        self.novelty = torch.ones(total, dtype=torch.float64)                        # [S]
-        self.owner = torch.repeat_interleave(torch.arange(len(candidates)), counts)  # [S] candidate of each entry
+        offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])     # [C + 1]
+        total = int(offsets[-1])
+        index = torch.empty(total, dtype=torch.long)
+        dirs = torch.empty(total, 3, dtype=torch.float64)
+        weight = torch.empty(total, dtype=torch.float64)
         reference = _mean_zeta(candidates) if fragility else 0.0
         for c, vis in enumerate(candidates):
-            part = slice(int(self.offsets[c]), int(self.offsets[c + 1]))
-            self.index[part] = torch.searchsorted(self.union, vis.elements)
-            self.points[self.index[part]] = vis.points
-            self.dirs[part] = directions(vis.points, vis.camera.center)
-            self.weight[part] = vis.weight
+            part = slice(int(offsets[c]), int(offsets[c + 1]))
+            index[part] = torch.searchsorted(self.union, vis.elements)
+            self.points[index[part]] = vis.points
+            dirs[part] = directions(vis.points, vis.camera.center)
+            weight[part] = vis.weight
             if fragility and reference > 0 and vis.valued is not None:
-                self.weight[part] *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
-        self.ids = list(range(len(candidates)))           # the candidate of each stored run of entries
-        self.position = {c: c for c in self.ids}          # and the run of each candidate
+                weight[part] *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
+        order = torch.argsort(index, stable=True)          # by element, then candidate
+        self.index = index[order]                                                    # [S]
+        self.dirs = dirs[order]                                                      # [S, 3]
+        self.weight = weight[order]                                                  # [S]
+        self.novelty = torch.ones(total, dtype=torch.float64)                        # [S]
+        self.owner = torch.repeat_interleave(torch.arange(len(candidates)), counts)[order]   # [S]
+        self.ids = list(range(len(candidates)))           # the candidates with entries in the list
         self.retired: set[int] = set()
         self.empty = [vis.empty for vis in candidates]
         self.axes = torch.stack([viewing_axis(vis) for vis in candidates])            # [C, 3]
@@ -117,22 +121,19 @@ class Coverage:
         self.sums = [0.0] * len(candidates)
         self.changed = torch.ones(len(candidates), dtype=torch.bool)   # sums[c] is out of date
         self.updates = 0                                  # candidate sums computed
-        self._group()
+        self._locate()
 
-    def _group(self) -> None:
-        """The entries listed by element: those of union element u are grouped[first[u]:first[u + 1]]."""
-        self.grouped = torch.argsort(self.index, stable=True)                        # [S]
-        self.first = torch.searchsorted(self.index[self.grouped], torch.arange(self.size + 1))  # [U + 1]
-
-    def _part(self, c: int) -> slice:
-        """Candidate c's entries (c still in the list)."""
-        i = self.position[c]
-        return slice(int(self.offsets[i]), int(self.offsets[i + 1]))
+    def _locate(self) -> None:
+        """first[u]: where element u's run starts; where[c]: candidate c's entries, ascending."""
+        self.first = torch.searchsorted(self.index, torch.arange(self.size + 1))     # [U + 1]
+        by_owner = torch.argsort(self.owner, stable=True)
+        counts = torch.bincount(self.owner, minlength=len(self.changed)).tolist()
+        self.where = dict(zip(range(len(counts)), by_owner.split(counts)))
 
     def _sum(self, c: int) -> float:
         """Candidate c's weight times novelty summed over its elements, summed again if a capture changed it."""
         if self.changed[c]:
-            part = self._part(c)
+            part = self.where[c]
             self.sums[c] = float((self.weight[part] * self.novelty[part]).sum())
             self.changed[c] = False
             self.updates += 1
@@ -144,7 +145,7 @@ class Coverage:
 
     def share(self, c: int) -> float:
         """The share of candidate c's image of the model left unseen (0 when it shows none)."""
-        total = float(self.weight[self._part(c)].sum())
+        total = float(self.weight[self.where[c]].sum())
         return self._sum(c) / total if total > 0 else 0.0
 
     def capture(self, vis: Visibility | Seen) -> None:
@@ -162,55 +163,52 @@ class Coverage:
         index = torch.searchsorted(self.union, elements).clamp_max(max(self.size - 1, 0))
         known = self.union[index] == elements if self.size else torch.zeros(len(index), dtype=torch.bool)
         seen = known & (shares > 0)
-        element, share = index[seen], shares[seen]                                  # [K] union ids it saw
-        toward = directions(self.points[element], centre)                            # [K, 3]
+        element, share = index[seen].numpy(), shares[seen].numpy()                  # [K] union ids it saw
+        toward = directions(self.points[index[seen]], centre).numpy()                # [K, 3]
         room = max(CAPTURE_CHUNK, len(self.ids))      # an element has at most one entry per candidate
-        entries, exponent, factor_share = np.empty(room, np.int64), np.empty(room), np.empty(room)
+        exponent, factor_share = np.empty(room), np.empty(room)
+        first = self.first.numpy()
         start = 0
         while start < len(element):
-            start, count = _touched(element.numpy(), share.numpy(), toward.numpy(), self.first.numpy(),
-                                    self.grouped.numpy(), self.dirs.numpy(), self.angle_scale, start,
-                                    entries, exponent, factor_share)
+            stop, count = _exponents(element, share, toward, first, self.dirs.numpy(), self.angle_scale, start,
+                                     exponent, factor_share)
             similar = torch.exp(torch.from_numpy(exponent[:count])).numpy()           # near(), in torch
-            _lower(self.novelty.numpy(), entries[:count], factor_share[:count], similar, self.owner.numpy(),
+            _lower(self.novelty.numpy(), element[start:stop], first, factor_share, similar, self.owner.numpy(),
                    self.changed.numpy())
+            start = stop
 
     def retire(self, c: int) -> None:
         """Candidate c is out of play (picked): its value is no longer needed. Once half of the
         stored entries are retired candidates', they leave the list (each capture after costs less)."""
         self.retired.add(c)
-        counts = self.offsets[1:] - self.offsets[:-1]
-        gone = torch.tensor([i in self.retired for i in self.ids])
-        if 2 * int(counts[gone].sum()) <= len(self.index):
+        gone = torch.zeros(len(self.changed), dtype=torch.bool)
+        gone[list(self.retired)] = True
+        out = gone[self.owner]
+        if 2 * int(out.sum()) <= len(self.index):
             return
-        keep = torch.repeat_interleave(~gone, counts)
+        keep = ~out
         self.index = self.index[keep]             # one array at a time: at most half of one is copied at once
         self.dirs = self.dirs[keep]
         self.weight = self.weight[keep]
         self.novelty = self.novelty[keep]
         self.owner = self.owner[keep]
-        self.ids = [i for i, out in zip(self.ids, gone.tolist()) if not out]
-        self.position = {c: i for i, c in enumerate(self.ids)}
-        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts[~gone].cumsum(0)])
-        self._group()
+        self.ids = [i for i in self.ids if i not in self.retired]
+        self._locate()
 
 
 @numba.njit(cache=True, nogil=True)
-def _touched(element, share, toward, first, grouped, dirs, scale, start, entries, exponent,
-             factor_share):  # pragma: no cover
-    """From captured element `start` on, while the buffers hold all of an element's entries: each
-    entry of the element, near()'s exponent for it, -(1 - dir . toward) / scale (the same float
-    operations as `near`), and the element's seen share. Returns (the next element, entries listed)."""
+def _exponents(element, share, toward, first, dirs, scale, start, exponent, factor_share):  # pragma: no cover
+    """From captured element `start` on, while the buffers hold all of an element's run of entries:
+    near()'s exponent for each entry, -(1 - dir . toward) / scale (the same float operations as
+    `near`), and the element's seen share. Returns (the element it stopped at, entries listed)."""
     m = 0
     k = start
     while k < len(element):
         u = element[k]
-        if m + first[u + 1] - first[u] > len(entries):
+        if m + first[u + 1] - first[u] > len(exponent):
             break
-        for j in range(first[u], first[u + 1]):
-            e = grouped[j]
+        for e in range(first[u], first[u + 1]):
             dot = dirs[e, 0] * toward[k, 0] + dirs[e, 1] * toward[k, 1] + dirs[e, 2] * toward[k, 2]
-            entries[m] = e
             exponent[m] = -(1.0 - dot) / scale
             factor_share[m] = share[k]
             m += 1
@@ -219,12 +217,15 @@ def _touched(element, share, toward, first, grouped, dirs, scale, start, entries
 
 
 @numba.njit(cache=True, nogil=True)
-def _lower(novelty, entries, factor_share, similar, owner, changed):  # pragma: no cover
-    """Each listed entry's novelty times (1 - seen share * near), and its candidate marked changed."""
-    for i in range(len(entries)):
-        e = entries[i]
-        novelty[e] *= 1.0 - factor_share[i] * similar[i]
-        changed[owner[e]] = True
+def _lower(novelty, element, first, factor_share, similar, owner, changed):  # pragma: no cover
+    """The runs of `element` in the order `_exponents` listed them: each entry's novelty times
+    (1 - seen share * near), and its candidate marked changed."""
+    m = 0
+    for k in range(len(element)):
+        for e in range(first[element[k]], first[element[k] + 1]):
+            novelty[e] *= 1.0 - factor_share[m] * similar[m]
+            changed[owner[e]] = True
+            m += 1
 
 
 def seen_share(vis: Visibility | Seen) -> Tensor:
