@@ -109,10 +109,13 @@ class Coverage:
                 weight[part] *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
         order = torch.argsort(index, stable=True)          # by element, then candidate
         self.index = index[order]                                                    # [S]
+        del index                                          # each list by candidate goes once it is reordered
         self.dirs = dirs[order]                                                      # [S, 3]
+        del dirs
         self.weight = weight[order]                                                  # [S]
-        self.novelty = torch.ones(total, dtype=torch.float64)                        # [S]
+        del weight
         self.owner = torch.repeat_interleave(torch.arange(len(candidates)), counts)[order]   # [S]
+        self.novelty = torch.ones(total, dtype=torch.float64)                        # [S]
         self.ids = list(range(len(candidates)))           # the candidates with entries in the list
         self.retired: set[int] = set()
         self.empty = [vis.empty for vis in candidates]
