@@ -32,10 +32,9 @@ import subprocess
 import tempfile
 from pathlib import Path
 
+from bench import _harness as harness
 from bench._harness import (
     DOCS,
-    DONUT,
-    LEGO,
     PHD,
     RESULTS,
     ROOT,
@@ -52,10 +51,10 @@ from phd_core.renderers.gs3d import SIDECAR_FORMAT, sidecar_path, write_ply
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, save_nerf
 
 SCENES = {   # name: (candidate source, candidates, width, height, samples)
-    "donut": (DONUT, 60, 100, 100, 16),
-    "nerf": (LEGO, 30, 100, 100, 32),
-    "1m": (DONUT, 100, 200, 150, 16),
-    "1m-uncaptured": (DONUT, 100, 200, 150, 16),
+    "donut": (harness.DONUT, 60, 100, 100, 16),
+    "nerf": (harness.LEGO, 30, 100, 100, 32),
+    "1m": (harness.DONUT, 100, 200, 150, 16),
+    "1m-uncaptured": (harness.DONUT, 100, 200, 150, 16),
 }
 RATIO = 0.5
 RUNS = {  # label: (strategy, by the code before)
@@ -71,12 +70,12 @@ def scene_model(name: str, folder: Path) -> Path:
                             near=2.0, far=6.0)
         path = folder / "lego.nerf"
         save_nerf(NeRFRenderer(RadianceField(config, seed=0)), path,
-                  training_cameras=load_blender(LEGO, "train", with_images=False).cameras)
+                  training_cameras=load_blender(harness.LEGO, "train", with_images=False).cameras)
         return path
     path = folder / f"{name}.ply"
     write_ply(tiled_model(1 if name == "donut" else 22, 3), path)
     if name != "1m-uncaptured":
-        train = load_blender(DONUT, "train", with_images=False).cameras
+        train = load_blender(harness.DONUT, "train", with_images=False).cameras
         sidecar_path(path).write_text(json.dumps({"format": SIDECAR_FORMAT, "background": [1.0, 1.0, 1.0],
                                                   "training_cameras": [c.to_frame() for c in train]}))
     return path
@@ -98,11 +97,11 @@ def warm_up(folder: Path, before: Path) -> None:
     (its cache sits beside each version's code) in the runs measured."""
     model = folder / "warm.ply"
     write_ply(tiled_model(1, 3).subset(slice(0, 2000)), model)
-    train = load_blender(DONUT, "train", with_images=False).cameras[:3]
+    train = load_blender(harness.DONUT, "train", with_images=False).cameras[:3]
     sidecar_path(model).write_text(json.dumps({"format": SIDECAR_FORMAT, "background": [1.0, 1.0, 1.0],
                                                "training_cameras": [c.to_frame() for c in train]}))
     poses = folder / "warm-candidates.json"
-    frames = json.loads((DONUT / "transforms_test.json").read_text())
+    frames = json.loads((harness.DONUT / "transforms_test.json").read_text())
     poses.write_text(json.dumps({**frames, "frames": frames["frames"][:3]}))
     for code in (before, None):
         for strategy in ("sigma_max", "visibility_sigma_fvs"):
