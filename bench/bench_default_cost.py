@@ -28,7 +28,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -39,7 +41,6 @@ from bench._harness import (
     RESULTS,
     ROOT,
     child,
-    command,
     load_average,
     machine,
     tiled_model,
@@ -92,6 +93,13 @@ def rank(model: Path, poses: Path, out: Path, width: int, height: int, samples: 
     return run
 
 
+def invocation() -> str:
+    """This run's command line, to type again (the thread setting and the priority included)."""
+    threads = os.environ.get("OMP_NUM_THREADS")
+    return " ".join([*([f"OMP_NUM_THREADS={threads}"] if threads else []), f"nice -n {os.nice(0)}",
+                     ".venv/bin/python -m bench.bench_default_cost", shlex.join(sys.argv[1:])])
+
+
 def warm_up(folder: Path, before: Path) -> None:
     """A small rank by both versions with both strategies, so neither pays numba's compilation
     (its cache sits beside each version's code) in the runs measured."""
@@ -123,7 +131,7 @@ def main() -> None:
                                                          for path in args.report), section="default-cost")
         return
     results = {"machine": machine(omp_num_threads=os.environ.get("OMP_NUM_THREADS")), "before": args.before,
-               "command": command(), "scenes": {}}
+               "command": invocation(), "scenes": {}}
     if args.out.exists():      # scenes measured in earlier runs stay
         results["scenes"] = json.loads(args.out.read_text())["scenes"]
     with tempfile.TemporaryDirectory() as tmp:
@@ -156,10 +164,10 @@ def main() -> None:
 
 
 def report(results: dict) -> str:
-    threads = results["machine"].get("omp_num_threads") or "torch's default (2)"
+    threads = "one thread" if results["machine"].get("omp_num_threads") == "1" else "torch's default threads (2)"
     ran = results.get("command", "python -m bench.bench_default_cost --before main --only donut nerf")
     lines = [f"Command: `{ran}` (`phd rank` in a child process each, start-up and load included, "
-             f"{threads} threads; "
+             f"{threads}; "
              f"{machine_note(results)}). \"default / sigma_max\": the ratio of the two strategies' CPU seconds "
              "(and wall seconds) by the same code; \"same picks\": the default's order and scores now equal the "
              "code before's, bit for bit.", "",
