@@ -18,6 +18,7 @@ the table between the `bench:coverage` markers of docs/performance.md.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import torch
@@ -96,9 +97,10 @@ def main() -> None:
                     print(rows[-1], flush=True)
     write_result(RESULTS / f"{args.section.replace('-', '_')}.json", {"machine": machine(), "before": args.before,
                                                                       "rows": rows})
-    lines = [f"Command: `nice -n 10 .venv/bin/python -m bench.bench_coverage --before {args.before} --copies "
+    lines = [f"Command: `nice -n {os.nice(0)} .venv/bin/python -m bench.bench_coverage --before {args.before} --copies "
              f"{' '.join(map(str, args.copies))} --candidates {' '.join(map(str, args.candidates))} --captured "
-             f"{args.captured} --width {args.width} --strategies {' '.join(args.strategies)} --section {args.section}` "
+             f"{args.captured} --width {args.width} --strategies {' '.join(args.strategies)} --section {args.section} "
+             f"--repeats {args.repeats}` "
              "(one thread, both versions alternating on "
              f"the same evidence, best of {args.repeats}; \"identical\": the same order and the same scores bit for "
              "bit; updates: candidate sums computed). Elements: the candidates' listed splats, summed.", "",
