@@ -4,9 +4,10 @@ screenshots that docs/service.md shows.
 
     .venv/bin/python -m bench.bench_page --model-a A.ply --model-b B.ply --out docs --repeats 3
 
-Both PLYs need their training cameras (the sidecar JSON `phd train` writes). Starts `phd
-serve` in-process on a free 127.0.0.1 port with an API key, headless Chromium through the
-distribution's chromedriver (as tests/page does).
+Both PLYs need their training cameras (the sidecar JSON `phd train` writes beside them): the
+page uploads each with its sidecar, as a user picks the two files. `--repeats 0` takes the
+screenshots only. Starts `phd serve` in-process on a free 127.0.0.1 port with an API key,
+headless Chromium through the distribution's chromedriver (as tests/page does).
 """
 
 from __future__ import annotations
@@ -65,14 +66,24 @@ def main() -> int:
     driver = browser(1280, 4400)   # tall enough that element screenshots hold whole sections
     try:
         with PHDClient(server.url, api_key=KEY) as phd:
-            a = phd.upload_model(args.model_a, name=args.model_a.stem)
-            b = phd.upload_model(args.model_b, name=args.model_b.stem)
-            for model in (a, b):
-                phd.calibrate(model.id, samples=4, downscale=2)
             driver.get(server.url + "/")
             set_field(driver, "api-key", KEY)
             driver.find_element(By.CSS_SELECTOR, "#key-form button").click()
-            WebDriverWait(driver, 60).until(lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2)
+            args.out.mkdir(parents=True, exist_ok=True)
+            for count, model in enumerate((args.model_a, args.model_b), start=1):   # the PLY and its sidecar
+                driver.execute_script("document.getElementById('upload-file').value = ''")
+                driver.find_element(By.ID, "upload-file").send_keys(f"{model}\n{model.with_suffix('.json')}")
+                set_field(driver, "upload-name", model.stem)
+                driver.find_element(By.ID, "upload-run").click()
+                WebDriverWait(driver, 120).until(
+                    lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == count
+                    and "Uploaded" in d.find_element(By.ID, "upload-message").text)
+                if count == 2:
+                    driver.find_element(By.ID, "model-section").screenshot(str(args.out / "page_upload.png"))
+            a, b = sorted(phd.list_models(), key=lambda m: m.name != args.model_a.stem)
+            for model in (a, b):
+                phd.calibrate(model.id, samples=4, downscale=2)
+            driver.find_element(By.ID, "refresh-models").click()
             Select(driver.find_element(By.ID, "model-select")).select_by_value(a.id)
             Select(driver.find_element(By.ID, "model-b-select")).select_by_value(b.id)
             WebDriverWait(driver, 60).until(lambda d: "r_drop" in d.find_element(By.ID, "model-info").text)
@@ -92,12 +103,23 @@ def main() -> int:
             for _ in range(args.repeats):
                 ranked = timed(lambda: phd.rank(a.id, candidates=spec, samples=args.samples, downscale=1,
                                                 heatmaps="files"))
-                result = ranked.result
                 client_times.append(ranked.seconds)
                 page_times.append(timed(rank_on_page).seconds)
+            if not page_times:
+                rank_on_page()
+            size = driver.execute_script("return [state.ranking.width, state.ranking.height]")
             driver.execute_script("document.querySelector('#rank-grid li.card').click()")
-            args.out.mkdir(parents=True, exist_ok=True)
             driver.find_element(By.ID, "rank-section").screenshot(str(args.out / "page_rank.png"))
+            # An error where it happened: a candidates file with a misspelt key.
+            typo = Path(tempfile.mkdtemp()) / "candidates.json"
+            typo.write_text(json.dumps({"camera_angle_x": 0.69, "frame": []}))
+            driver.find_element(By.CSS_SELECTOR, "input[name=cand-mode][value=file]").click()
+            driver.find_element(By.ID, "cand-file").send_keys(str(typo))
+            WebDriverWait(driver, 60).until(lambda d: "frames" in d.find_element(By.ID, "cand-message").text)
+            driver.find_element(By.ID, "candidate-section").screenshot(str(args.out / "page_error.png"))
+            driver.find_element(By.CSS_SELECTOR, "input[name=cand-mode][value=generate]").click()
+            driver.find_element(By.ID, "gen-elevation").click()
+            rank_on_page()
             driver.find_element(By.ID, "select-run").click()
             WebDriverWait(driver, 600).until(grid_ready("select-grid", args.candidates))
             driver.find_element(By.ID, "select-section").screenshot(str(args.out / "page_select.png"))
@@ -112,10 +134,11 @@ def main() -> int:
             finally:
                 phone.quit()
         report = {
-            "candidates": args.candidates, "samples": args.samples, "size": f"{result.width}x{result.height}",
+            "candidates": args.candidates, "samples": args.samples, "size": f"{size[0]}x{size[1]}",
             "repeats": args.repeats,
             "client_rank_s": [round(t, 2) for t in client_times], "page_rank_s": [round(t, 2) for t in page_times],
-            "page_over_client_median": round(statistics.median(p / c for p, c in zip(page_times, client_times)), 3),
+            "page_over_client_median": round(statistics.median(p / c for p, c in zip(page_times, client_times)), 3)
+            if page_times else None,
             "phone_horizontal_overflow_px": overflow,
         }
         print(json.dumps(report, indent=2))

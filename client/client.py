@@ -31,7 +31,17 @@ from typing import Any, Callable, Iterable, Sequence, Union, cast
 import httpx
 from pydantic import BaseModel
 
-from service.schemas import Calibration, Health, Job, ModelInfo, ModelList, RankResult, SelectResult, TrainingCameras
+from service.schemas import (
+    Calibration,
+    ExplainResult,
+    Health,
+    Job,
+    ModelInfo,
+    ModelList,
+    RankResult,
+    SelectResult,
+    TrainingCameras,
+)
 
 ProgressCallback = Callable[[float], None]
 Cameras = Union[str, Path, dict, Iterable[Any]]
@@ -287,12 +297,12 @@ class PHDClient:
                 cameras = output.cameras                  # training views only, in the user's frame
                 camera_format = camera_format or output.camera_format
             background = output.background if background is None else background
+            name = name if name is not None else output.name      # the run, "<experiment>/<method>"
             if output.ply is None:         # splats moved out of the trainer's frame: upload them as a PLY
                 with tempfile.TemporaryDirectory(prefix="phd-upload-") as tmp:
-                    ply = Path(tmp) / f"{path.name}.ply"
+                    ply = Path(tmp) / f"{path.resolve().name}.ply"
                     write_ply(output.model, ply)
-                    return self.upload_model(ply, cameras, name if name is not None else path.name, background,
-                                             camera_format)
+                    return self.upload_model(ply, cameras, name, background, camera_format)
             path = output.ply
         sidecar = path.with_name(path.stem + ".json")
         if path.suffix.lower() == ".ply" and sidecar.is_file():
@@ -393,6 +403,22 @@ class PHDClient:
                 "width": width, "height": height, "signal": signal, "async": run_async}
         return self._work("/v1/select", body, SelectResult, wait, progress, poll_interval, timeout)
 
+    def explain(self, model_id: str, *, pick: Any = None, samples: int | None = None, seed: int = 0,
+                dropout_ratio: float | None = None, captured: Cameras | None = None, cap: int | None = None,
+                downscale: float | None = None, width: int | None = None, height: int | None = None,
+                signal: str | None = None, run_async: bool = False, wait: bool = True,
+                progress: ProgressCallback | None = None, poll_interval: float = 0.2,
+                timeout: float | None = None) -> ExplainResult | Job:
+        """Per splat of the model's scene points (GET /v1/models/{id}/scene at `cap`): coverage by the
+        captured views (default its training cameras), PH-Dropout fragility at its r_drop, and what
+        `pick` (one pose: a Camera or a frame) would newly see; one byte per point, base64 (docs/service.md)."""
+        body = {"pick": None if pick is None else camera_frames([pick])[0], "samples": samples, "seed": seed,
+                "dropout_ratio": dropout_ratio, "cap": cap, "downscale": downscale, "width": width,
+                "height": height, "signal": signal, "async": run_async,
+                "captured": None if captured is None else camera_frames(captured)}
+        return self._work(f"/v1/models/{model_id}/explain", body, ExplainResult, wait, progress, poll_interval,
+                          timeout)
+
     def _work(self, path: str, body: dict, result_type: type[BaseModel], wait: bool,
               progress: ProgressCallback | None, poll_interval: float, timeout: float | None) -> Any:
         response = self._request("POST", path, json={k: v for k, v in body.items() if v is not None})
@@ -415,7 +441,7 @@ class PHDClient:
         return Job.model_validate(self._request("DELETE", f"/v1/jobs/{job_id}").json())
 
     def wait_job(self, job_id: str, *, progress: ProgressCallback | None = None, poll_interval: float = 0.2,
-                 timeout: float | None = None) -> Calibration | RankResult | SelectResult:
+                 timeout: float | None = None) -> Calibration | RankResult | SelectResult | ExplainResult:
         """Poll a job until it ends; its result, or JobFailedError / JobCancelledError."""
         deadline = None if timeout is None else time.monotonic() + timeout
         last = -1.0

@@ -20,6 +20,8 @@ from phd_core.errors import InputError
 from phd_core.scene import Camera
 from phd_core.uq.candidates import GENERATORS, candidate_cameras, check_option_names, parse_spec
 
+from .options import model_help
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -27,8 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Write candidate camera poses as transforms-style JSON. SPEC is NAME[:COUNT][,key=value...]; "
                     "generators: " + "; ".join(f"{name}: {g.summary}" for name, g in GENERATORS.items()))
     p.add_argument("spec", help="e.g. orbit:64, orbit:48,rings=3, spiral:30, jitter:20,angle=10")
-    p.add_argument("--model", type=Path, help="a model (file or trainer output folder, docs/formats.md): its training "
-                   "cameras, else its splats, place the poses")
+    p.add_argument("--model", type=Path, help="its training cameras, else its splats, place the poses: "
+                   + model_help())
     p.add_argument("--data", type=Path, help="a capture (any format): its train split places the poses")
     p.add_argument("--cameras", type=Path, help="training cameras: transforms JSON or a reference cameras.json")
     p.add_argument("--out", type=Path, help="output JSON (default: print it)")
@@ -61,9 +63,9 @@ def run(args: argparse.Namespace) -> int:
     renderer = None
     cameras, points = scene_sources(args)
     if args.model is not None:
-        from phd_core.renderers import load_model
+        from .models import open_model
 
-        renderer = load_model(args.model)
+        renderer = open_model(args.model).renderer
     if renderer is None and cameras is None:
         raise InputError("model", "give --model, --data or --cameras: the poses are placed around that scene")
     poses = make(args.spec, renderer, cameras, points)

@@ -246,4 +246,17 @@ def run(args: argparse.Namespace) -> int:
     total = sum(timings.values())
     print("\nTimes (s): " + ", ".join(f"{k} {v}" for k, v in timings.items()) + f"; total {total:.1f}")
     print(f"Output folder: {out}  (report.json, heatmaps/)")
+    print("\nNext, with your own model or these:\n" + "\n".join(next_steps(model_a)))
     return 0
+
+
+def next_steps(model: Path, port: int = 8000) -> list[str]:
+    """The three commands after the demo: the service, its page, the Python client on `model`."""
+    url = f"http://127.0.0.1:{port}"
+    client = (f"from client import PHDClient; phd = PHDClient('{url}'); m = phd.upload_model('{model}'); "
+              "phd.calibrate(m.id); print([(v.rank, v.index, round(v.score, 4)) for v in "
+              "phd.rank(m.id, candidates='orbit:32', top_k=5).views])")
+    return [f"  phd serve --port {port}        # the service (leave it running)",
+            f"  {url}/ui/        # the page: upload {model.name} with {model.with_suffix('.json').name}, "
+            "calibrate, rank",
+            f'  python -c "{client}"        # the Python client: the 5 poses to capture next']

@@ -9,16 +9,14 @@ from phd_core.errors import NAMED_COLORS, InputError, check_color
 from phd_core.renderers import family_titles, set_background
 
 
-def model_help(folders: bool = False) -> str:
-    """What a model argument takes: a file of any registered family (and, with `folders`, any
-    registered trainer's output folder)."""
-    files = f"trained model: {family_titles('or')}"
-    if not folders:
-        return files
+def model_help() -> str:
+    """What a model argument takes: a file of any registered family, or any registered
+    trainer's output folder (its layout, as each trainer leaves it)."""
     from phd_core.renderers.outputs import OUTPUTS
 
-    return (f"{files}, or a trainer's output folder as is: {'; '.join(f.title for f in OUTPUTS.in_order())}; "
-            "poses are in the capture's frame")
+    return (f"trained model: {family_titles('or')}; or a trainer's output folder as is: "
+            f"{'; '.join(f.title for f in OUTPUTS.in_order())} (its own cameras and split; poses in the "
+            "capture's frame, docs/formats.md)")
 
 
 def add_background_arg(parser: argparse.ArgumentParser, what: str) -> None:

@@ -9,8 +9,9 @@ from pathlib import Path
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "serve", help="run the PH-Dropout REST service",
-        description="Serve the REST API (OpenAPI docs at /docs). Caps and the API key come from PHD_* "
-                    "environment variables (PHD_API_KEY, PHD_MAX_UPLOAD_BYTES, ...; see docs/service.md).")
+        description="Serve the web page (at /ui/) and the REST API (OpenAPI docs at /docs). Caps and the API "
+                    "key come from PHD_* environment variables (PHD_API_KEY, PHD_MAX_UPLOAD_BYTES, ...; "
+                    "see docs/service.md).")
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
     parser.add_argument("--data-dir", type=Path, default=None,
@@ -51,8 +52,16 @@ def run(args: argparse.Namespace) -> int:
     app = create_app(settings)
     app.state.service.executor.connect()    # a cluster that cannot be reached: a start-up error naming it
     where = settings.executor + (f" at {settings.executor_address}" if settings.executor_address else "")
+    base = f"http://{page_host(args.host)}:{args.port}"
+    print(f"phd serve: the page: {base}/ui/  (REST API docs: {base}/docs)", flush=True)
     print(f"phd serve: data in {settings.data_dir}, {settings.workers} worker(s), queue {settings.queue_size}, "
-          f"compute {where}, "
-          f"API key {'required' if settings.api_key else 'off'}; http://{args.host}:{args.port}/docs", flush=True)
+          f"compute {where}, API key {'required' if settings.api_key else 'off'}", flush=True)
     uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, **uvicorn_options(settings))
     return 0
+
+
+def page_host(host: str) -> str:
+    """Where a browser on this machine reaches a server bound to `host` (all addresses: 127.0.0.1)."""
+    if host in ("0.0.0.0", "", "::"):
+        return "127.0.0.1"
+    return f"[{host}]" if ":" in host else host

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from phd_core import uq as phd
-from phd_core.data import POSES, export_cameras, load_cameras, source_pose
+from phd_core.data import POSES, candidate_name, export_cameras, load_cameras, source_pose
 from phd_core.errors import InputError
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
 from phd_core.executors import LOCAL, Executor, make_executor
@@ -24,18 +24,23 @@ from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 from phd_core.uq.strategies.captured import CapturedStore
 
-from .options import add_background_arg, apply_background, model_help
+from .models import OpenedModel, check_frame, model_views, open_model
+from .options import add_background_arg, model_help
+from .report import TABLE_ROWS, add_progress_args, calibrated, progress_bar, rank_table
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     calibrate = subparsers.add_parser(
         "calibrate", help="find r_drop for a model (Algorithm 1)",
         description="Raise the dropout ratio in steps while the mean absolute change of the training views "
-                    "stays below epsilon; print r_drop and the error curve. Cameras: --data (its train split), "
-                    "--cameras JSON, else the training cameras stored with the model.")
+                    "stays below epsilon; print r_drop and the error curve, and store the result beside the model "
+                    "(MODEL.phd-cache/, or .phd-cache/ in a trainer's folder), where `phd rank`, `uq` and `select` "
+                    "find it. Cameras: --data (its train split; a trainer's folder: its run's), --cameras JSON, else "
+                    "the training cameras stored with the model.")
     _add_model_args(calibrate)
     source = calibrate.add_mutually_exclusive_group()
-    source.add_argument("--data", type=Path, help="dataset directory: calibrate on the poses of its --split")
+    source.add_argument("--data", type=Path, help="a capture in the model's frame: calibrate on the poses of its "
+                        "--split")
     source.add_argument("--cameras", type=Path, help="training poses: transforms-style JSON (or a list of frames), "
                         "a reference cameras.json, a COLMAP model or poses_bounds.npy")
     calibrate.add_argument("--split", default="train", help="dataset split with --data (default train)")
@@ -44,16 +49,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_calibration_args(calibrate, standalone=True)
     _add_executor_args(calibrate)
     calibrate.add_argument("--out", type=Path, help="also write the result as JSON to this file")
+    add_progress_args(calibrate)
     calibrate.set_defaults(func=run_calibrate)
 
     uq = subparsers.add_parser(
         "uq", help="uncertainty report of a dataset split: sigma-max-bar, per-view sigma_max, heat maps",
-        description="Calibrate (or take --dropout-ratio), render --samples masked copies of every view of the "
-                    "split and write report.json and one heat map per view into --out. With the split's "
-                    "images: Spearman, Pearson and AUSE between zeta and the error.")
+        description="Calibrate (or reuse the stored calibration, or take --dropout-ratio), render --samples "
+                    "masked copies of every view of the split and write report.json and one heat map per view into "
+                    "--out. With the split's images: Spearman, Pearson and AUSE between zeta and the error.")
     _add_model_args(uq)
-    uq.add_argument("--data", type=Path, required=True, help="dataset directory")
-    uq.add_argument("--split", default="test", help="split to evaluate (default test)")
+    uq.add_argument("--data", type=Path, default=None, help="a capture in the model's frame (default for a "
+                    "trainer's folder: the capture its run read)")
+    uq.add_argument("--split", default="test", help="split to evaluate (default test; a trainer's folder on its "
+                    "own capture: the frames its run held out)")
     uq.add_argument("--views", type=int, default=None, help="evaluate this many evenly spaced frames")
     _add_camera_size_args(uq, sizes=False)
     _add_uncertainty_args(uq)
@@ -64,14 +72,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          "sigma_max of the report, shared by every map)")
     uq.add_argument("--no-heatmaps", action="store_true", help="write only report.json")
     uq.add_argument("--out", type=Path, default=Path("phd-uq"), help="output directory (default phd-uq)")
+    add_progress_args(uq)
     uq.set_defaults(func=run_uq)
 
     rank = subparsers.add_parser(
-        "rank", help="rank candidate camera poses for the next capture (capture first comes first)",
+        "rank", help="rank candidate camera poses for the next capture (the first is the one to capture first)",
         description="Render every candidate pose under --samples dropout masks and order the candidates by "
                     f"--strategy (default {DEFAULT_STRATEGY}, the active-learning benchmark's winner, docs/nbv.md); "
                     "every candidate reports sigma_max, sigma_mean and the strategy's score. The ratio is "
-                    "--dropout-ratio, else calibrated on the model's training cameras.")
+                    "--dropout-ratio, else the stored calibration (`phd calibrate`), else calibrated now on the "
+                    "model's training cameras and stored. Prints a table of the first --top-k (or "
+                    f"{TABLE_ROWS}) with each pose's centre and viewing direction; JSON with --json or --out.")
     _add_model_args(rank)
     rank.add_argument("--candidates", required=True,
                       help="a generator spec NAME[:COUNT][,key=value...] (" + ", ".join(GENERATORS) + "; e.g. "
@@ -93,15 +104,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_uncertainty_args(rank)
     _add_calibration_args(rank)
     _add_executor_args(rank)
-    rank.add_argument("--out", type=Path, help="write the ranking JSON here (default: print it); every ranked "
+    rank.add_argument("--out", type=Path, help="write the ranking JSON here (default: print a table); every ranked "
                       "candidate carries its camera (a transforms frame) and, when the model's cameras came from "
                       "a known source, the same pose in that source's convention (source_pose)")
+    rank.add_argument("--json", action="store_true", help="print the ranking JSON (that --out writes) instead of "
+                      "the table")
     rank.add_argument("--export", type=Path, metavar="FILE",
                       help="also write the ranked batch (the first --top-k, else all) for a capture tool: a *.json "
                            "file is a nerfstudio transforms.json, a file named cameras.json the reference trainer's, "
                            "a path without a suffix a COLMAP text model folder (or say --export-format)")
     rank.add_argument("--export-format", choices=sorted(POSES), default=None,
                       help="the convention of --export, instead of reading it off the name")
+    add_progress_args(rank)
     rank.set_defaults(func=run_rank)
 
     select = subparsers.add_parser(
@@ -109,13 +123,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render every view under --samples dropout masks of each model (each at its own ratio) "
                     "and choose, per view, the model with the lower score under --rule. With a split's images: "
                     "PSNR/SSIM of a, b and the selection.")
-    select.add_argument("--model-a", type=Path, required=True, help="the first model (any --model of `phd rank`)")
+    select.add_argument("--model-a", type=Path, required=True, help="the first model: " + model_help())
     select.add_argument("--model-b", type=Path, required=True, help="the second model")
     add_background_arg(select, "splat models: the colour both are rendered over (default: each model's own)")
-    views = select.add_mutually_exclusive_group(required=True)
-    views.add_argument("--data", type=Path, help="a capture: the views of its --split")
+    views = select.add_mutually_exclusive_group()
+    views.add_argument("--data", type=Path, help="a capture in the models' frame: the views of its --split (default "
+                       "for a trainer's folder as --model-a: the capture its run read)")
     views.add_argument("--cameras", type=Path, help="the views: transforms-style JSON, a cameras.json, any capture")
-    select.add_argument("--split", default="test", help="split of --data (default test)")
+    select.add_argument("--split", default="test", help="split of --data (default test; model a's run's own when "
+                        "it is a trainer's folder on its capture)")
     select.add_argument("--views", type=int, default=None, help="this many evenly spaced frames of --data")
     select.add_argument("--rule", choices=list(phd.SELECTION_RULES), default=phd.DEFAULT_SELECTION_RULE,
                         help=phd.rules_help())
@@ -127,13 +143,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     select.add_argument("--ratio-b", type=float, default=None, help="model b's ratio (likewise)")
     _add_executor_args(select)
     select.add_argument("--out", type=Path, help="write the selection JSON here (default: print it)")
+    add_progress_args(select)
     select.set_defaults(func=run_select)
 
 
 # ---------------------------------------------------------------------------------------- arguments
 
 def _add_model_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", type=Path, required=True, help=model_help(folders=True))
+    parser.add_argument("--model", type=Path, required=True, help=model_help())
     add_background_arg(parser, "splat models: the colour to render over (default: the one the model came with: "
                        "its sidecar's or cfg_args', else white)")
 
@@ -166,6 +183,9 @@ def _add_calibration_args(parser: argparse.ArgumentParser, *, standalone: bool =
     else:
         group.add_argument("--dropout-ratio", type=float, default=None,
                            help="skip calibration and use this ratio")
+        group.add_argument("--recalibrate", action="store_true",
+                           help="calibrate again even when a calibration with these settings is stored beside the "
+                                "model (and store the new one)")
 
 
 def _add_uncertainty_args(parser: argparse.ArgumentParser) -> None:
@@ -187,57 +207,42 @@ def _executor(args: argparse.Namespace) -> Executor:
     return LOCAL if args.ray is None else make_executor("ray", args.ray)
 
 
-def _load(path: Path, background: list[str] | None):
-    """A model, rendered over --background when given."""
-    from phd_core.renderers import load_model
-
-    renderer = load_model(path)
-    apply_background(renderer, background)
-    return renderer
-
-
-def _views(args: argparse.Namespace, renderer, warnings: list[str]):
-    """The --data split's views with their images composited over what the model renders
-    over (so errors compare like with like), or without images (and a warning) when the
-    split has none."""
-    from phd_core.data import load_dataset
-
-    background = tuple(renderer.describe().get("background") or (1.0, 1.0, 1.0))
+def _views(args: argparse.Namespace, model: OpenedModel, warnings: list[str]):
+    """The views of --split (of --data, or of a trainer folder's own capture) with their images
+    composited over what the model renders over (so errors compare like with like), or without
+    images (and a warning) when the split has none."""
+    background = tuple(model.renderer.describe().get("background") or (1.0, 1.0, 1.0))
     options = dict(views=args.views, downscale=args.downscale, background=background)
     try:
-        return load_dataset(args.data, args.split, **options)
+        return model_views(model, args.data, args.split, **options)
     except InputError as exc:
         if not exc.field.endswith("file_path"):
             raise
         warnings.append(f"images of split {args.split!r} not available ({exc}): no error metrics")
-        return load_dataset(args.data, args.split, with_images=False, **options)
+        return model_views(model, args.data, args.split, with_images=False, **options)
 
 
 def _scaled(cameras: list[Camera], downscale: float) -> list[Camera]:
     return cameras if downscale == 1 else [c.scaled(downscale) for c in cameras]
 
 
-def _training_cameras(renderer, downscale: float) -> list[Camera]:
-    cameras = renderer.training_cameras
+def _training_cameras(model: OpenedModel, downscale: float) -> list[Camera]:
+    cameras = model.renderer.training_cameras
     if not cameras:
         raise InputError("cameras", "the model carries no training cameras: give --data or --cameras "
                          "(calibrate), or --dropout-ratio")
     return _scaled(list(cameras), downscale)
 
 
-def _calibrate(args: argparse.Namespace, renderer, cameras: list[Camera]) -> phd.CalibrationResult:
-    return phd.calibrate(renderer, cameras, epsilon=args.epsilon, step=args.step,
-                         samples=args.calibration_samples, method=args.method, seed=args.seed,
-                         executor=args.executor, signal=args.signal)
-
-
-def _ratio(args: argparse.Namespace, renderer, cameras: list[Camera] | None = None
+def _ratio(args: argparse.Namespace, model: OpenedModel, cameras: list[Camera] | None = None
            ) -> tuple[float, dict[str, Any] | None]:
-    """--dropout-ratio, else r_drop calibrated on `cameras` (default: the model's training
-    cameras), with the calibration as a dict (None when the ratio was given)."""
+    """--dropout-ratio, else r_drop on `cameras` (default: the model's training cameras): the
+    stored calibration unless --recalibrate, else calibrated now. The calibration comes back as
+    a dict (None when the ratio was given)."""
     if args.dropout_ratio is not None:
         return args.dropout_ratio, None
-    result = _calibrate(args, renderer, cameras or _training_cameras(renderer, args.downscale))
+    result = calibrated(args, model, cameras or _training_cameras(model, args.downscale),
+                        reuse=not args.recalibrate)
     return result.r_drop, result.to_dict()
 
 
@@ -283,23 +288,21 @@ def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None
 
 def run_calibrate(args: argparse.Namespace) -> int:
     args.executor = _executor(args)
-    renderer = _load(args.model, args.background)
+    model = open_model(args.model, args.background)
     if args.data is not None:
-        from phd_core.data import load_dataset
-
-        dataset = load_dataset(args.data, args.split, views=args.views, downscale=args.downscale, with_images=False)
-        cameras = dataset.cameras
+        cameras = model_views(model, args.data, args.split, views=args.views, downscale=args.downscale,
+                              with_images=False).cameras
     elif args.cameras is not None:
         cameras = _scaled(load_cameras(args.cameras, width=args.width, height=args.height), args.downscale)
     else:
-        cameras = _training_cameras(renderer, args.downscale)
+        cameras = _training_cameras(model, args.downscale)
     try:
-        result = _calibrate(args, renderer, cameras)
+        result = calibrated(args, model, cameras, reuse=False)
     except phd.CalibrationError as exc:
         _print_curve(exc, file=sys.stderr)
         raise
     print(f"r_drop = {result.r_drop}  ({result.method}, {result.signal}, epsilon {result.epsilon}, "
-          f"step {result.step}, {result.samples} masks, {len(cameras)} views, {renderer.num_units} units)")
+          f"step {result.step}, {result.samples} masks, {len(cameras)} views, {model.renderer.num_units} units)")
     _print_curve(result)
     for warning in result.warnings:
         print(f"warning: {warning}", file=sys.stderr)
@@ -309,24 +312,25 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
 
 def run_uq(args: argparse.Namespace) -> int:
-    from phd_core.data import load_dataset
-
     args.executor = _executor(args)
-    renderer = _load(args.model, args.background)
+    model = open_model(args.model, args.background)
+    renderer = model.renderer
     warnings: list[str] = []
-    dataset = _views(args, renderer, warnings)
+    dataset = _views(args, model, warnings)
     calibration_cameras = None
     if args.dropout_ratio is None and not renderer.training_cameras:
         # No stored training poses: calibrate on the dataset's train split instead.
         warnings.append("the model carries no training cameras: calibrated on every frame of the dataset's "
                         "train split, which may include views the model was not trained on")
-        calibration_cameras = load_dataset(args.data, "train", downscale=args.downscale, with_images=False).cameras
-    ratio, calibration = _ratio(args, renderer, calibration_cameras)
+        calibration_cameras = model_views(model, args.data, "train", downscale=args.downscale,
+                                          with_images=False).cameras
+    ratio, calibration = _ratio(args, model, calibration_cameras)
     if calibration is not None:
         warnings.extend(calibration["warnings"])
 
-    views = phd.uncertainty(renderer, dataset.cameras, ratio=ratio, samples=args.samples, seed=args.seed,
-                            keep_maps=True, executor=args.executor, signal=args.signal)
+    with progress_bar(args, f"uq {len(dataset.cameras)} views x {args.samples} masks") as progress:
+        views = phd.uncertainty(renderer, dataset.cameras, ratio=ratio, samples=args.samples, seed=args.seed,
+                                keep_maps=True, executor=args.executor, signal=args.signal, progress=progress)
     vmax = args.vmax if args.vmax is not None else max(v.sigma_max for v in views)
     rows = []
     for i, (view, camera, index) in enumerate(zip(views, dataset.cameras, dataset.indices)):
@@ -344,7 +348,7 @@ def run_uq(args: argparse.Namespace) -> int:
 
     sigma_bar = phd.sigma_max_bar(views)
     report: dict[str, Any] = {
-        "model": renderer.describe(), "data": str(args.data), "split": args.split,
+        "model": renderer.describe(), "data": str(dataset.root), "split": args.split,
         "dropout_ratio": ratio, "r_drop": calibration["r_drop"] if calibration else None,
         "calibration": calibration, "signal": args.signal, "samples": args.samples, "seed": args.seed,
         "ddof": 1,
@@ -366,17 +370,13 @@ def run_uq(args: argparse.Namespace) -> int:
     return 0
 
 
-def candidate_name(rank: int, index: int) -> str:
-    """The image a ranked candidate asks for: sorts in capture order and names the candidate."""
-    return f"rank{rank:03d}_candidate{index:04d}.png"
-
-
 def run_rank(args: argparse.Namespace) -> int:
     args.executor = _executor(args)
-    renderer = _load(args.model, args.background)
+    model = open_model(args.model, args.background)
+    renderer = model.renderer
     poses = _candidates(args, renderer)                     # at their own size: what a capture rig is told
     candidates = _scaled(poses, args.downscale)             # what is rendered
-    ratio, calibration = _ratio(args, renderer)
+    ratio, calibration = _ratio(args, model)
     captured = None
     if args.captured is not None:
         # Only the poses matter here: frames without w/h get a placeholder size.
@@ -384,9 +384,11 @@ def run_rank(args: argparse.Namespace) -> int:
     # What the captured views saw is kept beside the model (computed once per model and set of poses).
     store = (CapturedStore(ModelCache(args.model), default=renderer.training_cameras)
              if STRATEGIES[args.strategy].uses_visibility else None)
-    ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
-                            top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor,
-                            coarse=args.coarse, refine=args.refine, signal=args.signal, captured_store=store)
+    with progress_bar(args, f"rank {len(candidates)} candidates x {args.samples} masks") as progress:
+        ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
+                                top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor,
+                                coarse=args.coarse, refine=args.refine, signal=args.signal, progress=progress,
+                                captured_store=store)
     if store is not None and store.cache.skipped:
         print(f"warning: {store.cache.skipped}", file=sys.stderr)
     convention = renderer.describe().get("camera_format")
@@ -396,35 +398,49 @@ def run_rank(args: argparse.Namespace) -> int:
               "candidates": len(candidates), "order": [r.index for r in ranked], "camera_format": convention,
               "ranking": [{**r.to_dict(), "camera": poses[r.index].to_frame(),
                            "source_pose": source_pose(poses[r.index], convention)} for r in ranked]}
+    if args.out is not None:
+        _write_json(args.out, result)
     if args.export is not None:
         written = export_cameras(args.export, [poses[r.index] for r in ranked],
                                  [candidate_name(r.rank, r.index) for r in ranked], args.export_format)
         print(f"exported {len(ranked)} poses as {written.writes} ({written.name}) to {args.export}",
-              file=sys.stdout if args.out is not None else sys.stderr)     # stdout may carry the JSON
-    _emit(args.out, result, f"ranked {len(candidates)} candidates ({args.strategy}) at dropout ratio {ratio}; "
-                            f"first: {result['order'][:5]}")
+              file=sys.stderr if args.json else sys.stdout)         # stdout carries only the JSON
+    summary = f"ranked {len(candidates)} candidates ({args.strategy}) at dropout ratio {ratio}"
+    if args.json:
+        print(json.dumps(result, indent=2, allow_nan=False))
+    elif args.out is not None:
+        print(f"{summary}; first: {result['order'][:5]}; written to {args.out}")
+    else:
+        rows = len(ranked) if args.top_k is not None else min(TABLE_ROWS, len(ranked))
+        print(f"{summary}; capture first (centres and viewing directions in the model's frame):")
+        print("\n".join(rank_table(ranked, poses, rows)))
+        if rows < len(ranked):
+            print(f"... {len(ranked) - rows} more: --top-k N for a batch of N, --json or --out for every candidate")
     return 0
 
 
 def run_select(args: argparse.Namespace) -> int:
     args.executor = _executor(args)
-    renderers = {key: _load(getattr(args, f"model_{key}"), args.background) for key in ("a", "b")}
+    models = {key: open_model(getattr(args, f"model_{key}"), args.background) for key in ("a", "b")}
     warnings: list[str] = []
-    if args.data is not None:
-        dataset = _views(args, renderers["a"], warnings)
-        cameras, images = dataset.cameras, dataset.images
-    else:
+    if args.cameras is not None:
         cameras = _scaled(load_cameras(args.cameras, split="all", width=args.width, height=args.height),
                           args.downscale)
         images = None
+    else:
+        dataset = _views(args, models["a"], warnings)
+        if args.data is not None:
+            check_frame(models["b"], args.data)
+        cameras, images = dataset.cameras, dataset.images
     ratios: dict[str, float] = {}
     calibrations: dict[str, dict[str, Any] | None] = {}
-    for key, renderer in renderers.items():
+    for key, model in models.items():
         given = getattr(args, f"ratio_{key}")
-        ratios[key], calibrations[key] = (given, None) if given is not None else _ratio(args, renderer)
-    result = phd.select_models(renderers["a"], renderers["b"], cameras, ratio_a=ratios["a"], ratio_b=ratios["b"],
-                               samples=args.samples, seed=args.seed, images=images, rule=args.rule,
-                               executor=args.executor, signal=args.signal)
+        ratios[key], calibrations[key] = (given, None) if given is not None else _ratio(args, model)
+    with progress_bar(args, f"select over {len(cameras)} views x {args.samples} masks") as progress:
+        result = phd.select_models(models["a"].renderer, models["b"].renderer, cameras, ratio_a=ratios["a"],
+                                   ratio_b=ratios["b"], samples=args.samples, seed=args.seed, images=images,
+                                   rule=args.rule, executor=args.executor, signal=args.signal, progress=progress)
     counts = {key: sum(v.choice == key for v in result.views) for key in ("a", "b")}
     report = {"rule": args.rule, "signal": args.signal, "ratio_a": ratios["a"], "ratio_b": ratios["b"],
               "calibration_a": calibrations["a"],

@@ -216,8 +216,9 @@ class Viewer:
 
 
 def run(args: argparse.Namespace) -> int:
-    from phd_core.renderers import load_model
     from phd_core.scene import cameras_from_json
+
+    from .models import open_model
 
     if args.ranking is not None and args.candidates is None:
         raise InputError("candidates",
@@ -225,7 +226,7 @@ def run(args: argparse.Namespace) -> int:
     if args.samples < 2:
         raise InputError("samples", f"must be at least 2, got {args.samples}")
     viser = import_viser()
-    renderer = load_model(args.model)
+    renderer = open_model(args.model).renderer
     candidates = [] if args.candidates is None else cameras_from_json(args.candidates)
     candidates = [c.scaled(args.downscale) for c in candidates] if args.downscale != 1 else candidates
     ranking = None if args.ranking is None else read_ranking(args.ranking)

@@ -6,3 +6,4 @@ python3 -m venv .venv
 .venv/bin/pip install -q torch==2.13.0
 .venv/bin/pip install -q -e .
 .venv/bin/phd demo "$@"
+echo "(phd and python above are .venv/bin/phd and .venv/bin/python: source .venv/bin/activate first)"

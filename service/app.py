@@ -7,16 +7,22 @@ pool (`service.jobs`); nothing heavy runs on the event loop. Every
 error, FastAPI's own included, answers with `{"error": {"code", "message", "field"}}`.
 
     GET    /health                          liveness and version (never needs the API key)
-    POST   /v1/models                       upload a model (multipart: file, cameras, name)
+    GET    /ui/, /docs, /redoc              the web page and the API's documentation (local files only)
+    POST   /v1/models                       upload a model (multipart: file, cameras, name; or a folder's
+                                            files / a zip archive: service.folders)
     GET    /v1/models                       list models
     GET    /v1/models/{id}                  one model
     DELETE /v1/models/{id}                  delete it (file, metadata and calibration)
+    POST   /v1/models/{id}/poses            ranked poses as a capture tool's files (as `phd rank --export`)
     POST   /v1/models/{id}/calibrate        PH-Dropout calibration -> r_drop, stored with the model
     POST   /v1/models/{id}/rank             candidate poses in the order to capture them
     POST   /v1/select                       per view, which of two models to trust
+    GET    /v1/models/{id}/scene            the splats as points for the page's 3D view (a binary)
+    POST   /v1/models/{id}/explain          per point: coverage, fragility, what a pick newly sees
     GET    /v1/jobs/{id}                    state, progress, result of a job
     DELETE /v1/jobs/{id}                    cancel a job
     GET    /v1/jobs/{id}/artifacts/{name}   a PNG a job produced (heat map, selected image)
+    GET    /metrics                         Prometheus metrics (admin key; PHD_METRICS=false: none)
 """
 
 from __future__ import annotations
@@ -44,10 +50,11 @@ from .guard import Guard
 from .jobs import JobManager
 from .jobstore import JobStore
 from .keys import KeyRing
-from .routes import ROUTERS
+from .metrics import Counting
+from .routes import ROUTERS, metrics
 from .settings import Settings
 from .state import ServiceState
-from .store import ModelStore
+from .store import DB_NAME, SCHEMA_VERSION, ModelStore
 from .work import model_loader
 
 log = logging.getLogger("phd.service")
@@ -117,6 +124,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     one_arena()             # workers and request threads reuse each other's freed memory (phd_core.allocator)
     bounded_heap()          # large blocks are unmapped when freed: resident memory follows the live tensors
     store = ModelStore(settings.data_dir)
+    if store.migrated_from is not None:
+        log.warning("store in %s migrated from schema version %d to %d (the database before: %s.v%d.bak)",
+                    settings.data_dir, store.migrated_from, SCHEMA_VERSION, DB_NAME, store.migrated_from)
     swept = store.sweep()
     if swept:
         log.warning("removed %d unfinished upload(s) from %s", len(swept), settings.data_dir)
@@ -138,15 +148,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             await asyncio.to_thread(state.jobs.shutdown)
+            store.close()
 
     app = FastAPI(title="PH-Dropout service", version=phd_core.__version__, lifespan=lifespan,
+                  docs_url=None, redoc_url=None,      # served from local files by routes.page
                   description=f"Post hoc epistemic uncertainty for trained models ({', '.join(FAMILIES)}): "
                               "next-best-view ranking and per-view model selection.")
     app.state.service = state
     install_error_handlers(app)
     for router in ROUTERS:
         app.include_router(router)
+    if settings.metrics:
+        state.metrics.watch(settings, store, job_store, state.ledger, lambda: state.jobs.waiting())
+        app.include_router(metrics.router)
     app.add_middleware(Guard, settings=settings, keys=keys)
+    app.add_middleware(Counting, metrics=state.metrics)    # outside the guard: its answers are counted too
     if settings.cors_origins:  # outermost: preflights are answered before the key check
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST", "DELETE"],
                            allow_headers=["Authorization", "Content-Type"], expose_headers=["Location", "Retry-After"],

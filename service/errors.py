@@ -67,6 +67,14 @@ def busy(field: str | None, retry_after: int) -> ServiceError:
                         {"Retry-After": str(retry_after)})
 
 
+def insufficient_storage(what: str, field: str | None = None, why: str = "the service's disk is full") -> ServiceError:
+    """507: the data directory's disk (or quota) is full, or the write would eat into the space kept
+    free (`why`); `what` names what could not be written. Nothing of it was kept
+    (service.store.writing), and what was stored before is unchanged."""
+    return ServiceError(507, "insufficient_storage", f"{why}: {what} could not be written (nothing of it was kept; "
+                        "what was stored before is unchanged); retry once space is freed", field)
+
+
 def from_exception(exc: BaseException) -> ServiceError | None:
     """The error answer for a library exception, or None if it is a bug (-> 500)."""
     if isinstance(exc, ServiceError):

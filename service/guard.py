@@ -34,9 +34,10 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 DRAIN_LIMIT = 64 << 20
 MAX_HEADER_BYTES = 64 * 1024
 OPEN_PATHS: tuple[str, ...] = ("/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
-OPEN_PATHS += ("/", "/ui", "/ui/", "/ui/app.js", "/ui/app.css")   # the page's static files; its API calls send the key
+OPEN_PATHS += ("/", "/ui", "/favicon.ico")
+OPEN_PREFIXES = ("/ui/", "/docs-assets/")   # the page's and the docs' static files; the page's API calls send the key
 UPLOAD_PATH = "/v1/models"
-DOC_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")   # FastAPI's pages load their scripts from a CDN
+DOC_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")   # FastAPI's pages start their scripts inline
 # Same-origin files only (the web page: HTML, one JS and one CSS file, images from the API or
 # blob:/data: URLs), no inline script or style, no frames, no plugins.
 CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; connect-src 'self'; "
@@ -84,7 +85,8 @@ class Guard:
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         principal = self.keys.identify(headers.get("authorization"))
-        if principal is None and scope["path"] not in OPEN_PATHS and scope["method"] != "OPTIONS":
+        is_open = scope["path"] in OPEN_PATHS or scope["path"].startswith(OPEN_PREFIXES)
+        if principal is None and not is_open and scope["method"] != "OPTIONS":
             await _answer(send, 401, error_body("unauthorized", "missing or wrong API key: send "
                           "'Authorization: Bearer <key>'", "Authorization"), {"www-authenticate": "Bearer"})
             await _drain(receive, DRAIN_LIMIT)

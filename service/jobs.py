@@ -14,6 +14,7 @@ A shutdown fails unfinished jobs with the code `interrupted`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import traceback
@@ -152,7 +153,13 @@ class JobManager:
                     return
                 job = self._waiting.popleft()
                 job.state, job.started_at = "running", utc_now()
-            self.on_change(job)
+            try:
+                self.on_change(job)
+            except ServiceError as exc:     # a full disk (507): no work whose result could not be kept
+                with self._cond:
+                    job.error = exc
+                    self._finish(job, "failed")
+                continue
             self._run(job)
 
     def _run(self, job: JobRecord) -> None:
@@ -189,7 +196,14 @@ class JobManager:
         try:
             self.on_change(job)          # artefacts and result on disk before anyone is told
             job.on_disk = True
-        except Exception:  # a full disk must not leave a job unfinished in memory
+        except ServiceError as exc:      # a full disk (507): a result that cannot be kept is not given
+            log.warning("job %s: its %s state could not be stored: %s", job.id, state, exc.message)
+            if state == "succeeded":
+                job.state, job.result, job.artifacts, job.error = "failed", None, {}, exc
+                with contextlib.suppress(ServiceError):     # its failed row may fit where the result did not
+                    self.on_change(job)
+                    job.on_disk = True
+        except Exception:  # a bug must not leave a job unfinished in memory
             log.error("job %s: could not persist its final state:\n%s", job.id, traceback.format_exc())
         job.done.set_result(job.result)
         if job.on_disk:

@@ -17,6 +17,7 @@ from typing import Any, Callable, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
+from phd_core.data import POSES
 from phd_core.registry import Registry
 from phd_core.renderers import DEFAULT_SIGNAL, FAMILIES, SIGNALS, Family, signals_help
 from phd_core.uq import DEFAULT_SELECTION_RULE, SELECTION_RULES, rules_help
@@ -27,7 +28,7 @@ API_VERSION = "v1"
 
 CameraList = Union[list[dict[str, Any]], dict[str, Any]]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-JobKind = Literal["calibrate", "rank", "select"]
+JobKind = Literal["calibrate", "rank", "select", "explain"]
 HeatmapMode = Literal["none", "base64", "files"]
 
 def _by_family(fact: Callable[[Family], str]) -> str:
@@ -91,6 +92,8 @@ class Health(_Response):
     status: Literal["ok"] = "ok"
     version: str
     api_version: str = API_VERSION
+    key_required: bool = Field(False, description="Whether the other routes need an API key (the web page asks for "
+                               "one before it calls them).")
 
 
 class Calibration(_Response):
@@ -248,6 +251,48 @@ class SelectRequest(RenderSize):
     _signal = field_validator("signal")(_known_signal)
 
 
+class PosesRequest(_Request):
+    """Ranked poses to download as the files a capture tool reads (`phd rank --export` writes the same)."""
+
+    cameras: list[dict[str, Any]] = Field(description="The poses in capture order, as transforms frames at their "
+                                          "own size: a rank result's views[].camera.", min_length=1)
+    indices: list[int] | None = Field(None, description="Each pose's candidate index (views[].index): the images "
+                                      "to capture are named rank<k>_candidate<index>.png. Default 0, 1, 2, ...")
+    format: str | None = Field(None, description="One of the pose conventions: " + ", ".join(
+        f"{name} ({c.writes})" for name, c in POSES.items()) + ". Default: the model's camera_format, else "
+        "nerfstudio. A COLMAP text model comes as a zip of its three files.", examples=list(POSES))
+
+    @field_validator("format")
+    @classmethod
+    def _known_format(cls, name: str | None) -> str | None:
+        return None if name is None else _registered(POSES, name)
+
+    @model_validator(mode="after")
+    def _one_index_per_pose(self) -> "PosesRequest":
+        if self.indices is not None and len(self.indices) != len(self.cameras):
+            raise ValueError(f"give one index per camera: {len(self.indices)} indices for {len(self.cameras)} cameras")
+        return self
+
+
+class ExplainRequest(RenderSize):
+    """Per-splat explanation of a model for the 3D view: coverage by the captured views,
+    PH-Dropout fragility at the model's r_drop, and what a picked pose would newly see."""
+
+    samples: int | None = Field(None, ge=2, description="Dropout samples N per view; default the engine's.")
+    seed: int = Field(0, ge=0, le=2**63 - 1)
+    dropout_ratio: FiniteFloat | None = Field(None, ge=0, lt=1, description="Default: the stored calibration's r_drop.")
+    pick: dict[str, Any] | None = Field(None, description="A pose whose newly seen splats to show (e.g. the ranking's "
+                                        "first), as a transforms frame; without it no novelty.")
+    captured: CameraList | None = Field(None, description="Poses already captured; default the model's stored "
+                                        "training cameras. " + _CAMERAS_DOC)
+    cap: int = Field(200_000, ge=1, le=2_000_000, description="Splats to send values for: the same draw as the "
+                     "scene's points at this cap (GET /v1/models/{id}/scene).")
+    signal: str | None = Field(None, description=_SIGNAL_DOC + " Default: the stored calibration's when its r_drop "
+                               "is used, else " + DEFAULT_SIGNAL + ".", examples=list(SIGNALS))
+    run_async: bool = Field(False, alias="async", description="Answer 202 with a job at once.")
+
+    _signal = field_validator("signal")(_known_signal)
+
 # ----------------------------------------------------------------------------- work results
 
 class RankedCandidate(_Response):
@@ -321,6 +366,26 @@ class SelectResult(_Response):
     views: list[SelectedView]
 
 
+class ExplainResult(_Response):
+    model_id: str
+    dropout_ratio: float
+    ratio_source: Literal["request", "calibration"]
+    signal: str
+    samples: int
+    seed: int
+    width: int = Field(description="Render width of the first captured view.")
+    height: int
+    num_views: int = Field(description="Captured views measured (the pick apart).")
+    total: int = Field(description="Splats in the model.")
+    count: int = Field(description="Splats the values are for: the scene's points at `cap`, in their order.")
+    cap: int
+    scales: dict[str, float] = Field(description="Per quantity, the value its byte 254 stands for (bytes 0-254 "
+                                     "are linear from 0; coverage: 3 views' worth, fragility: its 99th "
+                                     "percentile, novelty: 1).")
+    values: dict[str, str] = Field(description="Per quantity (coverage, fragility, novelty with a pick), base64 "
+                                   "of one byte per point; 255: no value (a splat no view shows).")
+    unseen_share: float = Field(description="Share of the model's splats no captured view saw unhidden.")
+
 class Job(_Response):
     id: str
     kind: JobKind
@@ -330,6 +395,6 @@ class Job(_Response):
     started_at: str | None = None
     finished_at: str | None = None
     estimated_pixels: float = Field(description="The work estimate: rendered views x samples x pixels.")
-    result: Union[RankResult, SelectResult, Calibration, None] = None
+    result: Union[RankResult, SelectResult, Calibration, ExplainResult, None] = None
     error: ErrorDetail | None = None
     artifacts: list[str] = Field(default_factory=list, description="Names of downloadable PNG artefacts.")

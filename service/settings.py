@@ -14,7 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-from pydantic import Field, PositiveFloat, PositiveInt, field_validator
+from pydantic import Field, NonNegativeInt, PositiveFloat, PositiveInt, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from phd_core.executors import EXECUTORS
@@ -51,6 +51,9 @@ class Settings(BaseSettings):
         4, description="idle models kept in memory (LRU; evicted sooner when the memory budget needs their room)")
     job_retention: PositiveInt = Field(
         256, description="finished jobs (and their artefacts) kept, in memory and on disk")
+    keep_free_bytes: NonNegativeInt = Field(
+        256 << 20, description="free space kept on the data directory's disk: an upload that would leave less is "
+                               "refused (507) before or as it streams, so job results and heat maps still fit")
     max_upload_bytes: PositiveInt = Field(1 << 30, description="model upload cap (413 past it)")
     max_camera_json_bytes: PositiveInt = Field(16 << 20, description="training-camera JSON part of an upload")
     max_json_bytes: PositiveInt = Field(32 << 20, description="any other request body")
@@ -67,6 +70,9 @@ class Settings(BaseSettings):
     upload_wait: PositiveFloat = Field(30.0, description="seconds an upload parse waits for budget before 429")
     keys_file: Path | None = Field(
         None, description='JSON `{"name": "key"}`: named keys, each owning its models and jobs')
+    metrics: bool = Field(
+        True, description="serve `GET /metrics` (Prometheus text format) to the admin key (`PHD_API_KEY`; to anyone "
+                          "when no key is set); false: no such route")
     cors_origins: list[str] = Field(
         [], description="JSON list of origins whose pages may call the API (none by default)")
     header_timeout: PositiveFloat = Field(10.0, description="seconds a client may take to send its request headers")

@@ -5,24 +5,38 @@ for a caller, queue work, ingest an upload). `service.deps` hands it to the rout
 from __future__ import annotations
 
 import asyncio
+import hashlib
+import json
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from fastapi.responses import JSONResponse
 
 from phd_core.executors import LOCAL, Executor
-from phd_core.renderers import FAMILIES, accepts_background, load_model_bytes, set_background
+from phd_core.renderers import FAMILIES, SNIFF_BYTES, accepts_background, load_model_bytes, set_background
 from phd_core.scene import Camera
 
-from .budget import MemoryLedger, Reservation, load_bytes
+from .budget import MemoryLedger, Reservation, largest_model_file, load_bytes
 from .errors import ServiceError, busy, not_found
+from .folders import read_folder, unpack_zip
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
 from .keys import Principal
+from .metrics import Metrics
 from .schemas import Job, RenderSize
 from .settings import Settings
-from .store import ModelRecord, ModelStore
-from .upload import Upload, guess_background, parse_background, parse_camera_format, parse_camera_json
+from .store import ModelRecord, ModelStore, writing
+from .upload import (
+    Upload,
+    guess_background,
+    parse_background,
+    parse_camera_format,
+    parse_camera_json,
+    sniff_kind,
+    unwrap_sidecar,
+)
 from .work import parse_cameras
 
 
@@ -35,6 +49,7 @@ class ServiceState:
     # Made by the app's lifespan (service.app.create_app), so every request sees it; unset before.
     jobs: JobManager = field(init=False)
     executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
+    metrics: Metrics = field(default_factory=Metrics)      # what GET /metrics shows (service.metrics)
 
     def model(self, model_id: str, who: Principal, field: str | None = None) -> ModelRecord:
         """The model, or 404 when it does not exist or belongs to another key."""
@@ -66,6 +81,7 @@ class ServiceState:
     def persist_job(self, job: JobRecord) -> None:
         """JobManager's on_change: the job's state, and once final its artefacts, to disk."""
         self.job_store.save(job.to_schema(), job.owner, job.artifacts if job.state == "succeeded" else None)
+        self.metrics.job_stored(job)
 
     async def run(self, job_id: str, kind: str, work: Work, estimate: float, run_async: bool,
                   who: Principal) -> Any:
@@ -90,7 +106,7 @@ class ServiceState:
         """Load the uploaded file fully (worker thread), then move it into the store."""
         cameras = source = None
         if upload.cameras is not None:  # the cheap checks first
-            source = parse_camera_json(upload.cameras)
+            source = unwrap_sidecar(parse_camera_json(upload.cameras), upload)
             cameras = parse_cameras(source, RenderSize(), self.settings, field="cameras",
                                     cap=self.settings.max_training_cameras)
         camera_format = parse_camera_format(upload.camera_format, source)
@@ -103,13 +119,44 @@ class ServiceState:
         except TimeoutError:
             raise busy("file", self.settings.retry_after) from None
 
+    def ingest_folder(self, upload: Upload, who: Principal) -> ModelRecord:
+        """A folder upload (`service.folders`): unpacked and read within the memory budget, then
+        ingested as the model file it holds, with what its trainer wrote beside it as the
+        fields the request left out."""
+        assert upload.folder is not None          # receive_upload set it for `files` and `archive` parts
+        field = "archive" if upload.archive is not None else "files"
+        size = upload.size
+        with writing("the uploaded folder", field):        # a full disk: 507 (service.store.writing)
+            if upload.archive is not None:
+                size = unpack_zip(upload.archive, upload.folder, largest_model_file(self.settings.memory_budget_bytes))
+            named = Path(upload.filename).stem if upload.filename else "folder"
+            try:
+                with self.ledger.reserve(load_bytes(size), timeout=self.settings.upload_wait):
+                    found = read_folder(upload.folder, named, upload.path.with_suffix(".ply"))
+            except TimeoutError:
+                raise busy(field, self.settings.retry_after) from None
+        os.replace(found.model, upload.path)
+        with open(upload.path, "rb") as f:
+            upload.head = f.read(SNIFF_BYTES)
+        upload.size = upload.path.stat().st_size
+        upload.sha256 = file_sha256(upload.path)
+        upload.filename = found.model.name
+        if upload.cameras is None and found.cameras is not None:
+            upload.cameras = json.dumps(found.cameras).encode()
+        if upload.background is None and found.background is not None:
+            upload.background, upload.background_source = json.dumps(found.background).encode(), found.background_source
+        upload.camera_format = upload.camera_format or found.camera_format
+        upload.name = upload.name or found.name
+        upload.notes = found.notes
+        return self.ingest(upload, sniff_kind(upload.head), who)
+
     def _store(self, upload: Upload, kind: str, who: Principal, cameras: list[Camera] | None,
                camera_format: str | None, parse: Reservation) -> ModelRecord:
         renderer = load_model_bytes(upload.path.read_bytes(), upload.filename or "the uploaded file")
         background_source = None
         if upload.background is not None:
             set_background(renderer, parse_background(upload.background))    # refused by a model with its own
-            background_source = "the upload's background field"
+            background_source = upload.background_source or "the upload's background field"
         elif accepts_background(renderer):                      # a bare PLY carries no background
             color, background_source = guess_background(camera_format)
             set_background(renderer, color)
@@ -121,8 +168,19 @@ class ServiceState:
         facts["camera_format"] = camera_format or facts.get("camera_format")
         if background_source is not None:
             facts["background_source"] = background_source
+        if upload.notes:
+            facts["notes"] = upload.notes       # what reading its trainer's folder noted
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)
         parse.keep(record.id, renderer, record.size_bytes)
+        self.metrics.uploads.labels(record.kind).inc()
         return record
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()

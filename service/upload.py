@@ -1,11 +1,17 @@
 """Model uploads: stream a multipart body to a temp file, then check it fully.
 
 Form fields of `POST /v1/models`:
-- `file` (required): the model, a file of a registered family (`phd_core.renderers.FAMILIES`). The
+- `file`: the model, a file of a registered family (`phd_core.renderers.FAMILIES`). The
   kind comes from the first bytes, never from the file name; anything else (a pickle named .pt, a
   zip, text) is refused with 415 before any parser sees more than its head.
-- `cameras` (optional): training cameras as JSON, a transforms.json object or a list of
-  frames, as a text field or a file.
+- instead of `file`, a folder as `phd train` or another trainer wrote it (`service.folders`):
+  `files`, one part per file, each named by its path inside the folder (a PLY with its sidecar
+  `<stem>.json`, or a reference-trainer / splatfacto / gsplat output folder), or `archive`, the
+  folder as one zip. Read with the rules `phd_core` reads folders and sidecars by, so the page,
+  the Python client and the CLI take the same files.
+- `cameras` (optional): training cameras as JSON, a transforms.json object, a list of
+  frames, a reference-trainer cameras.json or the sidecar `phd train` wrote beside its PLY
+  (whose background and capture format then apply too), as a text field or a file.
 - `name` (optional): a display name; default the uploaded file's name.
 - `background` (optional, splat models): the colour the model was trained over, JSON
   `[r, g, b]` in [0, 1] or "white" / "black" / "grey" (a trainer's sidecar or cfg_args says
@@ -26,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -41,10 +48,13 @@ from phd_core.errors import InputError, check_color
 from phd_core.io import fsync_path
 from phd_core.renderers import SNIFF_BYTES, family_titles, model_kind
 
-from .errors import JSON_ERRORS, ServiceError, invalid, json_problem
+from .errors import JSON_ERRORS, ServiceError, insufficient_storage, invalid, json_problem
+from .folders import CLASHES, SIDECAR_SOURCE, folder_target
+from .store import writing
 
 MAX_NAME_BYTES = 256
-FIELDS = ("file", "cameras", "name", "background", "camera_format")
+FIELDS = ("file", "files", "archive", "cameras", "name", "background", "camera_format")
+MODEL_PARTS = ("file", "files", "archive")   # one kind per request
 
 
 @dataclass
@@ -59,6 +69,11 @@ class Upload:
     head: bytes = b""
     sha256: str = ""
     has_file: bool = False
+    folder: Path | None = None          # `files` parts land here, under their own paths
+    archive: Path | None = None         # an `archive` part lands here
+    folder_files: int = 0
+    background_source: str | None = None   # who set `background` when it was not the request (a sidecar)
+    notes: list[str] = field(default_factory=list)   # what reading a folder noted, shown with the model
 
 
 @dataclass
@@ -69,18 +84,35 @@ class _Part:
     name: str = ""
     buffer: bytearray | None = None
     file: BinaryIO | None = None
+    counted: bool = False               # a folder's file or archive: counted, not hashed
 
 
-async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: int, max_file_bytes: int) -> Upload:
-    """Parse the multipart body of `request`, writing the model to `temp_path` (then fsynced).
+async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: int, max_file_bytes: int,
+                         folder_path: Path, keep_free: int = 0) -> Upload:
+    """Parse the multipart body of `request`, writing the model to `temp_path` (then fsynced), a
+    folder's `files` under `folder_path` and an `archive` to `folder_path`.zip.
 
     A model past `max_file_bytes` (what the memory budget can parse) is cut off with 413 as it
-    streams. The caller deletes `temp_path` on any failure.
+    streams; so is a folder whose files add up past it. A body that would leave less than
+    `keep_free` bytes free on the disk is refused with 507 up front (by its Content-Length) or as
+    it streams, and so is a write the full disk refuses. The caller deletes `temp_path` and the
+    folder on any failure.
     """
     content_type, params = parse_options_header(request.headers.get("content-type", ""))
     if content_type != b"multipart/form-data" or not params.get(b"boundary"):
         raise ServiceError(415, "unsupported_media_type", "upload the model as multipart/form-data with a "
                            "'file' part (and optionally 'cameras' and 'name')", "file")
+    free = shutil.disk_usage(temp_path.parent).free
+    length = request.headers.get("content-length", "")
+
+    def check_room(size: int, what: str, field: str = "file") -> None:
+        if size > free - keep_free:
+            kept = f", of which {keep_free} are kept free (PHD_KEEP_FREE_BYTES)" if keep_free else ""
+            raise insufficient_storage(f"{what} ({size} bytes)", field,
+                                       f"the service's disk has {free} bytes free{kept}")
+
+    if length.isdigit():
+        check_room(int(length), "the upload")
     upload = Upload(path=temp_path)
     digest = hashlib.sha256()
     part = _Part()
@@ -104,18 +136,49 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
         part.name = options.get(b"name", b"").decode("utf-8", "replace")
         if part.name not in FIELDS:
             raise invalid(part.name or "file", f"unknown form field '{part.name}': expected one of {', '.join(FIELDS)}")
-        if part.name == "file":
+        raw_filename = options.get(b"filename")
+        filename = None if raw_filename is None else raw_filename.decode("utf-8", "replace")
+        if part.name in MODEL_PARTS:
+            kinds = {"file": upload.has_file, "files": upload.folder_files > 0, "archive": upload.archive is not None}
+            other = next((kind for kind, given in kinds.items() if given and kind != part.name), None)
+            if other is not None:
+                raise invalid(part.name, f"give the model one way: a '{other}' part came already")
+        if part.name in ("files", "archive"):
+            if part.name == "archive" and upload.archive is not None:
+                raise invalid("archive", "more than one 'archive' part: upload one zip per request")
+            where = folder_target(folder_path, part.name, filename, upload.folder_files)
+            upload.folder_files += part.name == "files"
+            upload.folder = folder_path
+            if part.name == "archive":
+                upload.archive = where
+                upload.filename = filename
+            try:
+                where.parent.mkdir(parents=True, exist_ok=True)
+                part.file = open(where, "xb")
+            except CLASHES:
+                raise invalid(part.name, f"'{filename}' comes twice or clashes with a folder") from None
+            part.counted = True
+        elif part.name == "file":
             if upload.has_file:
                 raise invalid("file", "more than one 'file' part: upload one model per request")
             upload.has_file = True
-            filename = options.get(b"filename")
-            upload.filename = None if filename is None else filename.decode("utf-8", "replace")
+            upload.filename = filename
             part.file = open(upload.path, "wb")
         else:
             part.buffer = bytearray()
 
     def on_part_data(data: bytes, start: int, end: int) -> None:
         chunk = data[start:end]
+        if part.counted:
+            assert part.file is not None        # on_headers_finished opened it
+            upload.size += len(chunk)
+            if upload.size > max_file_bytes:
+                raise ServiceError(413, "payload_too_large", f"the folder's files exceed {max_file_bytes} bytes, the "
+                                   "largest this service's memory budget can read (leave out the images: the model "
+                                   "and its cameras are enough)", part.name)
+            check_room(upload.size, "the folder's files", part.name)
+            part.file.write(chunk)
+            return
         if part.file is not None:
             if len(upload.head) < SNIFF_BYTES:
                 upload.head += chunk[:SNIFF_BYTES - len(upload.head)]
@@ -124,6 +187,7 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
             if upload.size > max_file_bytes:
                 raise ServiceError(413, "payload_too_large", f"the model file exceeds {max_file_bytes} bytes, the "
                                    "largest this service's memory budget can parse", "file")
+            check_room(upload.size, "the model file")
             part.file.write(chunk)
             return
         assert part.buffer is not None         # on_headers_finished set it for every non-file part
@@ -158,21 +222,28 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
     except FormParserError as exc:      # e.g. a boundary past the parser's 256 characters
         raise ServiceError(400, "invalid_multipart", f"the multipart boundary is refused: {exc}",
                            "Content-Type") from None
+    what = "the uploaded model file"      # its every write and flush: a full disk is 507 (service.store.writing)
     try:
-        async for chunk in request.stream():
-            parser.write(chunk)
-        parser.finalize()
+        with writing(what, "file"):
+            async for chunk in request.stream():
+                parser.write(chunk)
+            parser.finalize()
     except ClientDisconnect:
         raise ServiceError(400, "upload_incomplete", "the upload ended before the body was complete", "file") from None
     except FormParserError as exc:
         raise ServiceError(400, "invalid_multipart", f"malformed multipart body: {exc}", part.name or "file") from None
     finally:
         if part.file is not None:
-            part.file.close()
+            with writing(what, "file"):
+                part.file.close()
+    if upload.folder is not None or upload.archive is not None:
+        return upload                   # service.folders finds the model in it
     if not upload.has_file:
-        raise invalid("file", "no 'file' part: the request must include the model file")
+        raise invalid("file", "no 'file' part: the request must include the model file (or a folder's 'files' or "
+                      "'archive')")
     upload.sha256 = digest.hexdigest()
-    await asyncio.to_thread(fsync_path, upload.path)
+    with writing(what, "file"):
+        await asyncio.to_thread(fsync_path, upload.path)
     return upload
 
 
@@ -207,6 +278,20 @@ def parse_camera_json(raw: bytes) -> Any:
         return json.loads(raw)
     except JSON_ERRORS as exc:
         raise invalid("cameras", f"not valid JSON: {json_problem(exc)}") from None
+
+
+def unwrap_sidecar(source: Any, upload: Upload) -> Any:
+    """Cameras given as the sidecar `phd train` wrote beside its PLY: its training cameras, and
+    its background and capture format where the request gave none (the Python client's rule)."""
+    if not (isinstance(source, dict) and isinstance(source.get("training_cameras"), list)):
+        return source                   # a sidecar is known by its list, as phd_core.data.load_cameras knows it
+    frames = source["training_cameras"]
+    background = source.get("background")
+    if upload.background is None and isinstance(background, list):
+        upload.background, upload.background_source = json.dumps(background).encode(), SIDECAR_SOURCE
+    if upload.camera_format is None and source.get("dataset_format") in POSES:
+        upload.camera_format = source["dataset_format"]
+    return frames
 
 
 def guess_background(camera_format: str | None) -> tuple[tuple[float, float, float], str]:

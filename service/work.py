@@ -10,11 +10,15 @@ library's numbers.
 from __future__ import annotations
 
 import base64
+import io
+import tempfile
+import zipfile
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, Callable
 
 from phd_core import uq
-from phd_core.data import source_pose
+from phd_core.data import POSES, candidate_name, export_cameras, source_pose
 from phd_core.data.inria import cameras_from_entries, is_inria_cameras
 from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor
@@ -62,6 +66,7 @@ from .jobs import Work
 from .schemas import (
     CalibrateRequest,
     Calibration,
+    PosesRequest,
     RankedCandidate,
     RankRequest,
     RankResult,
@@ -494,3 +499,36 @@ def select_job(record_a: ModelRecord, record_b: ModelRecord, body: SelectRequest
                             views=views), artifacts
 
     return Bounded(renders, settings, ledger, work), float(estimate)
+
+
+# ----------------------------------------------------------------------------- poses to capture
+
+@dataclass(frozen=True)
+class PoseFile:
+    """Ranked poses written as a capture tool's file: its bytes, media type and file name."""
+
+    content: bytes
+    media_type: str
+    filename: str
+
+
+def export_poses(record: ModelRecord, body: PosesRequest, settings: Settings) -> PoseFile:
+    """The poses in `body` written by `phd_core.data.export_cameras`, the function `phd rank --export`
+    calls, with the same image names: in the convention asked for, else the model's own. A
+    folder (a COLMAP text model) comes back as a zip of its files."""
+    cameras = read_cameras(body.cameras, RenderSize(), settings, field="cameras", cap=settings.max_candidates)
+    indices = body.indices if body.indices is not None else list(range(len(cameras)))
+    convention = POSES[body.format or record.describe.get("camera_format") or "nerfstudio"]
+    folder = convention.suffix == ""
+    target = "colmap" if folder else convention.file_name or "transforms.json"
+    with tempfile.TemporaryDirectory(prefix="phd-poses-") as tmp:
+        path = Path(tmp) / target
+        export_cameras(path, cameras, [candidate_name(rank, index) for rank, index in enumerate(indices)],
+                       convention.name)
+        if not folder:
+            return PoseFile(path.read_bytes(), "application/json", target)
+        archive = io.BytesIO()
+        with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zipped:
+            for file in sorted(path.iterdir()):
+                zipped.write(file, f"{target}/{file.name}")
+        return PoseFile(archive.getvalue(), "application/zip", f"{target}.zip")

@@ -35,6 +35,19 @@ def svc_model_files(tmp_path_factory) -> dict[str, Path]:
     return files
 
 
+@pytest.fixture(scope="session")
+def svc_trained(tmp_path_factory) -> Path:
+    """A 3DGS model written by `phd train` (4 lego views at 100 px, 15 iterations: a few seconds),
+    with the sidecar model.json it writes beside the PLY."""
+    from phd_cli import main
+    from support.fixtures import LEGO
+
+    out = tmp_path_factory.mktemp("svc_trained") / "model.ply"
+    assert main(["train", "--data", str(LEGO), "--views", "4", "--downscale", "8", "--iterations", "15",
+                 "--out", str(out), "--quiet"]) == 0
+    return out
+
+
 @pytest.fixture
 def svc_start(tmp_path):
     """Factory: svc_start(**settings) -> a running in-process server (data dir under tmp_path by default)."""

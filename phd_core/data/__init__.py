@@ -18,7 +18,7 @@ from .nerfstudio import load_nerfstudio
 from .colmap import load_colmap
 from .llff import load_llff
 from .inria import cameras_from_entries, is_inria_cameras, load_inria, read_output_folder
-from .poses import POSES, PoseConvention, export_cameras, export_convention, source_pose
+from .poses import POSES, PoseConvention, candidate_name, export_cameras, export_convention, source_pose
 
 
 def locate(path: str | Path, split: str) -> tuple[DataFormat, Path]:
@@ -78,6 +78,6 @@ def load_cameras(source: str | Path | dict | list, *, split: str = "train", widt
 
 
 __all__ = ["BLENDER_FAR", "BLENDER_NEAR", "FORMATS", "POSES", "DataFormat", "Dataset", "PoseConvention",
-           "export_cameras", "export_convention", "source_pose", "load_blender", "load_cameras",
+           "candidate_name", "export_cameras", "export_convention", "source_pose", "load_blender", "load_cameras",
            "load_colmap", "load_dataset", "load_inria", "load_llff", "load_nerfstudio", "read_output_folder",
            "select_views", "split_size"]

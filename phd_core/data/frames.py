@@ -183,7 +183,9 @@ def load_frames(json_path: Path, split: str, *, default_near_far: tuple[float | 
     images = alphas = None
     if paths is not None:           # with_images
         images, alphas = _read_images(paths, indices, full_res, cameras[0], bg)
-    return Dataset(cameras, images, alphas, indices, base, split, bg, near, far)
+    names = [frames[i].get("file_path") for i in indices]
+    return Dataset(cameras, images, alphas, indices, base, split, bg, near, far,
+                   names=names if all(isinstance(n, str) for n in names) else None)
 
 
 def _read_images(paths: list[Path], indices: list[int], full_res: list[Camera], target: Camera,

@@ -63,6 +63,12 @@ def export_convention(path: str | Path, convention: str | None = None) -> PoseCo
                      + ", ".join(f"{c.name}: {c.writes}" for c in POSES.values()) + ")")
 
 
+def candidate_name(rank: int, index: int) -> str:
+    """The image a ranked candidate asks for: sorts in capture order and names the candidate
+    (`phd rank --export` and the service's pose download name them alike)."""
+    return f"rank{rank:03d}_candidate{index:04d}.png"
+
+
 def export_cameras(path: str | Path, cameras: Sequence[Camera], names: Sequence[str],
                    convention: str | None = None) -> PoseConvention:
     """Write `cameras` (image `names`, one each) at `path` as the convention's file(s)."""

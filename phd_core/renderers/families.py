@@ -18,11 +18,12 @@ CLI and the service take their names from here. Trainers' output folders are rea
 from __future__ import annotations
 
 import importlib
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from ..errors import InputError, check_color
+from ..errors import InputError, ModelWarning, check_color
 from ..registry import Registry
 from ..scene import Camera
 from .protocol import Renderer, RenderMemory
@@ -122,7 +123,9 @@ def load_model_bytes(data: bytes, name: str = "model",
 def load_model(path: str | Path) -> Renderer:
     """Load a model file, with what its family keeps next to it (a PLY's sidecar `<stem>.json`
     from `phd train`: training cameras and background), or a trainer's output folder as is
-    (`phd_core.renderers.outputs`: the reference 3DGS trainer, nerfstudio's splatfacto, gsplat)."""
+    (`phd_core.renderers.outputs`: the reference 3DGS trainer, nerfstudio's splatfacto, gsplat).
+    What the model's facts note (`describe()["notes"]`: a PLY in nerfstudio's internal frame, no
+    training cameras) is also issued as a ModelWarning."""
     path = Path(path)
     if path.is_dir():
         from .outputs import load_output
@@ -136,4 +139,7 @@ def load_model(path: str | Path) -> Renderer:
     if family is None:
         raise UnknownModelError(path.name)
     renderer = family.load(data, path.name, None)
-    return renderer if family.beside is None else family.beside(path, renderer)
+    renderer = renderer if family.beside is None else family.beside(path, renderer)
+    for note in renderer.describe().get("notes", []):       # printed by the CLI, kept in the model's facts
+        warnings.warn(note, ModelWarning, stacklevel=2)
+    return renderer

@@ -1,24 +1,113 @@
 // The PH-Dropout page: a client of the REST API like any other (docs/service.md).
 // Plain JavaScript, no framework, no inline code: the CSP allows script-src 'self' only.
-// Images are fetched with the API key and shown through blob: URLs.
+// Images are fetched with the API key and shown through blob: URLs. Every action reports in
+// the message line of its own section (errors scrolled into view), in words for people: the
+// service's error codes and fields are turned into sentences here (PLAIN, LABELS).
 "use strict";
 
 const state = {
   key: localStorage.getItem("phd-api-key") || "",
   models: [],
+  modelId: null,       // the model the page last set itself up for (downscale, 3D view)
+  viewReady: false,    // the 3D view has drawn that model
   training: [],        // frames of the chosen model's training cameras
   candidates: [],      // the user's own frames (file mode), sent as the rank request's cameras
+  candidatesSized: true, // false: the file's frames lack w/h, taken from the width/height fields
   spec: null,          // generate mode: the rank request's candidates {generator, count, options}
   ranking: null,       // the last RankResult
   job: null,           // id of the running rank job (for Cancel)
   blobs: [],           // object URLs to revoke when a grid is redrawn
+  dropped: null,       // files dropped on the upload zone: [{file, path}]
+  uploadCameras: null, // the parsed training-cameras file of the upload form
+  formats: [],         // the service's pose conventions (download)
 };
 
 const $ = (id) => document.getElementById(id);
+const view3d = () => window.phdView3d || null;    // the 3D view (view3d.js), when the page has it
+
+// ------------------------------------------------------------------ errors in plain words
+
+// An error from the service (code, field) or from the page's own checks (code "page").
+class ApiError extends Error {
+  constructor(message, code = "page", field = null) {
+    super(message);
+    this.code = code;
+    this.field = field;
+  }
+}
+
+// The service's error codes, as a person at this page would be told (the message follows
+// where it carries the particulars).
+const PLAIN = {
+  unauthorized: () => (state.key ? "The server refused this API key: check it and press \"Use key\" again." :
+    "The server asks for an API key: type it at the top and press \"Use key\"."),
+  no_training_cameras: () => "This model has no training cameras. " + NO_CAMERAS_ADVICE,
+  not_calibrated: (m, field) => (field === "ratio_b" ?
+    "Model B is not calibrated yet: choose it under Model in section 1, press \"Calibrate\", then choose model A again." :
+    "This model is not calibrated yet: press \"Calibrate\" in section 1 first."),
+  signal_mismatch: (m) => "The model was calibrated for another signal: calibrate it again. (" + m + ")",
+  queue_full: () => "The server is busy with other work: try again in a few seconds.",
+  busy: () => "The server's memory is taken by other work: try again in a few seconds.",
+  payload_too_large: (m) => "Too large for this server: " + plainText(m),
+  over_memory_budget: (m) => "Too large for this server's memory: raise \"downscale\" or lower \"samples\". (" +
+    plainText(m) + ")",
+  unsupported_model: (m) => "That file is not a model this service reads: " + plainText(m),
+  unsupported_media_type: () => "The upload was not sent as a form: reload the page and try again.",
+  model_not_found: () => "That model is no longer on the server: press \"Refresh\".",
+  job_not_found: () => "The server no longer has that job: run it again.",
+  job_cancelled: () => "Cancelled.",
+  upload_incomplete: () => "The upload broke off before it was complete: try again.",
+  request_timeout: () => "The connection was too slow and the server gave up: try again.",
+  calibration_failed: (m) => "Calibration failed: " + plainText(m),
+  executor_failed: () => "The server's compute workers failed: try again, or tell whoever runs the server.",
+  internal_error: () => "The server failed unexpectedly: tell whoever runs it (its log has the details).",
+};
+
+// Request fields -> what this page calls them (in the upload section, "cameras" are the training cameras).
+const UPLOAD_LABELS = { cameras: "the training cameras" };
+const LABELS = {
+  samples: "samples", downscale: "downscale", width: "width", height: "height", top_k: "top k", seed: "seed",
+  strategy: "strategy", cameras: "the candidate poses", candidates: "the generated candidates",
+  "candidates.count": "count", "candidates.options.radius": "radius", "candidates.options.elevation": "elevation",
+  training_cameras: "the training cameras", model_b: "model B", model_a: "model A", rule: "rule",
+  file: "the model file", files: "the folder", archive: "the zip", name: "name", background: "background",
+  camera_format: "the cameras' format", Authorization: "API key", format: "pose format", indices: "the poses",
+};
+
+// A service message without its API words: no routes, no "(field x)", no pydantic prefixes.
+function plainText(message) {
+  return String(message)
+    .replace(/\s*\((?:POST|GET|DELETE) \/v1\/[^)]*\)/g, "")
+    .replace(/\s*\(field '?[^)']*'?\)/g, "")
+    .replace(/Value error, /g, "")
+    .replace(/\bgive dropout_ratio\b/, "give a dropout ratio")
+    .replace(/\bmodel '[0-9a-f]{16}'/g, "the model");
+}
+
+function fieldLabel(field, where) {
+  if (!field) return null;
+  const labels = where === "upload-message" ? Object.assign({}, LABELS, UPLOAD_LABELS) : LABELS;
+  if (labels[field]) return labels[field];
+  const base = field.replace(/\[\d+\].*$/, "").replace(/\..*$/, "");
+  const item = field.match(/\[(\d+)\]/);
+  return (labels[base] || base.replace(/_/g, " ")) + (item ? " (pose " + item[1] + ")" : "");
+}
+
+function plain(err, where) {
+  if (!(err instanceof ApiError)) return "Something went wrong in the page: " + err;
+  if (err.code === "page") return err.message;
+  if (PLAIN[err.code]) return PLAIN[err.code](err.message, err.field);
+  const label = fieldLabel(err.field, where);
+  let text = plainText(err.message);
+  if (err.field) text = text.replace(new RegExp("^" + err.field.replace(/[.[\]]/g, "\\$&") + ":\\s*"), "");
+  return (label ? label.charAt(0).toUpperCase() + label.slice(1) + ": " : "") + text;
+}
+
+const NO_CAMERAS_ADVICE = "Without them it cannot be calibrated, and candidates are placed around its splats. " +
+  "Add them: upload the PLY again together with the .json sidecar phd train wrote beside it, or give its " +
+  "transforms_train.json or cameras.json as \"Training cameras\", or upload the trainer's whole output folder.";
 
 // ------------------------------------------------------------------ the API
-
-class ApiError extends Error {}
 
 async function api(path, options = {}) {
   const headers = Object.assign({}, options.headers || {});
@@ -28,14 +117,17 @@ async function api(path, options = {}) {
     headers["Content-Type"] = "application/json";
     body = JSON.stringify(options.json);
   }
-  const response = await fetch(path, { method: options.method || "GET", headers, body });
+  let response;
+  try {
+    response = await fetch(path, { method: options.method || "GET", headers, body });
+  } catch (_) {
+    throw new ApiError("The server cannot be reached: is it still running?");
+  }
   if (!response.ok) {
-    let text = response.status + " " + response.statusText;
-    try {
-      const e = (await response.json()).error;
-      text = e.code + ": " + e.message + (e.field ? " (field " + e.field + ")" : "");
-    } catch (_) { /* not our error shape */ }
-    throw new ApiError(text);
+    let error = null;
+    try { error = (await response.json()).error; } catch (_) { /* not our error shape */ }
+    if (error && error.code) throw new ApiError(error.message, error.code, error.field);
+    throw new ApiError("The server answered with an error (" + response.status + " " + response.statusText + ").");
   }
   return response;
 }
@@ -46,21 +138,26 @@ async function apiJson(path, options) {
 }
 
 // POST a work request as a job and poll it, showing progress; resolves to the job's result.
+// The bar is hidden again when the job ends, however it ends.
 async function runJob(path, body, bar, onJob) {
   bar.hidden = false;
   bar.value = 0;
-  const first = await apiJson(path, { method: "POST", json: Object.assign({}, body, { async: true }) });
-  if (first.status !== 202) { bar.value = 1; return first.data; }   // answered at once
-  const id = first.data.id;
-  if (onJob) onJob(id);
-  for (let polls = 0; ; polls++) {
-    const job = (await apiJson("/v1/jobs/" + id)).data;
-    bar.value = job.progress;
-    if (job.state === "succeeded") return job.result;
-    if (job.state === "failed") throw new ApiError(job.error.code + ": " + job.error.message);
-    if (job.state === "cancelled") throw new ApiError("the job was cancelled");
-    // Short jobs answer fast; long ones are polled four times a second.
-    await new Promise((resolve) => setTimeout(resolve, Math.min(250, 40 + 20 * polls)));
+  try {
+    const first = await apiJson(path, { method: "POST", json: Object.assign({}, body, { async: true }) });
+    if (first.status !== 202) return first.data;   // answered at once
+    const id = first.data.id;
+    if (onJob) onJob(id);
+    for (let polls = 0; ; polls++) {
+      const job = (await apiJson("/v1/jobs/" + id)).data;
+      bar.value = job.progress;
+      if (job.state === "succeeded") return job.result;
+      if (job.state === "failed") throw new ApiError(job.error.message, job.error.code, job.error.field);
+      if (job.state === "cancelled") throw new ApiError("Cancelled.");
+      // Short jobs answer fast; long ones are polled four times a second.
+      await new Promise((resolve) => setTimeout(resolve, Math.min(250, 40 + 20 * polls)));
+    }
+  } finally {
+    bar.hidden = true;
   }
 }
 
@@ -71,23 +168,27 @@ async function loadImage(img, url) {
   state.blobs.push(objectUrl);
   await new Promise((resolve, reject) => {
     img.onload = resolve;
-    img.onerror = () => reject(new ApiError("could not decode " + url));
+    img.onerror = () => reject(new ApiError("An image from the server could not be shown."));
     img.src = objectUrl;
   });
 }
 
-function say(text, isError = false) {
-  const p = $("message");
+// A message in the section's own line: kind "" (news), "warning" or "error".
+function say(where, text, kind = "") {
+  const p = $(where);
   p.textContent = text;
-  p.classList.toggle("error", isError);
+  p.classList.toggle("error", kind === "error");
+  p.classList.toggle("warning", kind === "warning");
+  if (kind === "error") p.scrollIntoView({ block: "center" });
 }
 
-async function guarded(action) {
-  say("");                             // an old error does not outlive the next action
+// Run an action; its error is shown next to the control that started it, in plain words.
+async function guarded(where, action) {
+  say(where, "");                      // an old error does not outlive the next action
   try {
     await action();
   } catch (err) {
-    say(err instanceof ApiError ? err.message : "error: " + err, true);
+    say(where, plain(err, where), "error");
   }
 }
 
@@ -112,14 +213,72 @@ const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a
 const norm = (a) => Math.sqrt(dot(a, a));
 const unit = (a) => mul(a, 1 / (norm(a) || 1));
 
-const position = (frame) => [0, 1, 2].map((i) => frame.transform_matrix[i][3]);
+// A frame's centre: a transforms frame's c2w translation, or a cameras.json entry's position.
+const position = (frame) => (frame.transform_matrix ? [0, 1, 2].map((i) => frame.transform_matrix[i][3]) : frame.position);
 const column = (frame, j) => [0, 1, 2].map((i) => frame.transform_matrix[i][j]);
+const cardLabel = (index, rank) => `candidate ${index} · rank #${rank + 1}`;
+
+// ------------------------------------------------------------------ camera files
+
+const CAMERA_KEYS = ["fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "k1", "k2", "p1", "p2"];
+
+// The frames of a camera file, as the service reads them: a list of frames, a transforms.json
+// ({"frames": [...]}, its camera keys defaults for every frame), a reference trainer's
+// cameras.json, or the sidecar phd train wrote (its training_cameras). Anything else is an
+// error naming what the file holds, never "0 poses".
+function framesOf(text, name) {
+  let data;
+  try {
+    data = JSON.parse(text);
+  } catch (err) {
+    throw new ApiError(`${name} is not valid JSON (${err.message}).`);
+  }
+  if (data && !Array.isArray(data) && typeof data === "object" && Array.isArray(data.training_cameras)) {
+    data = data.training_cameras;                      // a phd train sidecar
+  }
+  let frames = data, defaults = {};
+  if (!Array.isArray(data)) {
+    if (data === null || typeof data !== "object") throw new ApiError(`${name} holds no poses: expected a list of frames or an object with a "frames" list.`);
+    if (!("frames" in data)) {
+      const keys = Object.keys(data).slice(0, 6).map((k) => `"${k}"`).join(", ") || "none";
+      throw new ApiError(`${name} has no "frames" list (its keys: ${keys}): expected a transforms.json with "frames", a cameras.json or a list of frames.`);
+    }
+    if (!Array.isArray(data.frames)) throw new ApiError(`"frames" in ${name} is not a list.`);
+    frames = data.frames;
+    defaults = Object.fromEntries(Object.entries(data).filter(([k]) => CAMERA_KEYS.includes(k)));
+  }
+  if (frames.length === 0) throw new ApiError(`${name} holds an empty list of poses.`);
+  frames.forEach((f, i) => {
+    if (f === null || typeof f !== "object" || Array.isArray(f)) throw new ApiError(`Pose ${i} of ${name} is not an object.`);
+    if (!("transform_matrix" in f) && !isEntry(f)) {
+      const keys = Object.keys(f).slice(0, 6).map((k) => `"${k}"`).join(", ") || "none";
+      throw new ApiError(`Pose ${i} of ${name} has no "transform_matrix" (nor a cameras.json "position" and "rotation"); its keys: ${keys}.`);
+    }
+  });
+  return frames.map((f) => Object.assign({}, defaults, f));
+}
+
+// A reference trainer's cameras.json entry (it always says its image size).
+const isEntry = (f) => Array.isArray(f.position) && Array.isArray(f.rotation);
+const hasSize = (f) => isEntry(f) || (f.w !== undefined && f.h !== undefined);
+// True when some frame does not say its image size.
+const lacksSize = (frames) => !frames.every(hasSize);
+
+// Frames with the size fields' width and height where they give none; an error naming the fields.
+function sized(frames, prefix) {
+  if (!lacksSize(frames)) return frames;
+  const w = Number($(prefix + "-width").value), h = Number($(prefix + "-height").value);
+  if (!(w >= 1 && h >= 1)) {
+    throw new ApiError("These poses do not say their image size: fill in width and height (in pixels).");
+  }
+  return frames.map((f) => (hasSize(f) ? f : Object.assign({ w, h }, f)));
+}
 
 // ------------------------------------------------------------------ models
 
-async function loadModels(selectId) {
+async function loadModels(selectId, selectB) {
   state.models = (await apiJson("/v1/models")).data.models;
-  for (const [id, keep] of [["model-select", selectId], ["model-b-select", $("model-b-select").value]]) {
+  for (const [id, keep] of [["model-select", selectId], ["model-b-select", selectB || $("model-b-select").value]]) {
     const select = $(id);
     select.replaceChildren(...state.models.map((m) => el("option", { value: m.id, text: m.name + " (" + m.kind + ", " + m.num_units + " units)" })));
     if (keep && state.models.some((m) => m.id === keep)) select.value = keep;
@@ -134,40 +293,163 @@ function currentModel() {
   return state.models.find((m) => m.id === $("model-select").value) || null;
 }
 
+// The downscale that renders the model's training images at about 100 px (never below):
+// enough for a heat map to show where the model is unsure, fast enough to try things.
+function defaultDownscale(frames) {
+  const sizes = frames.filter((f) => f.w && f.h).map((f) => Math.min(f.w, f.h));
+  return sizes.length ? Math.max(1, Math.floor(Math.min(...sizes) / 100)) : 1;
+}
+
 async function modelChosen() {
   const model = currentModel();
+  const changed = (model ? model.id : null) !== state.modelId;
+  state.modelId = model ? model.id : null;
+  if (changed) state.viewReady = false;       // until the 3D view has drawn this model
   state.training = [];
+  $("model-warning").hidden = true;
   if (!model) {
     $("model-info").textContent = "No model yet: upload one below.";
+    $("upload-details").open = true;
   } else {
     const cal = model.calibration;
     $("model-info").textContent = model.kind + ", " + model.num_units + " dropout units, " +
-      model.num_training_cameras + " training cameras, " +
-      (cal ? "calibrated: r_drop = " + cal.r_drop : "not calibrated (calibrate it, or ranking answers 409)");
-    if (model.has_training_cameras) state.training = (await apiJson("/v1/models/" + model.id + "/cameras")).data.frames;
+      (model.num_training_cameras ? model.num_training_cameras + " training cameras" : "no training cameras") +
+      (model.camera_format ? " (" + model.camera_format + ")" : "") + ", " +
+      (cal ? "calibrated: r_drop = " + cal.r_drop : "not calibrated yet: press Calibrate before ranking");
+    if (model.has_training_cameras) {
+      state.training = (await apiJson("/v1/models/" + model.id + "/cameras")).data.frames;
+    } else {
+      $("model-warning").textContent = "This model has no training cameras. " + NO_CAMERAS_ADVICE;
+      $("model-warning").hidden = false;
+    }
+    const notes = (model.details && model.details.notes) || [];
+    if (notes.length) $("model-info").textContent += ". Read from its folder: " + notes.join(" ");
   }
-  await updateCandidates();
+  if (changed) {
+    const scale = String(defaultDownscale(state.training));
+    $("cal-downscale").value = scale;
+    $("rank-downscale").value = scale;
+    await updateCandidates();
+    if (view3d() && model) {
+      await view3d().mount($("view3d"), { modelId: model.id, headers: authHeaders() });
+      state.viewReady = state.modelId === model.id;     // another model may have been chosen meanwhile
+    }
+  } else {
+    drawPlots();
+  }
+  prefillSizes();
+}
+
+const authHeaders = () => (state.key ? { Authorization: "Bearer " + state.key } : {});
+
+// The files to upload: those picked (files and a folder) or dropped, each with its path.
+function pickedFiles() {
+  if (state.dropped) return state.dropped;
+  const files = [...$("upload-file").files].map((file) => ({ file, path: file.name }));
+  return files.concat([...$("upload-folder").files].map((file) => ({ file, path: file.webkitRelativePath || file.name })));
+}
+
+const IMAGES = /\.(png|jpe?g|exr|webp|tiff?|bmp|mp4|mov)$/i;   // a trainer's folder needs none of these
+
+function describePicked() {
+  const picked = pickedFiles();
+  const images = picked.filter((p) => IMAGES.test(p.path)).length;
+  $("upload-picked").textContent = picked.length === 0 ? "" : picked.length === 1 ? "1 file: " + picked[0].path :
+    `${picked.length} files` + (images ? ` (${images} images left out: the model does not need them)` : "") +
+    ": " + picked.filter((p) => !IMAGES.test(p.path)).slice(0, 4).map((p) => p.path).join(", ") + (picked.length > 4 ? ", ..." : "");
+}
+
+// What a drop holds, folders walked: [{file, path}].
+async function droppedFiles(dataTransfer) {
+  const entries = [...dataTransfer.items].map((item) => item.webkitGetAsEntry && item.webkitGetAsEntry()).filter(Boolean);
+  if (entries.length === 0) return [...dataTransfer.files].map((file) => ({ file, path: file.name }));
+  const out = [];
+  const walk = async (entry, prefix) => {
+    if (entry.isFile) {
+      out.push({ file: await new Promise((resolve, reject) => entry.file(resolve, reject)), path: prefix + entry.name });
+      return;
+    }
+    const reader = entry.createReader();
+    for (;;) {
+      const batch = await new Promise((resolve, reject) => reader.readEntries(resolve, reject));
+      if (batch.length === 0) break;
+      for (const child of batch) await walk(child, prefix + entry.name + "/");
+    }
+  };
+  for (const entry of entries) await walk(entry, "");
+  return out;
+}
+
+async function readUploadCameras() {
+  state.uploadCameras = null;
+  $("upload-size").hidden = true;
+  const file = $("upload-cameras").files[0];
+  if (!file) return;
+  const text = await file.text();
+  const frames = framesOf(text, file.name);           // a file the service would refuse is named now
+  state.uploadCameras = { text, frames, name: file.name };
+  $("upload-size").hidden = !lacksSize(frames);
+}
+
+const stem = (path) => path.replace(/^.*\//, "").replace(/\.[^.]*$/, "");
+
+// The upload's form: one model file (with its cameras), a zip, or a folder's files by path. A
+// model picked with a camera file that is not its sidecar (<stem>.json) sends that file as its
+// training cameras.
+async function uploadForm() {
+  let picked = pickedFiles().filter((p) => !IMAGES.test(p.path) || pickedFiles().length === 1);
+  if (picked.length === 0) throw new ApiError("Choose the model's files first (or drop them on the box).");
+  const json = picked.filter((p) => /\.json$/i.test(p.path));
+  const model = picked.filter((p) => !/\.json$/i.test(p.path));
+  let cameras = state.uploadCameras;
+  if (picked.length === 2 && json.length === 1 && stem(json[0].path) !== stem(model[0].path) && !cameras) {
+    const text = await json[0].file.text();
+    cameras = { text, frames: framesOf(text, json[0].path) };
+    $("upload-size").hidden = !lacksSize(cameras.frames);
+    picked = model;
+  }
+  const form = new FormData();
+  if (picked.length === 1 && /\.zip$/i.test(picked[0].path)) form.append("archive", picked[0].file, picked[0].path);
+  else if (picked.length === 1) form.append("file", picked[0].file, picked[0].path);
+  else picked.forEach((p) => form.append("files", p.file, p.path));
+  if (cameras) {
+    form.append("cameras", lacksSize(cameras.frames) ? JSON.stringify(sized(cameras.frames, "upload")) : cameras.text);
+  }
+  if ($("upload-name").value.trim()) form.append("name", $("upload-name").value.trim());
+  return { form, count: picked.length };
 }
 
 async function upload(event) {
   event.preventDefault();
-  const form = new FormData();
-  form.append("file", $("upload-file").files[0]);
-  if ($("upload-cameras").files[0]) form.append("cameras", await $("upload-cameras").files[0].text());
-  if ($("upload-name").value) form.append("name", $("upload-name").value);
-  say("uploading...");
-  const info = (await apiJson("/v1/models", { method: "POST", body: form })).data;
-  say("uploaded " + info.name);
-  await loadModels(info.id);
+  const { form, count } = await uploadForm();
+  const keepA = currentModel();
+  say("upload-message", `uploading ${count} file${count > 1 ? "s" : ""}...`);
+  $("upload-run").disabled = true;
+  let info;
+  try {
+    info = (await apiJson("/v1/models", { method: "POST", body: form })).data;
+  } finally {
+    $("upload-run").disabled = false;
+  }
+  state.dropped = null;
+  // The model chosen as A stays A (its ranking too): the new one becomes model B.
+  await loadModels(keepA ? keepA.id : info.id, keepA ? info.id : undefined);
+  const where = keepA ? "It is model B for selection; choose it under Model to rank it." : "It is the chosen model.";
+  if (!info.has_training_cameras) {
+    say("upload-message", `Uploaded ${info.name}, but it has no training cameras. ` + NO_CAMERAS_ADVICE, "warning");
+  } else {
+    say("upload-message", `Uploaded ${info.name}: ${info.kind}, ${info.num_training_cameras} training cameras` +
+      (info.camera_format ? ` (${info.camera_format})` : "") + ". " + where);
+  }
 }
 
 async function calibrate() {
   const model = currentModel();
-  if (!model) throw new ApiError("choose or upload a model first");
-  say("calibrating " + model.name + "...");
+  if (!model) throw new ApiError("Choose or upload a model first.");
+  say("model-message", "calibrating " + model.name + "...");
   const result = await runJob("/v1/models/" + model.id + "/calibrate",
     { samples: Number($("cal-samples").value), downscale: Number($("cal-downscale").value) }, $("cal-progress"));
-  say("calibrated: r_drop = " + result.r_drop);
+  say("model-message", "calibrated: r_drop = " + result.r_drop);
   await loadModels(model.id);
 }
 
@@ -175,14 +457,12 @@ async function deleteModel() {
   const model = currentModel();
   if (!model || !window.confirm("Delete " + model.name + "?")) return;
   await api("/v1/models/" + model.id, { method: "DELETE" });
-  say("deleted " + model.name);
+  say("model-message", "deleted " + model.name);
   await loadModels();
 }
 
 // ------------------------------------------------------------------ candidates
 
-// The plots' frame: where the training cameras look (the point nearest to all their optical
-// axes, least squares), their mean up vector and their median distance to that point.
 function captureFrame() {
   const frames = state.training;
   const model = currentModel();
@@ -238,36 +518,51 @@ function shownCandidates() {
   return state.ranking ? state.ranking.views.map((v) => ({ index: v.index, frame: v.camera })) : [];
 }
 
+// Width and height fields for camera files without an image size, filled with the size of the
+// model's training images when the model has them.
+function prefillSizes() {
+  const sizedFrame = state.training.find((f) => f.w && f.h);
+  if (sizedFrame && !$("cand-width").value && !$("cand-height").value) {
+    $("cand-width").value = sizedFrame.w;
+    $("cand-height").value = sizedFrame.h;
+  }
+  $("cand-size-hint").textContent = "These poses do not say their image size: give it in pixels" +
+    (sizedFrame ? ` (filled in: the size of the model's training images, ${sizedFrame.w} x ${sizedFrame.h}).` : ".");
+}
+
 async function updateCandidates() {
   const mode = document.querySelector("input[name=cand-mode]:checked").value;
   $("generate-options").hidden = mode !== "generate";
   $("file-options").hidden = mode !== "file";
+  $("cand-size").hidden = true;
   state.candidates = [];
   state.spec = null;
-  if (mode === "generate") {
-    state.spec = candidateSpec();
-    $("cand-info").textContent = state.spec.count + " " + state.spec.generator + " poses, made by the service " +
-      (state.training.length ? "around the training cameras" : "around the model's splats") +
-      " when you rank; the plots show the poses it returns";
-  } else {
-    const file = $("cand-file").files[0];
-    if (file) {
-      const data = JSON.parse(await file.text());
-      const frames = Array.isArray(data) ? data : data.frames || [];
-      const defaults = Array.isArray(data) ? {} : data;
-      state.candidates = frames.map((f) => Object.assign({}, Object.fromEntries(Object.entries(defaults).filter(([k]) => k !== "frames")), f));
-      $("cand-info").textContent = state.candidates.length + " poses from " + file.name;
-    } else {
-      $("cand-info").textContent = "choose a JSON file of candidate poses";
-    }
-  }
   state.ranking = null;               // a ranking belongs to the candidates it ranked
   $("rank-grid").replaceChildren();
   $("rank-summary").textContent = "";
-  drawPlots();
+  $("poses-row").hidden = true;
+  $("cand-info").textContent = "";
+  try {
+    if (mode === "generate") {
+      state.spec = candidateSpec();
+      $("cand-info").textContent = state.spec.count + " " + state.spec.generator + " poses, made by the service " +
+        (state.training.length ? "around the training cameras" : "around the model's splats") +
+        " when you rank; the plots show the poses it returns";
+    } else {
+      const file = $("cand-file").files[0];
+      if (file) {
+        state.candidates = framesOf(await file.text(), file.name);
+        $("cand-size").hidden = !lacksSize(state.candidates);
+        prefillSizes();
+        $("cand-info").textContent = state.candidates.length + " poses from " + file.name;
+      } else {
+        $("cand-info").textContent = "choose a JSON file of candidate poses";
+      }
+    }
+  } finally {
+    drawPlots();
+  }
 }
-
-// ------------------------------------------------------------------ plots (inline SVG)
 
 const SVG = "http://www.w3.org/2000/svg";
 
@@ -318,9 +613,9 @@ function drawPlots() {
       const dotEl = svgEl("circle", { cx: x, cy: y, r: view ? 6 : 4, class: view ? "cand" : "cand none", "data-index": i });
       if (view) dotEl.setAttribute("fill", scoreColour(hi > lo ? (view.score - lo) / (hi - lo) : 1));
       const title = svgEl("title", {});
-      title.textContent = view ? `candidate ${i}: rank ${view.rank}, score ${fmt(view.score)}` : `candidate ${i}`;
+      title.textContent = view ? `${cardLabel(i, view.rank)}, score ${fmt(view.score)}` : `candidate ${i} (not returned)`;
       dotEl.append(title);
-      dotEl.addEventListener("click", () => focusCard(i));
+      dotEl.addEventListener("click", () => pickCandidate(i));
       svg.append(dotEl);
       if (view && view.rank < 3) {
         const label = svgEl("text", { x: x + 7, y: y - 7, class: "label" });
@@ -339,6 +634,14 @@ function focusCard(index) {
   card.scrollIntoView({ block: "nearest" });
 }
 
+// A candidate picked in a plot, a card or the 3D view: its card, its dots and its frustum marked.
+function pickCandidate(index, fromView = false) {
+  focusCard(index);
+  if (view3d() && !fromView) view3d().select(Number(index));
+  document.querySelectorAll(".plot circle.picked").forEach((c) => c.classList.remove("picked"));
+  document.querySelectorAll(`.plot circle[data-index="${index}"]`).forEach((c) => c.classList.add("picked"));
+}
+
 // ------------------------------------------------------------------ rank
 
 function sizeOptions(prefix) {
@@ -346,20 +649,26 @@ function sizeOptions(prefix) {
   return downscale > 0 ? { downscale } : {};
 }
 
+// The candidate poses of a rank request: a generator spec, or the file's frames (sized).
+function candidateBody() {
+  if (state.spec !== null) return { candidates: state.spec };
+  if (state.candidates.length === 0) throw new ApiError("No candidate poses yet: choose a JSON file in section 2.");
+  return { cameras: sized(state.candidates, "cand") };
+}
+
 async function rank(event) {
   event.preventDefault();
   const model = currentModel();
-  if (!model) throw new ApiError("choose or upload a model first");
-  if (state.spec === null && state.candidates.length === 0) throw new ApiError("no candidate poses: choose a file");
+  if (!model) throw new ApiError("Choose or upload a model first.");
   const body = Object.assign({ samples: Number($("rank-samples").value), seed: Number($("rank-seed").value),
-    heatmaps: "files" }, sizeOptions("rank"));
-  if (state.spec !== null) body.candidates = state.spec; else body.cameras = state.candidates;
+    heatmaps: "files" }, sizeOptions("rank"), candidateBody());
   if ($("rank-strategy").value) body.strategy = $("rank-strategy").value;
   if ($("rank-topk").value) body.top_k = Number($("rank-topk").value);
-  say("ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates...");
+  say("rank-message", "ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates...");
   state.ranking = null;
   $("rank-grid").replaceChildren();      // no stale cards while the new ranking runs
   $("rank-summary").textContent = "";
+  $("poses-row").hidden = true;
   $("rank-run").disabled = true;
   $("rank-cancel").hidden = false;
   try {
@@ -370,12 +679,16 @@ async function rank(event) {
     $("rank-cancel").hidden = true;
   }
   const r = state.ranking;
-  $("rank-summary").textContent = `${r.views.length} of ${r.num_candidates} candidates, capture first comes first; ` +
-    `strategy ${r.strategy}, dropout ratio ${r.dropout_ratio} (${r.ratio_source}), N = ${r.samples}, ${r.width}x${r.height} px; ` +
+  $("rank-summary").textContent = `${r.views.length} of ${r.num_candidates} candidates, in the order to capture them; ` +
+    `strategy ${r.strategy}, dropout ratio ${r.dropout_ratio} (${r.ratio_source === "calibration" ? "calibrated" : "given"}), ` +
+    `${r.samples} samples, rendered at ${r.width} x ${r.height} px; ` +
     `heat maps share one scale: yellow = zeta ${fmt(r.heatmap_vmax)}, dark blue = 0`;
   drawPlots();
+  const all = body.cameras && body.cameras.every((f) => f.transform_matrix) ? { candidates: body.cameras } : {};
+  if (view3d()) view3d().showRanking(r, all);        // with the user's own list: the unreturned ones too
+  showDownload(r, model);
   await drawRankGrid(r);
-  say("ranked: capture candidate " + r.views[0].index + " first");
+  say("rank-message", "Ranked: capture candidate " + r.views[0].index + " first.");
 }
 
 async function drawRankGrid(result) {
@@ -388,21 +701,21 @@ async function drawRankGrid(result) {
     const heat = el("img", { class: "heatmap", alt: "zeta heat map of candidate " + v.index });
     if (v.render_url) loads.push(loadImage(render, v.render_url));
     if (v.heatmap_url) loads.push(loadImage(heat, v.heatmap_url));
+    const [x, y, z] = position(v.camera).map((c) => fmt(c, 3));
+    const look = unit(mul(column(v.camera, 2), -1)).map((c) => fmt(c, 2));
     return el("li", { class: "card", "data-index": v.index, "data-rank": v.rank },
       el("div", { class: "pair" },
         el("figure", {}, render, el("figcaption", { text: "render" })),
         el("figure", {}, heat, el("figcaption", { text: "zeta" }))),
-      el("p", { class: "title", text: `#${v.rank + 1}  candidate ${v.index}` }),
+      el("p", { class: "title", text: cardLabel(v.index, v.rank) }),
       el("dl", {},
         el("dt", { text: "score" }), el("dd", { class: "score", text: fmt(v.score) }),
         el("dt", { text: "sigma_max" }), el("dd", { text: fmt(v.sigma_max) }),
-        el("dt", { text: "sigma_mean" }), el("dd", { text: fmt(v.sigma_mean) })));
+        el("dt", { text: "sigma_mean" }), el("dd", { text: fmt(v.sigma_mean) }),
+        el("dt", { text: "centre" }), el("dd", { class: "pose", text: `${x}, ${y}, ${z}` }),
+        el("dt", { text: "looks" }), el("dd", { class: "pose", text: `${look.join(", ")}` })));
   }));
-  grid.querySelectorAll("li").forEach((li) => li.addEventListener("click", () => {
-    focusCard(li.dataset.index);
-    document.querySelectorAll(".plot circle.picked").forEach((c) => c.classList.remove("picked"));
-    document.querySelectorAll(`.plot circle[data-index="${li.dataset.index}"]`).forEach((c) => c.classList.add("picked"));
-  }));
+  grid.querySelectorAll("li").forEach((li) => li.addEventListener("click", () => pickCandidate(li.dataset.index)));
   await Promise.all(loads);
 }
 
@@ -410,19 +723,53 @@ async function cancelRank() {
   if (state.job) await api("/v1/jobs/" + state.job, { method: "DELETE" });
 }
 
+// ------------------------------------------------------------------ poses to capture
+
+// The download row after a ranking: the model's own convention first, the first k poses.
+function showDownload(result, model) {
+  const own = result.camera_format || model.camera_format || "nerfstudio";
+  $("poses-format").replaceChildren(...state.formats.map((f) => el("option", {
+    value: f.name, text: f.title + (f.name === own ? " (the model's own)" : "") })));
+  $("poses-format").value = own;
+  $("poses-topk").max = result.views.length;
+  $("poses-topk").value = result.views.length;
+  $("poses-row").hidden = false;
+}
+
+// The first k ranked poses as the file(s) a capture tool reads, written by the service with the
+// code `phd rank --export` uses; saved through the browser's download.
+async function downloadPoses() {
+  const model = currentModel(), r = state.ranking;
+  if (!model || !r) throw new ApiError("Rank first: the poses to download are the ranked ones.");
+  const k = Math.max(1, Math.min(r.views.length, Number($("poses-topk").value) || r.views.length));
+  const views = r.views.slice(0, k);
+  const response = await api("/v1/models/" + model.id + "/poses", { method: "POST", json: {
+    cameras: views.map((v) => v.camera), indices: views.map((v) => v.index), format: $("poses-format").value } });
+  const name = (/filename="([^"]+)"/.exec(response.headers.get("Content-Disposition") || "") || [])[1] || "poses";
+  const url = URL.createObjectURL(await response.blob());
+  const link = el("a", { href: url, download: name });
+  document.body.append(link);
+  link.click();
+  link.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 10000);
+  say("rank-message", `Saved the first ${k} poses as ${name}.`);
+}
+
 // ------------------------------------------------------------------ select
 
 async function select(event) {
   event.preventDefault();
   const a = currentModel(), bId = $("model-b-select").value;
-  if (!a || !bId) throw new ApiError("choose two models");
-  if (a.id === bId) throw new ApiError("model B must differ from model A");
+  if (!a || !bId) throw new ApiError("Choose two models: model A under Model, model B here.");
+  if (a.id === bId) throw new ApiError("Model B must be another model than model A.");
   // Generated poses exist once the service made them: select over the ranked views' poses.
-  const cameras = shownCandidates().map((c) => c.frame);
-  if (cameras.length === 0) {
-    throw new ApiError(state.spec ? "rank first: the service makes the generated poses" : "no candidate poses: choose a file");
+  const shown = shownCandidates();
+  if (shown.length === 0) {
+    throw new ApiError(state.spec ? "Rank first: the service makes the generated poses when it ranks." :
+      "No candidate poses yet: choose a JSON file in section 2.");
   }
-  say("selecting over " + cameras.length + " views...");
+  const cameras = state.spec === null ? sized(shown.map((c) => c.frame), "cand") : shown.map((c) => c.frame);
+  say("select-message", "selecting over " + cameras.length + " views...");
   $("select-grid").replaceChildren();
   $("select-summary").textContent = "";
   const body = Object.assign({ model_a: a.id, model_b: bId, cameras, rule: $("select-rule").value || undefined,
@@ -431,21 +778,27 @@ async function select(event) {
   const result = await runJob("/v1/select", body, $("select-progress"));
   const names = { a: a.name, b: (state.models.find((m) => m.id === bId) || { name: "B" }).name };
   $("select-summary").textContent = `A (${names.a}) trusted for ${result.counts.a} views, B (${names.b}) for ${result.counts.b}; ` +
-    `rule ${result.rule} (lower score is trusted)`;
+    `rule ${result.rule} (the lower score is trusted)`;
+  // A view is named as its candidate was in the ranking: its index and rank.
+  const ranks = new Map((state.ranking ? state.ranking.views : []).map((v) => [v.index, v.rank]));
   const loads = [];
   $("select-grid").replaceChildren(...result.views.map((v) => {
+    const index = shown[v.index].index;
+    const label = ranks.has(index) ? cardLabel(index, ranks.get(index)) : `candidate ${index}`;
     const urls = v.choice === "a" ? { a: v.image_url, b: v.other_image_url } : { a: v.other_image_url, b: v.image_url };
     const figures = ["a", "b"].map((key) => {
-      const img = el("img", { class: "render", alt: `model ${key.toUpperCase()} render of view ${v.index}` });
+      const img = el("img", { class: "render", alt: `model ${key.toUpperCase()} render of candidate ${index}` });
       if (urls[key]) loads.push(loadImage(img, urls[key]));
       return el("figure", { class: v.choice === key ? "chosen" : "" }, img,
         el("figcaption", { text: `${key.toUpperCase()}: ${fmt(v["score_" + key], 3)}${v.choice === key ? " (trusted)" : ""}` }));
     });
-    return el("li", { class: "card", "data-index": v.index, "data-choice": v.choice },
-      el("div", { class: "pair" }, ...figures), el("p", { class: "title", text: `view ${v.index}: trust ${v.choice.toUpperCase()}` }));
+    const li = el("li", { class: "card", "data-index": index, "data-choice": v.choice },
+      el("div", { class: "pair" }, ...figures), el("p", { class: "title", text: `${label}: trust ${v.choice.toUpperCase()}` }));
+    if (ranks.has(index)) li.dataset.rank = ranks.get(index);
+    return li;
   }));
   await Promise.all(loads);
-  say("selection done");
+  say("select-message", "Selection done.");
 }
 
 // ------------------------------------------------------------------ start
@@ -462,29 +815,57 @@ async function readChoices() {
       el("option", { value: n, text: n === rule.default ? `${n} (default)` : n })));
     $("select-rule").value = rule.default || "";
     $("select-rule").title = rule.description || "";
+    state.formats = (schemas.PosesRequest.properties.format.examples || []).map((name) => ({ name, title: FORMAT_TITLES[name] || name }));
   } catch (_) { /* the strategy stays free text, the rule list empty: the server's defaults apply */ }
 }
 
+const FORMAT_TITLES = { nerfstudio: "transforms.json (nerfstudio)", blender: "transforms.json (Blender)",
+  colmap: "COLMAP images.txt + cameras.txt (zip)", "3dgs-output": "cameras.json (reference 3DGS)" };
+
 function start() {
   $("api-key").value = state.key;
+  $("view3d-section").hidden = !view3d();
+  if (view3d()) view3d().onPick((index) => pickCandidate(index, true));
   $("key-form").addEventListener("submit", (e) => {
     e.preventDefault();
     state.key = $("api-key").value.trim();
     localStorage.setItem("phd-api-key", state.key);
-    guarded(() => loadModels($("model-select").value).then(() => say("key saved in this browser")));
+    say("model-message", "");
+    state.modelId = null;                    // set up again: the 3D view takes the new key's headers
+    guarded("message", () => loadModels($("model-select").value).then(() => say("message", "key saved in this browser")));
   });
-  $("refresh-models").addEventListener("click", () => guarded(() => loadModels($("model-select").value)));
-  $("model-select").addEventListener("change", () => guarded(modelChosen));
-  $("delete-model").addEventListener("click", () => guarded(deleteModel));
-  $("calibrate").addEventListener("click", () => guarded(calibrate));
-  $("upload-form").addEventListener("submit", (e) => guarded(() => upload(e)));
+  $("refresh-models").addEventListener("click", () => guarded("model-message", () => loadModels($("model-select").value)));
+  $("model-select").addEventListener("change", () => guarded("model-message", modelChosen));
+  $("delete-model").addEventListener("click", () => guarded("model-message", deleteModel));
+  $("calibrate").addEventListener("click", () => guarded("model-message", calibrate));
+  $("upload-form").addEventListener("submit", (e) => guarded("upload-message", () => upload(e)));
+  for (const id of ["upload-file", "upload-folder"]) {
+    $(id).addEventListener("change", () => { state.dropped = null; describePicked(); });
+  }
+  $("upload-cameras").addEventListener("change", () => guarded("upload-message", readUploadCameras));
+  const zone = $("drop-zone");
+  zone.addEventListener("dragover", (e) => { e.preventDefault(); zone.classList.add("over"); });
+  zone.addEventListener("dragleave", () => zone.classList.remove("over"));
+  zone.addEventListener("drop", (e) => {
+    e.preventDefault();
+    zone.classList.remove("over");
+    guarded("upload-message", async () => { state.dropped = await droppedFiles(e.dataTransfer); describePicked(); });
+  });
   document.querySelectorAll("input[name=cand-mode], #generate-options input, #generate-options select, #cand-file")
-    .forEach((input) => input.addEventListener("change", () => guarded(updateCandidates)));
-  $("rank-form").addEventListener("submit", (e) => guarded(() => rank(e)));
-  $("rank-cancel").addEventListener("click", () => guarded(cancelRank));
-  $("select-form").addEventListener("submit", (e) => guarded(() => select(e)));
+    .forEach((input) => input.addEventListener("change", () => guarded("cand-message", updateCandidates)));
+  $("rank-form").addEventListener("submit", (e) => guarded("rank-message", () => rank(e)));
+  $("rank-cancel").addEventListener("click", () => guarded("rank-message", cancelRank));
+  $("poses-download").addEventListener("click", () => guarded("rank-message", downloadPoses));
+  $("select-form").addEventListener("submit", (e) => guarded("select-message", () => select(e)));
   readChoices();
-  guarded(() => loadModels());
+  guarded("message", async () => {             // a missing key is said beside the key field, before any call
+    const health = (await apiJson("/health")).data;
+    if (health.key_required && !state.key) {
+      say("message", "This server asks for an API key: type it above and press \"Use key\".", "warning");
+      return;
+    }
+    await loadModels();
+  });
 }
 
 document.addEventListener("DOMContentLoaded", start);

@@ -1,4 +1,4 @@
-"""GET /health: liveness and version (never needs the API key)."""
+"""GET /health: liveness, version and whether the other routes need a key (never needs the API key)."""
 
 from __future__ import annotations
 
@@ -6,11 +6,13 @@ from fastapi import APIRouter
 
 import phd_core
 
+from ..deps import Service
 from ..schemas import Health
 
 router = APIRouter()
 
 
 @router.get("/health", response_model=Health, tags=["health"])
-async def health() -> Health:
-    return Health(version=phd_core.__version__)
+async def health(svc: Service) -> Health:
+    keyed = svc.settings.api_key is not None or svc.settings.keys_file is not None
+    return Health(version=phd_core.__version__, key_required=keyed)

@@ -12,14 +12,20 @@ from phd_core.renderers import FAMILIES, family_titles
 from ..budget import largest_model_file
 from ..deps import ERRORS, Caller, Service
 from ..errors import not_found
-from ..schemas import Calibration, ModelInfo, ModelList, TrainingCameras
+from ..folders import remove_folder
+from ..schemas import Calibration, ModelInfo, ModelList, PosesRequest, TrainingCameras
 from ..store import ModelRecord
 from ..upload import receive_upload, sniff_kind
+from ..work import export_poses
 
 router = APIRouter(prefix="/v1", responses=ERRORS, tags=["models"])
 UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
-    "type": "object", "required": ["file"], "properties": {
+    "type": "object", "properties": {
         "file": {"type": "string", "format": "binary", "description": "The model: " + family_titles("or")},
+        "files": {"type": "array", "items": {"type": "string", "format": "binary"}, "description": "Instead of "
+                  "file: a folder, one part per file named by its path inside it (a PLY with the sidecar phd train "
+                  "wrote beside it, or a reference-trainer, splatfacto or gsplat output folder)"},
+        "archive": {"type": "string", "format": "binary", "description": "Instead of file: such a folder as a zip"},
         "cameras": {"type": "string", "description": "Training cameras as JSON (transforms.json or a list of frames)"},
         "name": {"type": "string", "description": "Display name (default: the file name)"},
         "background": {"type": "string", "description": "Splat models: the colour trained over, [r, g, b] in [0, 1] "
@@ -53,13 +59,18 @@ def model_info(record: ModelRecord) -> ModelInfo:
              description=f"Upload a model ({family_titles('or')}) with optional training cameras.")
 async def upload_model(request: Request, svc: Service, who: Caller) -> JSONResponse:
     temp = svc.store.new_temp_path()
+    folder = temp.with_suffix(".folder")   # a folder's files (service.folders)
     try:
         upload = await receive_upload(request, temp, svc.settings.max_camera_json_bytes,
-                                      largest_model_file(svc.settings.memory_budget_bytes))
-        kind = sniff_kind(upload.head)
-        record = await asyncio.to_thread(svc.ingest, upload, kind, who)
+                                      largest_model_file(svc.settings.memory_budget_bytes), folder,
+                                      keep_free=svc.settings.keep_free_bytes)
+        if upload.folder is not None:
+            record = await asyncio.to_thread(svc.ingest_folder, upload, who)
+        else:
+            record = await asyncio.to_thread(svc.ingest, upload, sniff_kind(upload.head), who)
     finally:
         temp.unlink(missing_ok=True)  # gone already after a successful move into the store
+        await asyncio.to_thread(remove_folder, folder)
     info = model_info(record)
     return JSONResponse(info.model_dump(mode="json"), status_code=201, headers={"Location": f"/v1/models/{record.id}"})
 
@@ -79,6 +90,18 @@ async def get_model(model_id: str, svc: Service, who: Caller) -> ModelInfo:
 async def get_training_cameras(model_id: str, svc: Service, who: Caller) -> TrainingCameras:
     """The stored training cameras as frames (the page plots them and places candidates around them)."""
     return TrainingCameras(frames=svc.model(model_id, who).training_frames or [])   # 404 for another key's model
+
+
+@router.post("/models/{model_id}/poses", response_class=Response, responses={200: {
+    "description": "The poses as the convention's file: JSON (transforms.json, cameras.json) or a zip (COLMAP)",
+    "content": {"application/json": {}, "application/zip": {}}}})
+async def download_poses(model_id: str, body: PosesRequest, svc: Service, who: Caller) -> Response:
+    """Ranked poses as the files a capture tool reads, in the model's own pose convention (or the one
+    asked for), written exactly as `phd rank --export` writes them."""
+    record = svc.model(model_id, who)
+    poses = await asyncio.to_thread(export_poses, record, body, svc.settings)
+    return Response(poses.content, media_type=poses.media_type,
+                    headers={"Content-Disposition": f'attachment; filename="{poses.filename}"'})
 
 
 @router.delete("/models/{model_id}", status_code=204)

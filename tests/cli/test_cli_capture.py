@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import torch
 
-from phd_cli import main
 from phd_core import uq as phd
 from phd_core.data import load_cameras
 from phd_core.data.inria import camera_from_entry
@@ -22,16 +21,11 @@ from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.scene import Camera
 from phd_core.uq.candidates import candidate_cameras
 from support.captures import write_colmap, write_llff, write_output_folder
+from support.cli import run
 from support.toy_renderers import ring_cameras
 from support.trainers import gsplat_scene, splatfacto_scene
 
 SIZE, STEP = 16, 0.25
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +59,7 @@ def test_calibrate_takes_a_reference_output_folder_as_is(capture, capsys) -> Non
 
 
 def test_rank_an_output_folder_with_generated_candidates_in_one_line(capture, capsys) -> None:
-    code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6,rings=2",
+    code, out, err = run(capsys, "rank", "--json", "--model", capture["folder"], "--candidates", "orbit:6,rings=2",
                          "--samples", 3, *calibration_args(capture))
     assert code == 0, err
     result = json.loads(out)
@@ -83,7 +77,7 @@ def test_ranked_generated_candidates_carry_their_poses_and_export_as_a_batch(cap
     (a reference folder: cameras.json entries); --export writes the top k as a file the
     project's loader reads back as the same cameras, in capture order."""
     plan = capture["root"] / "plan" / "transforms.json"
-    code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6,rings=2",
+    code, out, err = run(capsys, "rank", "--json", "--model", capture["folder"], "--candidates", "orbit:6,rings=2",
                          "--samples", 3, "--dropout-ratio", 0.3, "--top-k", 4, "--downscale", 2, "--export", plan)
     assert code == 0, err
     result = json.loads(out)
@@ -121,9 +115,9 @@ def test_phd_candidates_writes_json_that_rank_reads(capture, capsys) -> None:
     expected = candidate_cameras("sphere", 5, renderer=capture["renderer"])
     assert [f["transform_matrix"] for f in frames] == [c.c2w.tolist() for c in expected]
     assert {(f["w"], f["h"], f["fl_x"]) for f in frames} == {(SIZE, SIZE, capture["training"][0].fx)}
-    from_file = run(capsys, "rank", "--model", capture["folder"], "--candidates", out_json, "--samples", 3,
+    from_file = run(capsys, "rank", "--json", "--model", capture["folder"], "--candidates", out_json, "--samples", 3,
                     "--dropout-ratio", 0.3)
-    from_spec = run(capsys, "rank", "--model", capture["folder"], "--candidates", "sphere:5", "--samples", 3,
+    from_spec = run(capsys, "rank", "--json", "--model", capture["folder"], "--candidates", "sphere:5", "--samples", 3,
                     "--dropout-ratio", 0.3)
     assert from_file[0] == from_spec[0] == 0
     assert json.loads(from_file[1])["ranking"] == json.loads(from_spec[1])["ranking"]
@@ -161,7 +155,7 @@ def test_malformed_files_give_a_clean_cli_error(capture, capsys, tmp_path) -> No
     code, _, err = run(capsys, "calibrate", "--model", capture["folder"], "--cameras",
                        tmp_path / "llff" / "poses_bounds.npy")
     assert code == 2 and "poses_bounds.npy" in err and "[N, 17]" in err
-    code, _, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "zigzag:3",
+    code, _, err = run(capsys, "rank", "--json", "--model", capture["folder"], "--candidates", "zigzag:3",
                        "--dropout-ratio", 0.3)
     assert code == 2 and "generator" in err and "orbit" in err
     code, _, err = run(capsys, "candidates", "orbit:3,tilt=2", "--model", capture["folder"])
@@ -177,7 +171,7 @@ def test_rank_candidates_from_a_folder_without_cameras_use_the_splats(capture, c
     from phd_core.renderers.gs3d import write_ply
 
     write_ply(capture["renderer"].model, tmp_path / "bare.ply")
-    code, out, err = run(capsys, "rank", "--model", tmp_path / "bare.ply", "--candidates", "hemisphere:4",
+    code, out, err = run(capsys, "rank", "--json", "--model", tmp_path / "bare.ply", "--candidates", "hemisphere:4",
                          "--width", 12, "--height", 12, "--samples", 3, "--dropout-ratio", 0.3)
     assert code == 0, err
     result = json.loads(out)
@@ -202,8 +196,8 @@ def test_uq_and_rank_read_colmap_and_llff_captures(capture, capsys) -> None:
         report = json.loads((out / "report.json").read_text())
         assert [v["index"] for v in report["views"]] == [0, 1]                  # frames 0 and 8 by name
         assert all(v["rmse"] < 0.01 for v in report["views"])                   # the images are the model's renders
-        code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", data, "--samples", 3,
-                             "--dropout-ratio", 0.3)
+        code, out, err = run(capsys, "rank", "--json", "--model", capture["folder"], "--candidates", data,
+                             "--samples", 3, "--dropout-ratio", 0.3)
         assert code == 0 and json.loads(out)["candidates"] == 9, err
 
 

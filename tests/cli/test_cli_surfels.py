@@ -13,14 +13,9 @@ from phd_core import uq
 from phd_core.renderers import load_model
 from phd_core.renderers.gs2d import read_surfel_ply
 from phd_core.uq.strategies import STRATEGIES
+from support.cli import run
 from support.fixtures import LEGO, svc_cameras
 from support.surfels import random_surfels, reference_layout_ply
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +50,7 @@ def test_a_trained_2dgs_model_calibrates_and_ranks(trained, tmp_path, capsys) ->
 
     candidates = svc_cameras(4, radius=4.0, size=12)
     (tmp_path / "candidates.json").write_text(json.dumps([c.to_frame() for c in candidates]))
-    code, out, _ = run(capsys, "rank", "--model", trained, "--candidates", tmp_path / "candidates.json",
+    code, out, _ = run(capsys, "rank", "--json", "--model", trained, "--candidates", tmp_path / "candidates.json",
                        "--epsilon", 0.5, "--step", 0.25, "--calibration-samples", 2, "--samples", 3)
     result = json.loads(out)
     assert code == 0 and result["dropout_ratio"] > 0
@@ -75,7 +70,7 @@ def test_a_hand_made_2dgs_ply_calibrates_and_ranks_with_every_strategy(tmp_path,
     direct = uq.calibrate(renderer, train, epsilon=0.05, step=0.2, samples=3)
     assert code == 0 and direct.r_drop > 0 and f"r_drop = {direct.r_drop}" in out
     for strategy in STRATEGIES:
-        code, out, _ = run(capsys, "rank", "--model", path, "--candidates", tmp_path / "candidates.json",
+        code, out, _ = run(capsys, "rank", "--json", "--model", path, "--candidates", tmp_path / "candidates.json",
                            "--captured", tmp_path / "train.json", "--dropout-ratio", direct.r_drop,
                            "--samples", 3, "--strategy", strategy)
         expected = uq.rank_views(renderer, candidates, ratio=direct.r_drop, samples=3, strategy=strategy,

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from phd_cli import main
 from phd_core import uq as phd
 from phd_core.data import load_cameras, load_dataset
 from phd_core.eval import image_uq_metrics
 from phd_core.io import ModelCache
 from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import GaussianModel, write_ply
+from support.cli import run
 from support.toy_renderers import away_camera, ring_cameras
 
 SIZE, FOV, STEP = 16, 0.7, 0.25
@@ -31,12 +31,6 @@ def strict_json(path_or_text) -> dict:
         raise AssertionError(f"JSON contains {constant}")
 
     return json.loads(text, parse_constant=reject)
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def frame(camera, file_path: str | None = None) -> dict:
@@ -125,9 +119,9 @@ def test_a_trained_model_calibrates_and_ranks_with_its_stored_cameras(files, cur
     code, out, _ = run(capsys, "calibrate", "--model", trained, "--epsilon", epsilon, "--step", STEP, "--samples", 3)
     assert code == 0 and f"r_drop = {r_drop}" in out and "2 views" in out
 
-    code, out, _ = run(capsys, "rank", "--model", trained, "--candidates", files["candidates"], "--width", SIZE,
-                       "--height", SIZE, "--epsilon", epsilon, "--step", STEP, "--calibration-samples", 3,
-                       "--samples", 3)
+    code, out, _ = run(capsys, "rank", "--json", "--model", trained, "--candidates", files["candidates"],
+                       "--width", SIZE, "--height", SIZE, "--epsilon", epsilon, "--step", STEP,
+                       "--calibration-samples", 3, "--samples", 3)
     result = strict_json(out)
     assert code == 0 and result["dropout_ratio"] == r_drop == result["calibration"]["r_drop"]
 
@@ -208,11 +202,11 @@ def test_rank_orders_candidates(files, capsys) -> None:
     assert result["ranking"][0]["sigma_max"] == pytest.approx(expected[0].sigma_max, abs=1e-12)
     assert result["ranking"][-1]["sigma_max"] == 0.0
 
-    code, out, _ = run(capsys, "rank", "--model", files["model"], "--candidates", files["candidates"],
+    code, out, _ = run(capsys, "rank", "--json", "--model", files["model"], "--candidates", files["candidates"],
                        "--width", SIZE, "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5, "--top-k", 2)
     assert code == 0 and strict_json(out)["order"] == result["order"][:2]
 
-    code, out, _ = run(capsys, "rank", "--model", files["model"], "--candidates", files["candidates"],
+    code, out, _ = run(capsys, "rank", "--json", "--model", files["model"], "--candidates", files["candidates"],
                        "--width", SIZE, "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5, "--coarse", 0.5,
                        "--refine", 2)
     coarse = phd.rank_views(load_model(files["model"]), candidates, ratio=0.4, samples=5, coarse=0.5, refine=2)
@@ -221,8 +215,8 @@ def test_rank_orders_candidates(files, capsys) -> None:
 
 
 def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
-    argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
-            SIZE, "--dropout-ratio", 0.4, "--samples", 5]
+    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE,
+            "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5]
     candidates = [away_camera(SIZE)] + ring_cameras(4, size=SIZE, height=0.5)
     renderer = load_model(files["model"])
     code, out, _ = run(capsys, *argv, "--strategy", "sigma_max")
@@ -247,8 +241,8 @@ def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
 
 
 def test_rank_measures_on_the_signal_it_is_given(files, capsys) -> None:
-    argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE, "--height",
-            SIZE, "--dropout-ratio", 0.4, "--samples", 5]
+    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE,
+            "--height", SIZE, "--dropout-ratio", 0.4, "--samples", 5]
     candidates = [away_camera(SIZE)] + ring_cameras(4, size=SIZE, height=0.5)
     code, out, _ = run(capsys, *argv, "--signal", "premultiplied")
     expected = phd.rank_views(load_model(files["model"]), candidates, ratio=0.4, samples=5, signal="premultiplied")
@@ -266,7 +260,7 @@ def test_rank_measures_on_the_signal_it_is_given(files, capsys) -> None:
     (["--downscale", "0"], "downscale"), (["--coarse", "1.5"], "coarse"), (["--refine", "3"], "refine"),
 ])
 def test_rank_rejects_bad_numbers(files, capsys, extra: list[str], field: str) -> None:
-    argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE,
+    argv = ["rank", "--json", "--model", files["model"], "--candidates", files["candidates"], "--width", SIZE,
             "--height", SIZE, *extra]
     if "--dropout-ratio" not in extra:
         argv += ["--dropout-ratio", "0.3"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import zipfile
 from pathlib import Path
 
 import httpx
@@ -17,8 +18,10 @@ import pytest
 
 from client import PHDClient
 from phd_core import uq
+from phd_core.data import candidate_name, export_cameras
+from phd_core.scene import camera_from_frame
 from phd_core.uq.candidates import candidate_cameras
-from support.fixtures import svc_cameras
+from support.fixtures import LEGO, svc_cameras, svc_random_gaussians
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
@@ -70,7 +73,9 @@ def _wait(driver, condition, timeout: float = 40.0, what: str = "the page"):
     try:
         return WebDriverWait(driver, timeout, poll_frequency=0.1).until(condition)
     except TimeoutException:
-        pytest.fail(f"timed out waiting for {what}; the page says: {d_text(driver, 'message')!r}")
+        said = driver.execute_script("return [...document.querySelectorAll('.message')].filter(p => p.textContent)"
+                                     ".map(p => p.id + ': ' + p.textContent)")
+        pytest.fail(f"timed out waiting for {what}; the page says: {said!r}")
 
 
 def d_text(driver, element_id: str) -> str:
@@ -92,6 +97,37 @@ def _open(driver, server) -> None:
     driver.find_element(By.CSS_SELECTOR, "#key-form button").click()
     _wait(driver, lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2
           and d_text(d, "message") == "key saved in this browser", what="the model list")
+
+
+def _in_view(driver, element_id: str) -> bool:
+    """Whether the element is shown and lies within the browser window as it is scrolled."""
+    return driver.execute_script(
+        "const r = document.getElementById(arguments[0]).getBoundingClientRect(); "
+        "return r.height > 0 && r.top >= 0 && r.bottom <= window.innerHeight", element_id)
+
+
+def _classes(driver, element_id: str) -> list[str]:
+    return driver.find_element(By.ID, element_id).get_attribute("class").split()
+
+
+def _console_errors(driver, expected: tuple[str, ...] = ()) -> list[str]:
+    """The browser's error messages since the last call, but for failed requests the test made
+    on purpose (`expected`: parts of their messages, e.g. a status code)."""
+    return [entry["message"] for entry in driver.get_log("browser") if entry["level"] == "SEVERE"
+            and not any(part in entry["message"] for part in expected)]
+
+
+def _assert_select_labels_match_rank_labels(driver) -> None:
+    """Every selection card names its candidate as the rank card of that candidate does."""
+    rank = {card.get_attribute("data-index"): (card.get_attribute("data-rank"),
+                                               card.find_element(By.CSS_SELECTOR, ".title").text)
+            for card in driver.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")}
+    cards = driver.find_elements(By.CSS_SELECTOR, "#select-grid li.card")
+    assert cards
+    for card in cards:
+        index, title = card.get_attribute("data-index"), card.find_element(By.CSS_SELECTOR, ".title").text
+        assert card.get_attribute("data-rank") == rank[index][0]
+        assert title.startswith(rank[index][1] + ": trust "), (title, rank[index])
 
 
 def _csp_violations(driver) -> list[str]:
@@ -182,7 +218,8 @@ def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_p
     _set(browser, "gen-count", 4)
     browser.find_element(By.ID, "gen-elevation").click()
     browser.find_element(By.ID, "select-run").click()
-    _wait(browser, lambda d: "rank first" in d_text(d, "message"), what="the rank-first message")
+    _wait(browser, lambda d: "Rank first" in d_text(d, "select-message"), what="the rank-first message")
+    assert _in_view(browser, "select-message") and "error" in _classes(browser, "select-message")
     _run_on_candidates(browser, 4, "rank", {"rank-samples": 3, "rank-downscale": 2})
     browser.find_element(By.ID, "select-run").click()             # over the 4 poses the ranking returned
     _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#select-grid li.card")) == 4
@@ -194,6 +231,7 @@ def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_p
         expected = phd.select(model_a.id, model_b.id, candidates, samples=3, seed=0, downscale=2)
     cards = browser.find_elements(By.CSS_SELECTOR, "#select-grid li.card")
     assert [c.get_attribute("data-choice") for c in cards] == [v.choice for v in expected.views]
+    _assert_select_labels_match_rank_labels(browser)
     for card, view in zip(cards, expected.views):
         chosen = card.find_elements(By.CSS_SELECTOR, "figure.chosen img")
         assert len(card.find_elements(By.TAG_NAME, "img")) == 2 and len(chosen) == 1
@@ -230,9 +268,12 @@ def test_page_fits_a_phone_and_names_a_wrong_key(browser, models, tmp_path):
         browser.get(server.url + "/ui/")
         _set(browser, "api-key", "wrong")
         browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
-        _wait(browser, lambda d: "unauthorized" in d_text(d, "message"), what="the 401 message")
-        assert "Authorization" in d_text(browser, "message")          # the field the server named
+        _wait(browser, lambda d: "refused this API key" in d_text(d, "message"), what="the 401 message")
+        said = d_text(browser, "message")                             # in words: no status, code or header
+        assert "401" not in said and "unauthorized" not in said and "Authorization" not in said
         _open(browser, server)
+        browser.execute_script("document.getElementById('upload-details').open = true; "
+                               "document.getElementById('poses-row').hidden = false")   # every control shown
         width = browser.execute_script("return [document.documentElement.scrollWidth, window.innerWidth]")
         assert width[0] <= width[1], f"the page scrolls sideways at a phone's width: {width}"
         browser.save_screenshot(str(tmp_path / "page_phone.png"))
@@ -253,7 +294,7 @@ def test_page_uploads_calibrates_and_deletes_a_model(browser, svc_model_files, t
         _set(browser, "api-key", KEY)
         browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
         _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
-        browser.find_element(By.CSS_SELECTOR, "#model-section summary").click()
+        assert browser.find_element(By.ID, "upload-details").get_attribute("open") is not None  # no model: open
         browser.find_element(By.ID, "upload-file").send_keys(str(svc_model_files["ply"]))
         browser.find_element(By.ID, "upload-cameras").send_keys(str(cameras))
         _set(browser, "upload-name", "uploaded")
@@ -278,3 +319,279 @@ def test_page_uploads_calibrates_and_deletes_a_model(browser, svc_model_files, t
         assert _csp_violations(browser) == []
     finally:
         server.stop()
+
+
+# ----------------------------------------------------------------------------- what `phd train` wrote
+
+@pytest.fixture(scope="module")
+def trained_server(tmp_path_factory):
+    """An empty server with the key on, and a cap on dropout samples below the page's default N = 8."""
+    from service.runner import BackgroundServer
+    from service.settings import Settings
+
+    server = BackgroundServer(Settings(data_dir=tmp_path_factory.mktemp("page-trained"), api_key=KEY,
+                                       max_samples=6))
+    yield server
+    server.stop()
+
+
+def _choose_files(driver, element_id: str, *paths: Path) -> None:
+    driver.execute_script("document.getElementById(arguments[0]).value = ''", element_id)
+    driver.find_element(By.ID, element_id).send_keys("\n".join(str(p) for p in paths))
+
+
+def _download(driver, folder: Path, before: set[str]) -> Path:
+    """The file the page's last download saved in `folder` (the browser writes a .crdownload first)."""
+    def done(_):
+        new = [p for p in folder.iterdir() if p.name not in before and not p.name.endswith(".crdownload")]
+        return new[0] if new else False
+    return _wait(driver, done, what="the download")
+
+
+def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, trained_server, svc_trained, tmp_path):
+    """A new user's path: upload the PLY and its sidecar as `phd train` wrote them, calibrate,
+    rank, download the poses (the service's answer, written as `phd rank --export` writes it),
+    then select against a second model uploaded without cameras."""
+    server = trained_server
+    sidecar = svc_trained.with_name("model.json")
+    downloads = tmp_path / "downloads"
+    downloads.mkdir()
+    browser.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(downloads)})
+    browser.execute_script("localStorage.clear()")
+    browser.get(server.url + "/ui/")
+    # The server needs a key (its /health says so): the page asks for it before calling anything else.
+    _wait(browser, lambda d: "asks for an API key" in d_text(d, "message"), what="the request for a key")
+    _set(browser, "api-key", KEY)
+    browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
+    _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
+    assert browser.find_element(By.ID, "upload-details").get_attribute("open") is not None   # opened for a newcomer
+
+    _choose_files(browser, "upload-file", svc_trained, sidecar)          # picked together, as trained
+    assert d_text(browser, "upload-picked").startswith("2 files")
+    browser.find_element(By.ID, "upload-run").click()
+    _wait(browser, lambda d: "Uploaded model.ply: 3dgs, 4 training cameras (blender)" in d_text(d, "upload-message"),
+          what="the uploaded model")
+    assert "4 training cameras (blender)" in d_text(browser, "model-info")
+    # The 3D view (view3d.js) is mounted on the uploaded model by the page: its splats and 4 cameras.
+    _wait(browser, lambda d: d.execute_script("return state.viewReady"), what="the 3D view")
+    drawn = browser.execute_script("return phdView3d.debug()")
+    assert drawn["training"] == 4 and drawn["total"] == json.loads(sidecar.read_text())["num_splats"]
+    # The model's images are 25 px (lego_200 at downscale 8): the page starts at downscale 1, the largest
+    # render up to 100 px (for 200 px images it would be 2).
+    assert [browser.find_element(By.ID, f).get_attribute("value") for f in ("cal-downscale", "rank-downscale")] == \
+        ["1", "1"]
+    with PHDClient(server.url, api_key=KEY) as phd:
+        (model_a,) = phd.list_models()
+        assert phd.training_cameras(model_a.id) == json.loads(sidecar.read_text())["training_cameras"]
+        assert model_a.details["background"] == json.loads(sidecar.read_text())["background"]
+
+    # The bare PLY: said at once that it has no cameras and what to add; model A stays chosen.
+    _choose_files(browser, "upload-file", svc_trained)
+    _set(browser, "upload-name", "no cameras")
+    browser.find_element(By.ID, "upload-run").click()
+    _wait(browser, lambda d: "no training cameras" in d_text(d, "upload-message"), what="the no-cameras warning")
+    assert "warning" in _classes(browser, "upload-message") and "sidecar" in d_text(browser, "upload-message")
+    assert Select(browser.find_element(By.ID, "model-select")).first_selected_option.get_attribute("value") == \
+        model_a.id
+    model_b = next(m for m in PHDClient(server.url, api_key=KEY).list_models() if m.name == "no cameras")
+    assert Select(browser.find_element(By.ID, "model-b-select")).first_selected_option.get_attribute("value") == \
+        model_b.id
+
+    # The same two files as a zip (what a user mails around), dropped: read by the same rules, with cameras.
+    zipped = tmp_path / "run.zip"
+    with zipfile.ZipFile(zipped, "w") as archive:
+        for path in (svc_trained, sidecar):
+            archive.write(path, f"run/{path.name}")
+    _choose_files(browser, "upload-file", zipped)       # then dropped on the box instead (the drop's path)
+    browser.execute_script(
+        "const input = document.getElementById('upload-file'), dt = new DataTransfer(); "
+        "for (const f of input.files) dt.items.add(f); input.value = ''; "
+        "document.getElementById('drop-zone').dispatchEvent(new DragEvent('drop', {dataTransfer: dt, bubbles: true, "
+        "cancelable: true}))")
+    _wait(browser, lambda d: d_text(d, "upload-picked") == "1 file: run.zip", what="the dropped zip")
+    _set(browser, "upload-name", "from the zip")
+    browser.find_element(By.ID, "upload-run").click()
+    _wait(browser, lambda d: "Uploaded from the zip: 3dgs, 4 training cameras (blender). It is model B"
+          in d_text(d, "upload-message"), what="the zip's model")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        model_c = next(m for m in phd.list_models() if m.name == "from the zip")
+        assert model_c.sha256 == model_a.sha256
+        phd.calibrate(model_c.id, samples=2, downscale=2)
+
+    _set(browser, "cal-samples", 2)
+    _set(browser, "cal-downscale", 2)
+    browser.find_element(By.ID, "calibrate").click()
+    _wait(browser, lambda d: "calibrated: r_drop" in d_text(d, "model-info"), timeout=120, what="the calibration")
+
+    # Rank with the page's default N = 8: this server caps samples at 6, said beside Rank in words.
+    browser.find_element(By.ID, "rank-run").click()
+    _wait(browser, lambda d: "error" in _classes(d, "rank-message"), what="the cap's error")
+    said = d_text(browser, "rank-message")
+    assert said == "Samples: 8 samples exceed the cap of 6" and _in_view(browser, "rank-message")
+    assert browser.find_element(By.ID, "rank-progress").get_attribute("hidden") is not None   # the bar ended
+
+    _run_on_candidates(browser, 5, "rank", {"rank-samples": 3, "rank-downscale": 2, "rank-seed": 1})
+    spec = browser.execute_script("return state.spec")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        expected = phd.rank(model_a.id, candidates=spec, samples=3, seed=1, downscale=2)
+    cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
+    assert [c.find_element(By.CSS_SELECTOR, ".title").text for c in cards] == \
+        [f"candidate {v.index} · rank #{v.rank + 1}" for v in expected.views]
+    # The ranking reached the 3D view: one frustum per returned pose, with its rank; a rank card's
+    # click selects its frustum, and a frustum's pick marks its card.
+    frusta = browser.execute_script("return phdView3d.debug().frusta")
+    assert sorted((f["index"], f["rank"]) for f in frusta) == sorted((v.index, v.rank) for v in expected.views)
+    cards[1].click()
+    assert browser.execute_script("return phdView3d.debug().selected") == expected.views[1].index
+
+    # Download poses: the model's own convention (its capture was a Blender scene), the first 3.
+    assert Select(browser.find_element(By.ID, "poses-format")).first_selected_option.get_attribute("value") == \
+        "blender"
+    _set(browser, "poses-topk", 3)
+    first = [v for v in expected.views[:3]]
+    for convention, name in (("blender", "transforms.json"), ("colmap", "colmap.zip")):
+        Select(browser.find_element(By.ID, "poses-format")).select_by_value(convention)
+        before = {p.name for p in downloads.iterdir()}
+        browser.find_element(By.ID, "poses-download").click()
+        saved = _download(browser, downloads, before)
+        assert saved.name == name and f"Saved the first 3 poses as {name}" in d_text(browser, "rank-message")
+        # What `phd rank --export` writes for the REST answer's poses, with the same image names.
+        written = tmp_path / convention / ("transforms.json" if convention == "blender" else "colmap")
+        export_cameras(written, [camera_from_frame(v.camera) for v in first],
+                       [candidate_name(v.rank, v.index) for v in first], convention)
+        if convention == "blender":
+            assert saved.read_bytes() == written.read_bytes()
+            assert [f["transform_matrix"] for f in json.loads(saved.read_text())["frames"]] == \
+                [v.camera["transform_matrix"] for v in first]
+        else:
+            files = zipfile.ZipFile(saved)
+            assert {n: files.read(n) for n in files.namelist()} == {
+                f"colmap/{p.name}": p.read_bytes() for p in written.iterdir()}
+
+    # Selection against the model without cameras (so never calibrated): said beside Select, in words.
+    Select(browser.find_element(By.ID, "model-b-select")).select_by_value(model_b.id)
+    browser.find_element(By.ID, "select-run").click()
+    _wait(browser, lambda d: "error" in _classes(d, "select-message"), what="the calibration's error")
+    said = d_text(browser, "select-message")
+    assert said.startswith("Model B is not calibrated yet: choose it under Model")
+    assert _in_view(browser, "select-message")
+    assert not any(word in said for word in ("/v1", "409", "field", "ratio_b", model_b.id))
+    assert browser.find_element(By.ID, "select-progress").get_attribute("hidden") is not None
+    Select(browser.find_element(By.ID, "model-b-select")).select_by_value(model_c.id)
+    browser.find_element(By.ID, "select-run").click()
+    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#select-grid li.card")) == 5
+          and d.execute_script("return [...document.querySelectorAll('#select-grid img')].every(i => i.complete "
+                               "&& i.naturalWidth > 0)"), what="the select grid")
+    _assert_select_labels_match_rank_labels(browser)
+    browser.save_screenshot(str(tmp_path / "page_trained.png"))
+    # No console errors but the two refusals the test asked for.
+    assert _console_errors(browser, expected=("status of 422", "status of 409")) == []
+
+
+def test_page_checks_a_candidates_file_and_asks_for_its_image_size(browser, trained_server, svc_trained, tmp_path):
+    server = trained_server
+    with PHDClient(server.url, api_key=KEY) as phd:
+        if not any(m.name == "model.ply" for m in phd.list_models()):
+            phd.upload_model(svc_trained)
+        model = next(m for m in phd.list_models() if m.name == "model.ply")
+    browser.get(server.url + "/ui/")
+    _set(browser, "api-key", KEY)
+    browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
+    _wait(browser, lambda d: d.execute_script("return state.training.length") == 4, what="the model's cameras")
+    Select(browser.find_element(By.ID, "model-select")).select_by_value(model.id)
+    _wait(browser, lambda d: d.execute_script("return state.modelId") == model.id, what="model A")
+    browser.find_element(By.CSS_SELECTOR, "input[name=cand-mode][value=file]").click()
+    broken = tmp_path / "broken.json"
+    broken.write_text('{"frames": [{transform_matrix: 1}]}')
+    typo = tmp_path / "typo.json"
+    typo.write_text(json.dumps({"camera_angle_x": 0.7, "frame": [{"transform_matrix": np.eye(4).tolist()}]}))
+    for path, words in ((broken, "broken.json is not valid JSON"), (typo, 'typo.json has no "frames" list '
+                                                                           '(its keys: "camera_angle_x", "frame")')):
+        _choose_files(browser, "cand-file", path)
+        _wait(browser, lambda d: words in d_text(d, "cand-message"), what=f"the error of {path.name}")
+        assert "error" in _classes(browser, "cand-message") and _in_view(browser, "cand-message")
+        assert "poses" not in d_text(browser, "cand-info")          # not "0 poses"
+        assert browser.execute_script("return state.candidates.length") == 0
+    # The README's candidates: Blender's transforms_val.json, without an image size: width and
+    # height fields appear, filled with the model's training images' size.
+    _choose_files(browser, "cand-file", LEGO / "transforms_val.json")
+    _wait(browser, lambda d: "100 poses from transforms_val.json" in d_text(d, "cand-info"), what="the val poses")
+    assert d_text(browser, "cand-message") == ""
+    assert browser.find_element(By.ID, "cand-size").is_displayed()
+    sizes = [browser.find_element(By.ID, f).get_attribute("value") for f in ("cand-width", "cand-height")]
+    training = PHDClient(server.url, api_key=KEY).training_cameras(model.id)
+    assert sizes == [str(training[0]["w"]), str(training[0]["h"])] == ["25", "25"]
+    sent = browser.execute_script("return candidateBody().cameras")
+    assert len(sent) == 100 and all((f["w"], f["h"]) == (25, 25) for f in sent)
+    _set(browser, "cand-width", "")
+    browser.find_element(By.ID, "rank-run").click()
+    _wait(browser, lambda d: "fill in width and height" in d_text(d, "rank-message"), what="the missing size")
+    assert _console_errors(browser) == []
+
+
+def test_api_docs_render_offline(browser, trained_server):
+    """/docs and /redoc load Swagger UI and ReDoc from the service itself. The one outside address
+    either asks for is ReDoc's footer logo, which it drops when it cannot load it (offline)."""
+    server = trained_server
+    footer_logo = "https://cdn.redoc.ly/redoc/logo-mini.svg"
+    for path, ready in (("/docs", "document.querySelectorAll('.swagger-ui .opblock').length"),
+                        ("/redoc", "document.querySelectorAll('.api-content h2').length")):
+        browser.get(server.url + path)
+        _wait(browser, lambda d: d.execute_script("return " + ready) > 5, what=f"{path} to render")
+        loaded = browser.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+        scripts = browser.execute_script("return [...document.scripts].map(s => s.src).filter(s => s)")
+        assert scripts and all(url.startswith(server.url + "/docs-assets/") for url in scripts), scripts
+        assert all(url.startswith(server.url) or url == footer_logo for url in loaded), loaded
+        assert _console_errors(browser, expected=(footer_logo,)) == []
+    browser.get(server.url + "/docs")
+    _wait(browser, lambda d: "POST/v1/models/{model_id}/poses" in d.find_element(By.CSS_SELECTOR, ".swagger-ui")
+          .text.replace("\n", "").replace(" ", ""), what="the poses route in Swagger UI")
+    icon = httpx.get(server.url + "/favicon.ico")
+    assert icon.status_code == 200 and icon.headers["content-type"] == "image/svg+xml"
+
+
+def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, trained_server, tmp_path):
+    """A reference-trainer output folder picked whole (the folder input): its files go up by their
+    paths, its images stay behind, and the service reads it as the client does."""
+    from support.captures import write_output_folder
+
+    server = trained_server
+    folder = write_output_folder(tmp_path / "lego_out", svc_random_gaussians(200), svc_cameras(3))
+    (folder / "input.png").write_bytes(b"\x89PNG not needed")
+    browser.get(server.url + "/ui/")
+    _set(browser, "api-key", KEY)
+    browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
+    _wait(browser, lambda d: d_text(d, "message") == "key saved in this browser", what="the key")
+    browser.execute_script("document.getElementById('upload-details').open = true")
+    browser.find_element(By.ID, "upload-folder").send_keys(str(folder))
+    _wait(browser, lambda d: "(1 images left out" in d_text(d, "upload-picked"), what="the picked folder")
+    browser.find_element(By.ID, "upload-run").click()
+    _wait(browser, lambda d: "3dgs, 3 training cameras (3dgs-output)" in d_text(d, "upload-message"),
+          what="the folder's model")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        expected = phd.upload_model(folder)                 # named after the run, as the page's upload is
+        assert d_text(browser, "upload-message").startswith(f"Uploaded {expected.name}: ")
+        uploaded = next(m for m in phd.list_models() if m.name == expected.name and m.id != expected.id)
+        assert uploaded.sha256 == expected.sha256
+        assert phd.training_cameras(uploaded.id) == phd.training_cameras(expected.id)
+    # A PLY picked with a transforms file that is not its sidecar: the file goes up as its cameras,
+    # and as its frames say no image size, the page asks for it beside the upload.
+    cameras = tmp_path / "transforms_train.json"
+    cameras.write_text(json.dumps({"camera_angle_x": 0.7, "frames": [
+        {"transform_matrix": c.c2w.tolist()} for c in svc_cameras(3)]}))
+    browser.execute_script("document.getElementById('upload-folder').value = ''")
+    _choose_files(browser, "upload-file", folder / "point_cloud" / "iteration_30000" / "point_cloud.ply", cameras)
+    _set(browser, "upload-name", "with its transforms")
+    browser.find_element(By.ID, "upload-run").click()
+    _wait(browser, lambda d: "fill in width and height" in d_text(d, "upload-message"), what="the missing size")
+    assert browser.find_element(By.ID, "upload-size").is_displayed() and _in_view(browser, "upload-message")
+    _set(browser, "upload-width", 24)
+    _set(browser, "upload-height", 24)
+    browser.find_element(By.ID, "upload-run").click()
+    _wait(browser, lambda d: "Uploaded with its transforms: 3dgs, 3 training cameras" in d_text(d, "upload-message"),
+          what="the model with its transforms")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        stored = next(m for m in phd.list_models() if m.name == "with its transforms")
+        assert [(f["w"], f["h"]) for f in phd.training_cameras(stored.id)] == [(24, 24)] * 3
+        assert stored.camera_format == "nerfstudio"
+    assert _console_errors(browser) == []

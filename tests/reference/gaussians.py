@@ -47,11 +47,12 @@ def _sh_colour(sh: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def render_reference(means, log_scales, quats, opacity_logits, sh, c2w_gl, fx, fy, cx, cy, width, height,
-                     background, keep=None, near=0.2, per_splat=None):
+                     background, keep=None, near=0.2, per_splat=None, pixel_values=None):
     """Returns (rgb [H, W, 3], alpha [H, W], depth [H, W]) in float64.
 
     per_splat: a dict to fill with each splat's "weight" [G] (alpha * transmittance summed over
-    the pixels) and "footprint" [G] (alpha >= 1/255 summed over the pixels, occlusion ignored)."""
+    the pixels) and "footprint" [G] (alpha >= 1/255 summed over the pixels, occlusion ignored);
+    with pixel_values [H, W], also "valued" [G] (alpha * transmittance * the pixel's value summed)."""
     means = np.asarray(means, np.float64)
     g = len(means)
     keep = np.ones(g, bool) if keep is None else np.asarray(keep, bool)
@@ -82,7 +83,7 @@ def render_reference(means, log_scales, quats, opacity_logits, sh, c2w_gl, fx, f
         centre = np.array([fx * p[0] / p[2] + cx, fy * p[1] / p[2] + cy])
         splats.append((p[2], i, centre, np.linalg.inv(cov), opacity, colour))
     splats.sort(key=lambda s: (s[0], s[1]))
-    weight, footprint = np.zeros(g), np.zeros(g)
+    weight, footprint, valued = np.zeros(g), np.zeros(g), np.zeros(g)
     rgb = np.zeros((height, width, 3))
     alpha_out = np.zeros((height, width))
     depth_out = np.zeros((height, width))
@@ -104,6 +105,8 @@ def render_reference(means, log_scales, quats, opacity_logits, sh, c2w_gl, fx, f
                     stopped = True
                     continue
                 weight[i] += a * t
+                if pixel_values is not None:
+                    valued[i] += a * t * float(pixel_values[yy][xx])
                 colour += a * t * c
                 depth += a * t * z
                 t *= 1 - a
@@ -111,5 +114,5 @@ def render_reference(means, log_scales, quats, opacity_logits, sh, c2w_gl, fx, f
             alpha_out[yy, xx] = 1 - t
             depth_out[yy, xx] = depth
     if per_splat is not None:
-        per_splat.update(weight=weight, footprint=footprint)
+        per_splat.update(weight=weight, footprint=footprint, valued=valued)
     return rgb, alpha_out, depth_out

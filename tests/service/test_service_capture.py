@@ -43,6 +43,7 @@ def test_upload_an_output_folder_calibrate_and_rank_generated_candidates(svc_sta
     with PHDClient(server.url) as client:
         info = client.upload_model(output_folder)
         assert info.num_units == 300 and info.num_training_cameras == 3
+        assert info.name == f"{output_folder.name}/3dgs"                 # the run, not point_cloud.ply
         calibration = client.calibrate(info.id, epsilon=0.05, samples=3)
         expected = phd.calibrate(served, renderer.training_cameras, epsilon=0.05, samples=3)
         assert calibration.r_drop == expected.r_drop
@@ -76,6 +77,8 @@ def test_upload_a_splatfacto_or_gsplat_folder_and_rank_in_the_users_frame(svc_st
             info = client.upload_model(scene["folder"])
         assert any(w.category is ModelNote for w in caught)
         assert info.num_units == 300 and info.num_training_cameras == len(scene["training"])
+        # Named after the run (<experiment>/<method>), not the timestamp folder.
+        assert info.name == {"gsplat": "garden/gsplat", "splatfacto checkpoint": "desk/splatfacto"}[trainer]
         frames = client.training_cameras(info.id)
         ranking = client.rank(info.id, candidates="orbit:5,rings=1", samples=3, dropout_ratio=0.2)
     assert np.allclose([f["transform_matrix"] for f in frames], [c.c2w.tolist() for c in scene["training"]],

@@ -206,6 +206,7 @@ def test_api_key_on(svc_start, svc_model_files):
     server = svc_start(api_key="s3cret")
     url = server.url
     assert httpx.get(f"{url}/health").status_code == 200  # liveness never needs the key
+    assert httpx.get(f"{url}/health").json()["key_required"] is True      # and says one is needed elsewhere
     schema = httpx.get(f"{url}/openapi.json").json()  # nor do the API docs (they hold no data)
     assert {"/v1/models", "/v1/models/{model_id}/rank", "/v1/select", "/v1/jobs/{job_id}"} <= set(schema["paths"])
     assert httpx.get(f"{url}/docs").status_code == 200

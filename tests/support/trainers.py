@@ -23,8 +23,11 @@ from phd_core.scene import Camera, look_at
 
 from .captures import rotation_to_quaternion, write_colmap
 
-# ns-process-data's applied_transform for COLMAP data: swap x and y, negate z.
+# The applied_transform the nerfstudio dataparser assumes for COLMAP data written before the key
+# existed: swap x and y, negate z.
 APPLIED_TRANSFORM = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0, 0, 0, 1]])
+# The one ns-process-data (colmap_to_json, nerfstudio 1.1.5) writes: y and z swapped, then the new z negated.
+APPLIED_TRANSFORM_1_1_5 = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0, 0, 0, 1]])
 CV = np.diag([1.0, -1.0, -1.0, 1.0])
 SH_C0 = 0.28209479177387814     # the degree-0 SH basis constant: colour = 0.5 + SH_C0 * coefficient
 
@@ -229,9 +232,12 @@ def write_splatfacto_checkpoint(path: Path, model: GaussianModel) -> None:
 
 # ----------------------------------------------------------------------------- gsplat
 
-def gsplat_normalisation(cameras: Sequence[Camera], points: np.ndarray, *, upside_down_fix: bool = True
-                         ) -> np.ndarray:
-    """[4, 4] the world normalisation of gsplat's COLMAP parser (cameras sorted by name, OpenCV)."""
+def gsplat_normalisation(cameras: Sequence[Camera], points: np.ndarray, *, upside_down_fix: bool = True,
+                         eigh_signs: Sequence[float] = (1.0, 1.0, 1.0)) -> np.ndarray:
+    """[4, 4] the world normalisation of gsplat's COLMAP parser (cameras sorted by name, OpenCV).
+    Each eigenvector's sign is the numerical library's choice: here each is first made to have
+    a positive largest component, then multiplied by `eigh_signs`, so every pattern an eigh
+    build can return is reached the same way on every machine."""
     c2w = np.stack([c.c2w.numpy() @ CV for c in cameras])
     r, t = c2w[:, :3, :3], c2w[:, :3, 3]
     up = (r @ np.array([0.0, -1.0, 0.0])).mean(axis=0)
@@ -250,6 +256,7 @@ def gsplat_normalisation(cameras: Sequence[Camera], points: np.ndarray, *, upsid
     centroid = np.median(p, axis=0)
     values, vectors = np.linalg.eigh(np.cov(p - centroid, rowvar=False))
     vectors = vectors[:, values.argsort()[::-1]]
+    vectors = vectors * np.sign(vectors[np.abs(vectors).argmax(axis=0), range(3)]) * np.asarray(eigh_signs)
     if np.linalg.det(vectors) < 0:
         vectors[:, 0] *= -1
     t2 = np.eye(4)
@@ -348,3 +355,28 @@ def gsplat_scene(root: Path, *, upside_down_fix: bool = True, normalize: bool = 
     folder = write_gsplat(root, "garden", trained, data_dir="data/garden", normalize=normalize, app_opt=app_opt)
     return {"folder": folder, "user_model": user, "trained": trained, "to_model": to_model, "points": points,
             "training": [c for i, c in enumerate(by_name) if i % 8]}
+
+
+def cup_gsplat_run(root: Path, cup: Path, *, upside_down_fix: bool = True,
+                   eigh_signs: Sequence[float] = (1.0, 1.0, 1.0), every: int = 3,
+                   user_model: GaussianModel | None = None) -> dict:
+    """A gsplat run on the real COLMAP capture `cup` as gsplat would have normalised it with
+    `eigh_signs`: `user_model` (SH degree 0, in the capture's frame), else splats grown from
+    every `every`-th SfM point (so the other points are not on a splat), coloured by the
+    points and sized by their spacing."""
+    from phd_core.data import load_colmap
+
+    capture = load_colmap(cup, "all", with_images=False)
+    points, colours = capture.points.numpy(), capture.point_colors
+    user = user_model
+    if user is None:
+        grown = torch.from_numpy(points[::every]).float()                                  # [G, 3]
+        spacing = torch.cdist(grown, grown).topk(4, largest=False).values[:, 1:].mean(1)   # [G]
+        user = GaussianModel(means=grown, log_scales=(0.5 * spacing).clamp_min(1e-6).log()[:, None].repeat(1, 3),
+                             quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(len(grown), 1),
+                             opacity_logits=torch.full((len(grown),), 2.0),
+                             sh=((colours[::every] - 0.5) / SH_C0)[:, None, :].float())
+    to_model = gsplat_normalisation(capture.cameras, points, upside_down_fix=upside_down_fix, eigh_signs=eigh_signs)
+    folder = write_gsplat(root, "cup", move_model(user, to_model), data_dir=str(cup))
+    return {"folder": folder, "user_model": user, "to_model": to_model,
+            "training": [c for i, c in enumerate(capture.cameras) if i % 8]}

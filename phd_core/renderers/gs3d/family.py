@@ -4,15 +4,15 @@ the sidecar `phd train` writes next to it; trained by `phd_core.train.gs3d`."""
 from __future__ import annotations
 
 from ...scene import Camera
-from ..families import Family
-from ..splats.ply import parse_ply
+from ..families import SNIFF_BYTES, Family
+from ..splats.ply import frame_notes, parse_ply
 from ..splats.renderer import set_background, with_sidecar
 from .ply import is_3dgs_ply
 from .render import GaussianRenderer, view_memory
 
 
 def _load(data: bytes, name: str, cameras: list[Camera] | None) -> GaussianRenderer:
-    return GaussianRenderer(parse_ply(data, name), training_cameras=cameras)
+    return GaussianRenderer(parse_ply(data, name), training_cameras=cameras, notes=frame_notes(data[:SNIFF_BYTES]))
 
 
 GS3D = Family("3dgs", "a 3DGS PLY", ".ply", is_3dgs_ply, _load, with_sidecar,

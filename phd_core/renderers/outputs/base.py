@@ -30,8 +30,19 @@ class TrainerOutput:
     ply: Path | None = None                # that file, when it holds exactly `model` (uploadable as is)
     frame: Similarity | None = None        # user frame -> the trainer's frame (None: the same frame)
     camera_format: str | None = None       # the pose convention of the user's capture (phd_core.data.POSES)
+    name: str = ""                         # what to call the model: the run, "<experiment>/<method>" (read_output
+                                           # falls back to the folder's name)
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    capture: Path | None = None            # the capture the run read, as `phd_core.data.load_dataset` opens it
+    # The run's own split: "train" and "test" frames as indices into the capture's "all" split
+    # ({}: the capture's own splits are the run's).
+    splits: dict[str, list[int]] = field(default_factory=dict)
+
+    def renderer(self) -> GaussianRenderer:
+        """The splats with their training cameras, background and what loading noted (its facts' notes)."""
+        return GaussianRenderer(self.model, self.background, self.cameras or None, camera_format=self.camera_format,
+                                notes=self.notes + self.warnings)
 
 
 @dataclass(frozen=True)
@@ -55,6 +66,7 @@ def read_output(path: str | Path) -> TrainerOutput:
     for output_format in OUTPUTS.in_order():
         if output_format.detect(path):
             output = output_format.read(path)
+            output.name = output.name or path.resolve().name
             empty = empty_views(output.model, output.cameras)
             if output.cameras and len(empty) * 2 > len(output.cameras):
                 output.warnings.append(
@@ -72,9 +84,7 @@ def read_output(path: str | Path) -> TrainerOutput:
 
 def load_output(path: str | Path) -> GaussianRenderer:
     """A trainer's output folder as a renderer with its training cameras and background."""
-    output = read_output(path)
-    return GaussianRenderer(output.model, output.background, output.cameras or None,
-                            camera_format=output.camera_format)
+    return read_output(path).renderer()
 
 
 def empty_views(model: GaussianModel, cameras: list[Camera]) -> list[int]:
@@ -113,9 +123,11 @@ def data_candidates(folder: Path, data: Path) -> list[Path]:
     return [base / data for base in (Path.cwd(), folder, *folder.resolve().parents)]
 
 
-def nearest_distances(points: torch.Tensor, targets: torch.Tensor, chunk: int = 128) -> torch.Tensor:
-    """For each of points [P, 3], the distance to the nearest of targets [T, 3]: [P] float64."""
+def nearest_distances(points: torch.Tensor, targets: torch.Tensor, chunk: int = 128, k: int = 1) -> torch.Tensor:
+    """For each of points [P, 3], the distance to the k-th nearest of targets [T, 3]: [P] float64
+    (k = 2 skips the point itself when the points are among the targets)."""
     out = torch.empty(points.shape[0], dtype=torch.float64)
     for start in range(0, points.shape[0], chunk):
-        out[start:start + chunk] = torch.cdist(points[start:start + chunk].double(), targets.double()).amin(dim=1)
+        distances = torch.cdist(points[start:start + chunk].double(), targets.double())
+        out[start:start + chunk] = distances.topk(k, dim=1, largest=False).values[:, -1]
     return out

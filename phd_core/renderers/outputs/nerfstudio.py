@@ -27,6 +27,9 @@ working directory or to any folder above the output folder), split as the datapa
 (`eval_mode` fraction (default, train_split_fraction 0.9), interval, filename, all; or the
 file's own `train_filenames`). Background: `background_color` white or black; "random"
 (splatfacto's default) renders over (0.149, 0.1647, 0.2157), what splatfacto evaluates over.
+Without transforms.json the model loads in the frame dataparser_transforms.json maps from, and
+`frame_without_data` tells from the stored rotation whether that is the COLMAP model's (an
+applied_transform is folded in) or transforms.json's, which the pose format then names.
 """
 
 from __future__ import annotations
@@ -54,6 +57,9 @@ GAUSS_PARAMS = ("means", "scales", "quats", "features_dc", "features_rest", "opa
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "random": (0.1490, 0.1647, 0.2157)}
 # The applied_transform the dataparser assumes for data with colmap/sparse/0 and no such key.
 COLMAP_APPLIED_TRANSFORM = [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]
+# The one ns-process-data writes for COLMAP data (1.1.5: y and z swapped, then the new z negated).
+ORIENTATION_MARGIN = math.radians(30)   # a reading of the stored turn wins by this much (frame_without_data)
+PROCESS_DATA_APPLIED_TRANSFORM = [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0]]
 
 
 def detect(path: Path) -> bool:
@@ -71,14 +77,24 @@ def read(folder: Path) -> TrainerOutput:
     model_config = _section(config, "pipeline", "model")
     stored = read_frame(folder / FRAME_FILE)                      # nerfstudio's original data frame -> model frame
     model, source = read_splats(folder, model_config.get("sh_degree", 3))
-    cameras, frame, notes = training_cameras(folder, config, stored)
+    cameras, frame, camera_format, notes, capture, splits = training_cameras(folder, config, stored)
     background = model_config.get("background_color", "random")
     if background not in BACKGROUNDS:
         raise InputError("config.yml.background_color", f"must be one of {', '.join(BACKGROUNDS)}, got {background!r}")
     notes.insert(0, f"nerfstudio {method}: splats from {source.relative_to(folder)}, moved from the dataparser's "
                     f"frame (the user's scaled by {frame.scale:.6g}, turned and centred) into the user's")
     return TrainerOutput(model.transformed(frame.inverse()), cameras, BACKGROUNDS[background], source,
-                         frame=frame, notes=notes, camera_format="nerfstudio")
+                         frame=frame, notes=notes, camera_format=camera_format, capture=capture, splits=splits,
+                         name=run_name(folder, config, method))
+
+
+def run_name(folder: Path, config: dict, method: str) -> str:
+    """"<experiment>/<method>" from config.yml (the folder is only the run's timestamp); without an
+    experiment_name, the folder two levels up (outputs/<experiment>/<method>/<timestamp>)."""
+    experiment = config.get("experiment_name")
+    if not isinstance(experiment, str) or not experiment:
+        experiment = folder.resolve().parent.parent.name
+    return f"{experiment}/{method}"
 
 
 def read_frame(path: Path) -> Similarity:
@@ -146,15 +162,20 @@ def checkpoint_model(path: Path, sh_degree: Any) -> GaussianModel:
 
 # ----------------------------------------------------------------------------- cameras and frame
 
-def training_cameras(folder: Path, config: dict, stored: Similarity) -> tuple[list[Camera], Similarity, list[str]]:
-    """(training cameras in transforms.json's frame, user frame -> model frame, notes)."""
+def training_cameras(folder: Path, config: dict, stored: Similarity
+                     ) -> tuple[list[Camera], Similarity, str | None, list[str], Path | None, dict[str, list[int]]]:
+    """(training cameras in transforms.json's frame, user frame -> model frame, the pose
+    convention of that frame, notes, transforms.json when found, the run's train/test frames as
+    indices into it)."""
     parser = _section(config, "pipeline", "datamanager", "dataparser")
     data = yaml_path(parser.get("data")) or yaml_path(config.get("data"))
     json_path = _find_transforms(folder, data)
     if json_path is None:
-        return [], stored, [f"no transforms.json found for config.yml's data path {data} (looked from the working "
-                            f"directory and every folder above {folder}): the model has no training cameras, and "
-                            f"poses are in the frame {FRAME_FILE} maps from"]
+        camera_format, frame_name = frame_without_data(stored, parser)
+        return [], stored, camera_format, [
+            f"no transforms.json found for config.yml's data path {data} (looked from the working directory and "
+            f"every folder above {folder}): the model has no training cameras, and poses are in the frame "
+            f"{FRAME_FILE} maps from: {frame_name}"], None, {}
     frames, meta = read_transforms(json_path)
     applied = meta.get("applied_transform")
     if applied is None and (json_path.parent / "colmap" / "sparse" / "0").is_dir():
@@ -168,7 +189,38 @@ def training_cameras(folder: Path, config: dict, stored: Similarity) -> tuple[li
     frame = frame.then(Similarity.make(1.0 / applied_scale, torch.eye(3), torch.zeros(3)))
     views = train_frames(frames, meta, parser)
     cameras = load_nerfstudio(json_path, views=views, with_images=False).cameras
-    return cameras, frame, [f"training cameras: {len(cameras)} of the {len(frames)} frames of {json_path}"]
+    notes = [f"training cameras: {len(cameras)} of the {len(frames)} frames of {json_path}"]
+    held_out = sorted(set(range(len(frames))) - set(views))
+    return cameras, frame, "nerfstudio", notes, json_path, {"train": views, "test": held_out}
+
+
+def frame_without_data(stored: Similarity, parser: dict) -> tuple[str | None, str]:
+    """(pose convention, description) of the frame dataparser_transforms.json maps from, told
+    without transforms.json. The stored rotation is nerfstudio's orientation times the data's
+    applied_transform (if any). Orientation "up" (the default) is the shortest turn of the
+    cameras' mean up onto +z: its axis is horizontal (R[1, 0] = R[0, 1]), and it is a small turn
+    for data that is nearly upright already, as ns-process-data makes COLMAP's. So the reading
+    (no applied_transform, ns-process-data's, the older COLMAP one) whose orientation is such a
+    turn, and the smallest by ORIENTATION_MARGIN, wins: with an applied_transform the frame is
+    the COLMAP model's (poses go back in COLMAP's convention), without one transforms.json's."""
+    readings = {}
+    for name, applied in (("none", None), ("ns-process-data", PROCESS_DATA_APPLIED_TRANSFORM),
+                          ("older COLMAP data", COLMAP_APPLIED_TRANSFORM)):
+        rotation = stored.rotation
+        if applied is not None:
+            rotation = rotation @ torch.tensor(applied, dtype=torch.float64)[:, :3].T
+        if abs(float(rotation[1, 0] - rotation[0, 1])) < 1e-6:           # a turn about a horizontal axis
+            readings[name] = math.acos(max(-1.0, min(1.0, (float(torch.trace(rotation)) - 1) / 2)))
+    ranked = sorted(readings, key=readings.__getitem__)
+    unclear = ("transforms.json's, or the COLMAP model's when the data came from ns-process-data (" + "{}" + ")")
+    if parser.get("orientation_method", "up") != "up":
+        return None, unclear.format("orientation_method is not 'up', so which cannot be told")
+    if not ranked or (len(ranked) > 1 and readings[ranked[1]] - readings[ranked[0]] < ORIENTATION_MARGIN):
+        return None, unclear.format("the stored transform fits both")
+    if ranked[0] == "none":
+        return "nerfstudio", "transforms.json's (its poses had no applied_transform)"
+    return "colmap", (f"the COLMAP model's the data was made from (the stored transform includes {ranked[0]}'s "
+                      "applied_transform); poses are given back in COLMAP's convention")
 
 
 def train_frames(frames: list, meta: dict, parser: dict) -> list[int]:

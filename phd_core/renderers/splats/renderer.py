@@ -28,6 +28,9 @@ from .model import GaussianModel
 from .ply import read_sidecar
 
 NEAR_PLANE = 0.2
+NO_CAMERAS_NOTE = ("the model has no training cameras: poses given and returned are in the frame its file holds "
+                   "the splats in (check that it is your capture's), calibration needs cameras, and candidate poses "
+                   "are placed around the splats")
 SOLID_OPACITY = 0.05    # splats at least this opaque say where the scene is (`scene_box`)
 FISHER_PROBES = 4       # random projections per view in `SplatRenderer.fisher`
 
@@ -51,7 +54,8 @@ class SplatRenderer(ABC):
 
     def __init__(self, model: GaussianModel, background: Sequence[float] = (1.0, 1.0, 1.0),
                  training_cameras: list[Camera] | None = None, *, tile: int = DEFAULT_TILE,
-                 near: float = NEAR_PLANE, compositor: str = DEFAULT_COMPOSITOR, camera_format: str | None = None):
+                 near: float = NEAR_PLANE, compositor: str = DEFAULT_COMPOSITOR, camera_format: str | None = None,
+                 notes: Sequence[str] = ()):
         if not isinstance(model, self.model_type) or model.scale_axes != self.model_type.scale_axes:
             raise InputError("model", f"a {self.kind} renderer needs a {self.model_type.__name__}, "
                                       f"got {type(model).__name__}")
@@ -61,6 +65,7 @@ class SplatRenderer(ABC):
         self.background = torch.tensor(background, dtype=torch.float32)
         self.training_cameras = training_cameras
         self.camera_format = camera_format      # the source's pose convention (phd_core.data.POSES), when known
+        self.notes = list(notes)                # what loading found that the user should know (frames, cameras)
         self.tile = tile
         self.near = near
         self.compositor = compositor
@@ -139,6 +144,7 @@ class SplatRenderer(ABC):
             "background": self.background.tolist(),
             "has_training_cameras": self.training_cameras is not None,
             "camera_format": self.camera_format,
+            "notes": list(self.notes),
         }
 
 
@@ -150,9 +156,13 @@ def set_background(renderer: SplatRenderer, color: tuple[float, float, float]) -
 
 def with_sidecar(path: Path, renderer: SplatRenderer) -> SplatRenderer:
     """The renderer rebuilt with the training cameras, background and capture format of the
-    sidecar beside `path` (a splat family's `beside`)."""
+    sidecar beside `path` (a splat family's `beside`); without one, and without cameras, a note
+    says so."""
     sidecar = read_sidecar(path)
     if sidecar is None:
+        if renderer.training_cameras is None:
+            renderer.notes.append(NO_CAMERAS_NOTE)
         return renderer
     return type(renderer)(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
-                          cameras_from_json(sidecar["training_cameras"]), camera_format=sidecar.get("dataset_format"))
+                          cameras_from_json(sidecar["training_cameras"]), camera_format=sidecar.get("dataset_format"),
+                          notes=renderer.notes)

@@ -1,0 +1,179 @@
+"""What the `phd` command says while it works and what it keeps: progress bars on stderr (only
+when asked or on a terminal), the calibration stored beside the model and reused, the ranking
+table, the trainer's defaults in its help, a refused --out suffix and the demo's closing lines.
+The real `phd` entry (`phd_cli.main`) on a tiny model with real files."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+
+import numpy as np
+import pytest
+
+from phd_cli import build_parser, main
+from phd_cli.demo import next_steps
+from phd_cli.train import DEFAULT_ITERATIONS
+from phd_core.renderers import load_model
+from phd_core.renderers.gs3d import SIDECAR_FORMAT, sidecar_path, write_ply
+from support.captures import write_images
+from support.cli import run
+from support.fixtures import svc_random_gaussians
+from support.toy_renderers import ring_cameras
+
+SIZE, FOV = 16, 0.7
+BAR = "%|"          # what a tqdm bar line holds (percentage, then the bar)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> dict:
+    """A 3DGS PLY with a sidecar naming its training cameras, a Blender-layout capture whose
+    train split holds those cameras and whose images are the model's renders, and candidates."""
+    root = tmp_path_factory.mktemp("cli_report")
+    model = svc_random_gaussians(200, seed=11)
+    path = root / "model.ply"
+    write_ply(model, path)
+    renderer = load_model(path)
+    train, test = ring_cameras(3, size=SIZE), ring_cameras(4, size=SIZE, height=1.6)
+    sidecar_path(path).write_text(json.dumps({"format": SIDECAR_FORMAT, "background": [1.0, 1.0, 1.0],
+                                              "training_cameras": [c.to_frame() for c in train]}))
+    data = root / "data"
+    for split, cameras in (("train", train), ("test", test)):
+        write_images(data / split, [renderer.render(c)[0].numpy() for c in cameras],
+                     [f"r_{i}.png" for i in range(len(cameras))])
+        frames = [{"file_path": f"./{split}/r_{i}", "transform_matrix": c.c2w.tolist()} for i, c in enumerate(cameras)]
+        (data / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": FOV, "frames": frames}))
+    candidates = root / "candidates.json"
+    candidates.write_text(json.dumps([c.to_frame() for c in ring_cameras(7, size=SIZE, height=0.4)]))
+    return {"root": root, "model": path, "data": data, "candidates": candidates}
+
+
+CALIBRATION = ["--epsilon", 100, "--step", 0.25]        # every ratio passes: r_drop 0.75, quickly
+
+
+def commands(files, tmp) -> dict[str, list]:
+    """One small run of every command that shows progress, and the label of its bar."""
+    model, data = files["model"], files["data"]
+    return {
+        "calibrate": ["calibrate", "--model", model, *CALIBRATION, "--samples", 2],
+        "uq": ["uq", "--model", model, "--data", data, "--dropout-ratio", 0.3, "--samples", 3, "--no-heatmaps",
+               "--out", tmp / "uq"],
+        "rank": ["rank", "--model", model, "--candidates", files["candidates"], "--dropout-ratio", 0.3,
+                 "--samples", 3, "--json"],
+        "select": ["select", "--model-a", model, "--model-b", model, "--data", data, "--ratio-a", 0.3, "--ratio-b",
+                   0.2, "--samples", 3, "--rule", "sigma_mean"],
+        "render": ["render", "--model", model, "--data", data, "--out", tmp / "render"],
+    }
+
+
+def test_progress_goes_to_stderr_when_forced_and_never_with_quiet(files, capsys, tmp_path) -> None:
+    for label, argv in commands(files, tmp_path).items():
+        code, out, err = run(capsys, *argv, "--progress")
+        assert code == 0, err
+        bars = [line for line in err.replace("\r", "\n").splitlines() if BAR in line]
+        assert bars and all(line.startswith(label) for line in bars), (label, err)
+        assert any("100%" in line for line in bars), err            # the bar ran to its end
+        assert BAR not in out
+        if label in ("rank", "select"):
+            json.loads(out)                                          # stdout is the result alone
+        code, out, err = run(capsys, *argv, "--quiet")
+        assert code == 0 and BAR not in err + out, err
+        code, _, err = run(capsys, *argv)                            # stderr is no terminal here: no bar
+        assert code == 0 and BAR not in err, err
+
+
+def test_quiet_and_progress_exclude_each_other(files, capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["rank", "--model", str(files["model"]), "--candidates", "orbit:3", "--quiet", "--progress"])
+    assert "not allowed with" in capsys.readouterr().err
+
+
+def test_calibration_is_stored_beside_the_model_and_reused(files, capsys, tmp_path) -> None:
+    cache = files["model"].with_name("model.ply.phd-cache")
+    code, out, err = run(capsys, "calibrate", "--model", files["model"], *CALIBRATION, "--samples", 2)
+    assert code == 0 and "r_drop = 0.75" in out
+    stored = sorted(cache.glob("calibration-*.json"))
+    assert len(stored) == 1 and f"stored in {stored[0]}" in err
+    entry = json.loads(stored[0].read_text())
+    assert entry["by"] == "phd calibrate" and entry["result"]["r_drop"] == 0.75 and entry["views"] == 3
+
+    # A ratio no calibration with step 0.25 can give: rank must take it from the file, not calibrate.
+    entry["result"]["r_drop"] = 0.123
+    stored[0].write_text(json.dumps(entry))
+    rank = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--samples", 3, "--json",
+            *CALIBRATION, "--calibration-samples", 2]
+    code, out, err = run(capsys, *rank)
+    assert code == 0 and json.loads(out)["dropout_ratio"] == 0.123
+    assert "from the calibration stored by `phd calibrate`" in err and "--recalibrate" in err
+    for command in (["uq", "--model", files["model"], "--data", files["data"], *CALIBRATION, "--calibration-samples",
+                     2, "--samples", 3, "--no-heatmaps", "--out", tmp_path / "uq"],
+                    ["select", "--model-a", files["model"], "--model-b", files["model"], "--data", files["data"],
+                     *CALIBRATION, "--calibration-samples", 2, "--samples", 3]):
+        code, out, err = run(capsys, *command)
+        assert code == 0 and "from the calibration stored by `phd calibrate`" in err, err
+    assert json.loads((tmp_path / "uq" / "report.json").read_text())["dropout_ratio"] == 0.123
+    assert json.loads(out)["ratio_a"] == json.loads(out)["ratio_b"] == 0.123
+
+    # Other settings that change r_drop miss and calibrate (and store) anew; --recalibrate replaces the entry.
+    code, out, err = run(capsys, *rank, "--recalibrate")
+    assert code == 0 and json.loads(out)["dropout_ratio"] == 0.75 and "calibrated, r_drop 0.75; stored in" in err
+    assert json.loads(stored[0].read_text())["result"]["r_drop"] == 0.75
+    assert json.loads(stored[0].read_text())["by"] == "phd rank"
+    code, out, err = run(capsys, *rank, "--signal", "premultiplied")
+    assert code == 0 and "calibrated, r_drop" in err and len(list(cache.glob("calibration-*.json"))) == 2
+
+
+def test_rank_prints_a_table_of_the_top_k_with_the_json_poses(files, capsys) -> None:
+    argv = ["rank", "--model", files["model"], "--candidates", files["candidates"], "--dropout-ratio", 0.3,
+            "--samples", 3, "--top-k", 3]
+    code, table, err = run(capsys, *argv)
+    assert code == 0, err
+    with pytest.raises(json.JSONDecodeError):
+        json.loads(table)
+    rows = [line.split() for line in table.splitlines() if line.strip()[:1].isdigit()]
+    code, out, _ = run(capsys, *argv, "--json")
+    ranking = json.loads(out)["ranking"]
+    assert len(rows) == len(ranking) == 3
+    for row, ranked in zip(rows, ranking):
+        assert [int(row[0]), int(row[1])] == [ranked["rank"], ranked["index"]]
+        assert float(row[2]) == pytest.approx(ranked["score"], rel=1e-3)
+        assert float(row[3]) == pytest.approx(ranked["sigma_max"], rel=1e-3)
+        c2w = np.array(ranked["camera"]["transform_matrix"])
+        assert [float(v) for v in row[4:7]] == pytest.approx(c2w[:3, 3].tolist(), abs=1e-4)
+        assert [float(v) for v in row[7:10]] == pytest.approx((-c2w[:3, 2]).tolist(), abs=1e-3)
+
+    # Without --top-k: the first rows and how to get the rest.
+    code, table, _ = run(capsys, *argv[:-2])
+    assert code == 0 and len([line for line in table.splitlines() if line.strip()[:1].isdigit()]) == 7
+    assert "JSON" not in table and "written to" not in table
+
+
+def test_an_out_suffix_of_another_family_is_refused(files, capsys, tmp_path) -> None:
+    for family, out in (("nerf", "model.ply"), ("3dgs", "model.nerf"), ("2dgs", "model")):
+        code, _, err = run(capsys, "train", "--model", family, "--data", files["data"], "--iterations", 1,
+                           "--out", tmp_path / out)
+        assert code == 2 and err.startswith("phd train: error: out: ") and out in err, err
+    assert not list(tmp_path.iterdir())                              # refused before anything was trained
+
+
+def test_train_help_states_the_default_iterations_every_trainer_uses(capsys) -> None:
+    from phd_core.train.nerf import DEFAULT_ITERATIONS as NERF_DEFAULT
+    from phd_core.train.splats import TrainConfig
+
+    assert TrainConfig().iterations == NERF_DEFAULT == DEFAULT_ITERATIONS
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"default {DEFAULT_ITERATIONS}" in text and "minutes" in text
+
+
+def test_the_demo_ends_with_the_next_three_commands(tmp_path) -> None:
+    serve, page, client = next_steps(tmp_path / "model_a.ply", port=8123)
+    args = build_parser().parse_args(shlex.split(serve, comments=True)[1:])
+    assert isinstance(args, argparse.Namespace) and args.command == "serve" and args.port == 8123
+    assert page.split()[0] == "http://127.0.0.1:8123/ui/" and "model_a.json" in page
+    words = shlex.split(client, comments=True)
+    assert words[:2] == ["python", "-c"]
+    compile(words[2], "client", "exec")
+    assert "PHDClient('http://127.0.0.1:8123')" in words[2] and str(tmp_path / "model_a.ply") in words[2]

@@ -1,0 +1,251 @@
+"""The page's 3D view (service/page/view3d.js) in a real browser: headless Chromium (WebGL on
+SwiftShader) against a real uvicorn server with an API key and its CSP. The view is driven
+through its own API (`window.phdView3d`) on the real page, with a rank result the REST API
+returned; its pixels are read back from the canvas (preserveDrawingBuffer) and compared with
+where the returned poses project through the view's camera, computed here."""
+
+from __future__ import annotations
+
+import base64
+import re
+
+import httpx
+import numpy as np
+import pytest
+
+from client import PHDClient
+from support.browser import chromium, have_browser
+from support.fixtures import svc_cameras
+
+pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install -e '.[test]')")
+if not have_browser():
+    pytest.skip("no browser: install Debian's chromium and chromium-driver (scripts/test.sh does, as root)",
+                allow_module_level=True)
+from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
+
+KEY = "view3d-key"
+AUTH = {"Authorization": f"Bearer {KEY}"}
+BACKGROUND = (0x15, 0x18, 0x1D)
+CANDIDATES, TOP_K = 6, 4
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    driver = chromium(tmp_path_factory.mktemp("chromium-profile"))
+    yield driver
+    driver.quit()
+
+
+@pytest.fixture(scope="module")
+def ranked(tmp_path_factory, svc_model_files):
+    """A server with a calibrated 3DGS model (3 training cameras) and a ranking of 6 candidate
+    poses, the first 4 returned with heat maps and renders as files (the REST answer)."""
+    from service.runner import BackgroundServer
+    from service.settings import Settings
+
+    server = BackgroundServer(Settings(data_dir=tmp_path_factory.mktemp("view3d-data"), api_key=KEY))
+    try:
+        with PHDClient(server.url, api_key=KEY) as phd:
+            model = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(3), name="splats")
+            phd.calibrate(model.id, epsilon=0.05, step=0.2, samples=3, seed=1)
+        candidates = [c.to_frame() for c in svc_cameras(CANDIDATES, phase=0.25, radius=3.2)]
+        answer = httpx.post(f"{server.url}/v1/models/{model.id}/rank", headers=AUTH, timeout=120, json={
+            "cameras": candidates, "samples": 4, "seed": 0, "top_k": TOP_K, "heatmaps": "files"})
+        assert answer.status_code == 200, answer.text
+        yield server, model, answer.json(), candidates
+    finally:
+        server.stop()
+
+
+def _call(driver, script: str, *args):
+    """Run `script` (a promise expression over arguments[0..]) and return its value, or fail with its error."""
+    done = driver.execute_async_script(
+        f"const done = arguments[arguments.length - 1]; Promise.resolve().then(() => {script})"
+        ".then(v => done({ok: v === undefined ? null : v}), e => done({error: String(e && e.stack || e)}));", *args)
+    assert "error" not in done, done["error"]
+    return done["ok"]
+
+
+def _pixels(driver) -> np.ndarray:
+    """The canvas as [H, W, 3] uint8 (CSS pixels: the view draws at device pixel ratio 1 here)."""
+    data = driver.execute_script(
+        "phdView3d.drawNow(); const c = document.querySelector('#view3d canvas');"
+        "return [c.width, c.height, c.toDataURL('image/png')];")
+    import imageio.v3 as iio
+    image = iio.imread(base64.b64decode(data[2].split(",", 1)[1]))[..., :3]
+    assert image.shape[:2] == (data[1], data[0])
+    return image
+
+
+def _project(debug: dict, point) -> tuple[float, float, float]:
+    """A world point through the view's camera (three.js column-major matrices) to canvas pixels and NDC depth."""
+    projection = np.array(debug["projection"]).reshape(4, 4).T
+    world_to_view = np.array(debug["view"]).reshape(4, 4).T
+    clip = projection @ world_to_view @ np.append(np.asarray(point, float), 1.0)
+    ndc = clip[:3] / clip[3]
+    return (ndc[0] + 1) / 2 * debug["width"], (1 - ndc[1]) / 2 * debug["height"], ndc[2]
+
+
+def _image_centre(frame: dict, depth: float) -> np.ndarray:
+    """The centre of a camera's image rectangle at `depth` in front of it, in world coordinates."""
+    c2w = np.array(frame["transform_matrix"], float)
+    x = (frame["w"] / 2 - frame["cx"]) / frame["fl_x"] * depth
+    y = -(frame["h"] / 2 - frame["cy"]) / frame["fl_y"] * depth
+    return (c2w @ np.array([x, y, -depth, 1.0]))[:3]
+
+
+def _open(driver, server, model) -> dict:
+    """The real page with the key saved (as its key form does), the view mounted on the model."""
+    driver.get(server.url + "/health")          # the same origin, without the page's own calls
+    driver.execute_script("localStorage.setItem('phd-api-key', arguments[0])", KEY)
+    driver.get(server.url + "/ui/")
+    WebDriverWait(driver, 20).until(lambda d: d.execute_script("return !!window.phdView3d && state.models.length"))
+    Select(driver.find_element(By.ID, "model-select")).select_by_value(model.id)   # app.js mounts the view on it
+    WebDriverWait(driver, 30).until(lambda d: d.execute_script("return state.modelId === arguments[0] && "
+                                                               "state.viewReady", model.id))
+    return driver.execute_script("return phdView3d.debug()")
+
+
+def _console_errors(driver) -> list[str]:
+    """Errors in the browser's console; the favicon the browser asks for by itself is the page's
+    own item (issue 33), not the view's."""
+    return [e["message"] for e in driver.get_log("browser")
+            if e["level"] == "SEVERE" and "/favicon.ico" not in e["message"]]
+
+
+def test_the_view_draws_the_splats_and_the_returned_poses_where_they_project(browser, ranked, tmp_path):
+    server, model, ranking, candidates = ranked
+    state = _open(browser, server, model)
+    assert (state["points"], state["total"], state["training"]) == (300, 300, 3)
+    empty = _pixels(browser)
+    # Splats drawn: around the model's projected centre most pixels are not the background.
+    x, y, _ = _project(state, state["centre"])
+    patch = empty[int(y) - 6:int(y) + 7, int(x) - 6:int(x) + 7].astype(int)
+    assert (np.abs(patch - BACKGROUND).sum(-1) > 30).mean() > 0.8
+    assert len(np.unique(empty.reshape(-1, 3), axis=0)) > 200          # colours, not a flat fill
+
+    _call(browser, "phdView3d.showRanking(arguments[0], {candidates: arguments[1]})", ranking, candidates)
+    state = browser.execute_script("return phdView3d.debug()")
+    image = _pixels(browser)
+    drawn = {f["index"]: f for f in state["frusta"]}
+    assert sorted(drawn) == sorted(v["index"] for v in ranking["views"])
+    scores = [v["score"] for v in ranking["views"]]
+    for v in ranking["views"]:
+        # Where the REST answer's pose puts its image rectangle, through the view's camera: the
+        # frustum's fill, in the colour of its score on the ramp (the highest: the ramp's top).
+        centre = _image_centre(v["camera"], state["frustumDepth"])
+        assert np.allclose(centre, drawn[v["index"]]["centre"], atol=1e-4)
+        px, py, depth = _project(state, centre)
+        assert 0 < px < state["width"] and 0 < py < state["height"] and -1 < depth < 1
+        colour = image[int(py), int(px)].astype(int)
+        assert np.abs(colour - drawn[v["index"]]["rgb"]).max() <= 40, (v["index"], colour, drawn[v["index"]]["rgb"])
+        label = browser.find_element(By.CSS_SELECTOR, f".v3d-label[data-index='{v['index']}']")
+        assert label.text == f"#{v['rank'] + 1}"
+    top = max(ranking["views"], key=lambda v: v["score"])
+    assert drawn[top["index"]]["rgb"] == [253, 231, 37] and max(scores) == top["score"]
+    legend = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    assert "candidate score" in legend and "training camera" in legend and "not returned" in legend
+    browser.save_screenshot(str(tmp_path / "view3d.png"))
+    assert _console_errors(browser) == []
+
+
+def test_clicking_a_frustum_picks_it_and_shows_its_render_and_heat_map(browser, ranked):
+    server, model, ranking, candidates = ranked
+    _open(browser, server, model)
+    _call(browser, "phdView3d.showRanking(arguments[0], {candidates: arguments[1]})", ranking, candidates)
+    browser.execute_script("window.picked = []; phdView3d.onPick(i => window.picked.push(i));")
+    state = browser.execute_script("return phdView3d.debug()")
+    first = next(v for v in ranking["views"] if v["rank"] == 0)
+    px, py, _ = _project(state, _image_centre(first["camera"], state["frustumDepth"]))
+    canvas = browser.find_element(By.CSS_SELECTOR, "#view3d canvas")
+    size = canvas.size
+    ActionChains(browser).move_to_element_with_offset(canvas, px - size["width"] / 2, py - size["height"] / 2) \
+        .click().perform()
+    WebDriverWait(browser, 20).until(lambda d: d.execute_script(
+        "return [...document.querySelectorAll('#view3d .v3d-detail img')].length === 2 && "
+        "[...document.querySelectorAll('#view3d .v3d-detail img')].every(i => i.complete && i.naturalWidth > 0)"))
+    assert browser.execute_script("return window.picked") == [first["index"]]
+    assert browser.execute_script("return phdView3d.debug().selected") == first["index"]
+    title = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-title").text
+    assert title.startswith(f"#1: candidate {first['index']}")
+    # The heat map shown is the ranking's own artefact, pixel for pixel.
+    shown = browser.execute_script(
+        "const i = document.querySelector('#view3d .v3d-detail img.heatmap'), c = document.createElement('canvas');"
+        "c.width = i.naturalWidth; c.height = i.naturalHeight; const g = c.getContext('2d'); g.drawImage(i, 0, 0);"
+        "return [c.width, c.height, Array.from(g.getImageData(0, 0, c.width, c.height).data)]")
+    import imageio.v3 as iio
+    truth = iio.imread(httpx.get(server.url + first["heatmap_url"], headers=AUTH).content)
+    assert shown[:2] == [truth.shape[1], truth.shape[0]]
+    assert np.array_equal(np.array(shown[2], np.uint8).reshape(shown[1], shown[0], 4)[..., :3], truth)
+    # select() from the page (a rank card clicked) highlights another candidate without a pick event.
+    second = next(v for v in ranking["views"] if v["rank"] == 1)
+    _call(browser, "phdView3d.select(arguments[0])", second["index"])
+    assert browser.execute_script("return [phdView3d.debug().selected, window.picked]") == \
+        [second["index"], [first["index"]]]
+    assert _console_errors(browser) == []
+
+
+def test_colour_modes_show_coverage_fragility_and_what_the_first_pick_sees(browser, ranked, tmp_path):
+    server, model, ranking, candidates = ranked
+    state = _open(browser, server, model)
+    _call(browser, "phdView3d.setMode('novelty')")          # before a ranking: said where the toggle is
+    status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status")
+    assert "rank first" in status.text and "error" in status.get_attribute("class")
+    _call(browser, "phdView3d.setMode('colour')")
+    _call(browser, "phdView3d.showRanking(arguments[0], {candidates: arguments[1]})", ranking, candidates)
+    x, y, _ = _project(state, state["centre"])
+    area = (slice(int(y) - 30, int(y) + 31), slice(int(x) - 30, int(x) + 31))
+    before = _pixels(browser)[area].astype(int)
+    _call(browser, "phdView3d.setMode('coverage')")
+    state = browser.execute_script("return phdView3d.debug()")
+    assert state["mode"] == "coverage" and set(state["explained"]) == {"coverage", "fragility", "novelty"}
+    coverage = _pixels(browser)[area].astype(int)
+    assert np.abs(coverage - before).sum(-1).mean() > 20                # the splats changed colour
+    legend = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    assert "no captured view saw it" in legend
+    _call(browser, "phdView3d.setMode('fragility')")
+    fragility = _pixels(browser)[area].astype(int)
+    assert np.abs(fragility - coverage).sum(-1).mean() > 20
+    _call(browser, "phdView3d.setMode('novelty')")
+    assert "newly seen by #1" in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    # One explain job served all three modes: its pick is the ranking's first pose.
+    jobs = browser.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+    assert sum(name.endswith(f"/v1/models/{model.id}/explain") for name in jobs) == 1
+    browser.save_screenshot(str(tmp_path / "view3d_coverage.png"))
+    _call(browser, "phdView3d.setMode('colour')")
+    assert np.abs(_pixels(browser)[area].astype(int) - before).max() <= 2
+    assert all(name.startswith((server.url, "blob:", "data:")) for name in jobs)     # nothing from another host
+    assert _console_errors(browser) == []
+
+
+def test_an_uncalibrated_model_says_what_to_do_under_the_view(browser, ranked, svc_model_files):
+    server, _, _, _ = ranked
+    with PHDClient(server.url, api_key=KEY) as phd:
+        bare = phd.upload_model(svc_model_files["ply_b"], cameras=svc_cameras(4), name="not calibrated")
+    _open(browser, server, bare)
+    _call(browser, "phdView3d.setMode('fragility')")
+    status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status")
+    assert status.text == "calibrate the model first: fragility is measured at its dropout ratio"
+    assert "error" in status.get_attribute("class") and status.is_displayed()
+    assert browser.execute_script("return phdView3d.debug().explained") == []
+    errors = _console_errors(browser)          # the browser logs the refused request itself, and nothing else
+    assert len(errors) == 1 and "/explain" in errors[0] and "409" in errors[0]
+
+
+def test_the_view_files_are_local_and_open(ranked):
+    server, _, _, _ = ranked
+    page = httpx.get(server.url + "/ui/").text
+    assert '<script type="module" src="view3d.js"></script>' in page and '<div id="view3d"></div>' in page
+    for path in ("/ui/view3d.js", "/ui/view3d.css", "/ui/vendor/three.module.min.js", "/ui/vendor/OrbitControls.js"):
+        answer = httpx.get(server.url + path)          # no key: static files
+        assert answer.status_code == 200, path
+        assert answer.headers["content-type"].startswith("text/css" if path.endswith(".css") else "text/javascript")
+        # Nothing the view runs names another host (the one URL in three.js is the XHTML namespace).
+        assert set(re.findall(r"https?://[\w.-]+", answer.text)) <= {"http://www.w3.org", "https://github.com"}, path
+    three = httpx.get(server.url + "/ui/vendor/three.module.min.js").text
+    assert three.startswith("// three.js r170, from the npm package three@0.170.0") and 'const t="170"' in three
+    assert "from './three.module.min.js'" in httpx.get(server.url + "/ui/vendor/OrbitControls.js").text
+    missing = httpx.get(server.url + "/ui/vendor/three.js", headers=AUTH)   # a fixed list of files
+    assert missing.status_code == 404 and missing.json()["error"]["field"] == "name"

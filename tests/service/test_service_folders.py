@@ -1,0 +1,202 @@
+"""Models uploaded as the folders their trainers wrote (service.folders), through a real server:
+the same model, cameras, background and pose convention as the Python client reads from the
+same folder (which uploads the splats it reads as a PLY written by the same writer, so the two
+stored files are byte for byte the same); zips that point outside or inflate past the budget
+refused; and ranked poses downloaded exactly as `phd rank --export` writes them."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import warnings
+import zipfile
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from client import PHDClient
+from phd_cli import main as phd
+from phd_core.data import POSES
+from service.budget import largest_model_file
+from support.captures import write_output_folder
+from support.fixtures import svc_cameras, svc_random_gaussians
+from support.trainers import gsplat_scene, splatfacto_scene
+
+
+def _zip(root: Path, under: Path | None = None) -> bytes:
+    """The files under `root` as a zip (paths relative to `under`, default root's parent: the
+    folder itself is the zip's top entry, as an archiver makes it)."""
+    buffer = io.BytesIO()
+    base = under or root.parent
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as zipped:
+        for path in sorted(root.rglob("*")):
+            if path.is_file():
+                zipped.write(path, path.relative_to(base).as_posix())
+    return buffer.getvalue()
+
+
+def _files(root: Path) -> list[tuple[str, tuple[str, bytes]]]:
+    """The files under `root` as `files` parts named by their path, as a browser's folder pick sends them."""
+    return [("files", (path.relative_to(root.parent).as_posix(), path.read_bytes()))
+            for path in sorted(root.rglob("*")) if path.is_file()]
+
+
+def _leftovers(server) -> list[str]:
+    return sorted(p.name for p in (server.settings.data_dir / "tmp").iterdir())
+
+
+@pytest.mark.parametrize("trainer", ["phd train", "reference 3DGS", "splatfacto", "gsplat"])
+def test_a_folder_uploads_as_the_client_reads_it(svc_start, svc_trained, tmp_path, trainer) -> None:
+    if trainer == "phd train":
+        folder, zip_root = tmp_path / "run", None
+        folder.mkdir()
+        for name in ("model.ply", "model.json"):
+            (folder / name).write_bytes((svc_trained.parent / name).read_bytes())
+        source = folder / "model.ply"
+    elif trainer == "reference 3DGS":
+        folder = source = write_output_folder(tmp_path / "output" / "lego", svc_random_gaussians(200),
+                                              svc_cameras(3), white=True)
+        zip_root = None
+    elif trainer == "splatfacto":
+        folder = source = splatfacto_scene(tmp_path, export_ply=False)["folder"]
+        zip_root = None
+    else:   # the capture gsplat read travels in the zip beside the run, where its cfg.yml says
+        folder = source = gsplat_scene(tmp_path)["folder"]
+        zip_root = tmp_path
+    server = svc_start()
+    with PHDClient(server.url) as client:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")        # the readers' notes, issued as Python warnings
+            expected = client.upload_model(source)
+        zipped = _zip(zip_root or folder, zip_root.parent if zip_root else None)
+        answers = [httpx.post(f"{server.url}/v1/models", files={"archive": ("run.zip", zipped)}, timeout=120)]
+        if trainer in ("phd train", "reference 3DGS"):   # also picked as a folder, one part per file
+            answers.append(httpx.post(f"{server.url}/v1/models", files=_files(folder), timeout=120))
+        for answer in answers:
+            assert answer.status_code == 201, answer.text
+            got = answer.json()
+            assert got["sha256"] == expected.sha256 and got["num_units"] == expected.num_units
+            assert got["camera_format"] == expected.camera_format
+            assert got["num_training_cameras"] == expected.num_training_cameras > 0
+            assert got["details"]["background"] == expected.details["background"]
+            assert np.allclose([f["transform_matrix"] for f in client.training_cameras(got["id"])],
+                               [f["transform_matrix"] for f in client.training_cameras(expected.id)], atol=1e-9)
+    if trainer == "phd train":     # what its sidecar says, and where the background came from
+        sidecar = json.loads((folder / "model.json").read_text())
+        assert got["camera_format"] == sidecar["dataset_format"] == "blender"
+        assert got["details"]["background"] == sidecar["background"]
+        assert got["details"]["background_source"] == "the sidecar its trainer wrote"
+        assert got["name"] == "model.ply"
+    else:
+        assert got["name"] == expected.name         # the run's name, as the client gives it
+        # What the reader noted (the frame it undid, the checkpoint it read) is kept with the model.
+        assert bool(got["details"].get("notes")) == (trainer != "reference 3DGS")
+    assert _leftovers(server) == []
+
+
+def test_the_sidecar_as_the_cameras_field_gives_its_cameras_background_and_format(svc_start, svc_trained) -> None:
+    server = svc_start()
+    sidecar = svc_trained.with_name("model.json")
+    with open(svc_trained, "rb") as f:
+        answer = httpx.post(f"{server.url}/v1/models", files={"file": ("model.ply", f)},
+                            data={"cameras": sidecar.read_text()}, timeout=60)
+    assert answer.status_code == 201, answer.text
+    data = json.loads(sidecar.read_text())
+    got = answer.json()
+    assert got["num_training_cameras"] == len(data["training_cameras"]) == 4
+    assert got["camera_format"] == "blender" and got["details"]["background"] == data["background"]
+    with PHDClient(server.url) as client:
+        assert client.training_cameras(got["id"]) == data["training_cameras"]
+
+
+@pytest.mark.parametrize("member", ["../outside.ply", "/etc/outside.ply", "run/../../outside.ply", "C:/outside.ply",
+                                    "run/\\..\\..\\outside.ply"])
+def test_a_zip_member_pointing_outside_the_folder_is_refused(svc_start, tmp_path, member) -> None:
+    server = svc_start()
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zipped:
+        zipped.writestr(member, b"ply\n")
+    answer = httpx.post(f"{server.url}/v1/models", files={"archive": ("evil.zip", buffer.getvalue())})
+    assert answer.status_code == 422 and answer.json()["error"]["field"] == "archive"
+    assert "not a path inside the folder" in answer.json()["error"]["message"]
+    assert not (server.settings.data_dir / "outside.ply").exists() and not Path("/etc/outside.ply").exists()
+    assert _leftovers(server) == []
+
+
+def test_a_zip_that_inflates_past_the_budget_or_like_a_bomb_is_refused(svc_start) -> None:
+    budget = 64 << 20
+    server = svc_start(memory_budget_bytes=budget)
+    cap = largest_model_file(budget)
+    block = (b"\0" * 900 + os.urandom(100))                     # inflates about 10 times: no bomb, just big
+    big = io.BytesIO()
+    with zipfile.ZipFile(big, "w", zipfile.ZIP_DEFLATED) as zipped:
+        for k in range(3):
+            zipped.writestr(f"run/part{k}.bin", block * (cap // 2 // len(block)))
+    assert len(big.getvalue()) < cap < 3 * (cap // 2)           # the upload fits; what it unpacks to does not
+    answer = httpx.post(f"{server.url}/v1/models", files={"archive": ("big.zip", big.getvalue())}, timeout=60)
+    assert answer.status_code == 413 and answer.json()["error"]["field"] == "archive", answer.text
+    bomb = io.BytesIO()
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as zipped:
+        zipped.writestr("run/model.ply", b"\0" * (8 << 20))   # 8 MiB of zeros inflate about 1,000 times
+    answer = httpx.post(f"{server.url}/v1/models", files={"archive": ("bomb.zip", bomb.getvalue())}, timeout=60)
+    assert answer.status_code == 422 and "zip bomb" in answer.json()["error"]["message"], answer.text
+    assert _leftovers(server) == []
+
+
+def test_a_folder_without_one_model_says_what_it_holds(svc_start, svc_model_files) -> None:
+    server = svc_start()
+    none = httpx.post(f"{server.url}/v1/models", files=[("files", ("run/notes.txt", b"hello"))])
+    assert none.status_code == 422 and "holds no model" in none.json()["error"]["message"]
+    two = httpx.post(f"{server.url}/v1/models", files=[
+        ("files", (f"run/{name}.ply", svc_model_files[name].read_bytes())) for name in ("ply", "ply_b")])
+    assert two.status_code == 422 and "holds 2 models (run/ply.ply, run/ply_b.ply)" in two.json()["error"]["message"]
+    both = httpx.post(f"{server.url}/v1/models", files=[("file", ("a.ply", svc_model_files["ply"].read_bytes())),
+                                                       ("files", ("run/a.ply", b"ply"))])
+    assert both.status_code == 422 and both.json()["error"]["field"] == "files"
+    assert _leftovers(server) == []
+
+
+def test_downloaded_poses_are_what_phd_rank_export_writes(svc_start, svc_trained, tmp_path) -> None:
+    """`phd rank --export` and the service's download write the same bytes for the same ranking,
+    in every pose convention."""
+    server = svc_start()
+    with PHDClient(server.url) as client:
+        model = client.upload_model(svc_trained)
+    for name, convention in POSES.items():
+        export = tmp_path / name / (convention.file_name or ("colmap" if convention.suffix == "" else "poses.json"))
+        ranking = tmp_path / f"{name}.json"
+        assert phd(["rank", "--model", str(svc_trained), "--candidates", "orbit:5", "--dropout-ratio", "0.1",
+                    "--samples", "2", "--downscale", "4", "--top-k", "3", "--export", str(export),
+                    "--export-format", name, "--out", str(ranking)]) == 0
+        ranked = json.loads(ranking.read_text())["ranking"]
+        body = {"cameras": [r["camera"] for r in ranked], "indices": [r["index"] for r in ranked], "format": name}
+        answer = httpx.post(f"{server.url}/v1/models/{model.id}/poses", json=body)
+        assert answer.status_code == 200, answer.text
+        if export.is_dir():
+            assert answer.headers["content-type"] == "application/zip"
+            files = zipfile.ZipFile(io.BytesIO(answer.content))
+            assert {n: files.read(n) for n in files.namelist()} == {
+                f"colmap/{p.name}": p.read_bytes() for p in export.iterdir()}
+        else:
+            assert answer.content == export.read_bytes()
+            assert answer.headers["content-disposition"] == \
+                f'attachment; filename="{convention.file_name or "transforms.json"}"'
+    # Without a format, the model's own: its sidecar's capture was a Blender scene.
+    own = httpx.post(f"{server.url}/v1/models/{model.id}/poses", json={"cameras": body["cameras"]})
+    assert own.headers["content-disposition"] == 'attachment; filename="transforms.json"'
+    assert [f["file_path"] for f in own.json()["frames"]] == [f"images/rank00{k}_candidate000{k}.png" for k in range(3)]
+    wrong = httpx.post(f"{server.url}/v1/models/{model.id}/poses", json={**body, "indices": [1]})
+    assert wrong.status_code == 422 and "one index per camera" in wrong.json()["error"]["message"]
+
+
+def test_a_folder_left_by_a_crash_is_swept_at_start(svc_start, tmp_path) -> None:
+    """An upload's folder outlives its server only if the process died mid-upload: the next start removes it."""
+    left = tmp_path / "data" / "tmp" / "upload-0123.folder" / "run"
+    left.mkdir(parents=True)
+    (left / "model.ply").write_bytes(b"ply\n")
+    (left.parent.with_name("upload-0123.folder.zip")).write_bytes(b"PK")
+    server = svc_start()
+    assert _leftovers(server) == []
