@@ -42,8 +42,8 @@ def child(copies: int, size: int, version: str) -> dict:
     sums_of = VERSIONS[version]
 
     def visibility_pass() -> vis_module.FragmentSums:
-        row_ptr, alpha, splat, _, _ = renderer.fragment_rows(view)
-        return sums_of(row_ptr, alpha, splat, renderer.num_units)
+        row_ptr, alpha, index, units, _, _ = renderer.fragment_rows(view)
+        return sums_of(row_ptr, alpha, index, units, renderer.num_units)
     sums_of(torch.tensor([0, 2]), torch.tensor([0.5, 0.5]), torch.tensor([0, 1]), 2)   # compile on a toy
     base = reset_peak(os.getpid())                                     # VmHWM starts again from VmRSS
     seconds = []

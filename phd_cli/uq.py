@@ -17,11 +17,12 @@ from phd_core.data import POSES, candidate_name, export_cameras, load_cameras, s
 from phd_core.errors import InputError
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
 from phd_core.executors import LOCAL, Executor, make_executor
-from phd_core.io import write_heatmap, write_json_atomic
+from phd_core.io import ModelCache, write_heatmap, write_json_atomic
 from phd_core.renderers import DEFAULT_SIGNAL, SIGNALS, signals_help
 from phd_core.scene import Camera
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
+from phd_core.uq.strategies.captured import CapturedStore
 
 from .models import OpenedModel, check_frame, model_views, open_model
 from .options import add_background_arg, model_help
@@ -380,10 +381,16 @@ def run_rank(args: argparse.Namespace) -> int:
     if args.captured is not None:
         # Only the poses matter here: frames without w/h get a placeholder size.
         captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
+    # What the captured views saw is kept beside the model (computed once per model and set of poses).
+    store = (CapturedStore(ModelCache(args.model), default=renderer.training_cameras)
+             if STRATEGIES[args.strategy].uses_visibility else None)
     with progress_bar(args, f"rank {len(candidates)} candidates x {args.samples} masks") as progress:
         ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
                                 top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor,
-                                coarse=args.coarse, refine=args.refine, signal=args.signal, progress=progress)
+                                coarse=args.coarse, refine=args.refine, signal=args.signal, progress=progress,
+                                captured_store=store)
+    if store is not None and store.cache.skipped:
+        print(f"warning: {store.cache.skipped}", file=sys.stderr)
     convention = renderer.describe().get("camera_format")
     result = {"strategy": args.strategy, "signal": args.signal, "dropout_ratio": ratio,
               "calibration": calibration,

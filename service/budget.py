@@ -142,10 +142,18 @@ def plan_work(models: Sequence[ModelSize], pixels: int, samples: int, kept_bytes
     return MemoryPlan(bytes=fixed + kept_bytes + batch * per_mask, mask_batch=int(batch))
 
 
-def over_budget(field: str, need: int, budget: int, advice: str) -> ServiceError:
-    return ServiceError(413, "over_memory_budget", f"this request needs an estimated {need / 2**20:.0f} MiB, "
-                        f"above the service's memory budget of {budget / 2**20:.0f} MiB: ask for {advice} "
-                        f"(field '{field}')", field)
+class OverBudget(ServiceError):
+    """A 413: the plan of a request (`need` bytes) exceeds the budget."""
+
+    def __init__(self, field: str, need: int, budget: int, advice: str):
+        super().__init__(413, "over_memory_budget", f"this request needs an estimated {need / 2**20:.0f} MiB, "
+                         f"above the service's memory budget of {budget / 2**20:.0f} MiB: ask for {advice} "
+                         f"(field '{field}')", field)
+        self.need, self.budget = need, budget
+
+
+def over_budget(field: str, need: int, budget: int, advice: str) -> OverBudget:
+    return OverBudget(field, need, budget, advice)
 
 
 @dataclass(eq=False)

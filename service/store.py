@@ -5,6 +5,7 @@ Layout of the data directory:
     phd.sqlite3          metadata: tables `models` (one row per model, calibration included) and `jobs`
     schema-version       the store's schema version (also SQLite's `PRAGMA user_version`)
     models/<id>.<ext>    the uploaded model file, byte for byte (.ply or .nerf)
+    models/<id>.<ext>.phd-cache/   results derived from it (`cache`), deleted with it
     tmp/                 uploads in progress (swept at startup)
 
 Crash safety comes from the order of operations. An upload is written to `tmp/`, fsynced,
@@ -41,7 +42,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
 from phd_core.errors import InputError
-from phd_core.io import fsync_path, write_bytes_atomic
+from phd_core.io import ModelCache, fsync_path, write_bytes_atomic
 from phd_core.renderers import FAMILIES
 
 from .errors import ServiceError, insufficient_storage
@@ -270,7 +271,11 @@ class ModelStore:
         removed += [p for p in self.models_dir.iterdir() if p.is_file() and p.name not in known]
         for path in removed:
             shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
-        return removed
+        caches = [p for p in self.models_dir.iterdir() if p.is_dir() and p.name.endswith(".phd-cache")
+                  and p.name.removesuffix(".phd-cache") not in known]       # what was derived from a model gone
+        for path in caches:
+            shutil.rmtree(path, ignore_errors=True)
+        return removed + caches
 
     # ------------------------------------------------------------------ writes
 
@@ -326,6 +331,7 @@ class ModelStore:
                 return False
             db.execute("DELETE FROM models WHERE id = ?", (model_id,))
         (self.models_dir / row["file"]).unlink(missing_ok=True)
+        shutil.rmtree(ModelCache(self.models_dir / row["file"]).dir, ignore_errors=True)
         return True
 
     # ------------------------------------------------------------------ reads
@@ -342,6 +348,11 @@ class ModelStore:
 
     def path(self, record: ModelRecord) -> Path:
         return self.models_dir / record.file
+
+    def cache(self, record: ModelRecord) -> ModelCache:
+        """Results derived from the model (what its captured views saw), kept beside its file and
+        deleted with it; each entry is written atomically and keyed by the model's sha256."""
+        return ModelCache(self.path(record), digest=record.sha256)
 
 
 def _record(row: sqlite3.Row) -> ModelRecord:

@@ -34,13 +34,21 @@ from phd_core.renderers import (
     set_background,
     signal_channels,
 )
-from phd_core.renderers.visibility import PASS_FRAGMENT_BYTES, PASS_UNIT_BYTES, visibility_bytes
+from phd_core.renderers.visibility import (
+    COVERAGE_CAPTURE_BYTES,
+    PASS_UNIT_BYTES,
+    SEEN_LOADED_BYTES,
+    SEEN_STORED_BYTES,
+    seen_bytes,
+    visibility_bytes,
+)
 from phd_core.scene import Camera, cameras_from_json
 from phd_core.uq import Progress
 from phd_core.uq.candidates import candidate_cameras, check_option_names
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
-from phd_core.uq.strategies import get_strategy
+from phd_core.uq.strategies import CHEAPER_STRATEGY, get_strategy
+from phd_core.uq.strategies.captured import CapturedStore, camera_key
 
 from .budget import (
     DEFAULT_MASK_PIXEL_BYTES,
@@ -48,7 +56,9 @@ from .budget import (
     MemoryLedger,
     MemoryPlan,
     ModelSize,
+    OverBudget,
     model_bytes,
+    over_budget,
     plan_work,
 )
 from .errors import ServiceError, busy, invalid, not_found
@@ -190,18 +200,34 @@ class Renders:
     keeps_views: bool = False       # calibration keeps prepared views for re-use (up to VIEW_CACHE_BYTES)
     visibility: bool = False        # a visibility pass follows each render (rank strategies that use it)
     signal: str = DEFAULT_SIGNAL    # what the renders return (its channels size the engine's images)
+    cheaper: Renders | None = None  # the same job under CHEAPER_STRATEGY (a strategy that uses visibility)
     sizes: dict[str, int] = field(init=False)    # file bytes by model id
 
     def __post_init__(self) -> None:
         self.sizes = {record.id: record.size_bytes for record, _, _ in self.models}
 
-    def plan(self, settings: Settings, bounds: RenderMemory | None = None, kept_views: int = 0) -> MemoryPlan:
+    def plan(self, settings: Settings, bounds: RenderMemory | None = None, kept_views: int = 0,
+             renderers: dict[str, Renderer] | None = None) -> MemoryPlan:
         """The memory plan (service.budget), or a 413 naming the field to lower. Without the
-        renders' bounds (before the models are loaded), a lower bound."""
+        renders' bounds (before the models are loaded), a lower bound. When the strategy's own
+        memory is what does not fit (the `cheaper` job would), the 413 names `strategy`."""
         pixels = max(c.width * c.height for _, _, cameras in self.models for c in cameras)
-        return plan_work([ModelSize(r.id, r.num_units, r.size_bytes, name) for r, name, _ in self.models], pixels,
-                         self.samples, self.kept_bytes + kept_views, settings.memory_budget_bytes, renders=bounds,
-                         size_field="downscale", kept_field=self.kept_field, channels=signal_channels(self.signal))
+        try:
+            return plan_work([ModelSize(r.id, r.num_units, r.size_bytes, name) for r, name, _ in self.models], pixels,
+                             self.samples, self.kept_bytes + kept_views, settings.memory_budget_bytes, renders=bounds,
+                             size_field="downscale", kept_field=self.kept_field,
+                             channels=signal_channels(self.signal))
+        except OverBudget as refused:
+            if self.cheaper is None:
+                raise
+            try:
+                self.cheaper.plan(settings, None if renderers is None else
+                                  self.cheaper.bounds(renderers, lambda fraction: None)[0])
+            except OverBudget:
+                raise refused from None
+            raise over_budget("strategy", refused.need, refused.budget,
+                              f"strategy '{CHEAPER_STRATEGY}', which fits (the strategy's view of what each camera "
+                              "sees does not), or a lower resolution (downscale, or width/height)") from None
 
     def bounds(self, renderers: dict[str, Renderer], progress: Progress) -> tuple[RenderMemory, int]:
         """The largest bounds of the renders, and what calibration's prepared views keep."""
@@ -214,8 +240,7 @@ class Renders:
                 bound = (RenderMemory(0, 0, DEFAULT_MASK_PIXEL_BYTES * camera.width * camera.height)
                          if memory is None else memory(renderer, camera))
                 if self.visibility:
-                    bound = replace(bound, fixed=bound.fixed + PASS_FRAGMENT_BYTES * bound.fragments
-                                    + PASS_UNIT_BYTES * record.num_units)
+                    bound = replace(bound, fixed=bound.fixed + PASS_UNIT_BYTES * record.num_units)
                 found.append(bound)
                 kept += bound.kept
         return RenderMemory.largest(found), min(kept, VIEW_CACHE_BYTES) if self.keeps_views else 0
@@ -234,7 +259,7 @@ class Bounded:
 
     def plan(self, renderers: dict[str, Renderer], progress: Progress) -> MemoryPlan:
         """The plan with the bounds of the renders, or a 413 naming the field to lower."""
-        return self.renders.plan(self.settings, *self.renders.bounds(renderers, progress))
+        return self.renders.plan(self.settings, *self.renders.bounds(renderers, progress), renderers=renderers)
 
     def __call__(self, progress: Progress) -> tuple[Any, dict[str, bytes]]:
         probe = max(memory_probe_bytes(record.num_units) for record, _, _ in self.renders.models)
@@ -322,7 +347,8 @@ def generated_candidates(record: ModelRecord, body: RankRequest, settings: Setti
 
 
 def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url: Callable[[str], str],
-             ledger: MemoryLedger, executor: Executor = LOCAL) -> tuple[Work, float]:
+             ledger: MemoryLedger, executor: Executor = LOCAL, store: ModelStore | None = None) -> tuple[Work, float]:
+    """store: where the model's captured coverage is kept (None: the captured poses are rendered at every rank)."""
     if body.candidates is not None:
         poses = generated_candidates(record, body, settings, ledger)
         cameras = render_size(poses, body, settings, field="candidates")
@@ -344,13 +370,23 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     # known, then each returned view's two PNGs (at most PNG_PIXEL_BYTES a pixel each).
     kept = 4 * pixels(cameras) + 2 * PNG_PIXEL_BYTES * returned * max(c.width * c.height for c in cameras)
     kept = kept if heatmaps else 0
-    # A strategy that uses visibility also renders the captured poses (at their own size) and keeps
-    # what every candidate and captured view sees (`visibility_bytes`).
+    # A strategy that uses visibility keeps what every candidate sees (`visibility_bytes`, measured
+    # with its dropout renders). What the captured poses saw comes from the model's stored coverage
+    # (read whole); the poses it lacks are rendered, one visibility pass each, kept in compact form
+    # and stored with the rest (`captured_seen`; a rank that renders none writes nothing).
     visibility = get_strategy(body.strategy).uses_visibility
-    seen = sum(visibility_bytes(record.num_units, c) for c in cameras + captured) if visibility else 0
-    renders = Renders([(record, "model_id", cameras + (captured if visibility else []))], samples,
-                      kept_bytes=kept + seen, kept_field="heatmaps" if kept >= seen else "downscale",
-                      visibility=visibility, signal=signal)
+    coverage = (CapturedStore(store.cache(record), default=stored_cameras(record))
+                if visibility and store is not None else None)
+    stored = coverage.index() if coverage is not None else {}
+    fresh = [c for c in captured if camera_key(c) not in stored] if visibility else []
+    read = SEEN_STORED_BYTES if fresh else SEEN_LOADED_BYTES
+    seen = (sum(visibility_bytes(record.num_units, c) for c in cameras) + sum(stored.values()) * read
+            + seen_bytes(record.num_units, fresh) + COVERAGE_CAPTURE_BYTES) if visibility else 0
+    renders = Renders([(record, "model_id", cameras + fresh)], samples, kept_bytes=kept + seen,
+                      kept_field="heatmaps" if kept >= seen else "downscale", visibility=visibility, signal=signal)
+    if visibility:          # over the budget for the strategy's own memory: say which strategy fits
+        renders.cheaper = Renders([(record, "model_id", cameras)], samples, kept_bytes=kept,
+                                  kept_field="heatmaps", signal=signal)
     renders.plan(settings)
 
     def work(renderers: dict[str, Renderer], progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
@@ -358,7 +394,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
                                strategy=body.strategy, captured=captured, keep_peak=heatmaps,
                                progress=_span(progress, 0.0, split), executor=executor, coarse=body.coarse,
-                               refine=body.refine, signal=signal)
+                               refine=body.refine, signal=signal, captured_store=coverage)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score, refined=r.refined, camera=poses[r.index].to_frame(),
                                  source_pose=source_pose(poses[r.index], convention)) for r in ranked]

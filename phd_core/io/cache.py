@@ -55,11 +55,12 @@ class ModelCache:
 
     FOLDER_NAME = ".phd-cache"
 
-    def __init__(self, model: str | Path) -> None:
+    def __init__(self, model: str | Path, digest: str | None = None) -> None:
+        """digest: the model's sha256 when the caller knows it already (the service's store)."""
         self.model = Path(model)
         self.dir = (self.model / self.FOLDER_NAME if self.model.is_dir()
                     else self.model.with_name(self.model.name + ".phd-cache"))
-        self._digest: str | None = None
+        self._digest: str | None = digest
         self.skipped: str | None = None  # why the last write did not happen, if it did not
 
     @property

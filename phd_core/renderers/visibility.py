@@ -18,7 +18,7 @@ for the 7M fragments of a 1M-splat model at 200x150).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, TypeGuard
+from typing import Protocol, Sequence, TypeGuard
 
 import numba
 import numpy as np
@@ -55,28 +55,62 @@ class Visibility:
         """[K] float64 in [0, 1]: how much of each element's footprint is not hidden."""
         return (self.weight / self.footprint.clamp_min(1e-300)).clamp(0.0, 1.0)
 
+    def seen(self) -> "Seen":
+        """What a captured view's coverage needs of it (`Seen`)."""
+        return Seen(camera=self.camera, elements=self.elements, visible_share=self.visible_share)
+
+
+@dataclass
+class Seen:
+    """What a captured view saw, as far as the coverage strategies use it: which elements it
+    shows and how much of each is not hidden (`Visibility.visible_share`). SEEN_ELEMENT_BYTES
+    an element instead of a Visibility's KEPT_ELEMENT_BYTES; what a model's captured views saw
+    is stored in this form (`phd_core.uq.strategies.captured`)."""
+
+    camera: Camera
+    elements: Tensor          # [K] long, element ids, ascending
+    visible_share: Tensor     # [K] float64 in [0, 1]
+
 
 # What a visibility pass holds (a memory plan adds it to the view's render bounds), in bytes:
-# per fragment, the caller's int64 element of each fragment and the int64 index it is gathered
-# through (2 x 8; `fragment_visibility` itself holds nothing per fragment); per unit of the model,
+# nothing per fragment (`fragment_visibility` walks the lists the renders use in place); per unit of the model,
 # the three float64 sums and what `reduce_to_visibility` gathers of them (ids, points: 8 + 24),
 # rounded up; and what a Visibility keeps per element it lists (ids, points, weight, footprint,
 # valued: 8 + 24 + 3 x 8).
-PASS_FRAGMENT_BYTES = 16
 PASS_UNIT_BYTES = 64
 KEPT_ELEMENT_BYTES = 56
-# A strategy's working copy of an element (`phd_core.uq.strategies.visibility.Coverage`): index,
-# direction, weight, novelty (8 + 24 + 2 x 8), and what counting a view as captured holds per
-# element of the union (seen share and direction, 8 + 24; the union is at most every listed
-# element); retiring picked candidates copies at most half of one array (12), less than that.
-COVERAGE_ELEMENT_BYTES = 80
+SEEN_ELEMENT_BYTES = 16
+# A strategy's working copy of a candidate's element (`phd_core.uq.strategies.visibility.Coverage`):
+# index, direction, weight, novelty, owner and its place in the by-element list (8 + 24 + 4 x 8), and
+# per element of the union (at most every listed element) its id, point and first entry (8 + 24 + 8)
+# and the sort that lists entries by element (16): 120. Counting a view as captured works on at most
+# CAPTURE_CHUNK entries at once, about COVERAGE_CAPTURE_BYTES whatever the views.
+COVERAGE_ELEMENT_BYTES = 120
+COVERAGE_CAPTURE_BYTES = 16 << 20
+# A captured view's Seen keeps ids and shares (8 + 8); stored, they take 12 bytes an element.
+# Reading the entry holds the file's bytes, the tensors read and the ids widened (12 + 12 + 8):
+# SEEN_LOADED_BYTES an element of a stored view. A rank that also writes the entry holds, beside
+# the kept views, the tensors concatenated, the serialised bytes and their copy (12 x 3):
+# SEEN_STORED_BYTES an element of every view it stores.
+SEEN_LOADED_BYTES = 32
+SEEN_STORED_BYTES = 56
+
+
+def listed_elements(num_units: int, camera: Camera) -> int:
+    """The most elements a view's Visibility lists: ELEMENTS_PER_PIXEL a pixel, at most the model's units."""
+    return min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
 
 
 def visibility_bytes(num_units: int, camera: Camera) -> int:
-    """The most one view's Visibility and a strategy's copy of it hold: at most ELEMENTS_PER_PIXEL
-    elements a pixel, and never more than the model's units."""
-    elements = min(num_units, ELEMENTS_PER_PIXEL * camera.width * camera.height)
-    return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * elements
+    """The most one view's Visibility and a strategy's copy of it hold."""
+    return (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * listed_elements(num_units, camera)
+
+
+def seen_bytes(num_units: int, cameras: Sequence[Camera]) -> int:
+    """The most the captured views a rank renders hold: each one's Seen, kept and stored, and one
+    Visibility at a time while it is reduced to its Seen."""
+    listed = [listed_elements(num_units, camera) for camera in cameras]
+    return SEEN_STORED_BYTES * sum(listed) + KEPT_ELEMENT_BYTES * max(listed, default=0)
 
 
 class ReportsVisibility(Renderer, Protocol):
@@ -102,12 +136,14 @@ class FragmentSums:
     left: Tensor              # [S] float64 transmittance at the end of each row's fragments
 
 
-def fragment_visibility(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_elements: int,
+def fragment_visibility(row_ptr: Tensor, alpha: Tensor, index: Tensor, units: Tensor, num_elements: int,
                         row_values: Tensor | None = None) -> FragmentSums:
     """Sum compositing weights per element over S pixel rows of fragments, in one compiled pass.
 
     row_ptr [S + 1]: the fragments of row s are row_ptr[s]:row_ptr[s + 1], front to back;
-    alpha [E]; element [E] long in [0, num_elements); row_values [S] (e.g. zeta) or None.
+    alpha [E]; fragment e belongs to element units[index[e]] (index [E] of any integer type,
+    units [V] long in [0, num_elements)): the lists a prepared view keeps, walked in place, with
+    no per-fragment array made for the pass; row_values [S] (e.g. zeta) or None.
     """
     rows = len(row_ptr) - 1
     weight, footprint = np.zeros(num_elements), np.zeros(num_elements)
@@ -115,14 +151,15 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_ele
     left = np.empty(rows)
     values = (row_values.double().contiguous().numpy() if row_values is not None else np.zeros(0))
     _visibility_kernel(row_ptr.long().contiguous().numpy(), alpha.detach().contiguous().numpy(),
-                       element.long().contiguous().numpy(), values, weight, footprint, valued, left)
+                       index.contiguous().numpy(), units.long().contiguous().numpy(), values, weight, footprint,
+                       valued, left)
     return FragmentSums(weight=torch.from_numpy(weight), footprint=torch.from_numpy(footprint),
                         valued=None if row_values is None else torch.from_numpy(valued),
                         left=torch.from_numpy(left))
 
 
 @numba.njit(cache=True, nogil=True)
-def _visibility_kernel(row_ptr, alpha, element, row_values, weight, footprint, valued,
+def _visibility_kernel(row_ptr, alpha, index, units, row_values, weight, footprint, valued,
                        left):  # pragma: no cover
     """Per row, front to back: every fragment adds its alpha to its element's footprint; until
     the fragment that would bring the row's transmittance below T_MIN, it adds alpha times the
@@ -134,7 +171,7 @@ def _visibility_kernel(row_ptr, alpha, element, row_values, weight, footprint, v
         used = True
         for e in range(row_ptr[s], row_ptr[s + 1]):
             a = np.float64(alpha[e])
-            u = element[e]
+            u = units[index[e]]
             footprint[u] += a
             if used:
                 after = log_t + np.log1p(-a)
@@ -149,9 +186,10 @@ def _visibility_kernel(row_ptr, alpha, element, row_values, weight, footprint, v
         left[s] = np.exp(log_t)
 
 
-def fragment_visibility_reference(row_ptr: Tensor, alpha: Tensor, element: Tensor, num_elements: int,
+def fragment_visibility_reference(row_ptr: Tensor, alpha: Tensor, index: Tensor, units: Tensor, num_elements: int,
                                   row_values: Tensor | None = None) -> FragmentSums:
     """`fragment_visibility` in pure torch (its tested twin): the same sums by cumulative sums."""
+    element = units.long()[index.long()]                                       # [E]
     alpha = alpha.double()
     counts = row_ptr[1:] - row_ptr[:-1]                                        # [S]
     row = torch.repeat_interleave(torch.arange(len(counts)), counts)          # [E] the row of each fragment

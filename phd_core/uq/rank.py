@@ -16,6 +16,7 @@ from ..renderers.visibility import ReportsVisibility, Visibility, reports_visibi
 from ..scene import Camera
 from .sampling import Progress, check_cameras
 from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
+from .strategies.captured import CapturedStore, captured_seen
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, uncertainty
 
 
@@ -37,13 +38,15 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
                        samples: int = DEFAULT_SAMPLES, seed: int = 0, captured: Sequence[Camera] | None = None,
                        keep_peak: bool = False, progress: Progress | None = None,
                        executor: Executor = LOCAL, visibility: bool = False,
-                       fisher: bool = False, signal: str = DEFAULT_SIGNAL) -> tuple[Evidence, list[ViewUncertainty]]:
+                       fisher: bool = False, signal: str = DEFAULT_SIGNAL,
+                       captured_store: CapturedStore | None = None) -> tuple[Evidence, list[ViewUncertainty]]:
     """What a strategy sees: the candidates' PH-Dropout statistics under one draw of N
     sub-models, and the captured poses (default: the model's training cameras); with the
     per-view measurements (keeping zeta's channel max when keep_peak). With `visibility`
     (and a family that reports it) also what each candidate and captured view sees of the model;
     with `fisher`, each view's Fisher information (`add_fisher`). `signal`: what zeta is
-    measured on (phd_core.renderers.SIGNALS)."""
+    measured on (phd_core.renderers.SIGNALS). What the captured views saw comes from
+    `captured_store` where it holds them (`phd_core.uq.strategies.captured`)."""
     views = uncertainty(renderer, cameras, ratio=ratio, samples=samples, seed=seed, keep_peak=keep_peak,
                         progress=progress, executor=executor, keep_visibility=visibility, signal=signal)
     captured = captured_cameras(renderer, captured)
@@ -54,7 +57,7 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
     if visibility and reports_visibility(renderer):
         # measured with keep_visibility on a family that reports it: every view has one
         evidence.candidate_views = cast(list[Visibility], [v.visibility for v in views])
-        evidence.captured_views = view_visibility(renderer, captured)
+        evidence.captured_views = captured_seen(renderer, captured, captured_store)
     if fisher:
         add_fisher(evidence, renderer, seed)
     return evidence, views
@@ -81,7 +84,7 @@ def visibility_evidence(renderer: Renderer, cameras: Sequence[Camera],
     evidence = Evidence(list(cameras), captured, zeros, zeros)
     if reports_visibility(renderer):
         evidence.candidate_views = view_visibility(renderer, cameras)
-        evidence.captured_views = view_visibility(renderer, captured)
+        evidence.captured_views = captured_seen(renderer, captured)
     return evidence
 
 
@@ -124,7 +127,7 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
                captured: Sequence[Camera] | None = None, keep_peak: bool = False,
                progress: Progress | None = None, executor: Executor = LOCAL,
                coarse: float | None = None, refine: int | None = None,
-               signal: str = DEFAULT_SIGNAL) -> list[RankedView]:
+               signal: str = DEFAULT_SIGNAL, captured_store: CapturedStore | None = None) -> list[RankedView]:
     """Candidates in the order the strategy would capture them; ties go to the lower index.
 
     top_k keeps the first k, a batch meant to be captured together (all when k exceeds the
@@ -135,6 +138,8 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     `executor` (phd_core.executors) renders the candidates in chunks, anywhere: the same
     masks go to every chunk, so the ranking is the local one. `signal`: what zeta is measured
     on (phd_core.renderers.SIGNALS; rank at a ratio calibrated on the same signal).
+    `captured_store` keeps what the captured views saw between ranks (strategies that use
+    visibility; `phd_core.uq.strategies.captured`): a rank renders only the views it lacks.
 
     Coarse to fine (`coarse`, a scale in (0, 1)): every candidate is ranked at `coarse`
     times its size, then the best `refine` (default: COARSE_REFINE_SHARE of them, at least
@@ -149,11 +154,11 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     if coarse is not None:
         return coarse_to_fine(renderer, cameras, coarse, refine, ratio=ratio, samples=samples, seed=seed,
                               top_k=top_k, strategy=strategy, captured=captured, keep_peak=keep_peak,
-                              progress=progress, executor=executor, signal=signal)
+                              progress=progress, executor=executor, signal=signal, captured_store=captured_store)
     evidence, views = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed,
                                          captured=captured, keep_peak=keep_peak, progress=progress,
                                          executor=executor, visibility=chosen.uses_visibility,
-                                         fisher=chosen.uses_fisher, signal=signal)
+                                         fisher=chosen.uses_fisher, signal=signal, captured_store=captured_store)
     count = len(evidence.candidates)
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]

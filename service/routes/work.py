@@ -31,7 +31,7 @@ async def rank(model_id: str, body: RankRequest, svc: Service, who: Caller) -> A
     record = svc.model(model_id, who)
     job_id = svc.jobs.new_id()
     work, estimate = await asyncio.to_thread(rank_job, record, body, svc.settings, _artifact_url(job_id),
-                                             svc.ledger, svc.executor)
+                                             svc.ledger, svc.executor, svc.store)
     return await svc.run(job_id, "rank", work, estimate, body.run_async, who)
 
 

@@ -15,6 +15,7 @@ import torch
 from phd_core import uq as phd
 from phd_core.data import load_cameras, load_dataset
 from phd_core.eval import image_uq_metrics
+from phd_core.io import ModelCache
 from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import GaussianModel, write_ply
 from support.cli import run
@@ -230,6 +231,9 @@ def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
     expected = phd.rank_views(renderer, candidates, ratio=0.4, samples=5, captured=candidates[1:3], top_k=2)
     assert code == 0 and strict_json(out)["order"] == [r.index for r in expected]
     assert not {1, 2} & set(strict_json(out)["order"])          # captured poses are not picked again
+    # What the captured poses saw was kept beside the model: the next rank reads it and ranks the same.
+    assert list(ModelCache(files["model"]).dir.glob("captured-coverage-*.pt"))
+    assert run(capsys, *argv, "--captured", captured, "--top-k", 2)[1] == out
     with pytest.raises(SystemExit) as exit_info:   # argparse: usage and the known names on stderr
         run(capsys, *argv, "--strategy", "sharpest")
     err = capsys.readouterr().err

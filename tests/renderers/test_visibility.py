@@ -53,7 +53,9 @@ def test_fragment_sums_follow_the_compositors_stop_rule(sums_of) -> None:
     # One pixel, three opaque fragments: the third would bring T below 1e-4 and is not used.
     row_ptr = torch.tensor([0, 3, 3])                       # a second pixel with nothing on it
     alpha = torch.tensor([0.99, 0.98, 0.99])
-    sums = sums_of(row_ptr, alpha, torch.tensor([2, 0, 1]), 3, torch.tensor([2.0, 5.0]))
+    # Fragments name their element through a view's unit list: units[index] = [2, 0, 1].
+    sums = sums_of(row_ptr, alpha, torch.tensor([0, 2, 1], dtype=torch.int32), torch.tensor([2, 1, 0]), 3,
+                   torch.tensor([2.0, 5.0]))
     np.testing.assert_allclose(sums.weight.numpy(), [0.98 * 0.01, 0.0, 0.99], rtol=1e-6)
     np.testing.assert_allclose(sums.footprint.numpy(), [0.98, 0.99, 0.99], rtol=1e-6)
     np.testing.assert_allclose(sums.valued.numpy(), [2 * 0.98 * 0.01, 0.0, 2 * 0.99], rtol=1e-6)
@@ -68,10 +70,11 @@ def test_compiled_fragment_sums_match_the_torch_twin(with_values: bool) -> None:
     counts = torch.randint(0, 61, (300,), generator=g)
     row_ptr = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
     alpha = (torch.rand(int(counts.sum()), generator=g) * 0.99).float()
-    element = torch.randint(0, 500, (len(alpha),), generator=g)
+    units = torch.randperm(500, generator=g)[:400]                 # the visible elements of a view
+    index = torch.randint(0, 400, (len(alpha),), generator=g, dtype=torch.int32)
     values = torch.rand(300, generator=g, dtype=torch.float64) if with_values else None
-    fast = fragment_visibility(row_ptr, alpha, element, 500, values)
-    slow = fragment_visibility_reference(row_ptr, alpha, element, 500, values)
+    fast = fragment_visibility(row_ptr, alpha, index, units, 500, values)
+    slow = fragment_visibility_reference(row_ptr, alpha, index, units, 500, values)
     assert (slow.left < 1e-3).sum() > 50                   # many rows reach the stop rule
     for a, b in [(fast.weight, slow.weight), (fast.footprint, slow.footprint), (fast.left, slow.left)]:
         np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-9, atol=1e-12)

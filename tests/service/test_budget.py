@@ -12,11 +12,14 @@ from phd_core.errors import InputError
 from phd_core.renderers import RenderMemory
 from phd_core.renderers.gs3d import GaussianRenderer
 from phd_core.renderers.visibility import (
+    COVERAGE_CAPTURE_BYTES,
     COVERAGE_ELEMENT_BYTES,
     KEPT_ELEMENT_BYTES,
-    PASS_FRAGMENT_BYTES,
+    SEEN_LOADED_BYTES,
+    seen_bytes,
     visibility_bytes,
 )
+from phd_core.uq.strategies.captured import CapturedStore
 from service.budget import MemoryLedger, ModelSize, load_bytes, model_bytes, plan_work
 from service.errors import ServiceError
 from support.fixtures import svc_random_gaussians
@@ -258,23 +261,56 @@ def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(
     with PHDClient(server.url) as phd:      # captured poses rendered at 300x300, candidates at 40x40
         model_id = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(3, size=300)).id
     record, renderers = service.store.get(model_id), {model_id: service.ledger.load(model_id)}
+    candidates = [c.to_frame() for c in svc_cameras(2, size=40, phase=0.5)]
 
     def plan(strategy: str):
-        body = RankRequest(cameras=[c.to_frame() for c in svc_cameras(2, size=40, phase=0.5)], samples=8,
-                           dropout_ratio=0.1, strategy=strategy)
-        work, _ = rank_job(record, body, service.settings, lambda name: name, service.ledger)
+        body = RankRequest(cameras=candidates, samples=8, dropout_ratio=0.1, strategy=strategy)
+        work, _ = rank_job(record, body, service.settings, lambda name: name, service.ledger, store=service.store)
         return work.renders, work.plan(renderers, lambda fraction: None)
 
     plain, plain_plan = plan("sigma_max")
     seen, seen_plan = plan("visibility_sigma")
     assert len(seen.models[0][2]) == len(plain.models[0][2]) + 3          # the captured poses are rendered too
-    # What each view sees: at most every splat of the model (300), and at most 4 a pixel.
-    views = svc_cameras(2, size=40, phase=0.5) + svc_cameras(3, size=300)
-    assert seen.kept_bytes - plain.kept_bytes == sum(visibility_bytes(300, c) for c in views)
+    # What each candidate sees: at most every splat of the model (300), and at most 4 a pixel; each
+    # captured view the same, in the compact form it is kept and stored in.
+    views, captured = svc_cameras(2, size=40, phase=0.5), svc_cameras(3, size=300)
+    assert seen.kept_bytes - plain.kept_bytes == (sum(visibility_bytes(300, c) for c in views) + COVERAGE_CAPTURE_BYTES
+                                                  + seen_bytes(300, captured))
     assert visibility_bytes(300, views[0]) == (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * 300
     assert visibility_bytes(10**6, views[0]) == (KEPT_ELEMENT_BYTES + COVERAGE_ELEMENT_BYTES) * 4 * 40 * 40
-    # The 300x300 captured views' fragments, walked by the visibility pass, outweigh the 40x40 renders.
-    assert seen_plan.bytes > plain_plan.bytes + PASS_FRAGMENT_BYTES * 300 * 300
+    # The 300x300 captured views' renders, and what each sees, outweigh the 40x40 renders.
+    assert seen_plan.bytes > plain_plan.bytes + seen_bytes(300, captured)
+    # Under a budget the plain strategy fits and this one does not, the refusal names the strategy
+    # and the cheaper one that fits, beside the resolution.
+    tight = service.settings.model_copy(update={"memory_budget_bytes": model_bytes(record.size_bytes)
+                                                + plain_plan.bytes + (1 << 20)})
+    body = RankRequest(cameras=candidates, samples=8, dropout_ratio=0.1, strategy="visibility_sigma")
+    with pytest.raises(ServiceError) as refused:
+        work, _ = rank_job(record, body, tight, lambda name: name, service.ledger, store=service.store)
+        work.plan(renderers, lambda fraction: None)
+    assert refused.value.status == 413 and refused.value.field == "strategy"
+    assert "strategy 'fvs_sigma_floor', which fits" in refused.value.message and "downscale" in refused.value.message
+    work, _ = rank_job(record, body.model_copy(update={"strategy": "fvs_sigma_floor"}), tight, lambda name: name,
+                       service.ledger, store=service.store)
+    assert work.plan(renderers, lambda fraction: None).bytes <= plain_plan.bytes
+
+    # Once a rank has stored what the captured views saw, a rank renders its candidates only and
+    # plans the stored views' elements (at most the bound).
+    with PHDClient(server.url) as phd:
+        phd.rank(model_id, cameras=candidates, samples=4, dropout_ratio=0.1, strategy="visibility_sigma")
+    stored = CapturedStore(service.store.cache(record)).index()
+    assert len(stored) == 3 and 0 < sum(stored.values()) <= 3 * 300
+    again, again_plan = plan("visibility_sigma")
+    assert len(again.models[0][2]) == len(plain.models[0][2])
+    assert again.kept_bytes - plain.kept_bytes == (sum(visibility_bytes(300, c) for c in views) + COVERAGE_CAPTURE_BYTES
+                                                   + SEEN_LOADED_BYTES * sum(stored.values()))
+    assert again_plan.bytes < seen_plan.bytes
+    # Deleting the model deletes what was stored with it.
+    cache_dir = service.store.cache(record).dir
+    assert cache_dir.is_dir()
+    with PHDClient(server.url) as phd:
+        phd.delete_model(model_id)
+    assert not cache_dir.exists()
 
 
 def test_the_premultiplied_signal_plans_its_fourth_channel():

@@ -19,16 +19,17 @@ def test_restart_keeps_models_and_calibrations(svc_start, svc_model_files):
         ply = phd.upload_model(svc_model_files["ply"], cameras=train)
         nerf = phd.upload_model(svc_model_files["nerf"])
         calibration = phd.calibrate(ply.id, epsilon=0.5, step=0.5, samples=2)
-        before = phd.rank(ply.id, candidates, samples=3)
+        before = phd.rank(ply.id, candidates, samples=3)      # the default strategy stores what the training views saw
         models = {m.id: m for m in phd.list_models()}
     first.stop()
+    assert (first.settings.data_dir / "models" / f"{ply.id}.ply.phd-cache").is_dir()
 
     second = svc_start()  # same data directory
     with PHDClient(second.url) as phd:
         assert {m.id: m for m in phd.list_models()} == models
         assert phd.get_model(ply.id).calibration == calibration
         assert phd.get_model(nerf.id).num_training_cameras == 3
-        after = phd.rank(ply.id, candidates, samples=3)  # uses the calibration stored before the restart
+        after = phd.rank(ply.id, candidates, samples=3)  # uses the calibration and coverage stored before the restart
         assert after.ratio_source == "calibration" and after == before
         phd.delete_model(nerf.id)
     second.stop()
@@ -72,6 +73,7 @@ def test_startup_sweeps_orphans_and_keeps_models(svc_start, svc_model_files):
     data = first.settings.data_dir
     (data / "tmp" / "upload-dead.part").write_bytes(b"ply\nhalf")        # crash while receiving
     (data / "models" / "0123456789abcdef.ply").write_bytes(b"ply\nfull")  # crash between rename and insert
+    (data / "models" / "0123456789abcdef.ply.phd-cache").mkdir()          # and what was derived from it
     second = svc_start()
     assert sorted(p.name for p in (data / "models").iterdir()) == [kept.id + ".ply"]
     assert list((data / "tmp").iterdir()) == []

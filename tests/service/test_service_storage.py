@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sqlite3
 import subprocess
 import time
@@ -93,7 +94,10 @@ def stored_as_before(phd: PHDClient, model, job_id: str, heatmap: bytes) -> None
 
 def no_partial_files(disk: Disk, model_ids: list[str], job_ids: list[str]) -> None:
     assert disk.files("tmp") == []
-    assert [name.split(".")[0] for name in disk.files("models")] == sorted(model_ids)
+    models = disk.files("models")       # each model's file, and what a rank stored beside it (whole entries)
+    assert [name.split(".")[0] for name in models if ".phd-cache/" not in name] == sorted(model_ids)
+    assert all(re.fullmatch(r"[0-9a-f]+\.ply\.phd-cache/captured-coverage-[0-9a-f]+\.(pt|json)", name)
+               for name in models if ".phd-cache/" in name)
     assert sorted({name.split("/")[0] for name in disk.files("jobs")}) == sorted(job_ids)
     with closing(sqlite3.connect(disk.root / "data" / DB_NAME)) as db:
         assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)

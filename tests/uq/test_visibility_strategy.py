@@ -12,9 +12,19 @@ from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.visibility import Visibility
 from phd_core.scene import look_at
 from phd_core.uq import select_models
-from phd_core.uq.rank import add_fisher, visibility_evidence
+from phd_core.uq.rank import add_fisher, candidate_evidence, visibility_evidence
 from phd_core.uq.strategies import Evidence, get_strategy
-from phd_core.uq.strategies.visibility import Coverage
+from phd_core.uq.strategies.visibility import (
+    ANGLE_SCALE,
+    EMPTY_WEIGHT,
+    SEEN_SHARE,
+    SPREAD_FLOOR,
+    Coverage,
+    _mean_zeta,
+    coverage_select,
+    viewing_axis,
+)
+from support.fixtures import svc_random_gaussians
 from support.toy_renderers import BlobRenderer, ring_cameras
 
 SIZE = 32
@@ -247,3 +257,77 @@ def test_the_default_takes_the_farther_of_two_candidates_that_see_the_same_unsee
     default = get_strategy("visibility_sigma_fvs").select(evidence, 0, 0)
     assert default.order[0] == 1
     assert default.scores[1] == pytest.approx(1.5 * default.scores[0])        # 15 against 10 from the captured centre
+
+
+def full_scan_coverage(evidence: Evidence, k: int, fragility: bool, spread: bool) -> tuple[list[int], list[float], int]:
+    """The coverage order as a plain full greedy: every candidate's novelty recomputed from every
+    view counted as captured, every value rescored at every pick. (order, scores, values computed)."""
+    views, count = evidence.candidate_views, len(evidence.candidates)
+    reference = _mean_zeta(views) if fragility else 0.0
+    weights = []
+    for vis in views:
+        weight = vis.weight.clone()
+        if fragility and reference > 0 and vis.valued is not None:
+            weight *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
+        weights.append(weight)
+    centre = torch.stack([c.center for c in evidence.candidates])
+    nearest = (torch.cdist(centre, torch.stack([c.center for c in evidence.captured])).min(dim=1).values
+               if spread else torch.ones(count, dtype=torch.float64))
+    floor = SPREAD_FLOOR * float(nearest.mean()) or 1.0
+
+    def value(c: int, seen_by: list) -> float:
+        vis, novelty, axis = views[c], torch.ones(len(views[c].elements), dtype=torch.float64), 1.0
+        for other in seen_by:
+            mine = torch.isin(vis.elements, other.elements)
+            theirs = torch.isin(other.elements, vis.elements)
+            share = (other.visible_share[theirs] / SEEN_SHARE).clamp_max(1.0)
+            points = vis.points[mine]
+            toward = (other.camera.center - points) / (other.camera.center - points).norm(dim=-1, keepdim=True)
+            mine_dirs = (vis.camera.center - vis.points[mine])
+            mine_dirs = mine_dirs / mine_dirs.norm(dim=-1, keepdim=True)
+            novelty[mine] *= 1.0 - share * torch.exp(-(1.0 - (mine_dirs * toward).sum(-1)) / ANGLE_SCALE)
+            axis *= 1.0 - float(torch.exp(-(1.0 - (viewing_axis(vis) * viewing_axis(other)).sum()) / ANGLE_SCALE))
+        total = float((weights[c] * novelty).sum()) + EMPTY_WEIGHT * vis.empty * axis
+        return total * max(float(nearest[c]), floor)
+
+    seen_by, order, scores, computed = list(evidence.captured_views), [], [0.0] * count, 0
+    for _ in range(k):
+        values = {c: value(c, seen_by) for c in range(count) if c not in order}
+        computed += len(values)
+        best = max(values, key=lambda c: (values[c], -c))
+        order.append(best)
+        scores[best] = values[best]
+        seen_by.append(views[best])
+        if spread:
+            nearest = torch.minimum(nearest, (centre - centre[best]).norm(dim=1))
+    rest = {c: value(c, seen_by) for c in range(count) if c not in order}
+    scores = [rest.get(c, s) for c, s in enumerate(scores)]
+    return order + sorted(rest, key=lambda c: (-rest[c], c)), scores, computed
+
+
+@pytest.mark.parametrize("fragility, spread", [(False, False), (True, False), (True, True)])
+def test_the_lazy_greedy_picks_and_scores_what_a_full_greedy_does_with_fewer_updates(fragility: bool,
+                                                                                     spread: bool) -> None:
+    # Ring candidates around a cluster of splats seen from two sides: many candidates share parts.
+    renderer = GaussianRenderer(svc_random_gaussians(600, seed=3))
+    candidates = ring_cameras(14, size=24, radius=3.0, height=0.8)
+    candidates += [look_at((0.3, 0.2, 3.5), (0, 0, 0), (0, 1, 0), width=24, height=24, fov_x=0.7)] * 2
+    captured = ring_cameras(3, size=24, radius=3.5, height=-0.5)
+    evidence, _ = candidate_evidence(renderer, candidates, ratio=0.4, samples=4, captured=captured, visibility=True)
+    counted = []
+    original = Coverage._sum
+
+    def counting(self: Coverage, c: int) -> float:
+        counted.append(bool(self.changed[c]))
+        return original(self, c)
+
+    Coverage._sum = counting         # type: ignore[method-assign]
+    try:
+        lazy = coverage_select(evidence, len(candidates), fragility, spread=spread)
+    finally:
+        Coverage._sum = original     # type: ignore[method-assign]
+    order, scores, computed = full_scan_coverage(evidence, len(candidates), fragility, spread)
+    assert lazy.order == order
+    assert lazy.scores == scores                            # bit for bit
+    assert len(set(order[:2])) == 2 and {14, 15} & set(order[:2]) != {14, 15}   # the twins split
+    assert sum(counted) < computed / 2                      # sums redone only for the candidates asked for

@@ -279,9 +279,10 @@ class SurfelRenderer(SplatRenderer):
         return CameraView(self, camera)
 
     @torch.no_grad()
-    def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, Pairs]:
+    def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                                                 torch.Tensor, Pairs]:
         proj, _, _, pairs, _, frags = surfel_fragments(self.model, view.camera, self.tile, self.near)
-        return frags.row_ptr, frags.alpha, proj.ids[pairs.splat[frags.pair]], frags.pixel, pairs
+        return frags.row_ptr, frags.alpha, frags.pair, proj.ids[pairs.splat], frags.pixel, pairs
 
     @torch.no_grad()
     def render_full(self, camera: Camera, keep: torch.Tensor | None = None, *,

@@ -319,8 +319,9 @@ class GaussianRenderer(SplatRenderer):
         return rasterize(self.model, camera, self.background, keep, tile=self.tile, near=self.near,
                          compositor=self.compositor)
 
-    def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, Pairs]:
+    def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                                                 torch.Tensor, Pairs]:
         if not isinstance(view, SplatView):
             view = prepare_view(self.model, view.camera, self.background, tile=self.tile, near=self.near)
         rows = torch.arange(len(view.row_ptr) - 1)
-        return view.row_ptr, view.alpha, view.units[view.index.long()], rows, view.pairs
+        return view.row_ptr, view.alpha, view.index, view.units, rows, view.pairs

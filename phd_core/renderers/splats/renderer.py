@@ -80,9 +80,11 @@ class SplatRenderer(ABC):
         """`camera` rendered once per keep-mask (keep: [N, G] bool, None = all splats)."""
 
     @abstractmethod
-    def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, Pairs]:
+    def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                                                 torch.Tensor, Pairs]:
         """The full model's fragments of `view`'s camera, grouped by pixel: (row_ptr [S + 1],
-        alpha [E], splat [E], pixel [S] in tile layout, the tile grid)."""
+        alpha [E], index [E], units [V]: fragment e is of splat units[index[e]], pixel [S] in tile
+        layout, the tile grid); from the view's own lists where it keeps them."""
 
     def render(self, camera: Camera, keep: torch.Tensor | None = None,
                signal: str = DEFAULT_SIGNAL) -> torch.Tensor:
@@ -121,9 +123,9 @@ class SplatRenderer(ABC):
         """What `view`'s camera sees of each splat (`phd_core.renderers.visibility`); with
         pixel_values [H, W], each splat's weights times the values of its pixels as well."""
         camera = view.camera
-        row_ptr, alpha, splat, pixel, grid = self.fragment_rows(view)
+        row_ptr, alpha, index, units, pixel, grid = self.fragment_rows(view)
         tiled = lambda image: tile_layout(image, grid.tiles_x, grid.tiles_y, self.tile)[pixel]   # noqa: E731
-        sums = fragment_visibility(row_ptr, alpha, splat, self.num_units,
+        sums = fragment_visibility(row_ptr, alpha, index, units, self.num_units,
                                    None if pixel_values is None else tiled(pixel_values.double()))
         lo, hi = self.scene_box()
         in_box = pixels_in_box(camera, lo, hi)

@@ -21,6 +21,7 @@ for _strategy in (SIGMA_MAX, SIGMA_MEAN, RANDOM, FVS, FVS_SIGMA, FVS_SIGMA_FLOOR
     STRATEGIES.register(_strategy)
 
 DEFAULT_STRATEGY = "visibility_sigma_fvs"   # the best over the four scenes of docs/nbv.md, ahead of FVS on each
+CHEAPER_STRATEGY = "fvs_sigma_floor"        # what the visibility strategies fall back to: no visibility to keep
 
 
 def get_strategy(name: str) -> Strategy:
@@ -28,4 +29,4 @@ def get_strategy(name: str) -> Strategy:
     return STRATEGIES.lookup(name, "strategy")
 
 
-__all__ = ["DEFAULT_STRATEGY", "STRATEGIES", "Evidence", "Selection", "Strategy", "get_strategy"]
+__all__ = ["CHEAPER_STRATEGY", "DEFAULT_STRATEGY", "STRATEGIES", "Evidence", "Selection", "Strategy", "get_strategy"]

@@ -10,12 +10,12 @@ two identical candidates are never both in a batch.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
 
-from ...renderers.visibility import Visibility
+from ...renderers.visibility import Seen, Visibility
 from ...scene import Camera
 
 
@@ -32,7 +32,7 @@ class Evidence:
     sigma_top: Tensor | None = None   # [C] float64, mean of the top 10 % of pixels' zeta
     area: Tensor | None = None        # [C] float64, share of pixels with zeta above a threshold
     candidate_views: list[Visibility] | None = None   # [C] what each candidate sees of the model (uses_visibility)
-    captured_views: list[Visibility] | None = None    # [T] what each captured view saw
+    captured_views: Sequence[Visibility | Seen] | None = None   # [T] what each captured view saw
     candidate_fisher: Tensor | None = None   # [C, G, P] float64 each candidate's diag(J^T J) per splat and group
     captured_fisher: Tensor | None = None    # [G, P] float64 the captured views' sum (uses_fisher)
 

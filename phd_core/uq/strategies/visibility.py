@@ -35,10 +35,15 @@ two identical candidates never share a batch. Families that cannot report visibi
 
 from __future__ import annotations
 
+import heapq
+from typing import Sequence
+
+import numba
+import numpy as np
 import torch
 from torch import Tensor
 
-from ...renderers.visibility import Visibility
+from ...renderers.visibility import Seen, Visibility
 from .base import Evidence, Selection, Strategy, centres
 from .hybrid import FVS_SIGMA_FLOOR
 
@@ -60,24 +65,26 @@ def directions(points: Tensor, camera_centre: Tensor) -> Tensor:
     return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def viewing_axis(vis: Visibility) -> Tensor:
+def viewing_axis(vis: Visibility | Seen) -> Tensor:
     """[3] float64 the direction the camera looks along (OpenGL: -z)."""
     return -vis.camera.c2w[:3, 2].double()
 
 
-CAPTURE_CHUNK = 1 << 16  # candidate elements a capture updates at once (its temporaries: ~7 MB)
+CAPTURE_CHUNK = 1 << 16  # captured elements, then candidate entries, a capture updates at once (temporaries: ~8 MB)
 
 
 class Coverage:
     """The candidates' novelty, conditioned on every view counted as captured so far.
 
-    The elements of the candidates still in play sit in one list, the i-th such candidate's
-    (number ids[i]) at entries offsets[i]:offsets[i + 1]: `index` into the union of all their
-    elements, the direction from each element to the candidate's camera, its weight (pixels it
-    fills times its fragility) and its novelty. Counting a view as captured updates them all in
-    a few vectorised steps; a candidate `retire`d (picked) leaves the list once half of it is
-    retired. At a million splats and 100 candidates, a loop over the candidates per capture was
-    most of a ranking's time (docs/performance.md).
+    The elements of the candidates still in play sit in one list of entries ordered by element
+    (those of union element u at first[u]:first[u + 1], one per candidate that lists u): `index`
+    into the union of all their elements, the direction from each element to the candidate's
+    camera, its weight (pixels it fills times its fragility), its novelty and its candidate
+    (`owner`); a candidate's entries are at `where[c]`, ascending. Counting a view as captured
+    walks the runs of the elements it saw, in one compiled pass. A candidate's value is summed
+    again only when it is asked for after a capture changed it (`updates` counts those sums): a
+    lazy greedy asks for few. A candidate `retire`d (picked) leaves the list once half of it is
+    retired.
     """
 
     def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE):
@@ -86,92 +93,145 @@ class Coverage:
         self.size = len(self.union)
         self.points = torch.zeros(self.size, 3, dtype=torch.float64)                  # [U, 3]
         counts = torch.tensor([len(v.elements) for v in candidates], dtype=torch.long)
-        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])  # [C + 1]
-        total = int(self.offsets[-1])
-        self.index = torch.empty(total, dtype=torch.long)                            # [S]
-        self.dirs = torch.empty(total, 3, dtype=torch.float64)                       # [S, 3]
-        self.weight = torch.empty(total, dtype=torch.float64)                        # [S]
-        self.novelty = torch.ones(total, dtype=torch.float64)                        # [S]
+        offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])     # [C + 1]
+        total = int(offsets[-1])
+        index = torch.empty(total, dtype=torch.long)
+        dirs = torch.empty(total, 3, dtype=torch.float64)
+        weight = torch.empty(total, dtype=torch.float64)
         reference = _mean_zeta(candidates) if fragility else 0.0
         for c, vis in enumerate(candidates):
-            part = slice(int(self.offsets[c]), int(self.offsets[c + 1]))
-            self.index[part] = torch.searchsorted(self.union, vis.elements)
-            self.points[self.index[part]] = vis.points
-            self.dirs[part] = directions(vis.points, vis.camera.center)
-            self.weight[part] = vis.weight
+            part = slice(int(offsets[c]), int(offsets[c + 1]))
+            index[part] = torch.searchsorted(self.union, vis.elements)
+            self.points[index[part]] = vis.points
+            dirs[part] = directions(vis.points, vis.camera.center)
+            weight[part] = vis.weight
             if fragility and reference > 0 and vis.valued is not None:
-                self.weight[part] *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
-        self.ids = list(range(len(candidates)))           # the candidate of each stored run of entries
-        self.position = {c: c for c in self.ids}          # and the run of each candidate
+                weight[part] *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
+        order = torch.argsort(index, stable=True)          # by element, then candidate
+        self.index = index[order]                                                    # [S]
+        del index                                          # each list by candidate goes once it is reordered
+        self.dirs = dirs[order]                                                      # [S, 3]
+        del dirs
+        self.weight = weight[order]                                                  # [S]
+        del weight
+        self.owner = torch.repeat_interleave(torch.arange(len(candidates)), counts)[order]   # [S]
+        self.novelty = torch.ones(total, dtype=torch.float64)                        # [S]
+        self.ids = list(range(len(candidates)))           # the candidates with entries in the list
         self.retired: set[int] = set()
         self.empty = [vis.empty for vis in candidates]
         self.axes = torch.stack([viewing_axis(vis) for vis in candidates])            # [C, 3]
         self.axis_novelty = [1.0] * len(candidates)
-        self.sums = [self._sum(c) for c in range(len(candidates))]
+        self.sums = [0.0] * len(candidates)
+        self.changed = torch.ones(len(candidates), dtype=torch.bool)   # sums[c] is out of date
+        self.updates = 0                                  # candidate sums computed
+        self._locate()
 
-    def _part(self, c: int) -> slice:
-        """Candidate c's entries (c still in the list)."""
-        i = self.position[c]
-        return slice(int(self.offsets[i]), int(self.offsets[i + 1]))
+    def _locate(self) -> None:
+        """first[u]: where element u's run starts; where[c]: candidate c's entries, ascending."""
+        self.first = torch.searchsorted(self.index, torch.arange(self.size + 1))     # [U + 1]
+        by_owner = torch.argsort(self.owner, stable=True)
+        counts = torch.bincount(self.owner, minlength=len(self.changed)).tolist()
+        self.where = dict(zip(range(len(counts)), by_owner.split(counts)))
 
     def _sum(self, c: int) -> float:
-        """Candidate c's weight times novelty, summed over its elements."""
-        part = self._part(c)
-        return float((self.weight[part] * self.novelty[part]).sum())
+        """Candidate c's weight times novelty summed over its elements, summed again if a capture changed it."""
+        if self.changed[c]:
+            part = self.where[c]
+            self.sums[c] = float((self.weight[part] * self.novelty[part]).sum())
+            self.changed[c] = False
+            self.updates += 1
+        return self.sums[c]
 
     def value(self, c: int) -> float:
         """What candidate c would show that no view counted as captured saw (module docstring)."""
-        return self.sums[c] + EMPTY_WEIGHT * self.empty[c] * self.axis_novelty[c]
+        return self._sum(c) + EMPTY_WEIGHT * self.empty[c] * self.axis_novelty[c]
 
     def share(self, c: int) -> float:
         """The share of candidate c's image of the model left unseen (0 when it shows none)."""
-        total = float(self.weight[self._part(c)].sum())
-        return self.sums[c] / total if total > 0 else 0.0
+        total = float(self.weight[self.where[c]].sum())
+        return self._sum(c) / total if total > 0 else 0.0
 
-    def capture(self, vis: Visibility) -> None:
+    def capture(self, vis: Visibility | Seen) -> None:
         """Count `vis` as captured: every candidate's novelty of the elements it saw falls."""
-        index = torch.searchsorted(self.union, vis.elements).clamp_max(max(self.size - 1, 0))
-        known = self.union[index] == vis.elements if self.size else torch.zeros(len(index), dtype=torch.bool)
-        seen, toward = torch.zeros(self.size, dtype=torch.float64), torch.zeros(self.size, 3, dtype=torch.float64)
-        seen[index[known]] = seen_share(vis)[known]                                   # [U]
-        toward[index[known]] = directions(self.points[index[known]], vis.camera.center)  # [U, 3]
-        changed = []
-        for start in range(0, len(self.index), CAPTURE_CHUNK):
-            chunk = self.index[start:start + CAPTURE_CHUNK]
-            s = seen[chunk]
-            touched = (s > 0).nonzero().squeeze(1)
-            if len(touched):
-                entries = touched + start
-                self.novelty[entries] *= 1.0 - s[touched] * near(self.dirs[entries], toward[chunk[touched]],
-                                                                  self.angle_scale)
-                changed.append(entries)
+        shares = seen_share(vis)
+        for begin in range(0, len(vis.elements), CAPTURE_CHUNK):
+            self._capture(vis.elements[begin:begin + CAPTURE_CHUNK], shares[begin:begin + CAPTURE_CHUNK],
+                          vis.camera.center)
         axis_near = near(self.axes, viewing_axis(vis), self.angle_scale).tolist()
         self.axis_novelty = [n * (1.0 - a) for n, a in zip(self.axis_novelty, axis_near)]
-        if changed:                      # entries ascend, so their candidates do too
-            owners = torch.searchsorted(self.offsets, torch.cat(changed), right=True) - 1
-            for i in torch.unique_consecutive(owners).tolist():
-                if self.ids[i] not in self.retired:
-                    self.sums[self.ids[i]] = self._sum(self.ids[i])
+
+    def _capture(self, elements: Tensor, shares: Tensor, centre: Tensor) -> None:
+        """The novelty update of a capture for some of the elements it saw (ids [K], seen shares [K]):
+        compiled, except the exp, which is torch's as everywhere else in the coverage."""
+        index = torch.searchsorted(self.union, elements).clamp_max(max(self.size - 1, 0))
+        known = self.union[index] == elements if self.size else torch.zeros(len(index), dtype=torch.bool)
+        seen = known & (shares > 0)
+        element, share = index[seen].numpy(), shares[seen].numpy()                  # [K] union ids it saw
+        toward = directions(self.points[index[seen]], centre).numpy()                # [K, 3]
+        room = max(CAPTURE_CHUNK, len(self.ids))      # an element has at most one entry per candidate
+        exponent, factor_share = np.empty(room), np.empty(room)
+        first = self.first.numpy()
+        start = 0
+        while start < len(element):
+            stop, count = _exponents(element, share, toward, first, self.dirs.numpy(), self.angle_scale, start,
+                                     exponent, factor_share)
+            similar = torch.exp(torch.from_numpy(exponent[:count])).numpy()           # near(), in torch
+            _lower(self.novelty.numpy(), element[start:stop], first, factor_share, similar, self.owner.numpy(),
+                   self.changed.numpy())
+            start = stop
 
     def retire(self, c: int) -> None:
         """Candidate c is out of play (picked): its value is no longer needed. Once half of the
         stored entries are retired candidates', they leave the list (each capture after costs less)."""
         self.retired.add(c)
-        counts = self.offsets[1:] - self.offsets[:-1]
-        gone = torch.tensor([i in self.retired for i in self.ids])
-        if 2 * int(counts[gone].sum()) <= len(self.index):
+        gone = torch.zeros(len(self.changed), dtype=torch.bool)
+        gone[list(self.retired)] = True
+        out = gone[self.owner]
+        if 2 * int(out.sum()) <= len(self.index):
             return
-        keep = torch.repeat_interleave(~gone, counts)
+        keep = ~out
         self.index = self.index[keep]             # one array at a time: at most half of one is copied at once
         self.dirs = self.dirs[keep]
         self.weight = self.weight[keep]
         self.novelty = self.novelty[keep]
-        self.ids = [i for i, out in zip(self.ids, gone.tolist()) if not out]
-        self.position = {c: i for i, c in enumerate(self.ids)}
-        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts[~gone].cumsum(0)])
+        self.owner = self.owner[keep]
+        self.ids = [i for i in self.ids if i not in self.retired]
+        self._locate()
 
 
-def seen_share(vis: Visibility) -> Tensor:
+@numba.njit(cache=True, nogil=True)
+def _exponents(element, share, toward, first, dirs, scale, start, exponent, factor_share):  # pragma: no cover
+    """From captured element `start` on, while the buffers hold all of an element's run of entries:
+    near()'s exponent for each entry, -(1 - dir . toward) / scale (the same float operations as
+    `near`), and the element's seen share. Returns (the element it stopped at, entries listed)."""
+    m = 0
+    k = start
+    while k < len(element):
+        u = element[k]
+        if m + first[u + 1] - first[u] > len(exponent):
+            break
+        for e in range(first[u], first[u + 1]):
+            dot = dirs[e, 0] * toward[k, 0] + dirs[e, 1] * toward[k, 1] + dirs[e, 2] * toward[k, 2]
+            exponent[m] = -(1.0 - dot) / scale
+            factor_share[m] = share[k]
+            m += 1
+        k += 1
+    return k, m
+
+
+@numba.njit(cache=True, nogil=True)
+def _lower(novelty, element, first, factor_share, similar, owner, changed):  # pragma: no cover
+    """The runs of `element` in the order `_exponents` listed them: each entry's novelty times
+    (1 - seen share * near), and its candidate marked changed."""
+    m = 0
+    for k in range(len(element)):
+        for e in range(first[element[k]], first[element[k] + 1]):
+            novelty[e] *= 1.0 - factor_share[m] * similar[m]
+            changed[owner[e]] = True
+            m += 1
+
+
+def seen_share(vis: Visibility | Seen) -> Tensor:
     """[K] how fully the view saw each of its elements: min(1, visible share / SEEN_SHARE)."""
     return (vis.visible_share / SEEN_SHARE).clamp_max(1.0)
 
@@ -204,25 +264,35 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: fl
     def value(i: int) -> float:
         return coverage.value(i) * max(float(nearest[i]), floor)
 
-    taken = [False] * count
+    # Lazy greedy: a value can only fall as views are counted as captured (every novelty factor
+    # lies in [0, 1] and the nearest distance only shrinks), so a value computed before the last
+    # pick is an upper bound, in floating point too (the same sums, in the same order, of terms
+    # that can only shrink). The heap holds such bounds; its top is picked once its value is
+    # current, and ties go to the lower index as in a full scan (equal bounds sort by index).
+    heap = [(-value(i), i) for i in range(count)]
+    heapq.heapify(heap)
+    current = [0] * count                  # the number of picks when each heap value was computed
     order, scores = [], [0.0] * count
-    for _ in range(min(k, count)):
-        values = [-float("inf") if taken[i] else value(i) for i in range(count)]
-        i = max(range(count), key=lambda j: (values[j], -j))         # the first maximum: lower index on ties
+    for picks in range(min(k, count)):
+        while current[heap[0][1]] != picks:
+            i = heap[0][1]
+            current[i] = picks
+            heapq.heapreplace(heap, (-value(i), i))
+        negative, i = heapq.heappop(heap)
         order.append(i)
-        scores[i] = values[i]
-        taken[i] = True
+        scores[i] = -negative
         coverage.capture(evidence.candidate_views[i])
         coverage.retire(i)
         if spread:
             nearest = torch.minimum(nearest, (cand - cand[i]).norm(dim=1))
-    rest = [(value(i), i) for i in range(count) if not taken[i]]
+    taken = set(order)
+    rest = [(value(i), i) for i in range(count) if i not in taken]
     for v, i in rest:
         scores[i] = v
     return Selection(order + [i for _, i in sorted(rest, key=lambda item: (-item[0], item[1]))], scores)
 
 
-def uncovered_share(views: list[Visibility], captured: list[Visibility]) -> Tensor:
+def uncovered_share(views: list[Visibility], captured: Sequence[Visibility | Seen]) -> Tensor:
     """[V] float64 in [0, 1]: the share of each view's image of the model that the captured views
     did not see from a nearby direction (0 when a view shows none of the model)."""
     if not views:
