@@ -339,6 +339,9 @@ class RankResult(_Response):
     camera_format: str | None = Field(None, description="The pose convention of the model's camera source "
                                       "(colmap, 3dgs-output, nerfstudio, blender), in which source_pose is given.")
     views: list[RankedCandidate] = Field(description="In the order the strategy would capture them.")
+    notes: list[str] = Field(default_factory=list, description="What loading the model noted that bears on these "
+                             "poses (e.g. a model with no training cameras: its poses are in the frame its file "
+                             "holds the model in).")
 
 
 class SelectedView(_Response):

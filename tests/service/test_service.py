@@ -18,6 +18,7 @@ import phd_core
 from client import ConflictError, InvalidInputError, JobCancelledError, NotFoundError, PHDClient, camera_frames
 from phd_core import uq
 from phd_core.io import colorize
+from phd_core.renderers import NO_CAMERAS_NOTE
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
 from phd_core.renderers.nerf import load_nerf
 from support.fixtures import LEGO, svc_cameras
@@ -165,6 +166,8 @@ def test_big_work_becomes_a_job_with_progress_and_artifacts(svc_start, svc_model
         # The client waits for such jobs by itself.
         direct = phd.rank(model.id, candidates, samples=8, dropout_ratio=0.2)
         assert [v.index for v in direct.views] == [v.index for v in result.views]
+        # The model has no training cameras: the ranking says in what frame its poses are.
+        assert NO_CAMERAS_NOTE in direct.notes and direct.notes == model.details["notes"]
 
 
 def test_cancel_queued_and_running_jobs(svc_start, svc_model_files):

@@ -62,7 +62,8 @@ def test_metrics_follow_uploads_jobs_refusals_and_bytes(svc_start, svc_model_fil
     assert m[("phd_error_answers_total", (("code", "unauthorized"), ("status", "401")))] == 1
     assert m[("phd_error_answers_total", (("code", "not_calibrated"), ("status", "409")))] == 1
     data = server.settings.data_dir
-    assert m[("phd_stored_bytes", (("what", "models"),))] == sum(p.stat().st_size for p in (data / "models").iterdir())
+    assert m[("phd_stored_bytes", (("what", "models"),))] == sum(
+        p.stat().st_size for p in (data / "models").rglob("*") if p.is_file())
     assert m[("phd_stored_bytes", (("what", "jobs"),))] == sum(
         p.stat().st_size for p in (data / "jobs").rglob("*") if p.is_file()) > 0
     assert m[("phd_stored_bytes", (("what", "database"),))] >= (data / "phd.sqlite3").stat().st_size > 0
