@@ -34,6 +34,7 @@ from phd_core.renderers.visibility import PASS_FRAGMENT_BYTES, PASS_UNIT_BYTES, 
 from phd_core.scene import Camera, cameras_from_json
 from phd_core.uq import Progress
 from phd_core.uq.candidates import candidate_cameras, check_option_names
+from phd_core.uq.rank import check_target_strategy
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
 from phd_core.uq.strategies import get_strategy
@@ -330,6 +331,14 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     signal = job_signal(body.signal, [(record, source)])
     captured = (stored_cameras(record) if body.captured is None else
                 parse_cameras(body.captured, body, settings, field="captured", cap=settings.max_training_cameras))
+    visibility = get_strategy(body.strategy).uses_visibility
+    targets = None
+    if body.targets is not None:
+        try:
+            check_target_strategy(body.strategy)
+        except InputError as exc:
+            raise invalid(exc.field, exc.reason) from None
+        targets = parse_cameras(body.targets, body, settings, field="targets", cap=settings.max_candidates)
     heatmaps = body.heatmaps != "none"
     returned = len(cameras) if body.top_k is None else min(body.top_k, len(cameras))
     rendered = pixels(cameras[:returned]) if heatmaps else 0   # one plain render per returned view
@@ -339,11 +348,11 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     # known, then each returned view's two PNGs (at most PNG_PIXEL_BYTES a pixel each).
     kept = 4 * pixels(cameras) + 2 * PNG_PIXEL_BYTES * returned * max(c.width * c.height for c in cameras)
     kept = kept if heatmaps else 0
-    # A strategy that uses visibility also renders the captured poses (at their own size) and keeps
-    # what every candidate and captured view sees (`visibility_bytes`).
-    visibility = get_strategy(body.strategy).uses_visibility
-    seen = sum(visibility_bytes(record.num_units, c) for c in cameras + captured) if visibility else 0
-    renders = Renders([(record, "model_id", cameras + (captured if visibility else []))], samples,
+    # A strategy that uses visibility also renders the captured poses (at their own size) and the
+    # targets, and keeps what every candidate, captured and target view sees (`visibility_bytes`).
+    viewed = captured + (targets or []) if visibility else []
+    seen = sum(visibility_bytes(record.num_units, c) for c in cameras + viewed) if visibility else 0
+    renders = Renders([(record, "model_id", cameras + viewed)], samples,
                       kept_bytes=kept + seen, kept_field="heatmaps" if kept >= seen else "downscale",
                       visibility=visibility, signal=signal)
     renders.plan(settings)
@@ -353,7 +362,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
                                strategy=body.strategy, captured=captured, keep_peak=heatmaps,
                                progress=_span(progress, 0.0, split), executor=executor, coarse=body.coarse,
-                               refine=body.refine, signal=signal)
+                               refine=body.refine, signal=signal, targets=targets)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score, refined=r.refined, camera=poses[r.index].to_frame(),
                                  source_pose=source_pose(poses[r.index], convention)) for r in ranked]

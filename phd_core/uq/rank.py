@@ -15,7 +15,7 @@ from ..renderers import DEFAULT_SIGNAL, Renderer
 from ..renderers.visibility import ReportsVisibility, Visibility, reports_visibility
 from ..scene import Camera
 from .sampling import Progress, check_cameras
-from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
+from .strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, uncertainty
 
 
@@ -88,15 +88,21 @@ def visibility_evidence(renderer: Renderer, cameras: Sequence[Camera], captured:
     return evidence
 
 
+def check_target_strategy(strategy: str) -> None:
+    """An InputError on `targets` unless `strategy` weighs the model's coverage by target views."""
+    if not get_strategy(strategy).uses_visibility:
+        names = ", ".join(name for name, s in STRATEGIES.items() if s.uses_visibility)
+        raise InputError("targets", f"strategy {strategy!r} ignores target views; choose one that weighs the model's "
+                         f"coverage by them ({names})")
+
+
 def check_targets(renderer: Renderer, targets: Sequence[Camera] | None, strategy: str) -> list[Camera] | None:
     """The target views (where the model will be looked at from), or None for none: only the
     coverage strategies weigh by them, and only on a family that reports visibility."""
     if targets is None:
         return None
     targets = check_cameras(targets, "targets")
-    if not get_strategy(strategy).uses_visibility:
-        raise InputError("targets", f"strategy {strategy!r} ignores target views; choose one that weighs the model's "
-                         "coverage by them (visibility, visibility_sigma, visibility_sigma_fvs)")
+    check_target_strategy(strategy)
     if not reports_visibility(renderer):
         raise InputError("targets", "this model's family cannot report what a view sees of it, which target views "
                          "need")
