@@ -70,6 +70,7 @@ PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma",
 # at the default resolution (as its training benchmark, docs/formats.md).
 WIDTH_SCALE = {"cup_colmap": 1.6}
 TARGETS = "targets"         # the run-name suffix of a run told the target views
+TARGETED = f"{DEFAULT_STRATEGY}+{TARGETS}"
 FAMILY = RESULTS / "nbv_scenes"   # bench/nbv_scenes.py's output: the held-out family
 
 
@@ -266,14 +267,17 @@ def paired(tasks: list[dict], name: str, baseline: str = "fvs") -> str:
     """`name` minus `baseline`, seed by seed, over every stored seed that ran both."""
     pairs = [(t["runs"][name]["psnr"], t["runs"][baseline]["psnr"]) for t in tasks
              if name in t["runs"] and baseline in t["runs"]]
-    if len(pairs) < 2:
+    if not pairs:
         return ""
     finals = [a[-1] - b[-1] for a, b in pairs]
     rounds = [statistics.mean(a[1:]) - statistics.mean(b[1:]) for a, b in pairs]
+
+    def spread(values: list[float]) -> str:
+        return f" ± {statistics.stdev(values):.2f}" if len(values) > 1 else ""
     return (f"Paired with {baseline} seed by seed over every stored seed (n = {len(pairs)}): {name} final "
-            f"{statistics.mean(finals):+.2f} ± {statistics.stdev(finals):.2f} dB (ahead on "
+            f"{statistics.mean(finals):+.2f}{spread(finals)} dB (ahead on "
             f"{sum(d > 0 for d in finals)} of {len(pairs)} seeds), mean over rounds "
-            f"{statistics.mean(rounds):+.2f} ± {statistics.stdev(rounds):.2f} dB (ahead on "
+            f"{statistics.mean(rounds):+.2f}{spread(rounds)} dB (ahead on "
             f"{sum(d > 0 for d in rounds)} of {len(pairs)}).")
 
 
@@ -373,7 +377,8 @@ def markdown(by_scene: dict[str, list[dict]], every_seed: dict[str, list[dict]],
                          f"{delta[1]} | {fmt(row['spearman'], 2)} | {cost_text(row)} |")
         plotted, common = plotted_runs(tasks)
         lines += [""] + [paired(every_seed.get(scene, []), name) for name in (DEFAULT_STRATEGY, "fvs_sigma_floor")
-                         if name in rows and name != "fvs"] + ["",
+                         if name in rows and name != "fvs"] + [
+            paired(every_seed.get(scene, []), TARGETED, baseline) for baseline in BASELINES if TARGETED in rows] + ["",
                   f"![PSNR per round on {scene}](nbv_{scene}{tag(args)}.svg)",
                   f"(mean test PSNR per round of {', '.join(plotted)} over seeds {', '.join(map(str, common))}, "
                   "which each of them ran)", ""]
@@ -452,9 +457,10 @@ def family_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -
     plans = {p["name"]: p for p in json.loads((args.data / "layouts.json").read_text())["scenes"]} \
         if (args.data / "layouts.json").exists() else {}
     lines = [f"Command: `OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 nice -n 5 .venv/bin/python -m bench.bench_nbv --family "
-             f"--jobs 2 --seeds {' '.join(map(str, args.seeds))} --strategies {' '.join(args.strategies)}` after "
+             f"--jobs 2 --resolution {args.resolution} --iterations {args.iterations} --rounds {args.rounds} "
+             f"--seeds {' '.join(map(str, args.seeds))} --strategies {' '.join(args.strategies)}` after "
              f"`.venv/bin/python -m bench.nbv_scenes` ({platform.machine()}, {os.cpu_count()} cores shared with "
-             f"other work, one thread per task). Protocol as above: {args.resolution}x{args.resolution} px, "
+             f"other work, one thread per task). Protocol: {args.resolution}x{args.resolution} px, "
              f"{args.iterations} iterations, {args.initial} initial views (one by the seed, then FVS), "
              f"{args.per_round} views per round, {args.rounds} rounds, PSNR on the {args.test_views} test views, "
              f"N = {args.samples} masks; `+targets` runs are told the val split (drawn from the test views' "
