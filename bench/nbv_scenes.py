@@ -9,7 +9,7 @@ scenes no strategy was tuned on, in the Blender layout `bench.bench_nbv` reads:
    unit radius (0.9 quantile of its opaque splats' distance from their median).
 2. Scenes: scene i draws (seeded by FAMILY_SEED and i) 1 + i % 4 objects, each an asset at a
    random scale, turn about +z and colour (channels permuted, tinted), placed close together
-   on the ground plane so they hide each other, the whole fitted into radius SCENE_RADIUS.
+   on the ground plane so they hide each other, the whole scaled to radius SCENE_RADIUS.
 3. Cameras (radius about 4, lego's field of view, looking at the scene): the train split (the
    candidates) is one of CANDIDATE_SHAPES and the test split one of TEST_SHAPES, every pair once
    over 12 scenes; the val split (target views for `+targets` runs) is drawn from the test
@@ -55,7 +55,7 @@ SCENES = 12
 SIZE = 64                     # rendered image size (the benchmark downscales to its --resolution)
 FOV_X = 0.6911112070083618    # lego's camera_angle_x
 RADIUS = 4.03                 # camera distance of the Blender scenes
-SCENE_RADIUS = 1.4            # the layout is scaled to fit this radius around the origin
+SCENE_RADIUS = 1.4            # the layout is scaled to this radius around the origin (lego's scene fits in 1.5)
 COUNTS = {"train": 60, "val": 20, "test": 40}
 
 
@@ -157,7 +157,8 @@ def draw_layout(rng: random.Random, objects: int) -> list[dict]:
 
 
 def compose(layout: list[dict], models: dict[str, GaussianModel]) -> GaussianModel:
-    """One model of every placed object, centred on the origin and fitted into SCENE_RADIUS."""
+    """One model of every placed object, centred on the origin and scaled to fill SCENE_RADIUS (one
+    object as much of the image as four)."""
     parts = []
     for p in layout:
         c, s = math.cos(p["turn"]), math.sin(p["turn"])
@@ -169,7 +170,7 @@ def compose(layout: list[dict], models: dict[str, GaussianModel]) -> GaussianMod
     centre = (means.amax(0) + means.amin(0)) / 2
     reach = float(max((torch.cat([m.means[torch.sigmoid(m.opacity_logits) > 0.5] for m in parts]).double()
                        - centre).norm(dim=1).quantile(0.98), 1e-6))
-    factor = min(1.0, SCENE_RADIUS / reach)
+    factor = SCENE_RADIUS / reach
     parts = [transformed(m, torch.eye(3, dtype=torch.float64), factor, -centre * factor) for m in parts]
     return GaussianModel(*(torch.cat([getattr(m, f) for m in parts]).contiguous()
                            for f in ("means", "log_scales", "quats", "opacity_logits", "sh")))
