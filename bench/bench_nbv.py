@@ -50,7 +50,7 @@ from pathlib import Path
 import torch
 
 from bench import nbv_experiments  # importing registers the strategies tried, not shipped
-from bench._harness import DATA, DOCS, RESULTS, ROOT, fmt, machine, svg_plot, train, write_doc, write_result
+from bench._harness import DATA, DOCS, RESULTS, fmt, machine, svg_plot, train, write_doc, write_result
 from phd_core import uq as phd
 from phd_core.data import Dataset, load_dataset
 from phd_core.errors import InputError
@@ -445,7 +445,7 @@ def noise_floor(args: argparse.Namespace, tasks: list[dict]) -> list[str]:
                 runs += 1
     if not runs:
         return []
-    return [f"Noise floor: the same runs again (`--results {args.repeat_of.relative_to(ROOT)}`, {runs} runs, "
+    return [f"Noise floor: the same runs again (`--results {args.repeat_of}`, {runs} runs, "
             f"{len(gaps)} PSNR values, every round): the largest difference is {max(gaps):.4f} dB "
             f"({'bit for bit the same' if max(gaps) == 0 else 'not deterministic'}).", ""]
 
@@ -465,8 +465,11 @@ def family_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -
              f"{args.per_round} views per round, {args.rounds} rounds, PSNR on the {args.test_views} test views, "
              f"N = {args.samples} masks; `+targets` runs are told the val split (drawn from the test views' "
              f"shape, other poses). {len(by_scene)} scenes, seeds {', '.join(map(str, args.seeds))}.", "",
+             "Each strategy's mean over the (scene, seed) tasks that every strategy completed, so the rows "
+             "compare the same tasks:", "",
              "| strategy | runs | mean final PSNR | mean over rounds | cost per candidate |", "|---|---|---|---|---|"]
-    rows = {n: summary(tasks, n) for n in names}
+    complete = [t for t in tasks if all(n in t["runs"] for n in names)]
+    rows = {n: summary(complete, n) for n in names}
     for name in sorted(names, key=lambda n: -rows[n]["final"]):
         row = rows[name]
         lines.append(f"| {label(name)} | {row['seeds']} | {row['final']:.2f} | {row['rounds']:.2f} | "
