@@ -363,18 +363,20 @@ class PHDClient:
     def rank(self, model_id: str, cameras: Cameras | None = None, *, candidates: str | dict | None = None,
              samples: int | None = None, seed: int = 0,
              dropout_ratio: float | None = None, top_k: int | None = None, strategy: str | None = None,
-             captured: Cameras | None = None, heatmaps: str = "none", downscale: float | None = None,
-             width: int | None = None, height: int | None = None, coarse: float | None = None,
-             refine: int | None = None, signal: str | None = None, run_async: bool = False, wait: bool = True,
+             captured: Cameras | None = None, targets: Cameras | None = None, heatmaps: str = "none",
+             downscale: float | None = None, width: int | None = None, height: int | None = None,
+             coarse: float | None = None, refine: int | None = None, signal: str | None = None,
+             run_async: bool = False, wait: bool = True,
              progress: ProgressCallback | None = None, poll_interval: float = 0.2,
              timeout: float | None = None) -> RankResult | Job:
         """Candidate poses in the order to capture them (the service's default strategy unless `strategy`
         names another). The first `top_k` are a batch meant to be captured together. `captured`: poses
-        already taken, default the model's training cameras. Instead of `cameras`, `candidates` lets the
-        service make the poses: a spec "orbit:64,rings=2" or {"generator": ..., "count": ..., "options": ...}.
-        `coarse` (a scale in (0, 1)) ranks every candidate that much smaller first and re-ranks the best
-        `refine` at full size. `signal`: what zeta is measured on (default: the stored calibration's
-        when its r_drop is used)."""
+        already taken, default the model's training cameras. `targets`: the views the model will be
+        looked at from; the coverage strategies then value each part of the model by what they show.
+        Instead of `cameras`, `candidates` lets the service make the poses: a spec "orbit:64,rings=2"
+        or {"generator": ..., "count": ..., "options": ...}. `coarse` (a scale in (0, 1)) ranks every
+        candidate that much smaller first and re-ranks the best `refine` at full size. `signal`: what
+        zeta is measured on (default: the stored calibration's when its r_drop is used)."""
         if isinstance(candidates, str):
             from phd_core.uq.candidates import parse_spec
 
@@ -385,7 +387,8 @@ class PHDClient:
                 "top_k": top_k, "strategy": strategy, "heatmaps": heatmaps, "downscale": downscale,
                 "width": width, "height": height, "coarse": coarse, "refine": refine, "signal": signal,
                 "async": run_async,
-                "captured": None if captured is None else camera_frames(captured)}
+                "captured": None if captured is None else camera_frames(captured),
+                "targets": None if targets is None else camera_frames(targets)}
         return self._work(f"/v1/models/{model_id}/rank", body, RankResult, wait, progress, poll_interval, timeout)
 
     def select(self, model_a: str, model_b: str, cameras: Cameras, *, samples: int | None = None, seed: int = 0,

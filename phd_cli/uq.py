@@ -93,6 +93,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items())))
     rank.add_argument("--captured", type=Path, default=None,
                       help="JSON of the poses already captured (default: the model's training cameras)")
+    rank.add_argument("--targets", default=None, metavar="FILE|GENERATOR",
+                      help="the views the model will be looked at from (a walkthrough path, a turntable ring), as "
+                      "--candidates takes them (a file, a capture or a generator spec such as orbit:32): the coverage "
+                      "strategies weigh each part of the model by what these views show of it; default: every view "
+                      "alike")
     rank.add_argument("--top-k", type=int, default=None,
                       help="keep only the first k: a batch meant to be captured together")
     rank.add_argument("--coarse", type=float, default=None, metavar="SCALE",
@@ -246,16 +251,17 @@ def _ratio(args: argparse.Namespace, model: OpenedModel, cameras: list[Camera] |
     return result.r_drop, result.to_dict()
 
 
-def _candidates(args: argparse.Namespace, renderer) -> list[Camera]:
-    """--candidates: a file or capture when the path exists, else a generator spec."""
-    path = Path(args.candidates)
+def _candidates(args: argparse.Namespace, renderer, field: str = "candidates") -> list[Camera]:
+    """--candidates (or --targets, `field`): a file or capture when the path exists, else a generator spec."""
+    spec = getattr(args, field)
+    path = Path(spec)
     if path.exists():
         return load_cameras(path, split="all", width=args.width, height=args.height)
-    if "/" in args.candidates or args.candidates.lower().endswith((".json", ".npy")):
-        raise InputError("candidates", f"no such file: {path}")
+    if "/" in spec or spec.lower().endswith((".json", ".npy")):
+        raise InputError(field, f"no such file: {path}")
     from .candidates import make
 
-    poses = make(args.candidates, renderer)
+    poses = make(spec, renderer)
     if args.width is not None or args.height is not None:
         if args.width is None or args.height is None:
             raise InputError("width", "give --width and --height together")
@@ -381,6 +387,7 @@ def run_rank(args: argparse.Namespace) -> int:
     if args.captured is not None:
         # Only the poses matter here: frames without w/h get a placeholder size.
         captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
+    targets = None if args.targets is None else _scaled(_candidates(args, renderer, "targets"), args.downscale)
     # What the captured views saw is kept beside the model (computed once per model and set of poses).
     store = (CapturedStore(ModelCache(args.model), default=renderer.training_cameras)
              if STRATEGIES[args.strategy].uses_visibility else None)
@@ -388,14 +395,15 @@ def run_rank(args: argparse.Namespace) -> int:
         ranked = phd.rank_views(renderer, candidates, ratio=ratio, samples=args.samples, seed=args.seed,
                                 top_k=args.top_k, strategy=args.strategy, captured=captured, executor=args.executor,
                                 coarse=args.coarse, refine=args.refine, signal=args.signal, progress=progress,
-                                captured_store=store)
+                                captured_store=store, targets=targets)
     if store is not None and store.cache.skipped:
         print(f"warning: {store.cache.skipped}", file=sys.stderr)
     convention = renderer.describe().get("camera_format")
     result = {"strategy": args.strategy, "signal": args.signal, "dropout_ratio": ratio,
               "calibration": calibration,
               "samples": args.samples, "seed": args.seed, "coarse": args.coarse,
-              "candidates": len(candidates), "order": [r.index for r in ranked], "camera_format": convention,
+              "candidates": len(candidates), "targets": None if targets is None else len(targets),
+              "order": [r.index for r in ranked], "camera_format": convention,
               "ranking": [{**r.to_dict(), "camera": poses[r.index].to_frame(),
                            "source_pose": source_pose(poses[r.index], convention)} for r in ranked]}
     if args.out is not None:

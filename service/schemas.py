@@ -205,6 +205,11 @@ class RankRequest(RenderSize):
                           examples=list(STRATEGIES))   # the web page offers these names
     captured: CameraList | None = Field(None, description="Poses already captured; default the model's stored "
                                         "training cameras. " + _CAMERAS_DOC)
+    targets: CameraList | None = Field(None, description="The views the model will be looked at from (a walkthrough "
+                                       "path, a turntable ring), rendered at the candidates' size: the coverage "
+                                       "strategies (visibility, visibility_sigma, visibility_sigma_fvs) weigh each "
+                                       "part of the model by what these views show of it, so a candidate is worth "
+                                       "what it fixes there. Default: every view alike. " + _CAMERAS_DOC)
     heatmaps: HeatmapMode = Field("none", description="zeta heat maps of the returned views: inline base64 PNG, "
                                   "or PNG files to download from the job's artefacts.")
     coarse: FiniteFloat | None = Field(None, gt=0, lt=1, description="Coarse to fine: rank every candidate at this "

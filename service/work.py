@@ -45,6 +45,7 @@ from phd_core.renderers.visibility import (
 from phd_core.scene import Camera, cameras_from_json
 from phd_core.uq import Progress
 from phd_core.uq.candidates import candidate_cameras, check_option_names
+from phd_core.uq.rank import check_target_strategy
 from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
 from phd_core.uq.strategies import CHEAPER_STRATEGY, get_strategy
@@ -361,6 +362,14 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     signal = job_signal(body.signal, [(record, source)])
     captured = (stored_cameras(record) if body.captured is None else
                 parse_cameras(body.captured, body, settings, field="captured", cap=settings.max_training_cameras))
+    visibility = get_strategy(body.strategy).uses_visibility
+    targets = None
+    if body.targets is not None:
+        try:
+            check_target_strategy(body.strategy)
+        except InputError as exc:
+            raise invalid(exc.field, exc.reason) from None
+        targets = parse_cameras(body.targets, body, settings, field="targets", cap=settings.max_candidates)
     heatmaps = body.heatmaps != "none"
     returned = len(cameras) if body.top_k is None else min(body.top_k, len(cameras))
     rendered = pixels(cameras[:returned]) if heatmaps else 0   # one plain render per returned view
@@ -370,21 +379,22 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     # known, then each returned view's two PNGs (at most PNG_PIXEL_BYTES a pixel each).
     kept = 4 * pixels(cameras) + 2 * PNG_PIXEL_BYTES * returned * max(c.width * c.height for c in cameras)
     kept = kept if heatmaps else 0
-    # A strategy that uses visibility keeps what every candidate sees (`visibility_bytes`, measured
-    # with its dropout renders). What the captured poses saw comes from the model's stored coverage
+    # A strategy that uses visibility keeps what every candidate and target view sees
+    # (`visibility_bytes`, the candidates' measured with their dropout renders, the targets'
+    # rendered once each). What the captured poses saw comes from the model's stored coverage
     # (read whole); the poses it lacks are rendered, one visibility pass each, kept in compact form
     # and stored with the rest (`captured_seen`; a rank that renders none writes nothing).
-    visibility = get_strategy(body.strategy).uses_visibility
     coverage = (CapturedStore(store.cache(record), default=stored_cameras(record))
                 if visibility and store is not None else None)
     stored = coverage.index() if coverage is not None else {}
     fresh = [c for c in captured if camera_key(c) not in stored] if visibility else []
+    aimed = targets or []              # given only to a strategy that uses visibility (check_target_strategy)
     read = SEEN_STORED_BYTES if fresh else SEEN_LOADED_BYTES
-    seen = (sum(visibility_bytes(record.num_units, c) for c in cameras) + sum(stored.values()) * read
+    seen = (sum(visibility_bytes(record.num_units, c) for c in cameras + aimed) + sum(stored.values()) * read
             + seen_bytes(record.num_units, fresh) + COVERAGE_CAPTURE_BYTES) if visibility else 0
-    renders = Renders([(record, "model_id", cameras + fresh)], samples, kept_bytes=kept + seen,
+    renders = Renders([(record, "model_id", cameras + fresh + aimed)], samples, kept_bytes=kept + seen,
                       kept_field="heatmaps" if kept >= seen else "downscale", visibility=visibility, signal=signal)
-    if visibility:          # over the budget for the strategy's own memory: say which strategy fits
+    if visibility and not aimed:   # over the budget for the strategy's own memory: say which strategy fits
         renders.cheaper = Renders([(record, "model_id", cameras)], samples, kept_bytes=kept,
                                   kept_field="heatmaps", signal=signal)
     renders.plan(settings)
@@ -394,7 +404,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
                                strategy=body.strategy, captured=captured, keep_peak=heatmaps,
                                progress=_span(progress, 0.0, split), executor=executor, coarse=body.coarse,
-                               refine=body.refine, signal=signal, captured_store=coverage)
+                               refine=body.refine, signal=signal, captured_store=coverage, targets=targets)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score, refined=r.refined, camera=poses[r.index].to_frame(),
                                  source_pose=source_pose(poses[r.index], convention)) for r in ranked]

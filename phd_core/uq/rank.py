@@ -15,7 +15,7 @@ from ..renderers import DEFAULT_SIGNAL, Renderer
 from ..renderers.visibility import ReportsVisibility, Visibility, reports_visibility
 from ..scene import Camera
 from .sampling import Progress, check_cameras
-from .strategies import DEFAULT_STRATEGY, Evidence, get_strategy
+from .strategies import DEFAULT_STRATEGY, STRATEGIES, Evidence, get_strategy
 from .strategies.captured import CapturedStore, captured_seen
 from .uncertainty import DEFAULT_SAMPLES, ViewUncertainty, uncertainty
 
@@ -39,11 +39,12 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
                        keep_peak: bool = False, progress: Progress | None = None,
                        executor: Executor = LOCAL, visibility: bool = False,
                        fisher: bool = False, signal: str = DEFAULT_SIGNAL,
-                       captured_store: CapturedStore | None = None) -> tuple[Evidence, list[ViewUncertainty]]:
+                       captured_store: CapturedStore | None = None,
+                       targets: Sequence[Camera] | None = None) -> tuple[Evidence, list[ViewUncertainty]]:
     """What a strategy sees: the candidates' PH-Dropout statistics under one draw of N
     sub-models, and the captured poses (default: the model's training cameras); with the
     per-view measurements (keeping zeta's channel max when keep_peak). With `visibility`
-    (and a family that reports it) also what each candidate and captured view sees of the model;
+    (and a family that reports it) also what each candidate, captured and target view sees of the model;
     with `fisher`, each view's Fisher information (`add_fisher`). `signal`: what zeta is
     measured on (phd_core.renderers.SIGNALS). What the captured views saw comes from
     `captured_store` where it holds them (`phd_core.uq.strategies.captured`)."""
@@ -58,6 +59,7 @@ def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: 
         # measured with keep_visibility on a family that reports it: every view has one
         evidence.candidate_views = cast(list[Visibility], [v.visibility for v in views])
         evidence.captured_views = captured_seen(renderer, captured, captured_store)
+        evidence.target_views = view_visibility(renderer, targets) if targets else None
     if fisher:
         add_fisher(evidence, renderer, seed)
     return evidence, views
@@ -75,8 +77,8 @@ def view_visibility(renderer: ReportsVisibility, cameras: Sequence[Camera]) -> l
     return [renderer.visibility(renderer.prepare(camera)) for camera in cameras]
 
 
-def visibility_evidence(renderer: Renderer, cameras: Sequence[Camera],
-                        captured: Sequence[Camera] | None = None) -> Evidence:
+def visibility_evidence(renderer: Renderer, cameras: Sequence[Camera], captured: Sequence[Camera] | None = None,
+                        targets: Sequence[Camera] | None = None) -> Evidence:
     """What a strategy that ignores dropout sees: the poses and, where the family reports it,
     each view's visibility (no dropout renders; sigma is reported as 0)."""
     captured = captured_cameras(renderer, captured)
@@ -85,7 +87,29 @@ def visibility_evidence(renderer: Renderer, cameras: Sequence[Camera],
     if reports_visibility(renderer):
         evidence.candidate_views = view_visibility(renderer, cameras)
         evidence.captured_views = captured_seen(renderer, captured)
+        evidence.target_views = view_visibility(renderer, targets) if targets else None
     return evidence
+
+
+def check_target_strategy(strategy: str) -> None:
+    """An InputError on `targets` unless `strategy` weighs the model's coverage by target views."""
+    if not get_strategy(strategy).uses_visibility:
+        names = ", ".join(name for name, s in STRATEGIES.items() if s.uses_visibility)
+        raise InputError("targets", f"strategy {strategy!r} ignores target views; choose one that weighs the model's "
+                         f"coverage by them ({names})")
+
+
+def check_targets(renderer: Renderer, targets: Sequence[Camera] | None, strategy: str) -> list[Camera] | None:
+    """The target views (where the model will be looked at from), or None for none: only the
+    coverage strategies weigh by them, and only on a family that reports visibility."""
+    if targets is None:
+        return None
+    targets = check_cameras(targets, "targets")
+    check_target_strategy(strategy)
+    if not reports_visibility(renderer):
+        raise InputError("targets", "this model's family cannot report what a view sees of it, which target views "
+                         "need")
+    return targets
 
 
 def add_fisher(evidence: Evidence, renderer: Renderer, seed: int = 0) -> Evidence:
@@ -127,7 +151,8 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
                captured: Sequence[Camera] | None = None, keep_peak: bool = False,
                progress: Progress | None = None, executor: Executor = LOCAL,
                coarse: float | None = None, refine: int | None = None,
-               signal: str = DEFAULT_SIGNAL, captured_store: CapturedStore | None = None) -> list[RankedView]:
+               signal: str = DEFAULT_SIGNAL, captured_store: CapturedStore | None = None,
+               targets: Sequence[Camera] | None = None) -> list[RankedView]:
     """Candidates in the order the strategy would capture them; ties go to the lower index.
 
     top_k keeps the first k, a batch meant to be captured together (all when k exceeds the
@@ -140,6 +165,9 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     on (phd_core.renderers.SIGNALS; rank at a ratio calibrated on the same signal).
     `captured_store` keeps what the captured views saw between ranks (strategies that use
     visibility; `phd_core.uq.strategies.captured`): a rank renders only the views it lacks.
+    `targets`: the views the model will be looked at from (a walkthrough, a turntable ring):
+    the coverage strategies then weigh each part of the model by what those views show of it
+    (`strategies.visibility.target_weights`); None ranks for every view alike.
 
     Coarse to fine (`coarse`, a scale in (0, 1)): every candidate is ranked at `coarse`
     times its size, then the best `refine` (default: COARSE_REFINE_SHARE of them, at least
@@ -151,14 +179,17 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     if top_k is not None:
         top_k = check_int(top_k, "top_k", 1)
     coarse, refine = check_coarse(coarse, refine)
+    targets = check_targets(renderer, targets, strategy)
     if coarse is not None:
         return coarse_to_fine(renderer, cameras, coarse, refine, ratio=ratio, samples=samples, seed=seed,
                               top_k=top_k, strategy=strategy, captured=captured, keep_peak=keep_peak,
-                              progress=progress, executor=executor, signal=signal, captured_store=captured_store)
+                              progress=progress, executor=executor, signal=signal, captured_store=captured_store,
+                              targets=targets)
     evidence, views = candidate_evidence(renderer, cameras, ratio=ratio, samples=samples, seed=seed,
                                          captured=captured, keep_peak=keep_peak, progress=progress,
                                          executor=executor, visibility=chosen.uses_visibility,
-                                         fisher=chosen.uses_fisher, signal=signal, captured_store=captured_store)
+                                         fisher=chosen.uses_fisher, signal=signal, captured_store=captured_store,
+                                         targets=targets)
     count = len(evidence.candidates)
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]

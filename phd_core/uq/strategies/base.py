@@ -23,7 +23,8 @@ from ...scene import Camera
 class Evidence:
     """What a strategy may use. Distances are between camera centres, in scene units; the
     views' Visibility (one render of the full model each) when the strategy uses it and the
-    model's family can report it."""
+    model's family can report it. Target views, when the caller knows where the model will be
+    looked at from, weight the coverage strategies' elements (`strategies.visibility`)."""
 
     candidates: list[Camera]      # [C] poses to choose from
     captured: list[Camera]        # [T] poses the model was trained on (may be empty)
@@ -33,6 +34,8 @@ class Evidence:
     area: Tensor | None = None        # [C] float64, share of pixels with zeta above a threshold
     candidate_views: list[Visibility] | None = None   # [C] what each candidate sees of the model (uses_visibility)
     captured_views: Sequence[Visibility | Seen] | None = None   # [T] what each captured view saw
+    target_views: list[Visibility] | None = None      # what each target view (where the model will be looked
+                                                      # at from) shows; None: every part counts as it fills a candidate
     candidate_fisher: Tensor | None = None   # [C, G, P] float64 each candidate's diag(J^T J) per splat and group
     captured_fisher: Tensor | None = None    # [G, P] float64 the captured views' sum (uses_fisher)
 

@@ -1,0 +1,32 @@
+"""Target views through the real server and client: the ranking equals phd_core's with the same
+targets (rendered at the candidates' size), differs from the one without, and a strategy that
+ignores targets is refused with the field named."""
+
+from __future__ import annotations
+
+import pytest
+
+from client import InvalidInputError, PHDClient
+from phd_core import uq
+from phd_core.renderers.gs3d import GaussianRenderer, read_ply
+from support.fixtures import svc_cameras
+
+
+def test_rank_with_target_views_equals_the_library(svc_start, svc_model_files):
+    server = svc_start()
+    train, candidates = svc_cameras(3), svc_cameras(6, phase=0.3)
+    targets = svc_cameras(4, radius=2.5, size=48, phase=1.1)          # their own size: rendered at the candidates'
+    renderer = GaussianRenderer(read_ply(svc_model_files["ply"]), training_cameras=train)
+    with PHDClient(server.url) as phd:
+        info = phd.upload_model(svc_model_files["ply"], cameras=train)
+        told = phd.rank(info.id, candidates, samples=4, seed=2, dropout_ratio=0.2, targets=targets, downscale=2)
+        scaled = [c.scaled(2) for c in candidates]
+        expected = uq.rank_views(renderer, scaled, ratio=0.2, samples=4, seed=2,
+                                 targets=[c.scaled(2) for c in targets])
+        plain = uq.rank_views(renderer, scaled, ratio=0.2, samples=4, seed=2)
+        assert [v.index for v in told.views] == [r.index for r in expected]
+        assert [v.score for v in told.views] == pytest.approx([r.score for r in expected], rel=1e-6)
+        assert [r.score for r in expected] != [r.score for r in plain]
+        with pytest.raises(InvalidInputError) as refused:
+            phd.rank(info.id, candidates, samples=4, dropout_ratio=0.2, strategy="fvs", targets=targets)
+        assert refused.value.field == "targets" and "ignores target views" in str(refused.value)
