@@ -41,7 +41,7 @@ def box(tmp_path_factory) -> dict[str, Path]:
 
 def test_rank_weighs_the_candidates_by_the_target_views_from_a_file_or_a_generator(box, capsys) -> None:
     argv = ["rank", "--model", box["model"], "--candidates", box["candidates"], "--captured", box["captured"],
-            "--dropout-ratio", 0.3, "--samples", 4]
+            "--dropout-ratio", 0.3, "--samples", 4, "--json"]
     renderer = load_model(box["model"])
     code, out, _ = run(capsys, *argv, "--targets", box["targets"])
     told = json.loads(out)
