@@ -29,7 +29,7 @@ from phd_core.renderers import SNIFF_BYTES, accepts_background, family_of, famil
 from phd_core.renderers.outputs import OUTPUTS, read_output
 from phd_core.renderers.splats import write_ply  # trainers' folders hold splats
 
-from .errors import ServiceError, invalid
+from .errors import ServiceError, insufficient_storage, invalid
 
 MAX_FOLDER_FILES = 10_000       # files in one uploaded folder or zip
 MAX_PATH_PARTS = 32             # folders deep
@@ -77,8 +77,9 @@ def folder_target(folder: Path, part: str, filename: str | None, count: int) -> 
     return folder / relative_path(filename, "files")
 
 
-def unpack_zip(archive: Path, folder: Path, max_bytes: int) -> int:
-    """Write the zip's files under `folder`; the bytes written (at most `max_bytes`, else 413)."""
+def unpack_zip(archive: Path, folder: Path, max_bytes: int, room: int) -> int:
+    """Write the zip's files under `folder`; the bytes written (at most `max_bytes`, else 413,
+    and at most `room`, the disk's free bytes less what is kept free, else 507)."""
     try:
         zipped = zipfile.ZipFile(archive)
     except (zipfile.BadZipFile, OSError):
@@ -102,6 +103,10 @@ def unpack_zip(archive: Path, folder: Path, max_bytes: int) -> int:
                 with zipped.open(member) as source, open(target, "xb") as out:
                     while chunk := source.read(1 << 20):
                         written += len(chunk)
+                        if written > room:
+                            raise insufficient_storage(f"the zip's files (more than {room} bytes)", "archive",
+                                                       "the service's disk has no more room outside the space "
+                                                       "it keeps free (PHD_KEEP_FREE_BYTES)")
                         if written > max_bytes:
                             raise ServiceError(413, "payload_too_large", f"the zip's files exceed {max_bytes} bytes, "
                                                "the largest this service's memory budget can read (leave out the "
@@ -137,6 +142,14 @@ def model_files(folder: Path) -> list[Path]:
     return found
 
 
+def upload_relative(text: str, folder: Path) -> str:
+    """`text` (a reader's message or note) with the upload folder's server path left out, so a
+    message names the upload's own files, never where the server unpacked them."""
+    for root in dict.fromkeys((str(folder.resolve()), str(folder))):
+        text = text.replace(root + "/", "").replace(root, "the upload")
+    return text
+
+
 def read_folder(folder: Path, name: str, ply: Path) -> FolderModel:
     """The model in an unpacked folder (named `name` when its files sit at the top); splats
     a trainer stored in its own frame are written, moved into the user's, to `ply`."""
@@ -148,12 +161,14 @@ def read_folder(folder: Path, name: str, ply: Path) -> FolderModel:
         if output.ply is None:
             write_ply(output.model, ply)
         title = next(o.title for o in OUTPUTS.in_order() if o.detect(output_folder))
-        # The run's name as the reader gives it ("<experiment>/<method>", else the folder's), as the
-        # client names it; a zip holding the folder's files at its top is named after the zip.
-        run = name if output.name == folder.resolve().name else output.name
+        # The run's name as the reader gives it ("<experiment>/<method>", "<folder>/gsplat", ...), as
+        # the client names it; a run whose files sit at the upload's top names the upload instead of
+        # the server's temp folder.
+        run = output.name.replace(folder.resolve().name, name)
         return FolderModel(output.ply or ply, run,
                            [c.to_frame() for c in output.cameras] or None, list(output.background),
-                           f"{title}: its trainer's setting", output.camera_format, output.notes + output.warnings)
+                           f"{title}: its trainer's setting", output.camera_format,
+                           [upload_relative(n, folder) for n in output.notes + output.warnings])
     models = model_files(folder)
     if len(models) != 1:
         listed = ", ".join(str(p.relative_to(folder)) for p in models[:5]) + (" ..." if len(models) > 5 else "")

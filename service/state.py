@@ -14,6 +14,7 @@ from typing import Any
 
 from fastapi.responses import JSONResponse
 
+from phd_core.errors import InputError
 from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import (
     FAMILIES,
@@ -26,8 +27,8 @@ from phd_core.renderers import (
 from phd_core.scene import Camera
 
 from .budget import MemoryLedger, Reservation, largest_model_file, load_bytes
-from .errors import ServiceError, busy, not_found
-from .folders import read_folder, unpack_zip
+from .errors import ServiceError, busy, invalid, not_found
+from .folders import read_folder, unpack_zip, upload_relative
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
 from .keys import Principal
@@ -135,13 +136,16 @@ class ServiceState:
         size = upload.size
         with writing("the uploaded folder", field):        # a full disk: 507 (service.store.writing)
             if upload.archive is not None:
-                size = unpack_zip(upload.archive, upload.folder, largest_model_file(self.settings.memory_budget_bytes))
+                size = unpack_zip(upload.archive, upload.folder, largest_model_file(self.settings.memory_budget_bytes),
+                                  self.store.free_bytes() - self.settings.keep_free_bytes)
             named = Path(upload.filename).stem if upload.filename else "folder"
             try:
                 with self.ledger.reserve(load_bytes(size), timeout=self.settings.upload_wait):
                     found = read_folder(upload.folder, named, upload.path.with_suffix(".ply"))
             except TimeoutError:
                 raise busy(field, self.settings.retry_after) from None
+            except InputError as exc:       # the readers name files by their paths: the upload's, not the server's
+                raise invalid(field, upload_relative(f"{exc.field}: {exc.reason}", upload.folder)) from None
         os.replace(found.model, upload.path)
         with open(upload.path, "rb") as f:
             upload.head = f.read(SNIFF_BYTES)

@@ -22,6 +22,8 @@ from phd_cli import main as phd
 from phd_core.data import POSES
 from phd_core.renderers.outputs import read_output
 from service.budget import largest_model_file
+from service.errors import ServiceError
+from service.folders import unpack_zip
 from support.captures import write_output_folder
 from support.fixtures import svc_cameras, svc_random_gaussians
 from support.trainers import gsplat_scene, splatfacto_scene
@@ -162,6 +164,43 @@ def test_a_zip_that_inflates_past_the_budget_or_like_a_bomb_is_refused(svc_start
         zipped.writestr("run/model.ply", b"\0" * (8 << 20))   # 8 MiB of zeros inflate about 1,000 times
     answer = httpx.post(f"{server.url}/v1/models", files={"archive": ("bomb.zip", bomb.getvalue())}, timeout=60)
     assert answer.status_code == 422 and "zip bomb" in answer.json()["error"]["message"], answer.text
+    assert _leftovers(server) == []
+
+
+def test_a_zip_unpacks_only_into_the_room_kept_free(tmp_path) -> None:
+    """What a zip inflates to counts against the disk's room outside PHD_KEEP_FREE_BYTES: past
+    it the upload is 507 naming the archive (the compressed upload alone fitted)."""
+    archive = tmp_path / "run.zip"
+    with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zipped:
+        zipped.writestr("run/model.ply", os.urandom(4096))
+    folder = tmp_path / "unpacked"
+    folder.mkdir()
+    with pytest.raises(ServiceError) as refused:
+        unpack_zip(archive, folder, max_bytes=1 << 20, room=1000)
+    assert refused.value.status == 507 and refused.value.field == "archive"
+    assert unpack_zip(archive, tmp_path / "roomy", max_bytes=1 << 20, room=1 << 20) == 4096
+
+
+def test_a_run_at_the_zips_top_is_named_after_the_zip_and_errors_name_its_files(svc_start, tmp_path) -> None:
+    """A zip holding a run's files at its top (no folder around them): the model is named after
+    the zip, not the server's temp folder; a reader's error names the upload's files, never where
+    the server unpacked them."""
+    folder = write_output_folder(tmp_path / "output" / "lego", svc_random_gaussians(200), svc_cameras(3))
+    server = svc_start()
+    answer = httpx.post(f"{server.url}/v1/models", files={"archive": ("bench.zip", _zip(folder, folder))}, timeout=60)
+    assert answer.status_code == 201, answer.text
+    assert answer.json()["name"] == "bench/3dgs"
+    broken = gsplat_scene(tmp_path / "g")["folder"]
+    checkpoint = next((broken / "ckpts").glob("ckpt_*.pt"))
+    checkpoint.write_bytes(b"not a checkpoint")
+    for other in (broken / "ckpts").glob("ckpt_*.pt"):
+        if other != checkpoint:
+            other.unlink()
+    answer = httpx.post(f"{server.url}/v1/models", files={"archive": ("g.zip", _zip(broken))}, timeout=60)
+    error = answer.json()["error"]
+    assert answer.status_code == 422 and error["field"] == "archive", answer.text
+    assert checkpoint.name in error["message"] and str(server.settings.data_dir) not in error["message"]
+    assert "/tmp" not in error["message"] and "upload-" not in error["message"]
     assert _leftovers(server) == []
 
 

@@ -30,7 +30,8 @@ import torch
 from torch import Tensor
 
 from ...io.cache import ModelCache
-from ...renderers.visibility import ReportsVisibility, Seen
+from ...renderers.splats.maths import LOG_T_MIN
+from ...renderers.visibility import ELEMENTS_PER_PIXEL, ReportsVisibility, Seen
 from ...scene import Camera
 
 KIND = "captured-coverage"
@@ -43,9 +44,16 @@ def camera_key(camera: Camera) -> str:
 
 
 def renderer_settings(renderer: object) -> dict[str, Any]:
-    """What besides the model decides what a view sees."""
+    """What besides the model file's bytes decides what a view sees: the renderer's settings,
+    the visibility pass's own constants, and where the splats were placed on loading (a trainer
+    folder's frame depends on the capture found beside it and on the loader's code, not only on
+    the folder's bytes: a hash of the means, about 10 ms a million splats)."""
+    means = getattr(getattr(renderer, "model", None), "means", None)
+    placed = (hashlib.sha256(means.detach().contiguous().numpy().tobytes()).hexdigest()[:16]
+              if isinstance(means, Tensor) else None)
     return {"kind": getattr(renderer, "kind", type(renderer).__name__),
-            **{name: getattr(renderer, name) for name in ("tile", "near", "use_grid") if hasattr(renderer, name)}}
+            **{name: getattr(renderer, name) for name in ("tile", "near", "use_grid") if hasattr(renderer, name)},
+            "placed": placed, "elements_per_pixel": ELEMENTS_PER_PIXEL, "log_t_min": LOG_T_MIN}
 
 
 def _text(value: Any) -> Tensor:
