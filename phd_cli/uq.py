@@ -385,8 +385,9 @@ def run_rank(args: argparse.Namespace) -> int:
     ratio, calibration = _ratio(args, model)
     captured = None
     if args.captured is not None:
-        # Only the poses matter here: frames without w/h get a placeholder size.
-        captured = load_cameras(args.captured, width=args.width or 1, height=args.height or 1)
+        # Frames without w/h take the candidates' image size: the coverage strategies render them.
+        captured = load_cameras(args.captured, width=args.width or poses[0].width,
+                                height=args.height or poses[0].height)
     targets = None if args.targets is None else _scaled(_candidates(args, renderer, "targets"), args.downscale)
     # What the captured views saw is kept beside the model (computed once per model and set of poses).
     store = (CapturedStore(ModelCache(args.model), default=renderer.training_cameras)

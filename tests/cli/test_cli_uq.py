@@ -234,6 +234,16 @@ def test_rank_takes_a_strategy_and_captured_poses(files, capsys) -> None:
     # What the captured poses saw was kept beside the model: the next rank reads it and ranks the same.
     assert list(ModelCache(files["model"]).dir.glob("captured-coverage-*.pt"))
     assert run(capsys, *argv, "--captured", captured, "--top-k", 2)[1] == out
+    # Captured frames without an image size take the candidates' (here from their own file, no
+    # --width): the coverage strategies render them, so a placeholder size would rank otherwise.
+    sized = files["root"] / "sized_candidates.json"
+    sized.write_text(json.dumps([c.to_frame() for c in candidates]))
+    captured.write_text(json.dumps([{k: v for k, v in c.to_frame().items() if k not in ("w", "h")}
+                                    for c in candidates[1:3]]))
+    code, out, _ = run(capsys, "rank", "--json", "--model", files["model"], "--candidates", sized,
+                       "--dropout-ratio", 0.4, "--samples", 5, "--captured", captured)
+    expected = phd.rank_views(renderer, candidates, ratio=0.4, samples=5, captured=candidates[1:3])
+    assert code == 0 and [r["score"] for r in strict_json(out)["ranking"]] == [r.score for r in expected]
     with pytest.raises(SystemExit) as exit_info:   # argparse: usage and the known names on stderr
         run(capsys, *argv, "--strategy", "sharpest")
     err = capsys.readouterr().err
