@@ -113,6 +113,9 @@ class ModelCache:
         return self._write(lambda: write_bytes_atomic(target, buf.getvalue()))
 
     def _write(self, write: Callable[[], None]) -> bool:
+        if not self.model.exists():     # deleted while its result was computed: leave no folder behind
+            self.skipped = f"cache not written: {self.model} no longer exists"
+            return False
         try:
             os.makedirs(self.dir, exist_ok=True)
             write()

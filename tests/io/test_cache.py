@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import torch
@@ -52,3 +53,15 @@ def test_a_cache_that_cannot_be_written_skips_the_write_and_says_why(tmp_path: P
     assert not cache.save_json("calibration", {}, {"r_drop": 0.1})
     assert cache.skipped is not None and "cache not written" in cache.skipped
     assert cache.load_json("calibration", {}) is None
+
+
+def test_a_model_deleted_meanwhile_gets_no_cache_folder_back(tmp_path: Path) -> None:
+    """A result computed while its model was deleted (a rank racing a delete) is not written."""
+    model = tmp_path / "m.ply"
+    model.write_bytes(b"x")
+    cache = ModelCache(model)
+    assert cache.save_json("calibration", {}, {"r_drop": 0.1})
+    shutil.rmtree(cache.dir)
+    model.unlink()
+    assert not cache.save_json("calibration", {}, {"r_drop": 0.1}) and "no longer exists" in (cache.skipped or "")
+    assert not cache.dir.exists()
