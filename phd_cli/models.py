@@ -78,7 +78,8 @@ def model_views(model: OpenedModel, data: Path | None, split: str, *, views: int
         dataset.split = split
         return dataset
     if data is None:
-        where = ("its run's capture was not found" if output is not None else "a model file names no capture")
+        where = ("its run's capture was not found" if output is not None else
+                 "a model file names no capture (the one it was trained on: the --data given to phd train)")
         raise InputError("data", f"give --data: {where}")
     check_frame(model, Path(data))
     return load_dataset(data, split, views=views, downscale=downscale, background=background,

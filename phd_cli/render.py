@@ -17,8 +17,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "`phd render --model RUN --out DIR` renders the frames its run held out.")
     p.add_argument("--model", required=True, type=Path, help=model_help())
     p.add_argument("--data", type=Path, default=None, help="a capture in the model's frame (default for a trainer's "
-                   "folder: the capture its run read; a capture whose cameras do not include the model's training "
-                   "cameras is refused)")
+                   "folder: the capture its run read; a capture holding the run's own images at other poses is "
+                   "refused, and a note says when the frame cannot be checked)")
     p.add_argument("--split", default="test", help="split to render (default test; a trainer's folder on its own "
                    "capture: the frames its run held out, train the ones it trained on, all every frame)")
     p.add_argument("--views", default=None, help="count or comma-separated indices (default: all)")

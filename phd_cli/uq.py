@@ -35,7 +35,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Raise the dropout ratio in steps while the mean absolute change of the training views "
                     "stays below epsilon; print r_drop and the error curve, and store the result beside the model "
                     "(MODEL.phd-cache/, or .phd-cache/ in a trainer's folder), where `phd rank`, `uq` and `select` "
-                    "find it. Cameras: --data (its train split; a trainer's folder: its run's), --cameras JSON, else "
+                    "find it when they calibrate on the same cameras with the same settings. Cameras: --data "
+                    "(its train split; a trainer's folder: its run's), --cameras JSON, else "
                     "the training cameras stored with the model.")
     _add_model_args(calibrate)
     source = calibrate.add_mutually_exclusive_group()
@@ -186,9 +187,10 @@ def _add_calibration_args(parser: argparse.ArgumentParser, *, standalone: bool =
     if standalone:
         group.add_argument("--seed", type=int, default=0, help="mask seed (default 0)")
     else:
-        group.add_argument("--dropout-ratio", type=float, default=None,
+        ratio = group.add_mutually_exclusive_group()
+        ratio.add_argument("--dropout-ratio", type=float, default=None,
                            help="skip calibration and use this ratio")
-        group.add_argument("--recalibrate", action="store_true",
+        ratio.add_argument("--recalibrate", action="store_true",
                            help="calibrate again even when a calibration with these settings is stored beside the "
                                 "model (and store the new one)")
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shlex
 
 import numpy as np
@@ -131,12 +132,12 @@ def test_rank_prints_a_table_of_the_top_k_with_the_json_poses(files, capsys) -> 
     assert code == 0, err
     with pytest.raises(json.JSONDecodeError):
         json.loads(table)
-    rows = [line.split() for line in table.splitlines() if line.strip()[:1].isdigit()]
+    rows = [line.split() for line in table.splitlines() if re.match(r"\s*#\d", line)]
     code, out, _ = run(capsys, *argv, "--json")
     ranking = json.loads(out)["ranking"]
     assert len(rows) == len(ranking) == 3
     for row, ranked in zip(rows, ranking):
-        assert [int(row[0]), int(row[1])] == [ranked["rank"], ranked["index"]]
+        assert [int(row[0][1:]), int(row[1])] == [ranked["rank"] + 1, ranked["index"]]     # #1 is rank 0
         assert float(row[2]) == pytest.approx(ranked["score"], rel=1e-3)
         assert float(row[3]) == pytest.approx(ranked["sigma_max"], rel=1e-3)
         c2w = np.array(ranked["camera"]["transform_matrix"])
@@ -145,7 +146,7 @@ def test_rank_prints_a_table_of_the_top_k_with_the_json_poses(files, capsys) -> 
 
     # Without --top-k: the first rows and how to get the rest.
     code, table, _ = run(capsys, *argv[:-2])
-    assert code == 0 and len([line for line in table.splitlines() if line.strip()[:1].isdigit()]) == 7
+    assert code == 0 and len([line for line in table.splitlines() if re.match(r"\s*#\d", line)]) == 7
     assert "JSON" not in table and "written to" not in table
 
 
