@@ -456,14 +456,15 @@ async function explainModel() {
   if (!view.header) throw new ViewError("this model has no splats to colour");
   const pick = pickFrame();
   if (view.mode === "novelty" && !pick) throw new ViewError("rank first: the first pick is what 'seen by #1' shows");
-  const key = JSON.stringify(pick);
+  const key = view.modelId + ":" + JSON.stringify(pick);   // per model: a new model's explanation is its own
   if (view.explained && view.explained.key === key) return;
   if (view.explaining && view.explaining.key === key) return view.explaining.promise;
   const largest = Math.max(...view.training.map((f) => Math.max(f.w || 0, f.h || 0)), 1);
   const body = { samples: EXPLAIN_SAMPLES, downscale: Math.max(1, largest / EXPLAIN_SIDE), cap: view.header.cap, async: true };
   if (pick) body.pick = pick;
   const modelId = view.modelId;
-  const promise = (async () => {
+  const mine = { key, promise: null };
+  mine.promise = (async () => {
     say("measuring coverage and fragility on " + view.training.length + " training views...");
     view.progress.hidden = false;
     view.progress.value = 0;
@@ -488,11 +489,11 @@ async function explainModel() {
         `${(100 * result.unseen_share).toFixed(1)} % of the splats no training view saw`);
     } finally {
       view.progress.hidden = true;
-      view.explaining = null;
+      if (view.explaining === mine) view.explaining = null;   // a newer request stays
     }
   })();
-  view.explaining = { key, promise };
-  return promise;
+  view.explaining = mine;
+  return mine.promise;
 }
 
 function drawLegend() {
