@@ -537,10 +537,7 @@ async function updateCandidates() {
   $("cand-size").hidden = true;
   state.candidates = [];
   state.spec = null;
-  state.ranking = null;               // a ranking belongs to the candidates it ranked
-  $("rank-grid").replaceChildren();
-  $("rank-summary").textContent = "";
-  $("poses-row").hidden = true;
+  forgetRanking();                    // a ranking belongs to the candidates it ranked
   $("cand-info").textContent = "";
   try {
     if (mode === "generate") {
@@ -665,10 +662,7 @@ async function rank(event) {
   if ($("rank-strategy").value) body.strategy = $("rank-strategy").value;
   if ($("rank-topk").value) body.top_k = Number($("rank-topk").value);
   say("rank-message", "ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates...");
-  state.ranking = null;
-  $("rank-grid").replaceChildren();      // no stale cards while the new ranking runs
-  $("rank-summary").textContent = "";
-  $("poses-row").hidden = true;
+  forgetRanking();                        // no stale cards or frusta while the new ranking runs
   $("rank-run").disabled = true;
   $("rank-cancel").hidden = false;
   try {
@@ -689,6 +683,15 @@ async function rank(event) {
   showDownload(r, model);
   await drawRankGrid(r);
   say("rank-message", "Ranked: capture candidate " + r.views[0].index + " first.");
+}
+
+// No ranking: its cards, summary, download row and frusta go with it.
+function forgetRanking() {
+  state.ranking = null;
+  $("rank-grid").replaceChildren();
+  $("rank-summary").textContent = "";
+  $("poses-row").hidden = true;
+  if (view3d()) view3d().clear();
 }
 
 async function drawRankGrid(result) {

@@ -15,6 +15,7 @@
 //                                        frusta coloured by score with their rank; `candidates`
 //                                        (optional, all frames ranked) adds the unreturned, faint
 //   onPick(callback(index))              a candidate frustum was clicked
+//   clear()                              no ranking: its frusta and detail panel go
 //   select(index)                        highlight it; show its render and heat map
 //   setMode(name)                        colour | coverage | fragility | novelty
 //   debug()                              the view's camera and what it drew (for tests)
@@ -607,6 +608,17 @@ function showRanking(result, { candidates = null } = {}) {
   drawLegend();
 }
 
+// No ranking (the candidates changed, or a new ranking runs): no frusta, no detail panel.
+function clear() {
+  if (!view.renderer) return;
+  view.ranking = null;
+  view.allCandidates = null;
+  view.selected = null;
+  view.detail.hidden = true;
+  drawCandidates();
+  drawLegend();
+}
+
 function onPick(callback) {
   view.pickCallbacks.push(callback);
 }
@@ -627,5 +639,5 @@ function debug() {
 // The style sheet travels with the script (one tag in the page): a same-origin file, as the CSP asks.
 document.head.append(el("link", { rel: "stylesheet", href: new URL("view3d.css", import.meta.url).pathname }));
 // drawNow: draw at once (tests read the canvas after it); with resort, sort the points again first.
-window.phdView3d = { mount, showRanking, onPick, select, setMode, debug,
+window.phdView3d = { mount, showRanking, clear, onPick, select, setMode, debug,
   drawNow: (resort = false) => { view.sortPending = view.sortPending || resort; drawNow(); } };

@@ -206,6 +206,27 @@ def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_pa
     assert _csp_violations(browser) == []
 
 
+def test_page_clears_the_ranked_frusta_when_the_candidates_change(browser, models):
+    server, model_a, _ = models
+    _open(browser, server)
+    Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
+    _wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model_a.id),
+          what="model A's 3D view")
+    _run_on_candidates(browser, 3, "rank", {"rank-samples": 3, "rank-downscale": 2})
+    browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")[0].click()     # its frustum picked, detail shown
+    assert len(browser.execute_script("return phdView3d.debug().frusta")) == 3
+    _wait(browser, lambda d: d.execute_script("return !document.querySelector('#view3d .v3d-detail').hidden"),
+          what="the picked candidate's detail")
+    _set(browser, "gen-count", 2)
+    browser.find_element(By.ID, "gen-elevation").click()                         # other candidates: no ranking yet
+    _wait(browser, lambda d: (d.execute_script("return state.spec") or {}).get("count") == 2, what="2 candidates")
+    view = browser.execute_script("return phdView3d.debug()")
+    assert (view["frusta"], view["selected"]) == ([], None)
+    assert browser.execute_script("return [document.querySelector('#view3d .v3d-detail').hidden, "
+                                  "document.querySelectorAll('#view3d .v3d-label').length]") == [True, 0]
+    assert "candidate score" not in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+
+
 def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_path):
     server, model_a, model_b = models
     _open(browser, server)
