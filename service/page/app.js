@@ -14,7 +14,8 @@ const state = {
   candidates: [],      // the user's own frames (file mode), sent as the rank request's cameras
   candidatesSized: true, // false: the file's frames lack w/h, taken from the width/height fields
   spec: null,          // generate mode: the rank request's candidates {generator, count, options}
-  ranking: null,       // the last RankResult
+  ranking: null,       // the last RankResult, with the id of the model it ranked (modelId)
+  rankToken: 0,        // raised when a rank starts or the candidates change: an older job's answer is not drawn
   job: null,           // id of the running rank job (for Cancel)
   blobs: [],           // object URLs to revoke when a grid is redrawn
   dropped: null,       // files dropped on the upload zone: [{file, path}]
@@ -538,6 +539,7 @@ async function updateCandidates() {
   state.candidates = [];
   state.spec = null;
   forgetRanking();                    // a ranking belongs to the candidates it ranked
+  state.rankToken++;                  // and a rank still running ranks other candidates now
   $("cand-info").textContent = "";
   try {
     if (mode === "generate") {
@@ -663,16 +665,24 @@ async function rank(event) {
   if ($("rank-topk").value) body.top_k = Number($("rank-topk").value);
   say("rank-message", "ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates...");
   forgetRanking();                        // no stale cards or frusta while the new ranking runs
+  const token = ++state.rankToken;
   $("rank-run").disabled = true;
   $("rank-cancel").hidden = false;
+  let r;
   try {
-    state.ranking = await runJob("/v1/models/" + model.id + "/rank", body, $("rank-progress"), (id) => { state.job = id; });
+    r = await runJob("/v1/models/" + model.id + "/rank", body, $("rank-progress"), (id) => { state.job = id; });
   } finally {
     state.job = null;
     $("rank-run").disabled = false;
     $("rank-cancel").hidden = true;
   }
-  const r = state.ranking;
+  // The model or the candidates changed while the job ran: its order belongs to them, not to what is chosen now.
+  if (token !== state.rankToken || !currentModel() || currentModel().id !== model.id) {
+    say("rank-message", "That ranking was for another model or other candidates than those chosen now, " +
+      "so it is not shown: press \"Rank\" again.", "warning");
+    return;
+  }
+  state.ranking = Object.assign({}, r, { modelId: model.id });
   $("rank-summary").textContent = `${r.views.length} of ${r.num_candidates} candidates, in the order to capture them; ` +
     `strategy ${r.strategy}, dropout ratio ${r.dropout_ratio} (${r.ratio_source === "calibration" ? "calibrated" : "given"}), ` +
     `${r.samples} samples, rendered at ${r.width} x ${r.height} px; ` +
@@ -742,11 +752,11 @@ function showDownload(result, model) {
 // The first k ranked poses as the file(s) a capture tool reads, written by the service with the
 // code `phd rank --export` uses; saved through the browser's download.
 async function downloadPoses() {
-  const model = currentModel(), r = state.ranking;
-  if (!model || !r) throw new ApiError("Rank first: the poses to download are the ranked ones.");
+  const r = state.ranking;
+  if (!r) throw new ApiError("Rank first: the poses to download are the ranked ones.");
   const k = Math.max(1, Math.min(r.views.length, Number($("poses-topk").value) || r.views.length));
   const views = r.views.slice(0, k);
-  const response = await api("/v1/models/" + model.id + "/poses", { method: "POST", json: {
+  const response = await api("/v1/models/" + r.modelId + "/poses", { method: "POST", json: {
     cameras: views.map((v) => v.camera), indices: views.map((v) => v.index), format: $("poses-format").value } });
   const name = (/filename="([^"]+)"/.exec(response.headers.get("Content-Disposition") || "") || [])[1] || "poses";
   const url = URL.createObjectURL(await response.blob());
