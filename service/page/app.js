@@ -448,10 +448,18 @@ async function calibrate() {
   const model = currentModel();
   if (!model) throw new ApiError("Choose or upload a model first.");
   say("model-message", "calibrating " + model.name + "...");
-  const result = await runJob("/v1/models/" + model.id + "/calibrate",
-    { samples: Number($("cal-samples").value), downscale: Number($("cal-downscale").value) }, $("cal-progress"));
-  say("model-message", "calibrated: r_drop = " + result.r_drop);
-  await loadModels(model.id);
+  $("calibrate").disabled = true;          // one calibration at a time from this page
+  let result;
+  try {
+    result = await runJob("/v1/models/" + model.id + "/calibrate",
+      { samples: Number($("cal-samples").value), downscale: Number($("cal-downscale").value) }, $("cal-progress"));
+  } finally {
+    $("calibrate").disabled = false;
+  }
+  say("model-message", "calibrated " + model.name + ": r_drop = " + result.r_drop);
+  await loadModels($("model-select").value);   // the model chosen now, which may be another one by this time
+  // The 3D view explains the calibrated model again (fragility is measured at its new ratio).
+  if (view3d() && state.viewReady && state.modelId === model.id) await view3d().refresh();
 }
 
 async function deleteModel() {

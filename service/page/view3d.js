@@ -16,6 +16,7 @@
 //                                        (optional, all frames ranked) adds the unreturned, faint
 //   onPick(callback(index))              a candidate frustum was clicked
 //   clear()                              no ranking: its frusta and detail panel go
+//   refresh()                            the model changed (calibrated): explained again for the mode shown
 //   select(index)                        highlight it; show its render and heat map
 //   setMode(name)                        colour | coverage | fragility | novelty
 //   debug()                              the view's camera and what it drew (for tests)
@@ -619,6 +620,15 @@ function clear() {
   drawLegend();
 }
 
+// The model changed on the server (calibrated): explain it again for the mode shown.
+function refresh() {
+  if (!view.renderer) return Promise.resolve();
+  view.explained = null;
+  view.explaining = null;
+  if (view.status.classList.contains("error")) say("");    // an old "calibrate first" is no longer true
+  return setMode(view.mode);
+}
+
 function onPick(callback) {
   view.pickCallbacks.push(callback);
 }
@@ -639,5 +649,5 @@ function debug() {
 // The style sheet travels with the script (one tag in the page): a same-origin file, as the CSP asks.
 document.head.append(el("link", { rel: "stylesheet", href: new URL("view3d.css", import.meta.url).pathname }));
 // drawNow: draw at once (tests read the canvas after it); with resort, sort the points again first.
-window.phdView3d = { mount, showRanking, clear, onPick, select, setMode, debug,
+window.phdView3d = { mount, showRanking, clear, refresh, onPick, select, setMode, debug,
   drawNow: (resort = false) => { view.sortPending = view.sortPending || resort; drawNow(); } };

@@ -275,3 +275,31 @@ def test_a_model_mounted_while_another_is_explained_gets_its_own_explanation(bro
     assert "no captured view saw it" in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
     _call(browser, "phdView3d.setMode('colour')")
 
+
+def test_calibrating_on_the_page_lets_the_view_explain_the_model(browser, ranked, svc_model_files):
+    """Fragility asked before calibrating says to calibrate; the page's Calibrate button (disabled
+    while its job runs) then brings the fragility colours, and the message goes."""
+    server, model, _, _ = ranked
+    with PHDClient(server.url, api_key=KEY) as phd:
+        bare = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(3), name="calibrated on the page")
+    _open(browser, server, bare)
+    _call(browser, "phdView3d.setMode('fragility')")
+    status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status")
+    assert status.text.startswith("calibrate the model first")
+    browser.find_element(By.ID, "cal-samples").clear()
+    browser.find_element(By.ID, "cal-samples").send_keys("3")
+    held = hold_worker(server.url, AUTH, model.id)
+    try:
+        browser.find_element(By.ID, "calibrate").click()                      # queued behind the held job
+        WebDriverWait(browser, 10).until(
+            lambda d: d.execute_script("return !document.getElementById('cal-progress').hidden"))
+        assert not browser.find_element(By.ID, "calibrate").is_enabled()
+    finally:
+        httpx.delete(f"{server.url}/v1/jobs/{held}", headers=AUTH)
+    WebDriverWait(browser, 60).until(lambda d: "calibrated: r_drop" in d.find_element(By.ID, "model-info").text)
+    WebDriverWait(browser, 60).until(lambda d: d.execute_script("return phdView3d.debug().explained.length"))
+    assert browser.find_element(By.ID, "calibrate").is_enabled()
+    assert browser.execute_script("return [state.modelId, phdView3d.debug().mode]") == [bare.id, "fragility"]
+    assert "calibrate" not in status.text and "error" not in status.get_attribute("class")
+    assert "fragile (zeta high)" in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    _call(browser, "phdView3d.setMode('colour')")
