@@ -14,7 +14,8 @@ const state = {
   candidates: [],      // the user's own frames (file mode), sent as the rank request's cameras
   candidatesSized: true, // false: the file's frames lack w/h, taken from the width/height fields
   spec: null,          // generate mode: the rank request's candidates {generator, count, options}
-  ranking: null,       // the last RankResult
+  ranking: null,       // the last RankResult, with the id of the model it ranked (modelId)
+  rankToken: 0,        // raised when a rank starts or the candidates change: an older job's answer is not drawn
   job: null,           // id of the running rank job (for Cancel)
   blobs: [],           // object URLs to revoke when a grid is redrawn
   dropped: null,       // files dropped on the upload zone: [{file, path}]
@@ -447,10 +448,18 @@ async function calibrate() {
   const model = currentModel();
   if (!model) throw new ApiError("Choose or upload a model first.");
   say("model-message", "calibrating " + model.name + "...");
-  const result = await runJob("/v1/models/" + model.id + "/calibrate",
-    { samples: Number($("cal-samples").value), downscale: Number($("cal-downscale").value) }, $("cal-progress"));
-  say("model-message", "calibrated: r_drop = " + result.r_drop);
-  await loadModels(model.id);
+  $("calibrate").disabled = true;          // one calibration at a time from this page
+  let result;
+  try {
+    result = await runJob("/v1/models/" + model.id + "/calibrate",
+      { samples: Number($("cal-samples").value), downscale: Number($("cal-downscale").value) }, $("cal-progress"));
+  } finally {
+    $("calibrate").disabled = false;
+  }
+  say("model-message", "calibrated " + model.name + ": r_drop = " + result.r_drop);
+  await loadModels($("model-select").value);   // the model chosen now, which may be another one by this time
+  // The 3D view explains the calibrated model again (fragility is measured at its new ratio).
+  if (view3d() && state.viewReady && state.modelId === model.id) await view3d().refresh();
 }
 
 async function deleteModel() {
@@ -537,10 +546,8 @@ async function updateCandidates() {
   $("cand-size").hidden = true;
   state.candidates = [];
   state.spec = null;
-  state.ranking = null;               // a ranking belongs to the candidates it ranked
-  $("rank-grid").replaceChildren();
-  $("rank-summary").textContent = "";
-  $("poses-row").hidden = true;
+  forgetRanking();                    // a ranking belongs to the candidates it ranked
+  state.rankToken++;                  // and a rank still running ranks other candidates now
   $("cand-info").textContent = "";
   try {
     if (mode === "generate") {
@@ -665,20 +672,25 @@ async function rank(event) {
   if ($("rank-strategy").value) body.strategy = $("rank-strategy").value;
   if ($("rank-topk").value) body.top_k = Number($("rank-topk").value);
   say("rank-message", "ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates...");
-  state.ranking = null;
-  $("rank-grid").replaceChildren();      // no stale cards while the new ranking runs
-  $("rank-summary").textContent = "";
-  $("poses-row").hidden = true;
+  forgetRanking();                        // no stale cards or frusta while the new ranking runs
+  const token = ++state.rankToken;
   $("rank-run").disabled = true;
   $("rank-cancel").hidden = false;
+  let r;
   try {
-    state.ranking = await runJob("/v1/models/" + model.id + "/rank", body, $("rank-progress"), (id) => { state.job = id; });
+    r = await runJob("/v1/models/" + model.id + "/rank", body, $("rank-progress"), (id) => { state.job = id; });
   } finally {
     state.job = null;
     $("rank-run").disabled = false;
     $("rank-cancel").hidden = true;
   }
-  const r = state.ranking;
+  // The model or the candidates changed while the job ran: its order belongs to them, not to what is chosen now.
+  if (token !== state.rankToken || !currentModel() || currentModel().id !== model.id) {
+    say("rank-message", "That ranking was for another model or other candidates than those chosen now, " +
+      "so it is not shown: press \"Rank\" again.", "warning");
+    return;
+  }
+  state.ranking = Object.assign({}, r, { modelId: model.id });
   $("rank-summary").textContent = `${r.views.length} of ${r.num_candidates} candidates, in the order to capture them; ` +
     `strategy ${r.strategy}, dropout ratio ${r.dropout_ratio} (${r.ratio_source === "calibration" ? "calibrated" : "given"}), ` +
     `${r.samples} samples, rendered at ${r.width} x ${r.height} px; ` +
@@ -689,6 +701,15 @@ async function rank(event) {
   showDownload(r, model);
   await drawRankGrid(r);
   say("rank-message", "Ranked: capture candidate " + r.views[0].index + " first.");
+}
+
+// No ranking: its cards, summary, download row and frusta go with it.
+function forgetRanking() {
+  state.ranking = null;
+  $("rank-grid").replaceChildren();
+  $("rank-summary").textContent = "";
+  $("poses-row").hidden = true;
+  if (view3d()) view3d().clear();
 }
 
 async function drawRankGrid(result) {
@@ -739,11 +760,11 @@ function showDownload(result, model) {
 // The first k ranked poses as the file(s) a capture tool reads, written by the service with the
 // code `phd rank --export` uses; saved through the browser's download.
 async function downloadPoses() {
-  const model = currentModel(), r = state.ranking;
-  if (!model || !r) throw new ApiError("Rank first: the poses to download are the ranked ones.");
+  const r = state.ranking;
+  if (!r) throw new ApiError("Rank first: the poses to download are the ranked ones.");
   const k = Math.max(1, Math.min(r.views.length, Number($("poses-topk").value) || r.views.length));
   const views = r.views.slice(0, k);
-  const response = await api("/v1/models/" + model.id + "/poses", { method: "POST", json: {
+  const response = await api("/v1/models/" + r.modelId + "/poses", { method: "POST", json: {
     cameras: views.map((v) => v.camera), indices: views.map((v) => v.index), format: $("poses-format").value } });
   const name = (/filename="([^"]+)"/.exec(response.headers.get("Content-Disposition") || "") || [])[1] || "poses";
   const url = URL.createObjectURL(await response.blob());

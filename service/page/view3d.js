@@ -15,6 +15,8 @@
 //                                        frusta coloured by score with their rank; `candidates`
 //                                        (optional, all frames ranked) adds the unreturned, faint
 //   onPick(callback(index))              a candidate frustum was clicked
+//   clear()                              no ranking: its frusta and detail panel go
+//   refresh()                            the model changed (calibrated): explained again for the mode shown
 //   select(index)                        highlight it; show its render and heat map
 //   setMode(name)                        colour | coverage | fragility | novelty
 //   debug()                              the view's camera and what it drew (for tests)
@@ -456,14 +458,15 @@ async function explainModel() {
   if (!view.header) throw new ViewError("this model has no splats to colour");
   const pick = pickFrame();
   if (view.mode === "novelty" && !pick) throw new ViewError("rank first: the first pick is what 'seen by #1' shows");
-  const key = JSON.stringify(pick);
+  const key = view.modelId + ":" + JSON.stringify(pick);   // per model: a new model's explanation is its own
   if (view.explained && view.explained.key === key) return;
   if (view.explaining && view.explaining.key === key) return view.explaining.promise;
   const largest = Math.max(...view.training.map((f) => Math.max(f.w || 0, f.h || 0)), 1);
   const body = { samples: EXPLAIN_SAMPLES, downscale: Math.max(1, largest / EXPLAIN_SIDE), cap: view.header.cap, async: true };
   if (pick) body.pick = pick;
   const modelId = view.modelId;
-  const promise = (async () => {
+  const mine = { key, promise: null };
+  mine.promise = (async () => {
     say("measuring coverage and fragility on " + view.training.length + " training views...");
     view.progress.hidden = false;
     view.progress.value = 0;
@@ -488,11 +491,11 @@ async function explainModel() {
         `${(100 * result.unseen_share).toFixed(1)} % of the splats no training view saw`);
     } finally {
       view.progress.hidden = true;
-      view.explaining = null;
+      if (view.explaining === mine) view.explaining = null;   // a newer request stays
     }
   })();
-  view.explaining = { key, promise };
-  return promise;
+  view.explaining = mine;
+  return mine.promise;
 }
 
 function drawLegend() {
@@ -606,6 +609,26 @@ function showRanking(result, { candidates = null } = {}) {
   drawLegend();
 }
 
+// No ranking (the candidates changed, or a new ranking runs): no frusta, no detail panel.
+function clear() {
+  if (!view.renderer) return;
+  view.ranking = null;
+  view.allCandidates = null;
+  view.selected = null;
+  view.detail.hidden = true;
+  drawCandidates();
+  drawLegend();
+}
+
+// The model changed on the server (calibrated): explain it again for the mode shown.
+function refresh() {
+  if (!view.renderer) return Promise.resolve();
+  view.explained = null;
+  view.explaining = null;
+  if (view.status.classList.contains("error")) say("");    // an old "calibrate first" is no longer true
+  return setMode(view.mode);
+}
+
 function onPick(callback) {
   view.pickCallbacks.push(callback);
 }
@@ -626,5 +649,5 @@ function debug() {
 // The style sheet travels with the script (one tag in the page): a same-origin file, as the CSP asks.
 document.head.append(el("link", { rel: "stylesheet", href: new URL("view3d.css", import.meta.url).pathname }));
 // drawNow: draw at once (tests read the canvas after it); with resort, sort the points again first.
-window.phdView3d = { mount, showRanking, onPick, select, setMode, debug,
+window.phdView3d = { mount, showRanking, clear, refresh, onPick, select, setMode, debug,
   drawNow: (resort = false) => { view.sortPending = view.sortPending || resort; drawNow(); } };

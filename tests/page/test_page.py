@@ -21,6 +21,7 @@ from phd_core import uq
 from phd_core.data import candidate_name, export_cameras
 from phd_core.scene import camera_from_frame
 from phd_core.uq.candidates import candidate_cameras
+from support.browser import hold_worker
 from support.fixtures import LEGO, svc_cameras, svc_random_gaussians
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -34,6 +35,7 @@ from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
 
 KEY = "page-test-key"
+AUTH = {"Authorization": f"Bearer {KEY}"}
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory):
     options = webdriver.ChromeOptions()
@@ -204,6 +206,58 @@ def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_pa
     browser.save_screenshot(str(tmp_path / "page_rank.png"))
     assert (tmp_path / "page_rank.png").stat().st_size > 10_000
     assert _csp_violations(browser) == []
+
+
+def test_page_drops_a_ranking_that_finishes_after_the_model_changed(browser, models):
+    """A rank job still queued when another model is chosen: its answer is for the first model,
+    so no cards, frusta or download row appear for the second, and the rank section says why."""
+    server, model_a, model_b = models
+    _open(browser, server)
+    Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
+    _wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model_a.id),
+          what="model A's 3D view")
+    _set(browser, "gen-count", 3)
+    browser.find_element(By.ID, "gen-elevation").click()
+    _wait(browser, lambda d: (d.execute_script("return state.spec") or {}).get("count") == 3, what="3 candidates")
+    _set(browser, "rank-samples", 3)
+    held = hold_worker(server.url, AUTH, model_b.id)
+    try:
+        browser.find_element(By.ID, "rank-run").click()
+        # The rank job waits in the queue behind the held one.
+        _wait(browser, lambda d: d.execute_script("return state.job"), what="the rank job")
+        Select(browser.find_element(By.ID, "model-select")).select_by_value(model_b.id)
+        _wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady",
+                                                  model_b.id), what="model B's 3D view")
+        assert browser.execute_script("return state.job") is not None          # model A's job still waits
+    finally:
+        httpx.delete(f"{server.url}/v1/jobs/{held}", headers=AUTH)
+    _wait(browser, lambda d: "another model" in d_text(d, "rank-message"), what="the dropped ranking")
+    assert "Rank" in d_text(browser, "rank-message") and "warning" in _classes(browser, "rank-message")
+    assert browser.execute_script(
+        "return [state.ranking, state.job, document.querySelectorAll('#rank-grid li').length, "
+        "phdView3d.debug().frusta.length, document.getElementById('poses-row').hidden]") == [None, None, 0, 0, True]
+    assert browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand") == []
+
+
+def test_page_clears_the_ranked_frusta_when_the_candidates_change(browser, models):
+    server, model_a, _ = models
+    _open(browser, server)
+    Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
+    _wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model_a.id),
+          what="model A's 3D view")
+    _run_on_candidates(browser, 3, "rank", {"rank-samples": 3, "rank-downscale": 2})
+    browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")[0].click()     # its frustum picked, detail shown
+    assert len(browser.execute_script("return phdView3d.debug().frusta")) == 3
+    _wait(browser, lambda d: d.execute_script("return !document.querySelector('#view3d .v3d-detail').hidden"),
+          what="the picked candidate's detail")
+    _set(browser, "gen-count", 2)
+    browser.find_element(By.ID, "gen-elevation").click()                         # other candidates: no ranking yet
+    _wait(browser, lambda d: (d.execute_script("return state.spec") or {}).get("count") == 2, what="2 candidates")
+    view = browser.execute_script("return phdView3d.debug()")
+    assert (view["frusta"], view["selected"]) == ([], None)
+    assert browser.execute_script("return [document.querySelector('#view3d .v3d-detail').hidden, "
+                                  "document.querySelectorAll('#view3d .v3d-label').length]") == [True, 0]
+    assert "candidate score" not in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
 
 
 def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_path):

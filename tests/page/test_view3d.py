@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from client import PHDClient
-from support.browser import chromium, have_browser
+from support.browser import chromium, have_browser, hold_worker
 from support.fixtures import svc_cameras
 
 pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install -e '.[test]')")
@@ -249,3 +249,57 @@ def test_the_view_files_are_local_and_open(ranked):
     assert "from './three.module.min.js'" in httpx.get(server.url + "/ui/vendor/OrbitControls.js").text
     missing = httpx.get(server.url + "/ui/vendor/three.js", headers=AUTH)   # a fixed list of files
     assert missing.status_code == 404 and missing.json()["error"]["field"] == "name"
+
+
+def test_a_model_mounted_while_another_is_explained_gets_its_own_explanation(browser, ranked, svc_model_files):
+    """Coverage on: model A's explain job still queued when model B is chosen. B is explained
+    (its own job), not left with A's request, which was for other splats."""
+    server, model, _, _ = ranked
+    with PHDClient(server.url, api_key=KEY) as phd:
+        other = phd.upload_model(svc_model_files["ply_b"], cameras=svc_cameras(4), name="other splats")
+        phd.calibrate(other.id, epsilon=0.05, step=0.2, samples=3, seed=1)
+    _open(browser, server, model)
+    held = hold_worker(server.url, AUTH, model.id)
+    try:
+        browser.execute_script("phdView3d.setMode('coverage')")                 # A's explain waits for the worker
+        Select(browser.find_element(By.ID, "model-select")).select_by_value(other.id)
+        WebDriverWait(browser, 30).until(lambda d: d.execute_script(
+            "return state.modelId === arguments[0] && state.viewReady", other.id))
+    finally:
+        httpx.delete(f"{server.url}/v1/jobs/{held}", headers=AUTH)
+    WebDriverWait(browser, 60).until(lambda d: d.execute_script("return phdView3d.debug().explained.length"))
+    state = browser.execute_script("return phdView3d.debug()")
+    assert (state["mode"], state["points"], set(state["explained"])) == ("coverage", 200, {"coverage", "fragility"})
+    jobs = browser.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+    assert sum(name.endswith(f"/v1/models/{other.id}/explain") for name in jobs) == 1
+    assert "no captured view saw it" in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    _call(browser, "phdView3d.setMode('colour')")
+
+
+def test_calibrating_on_the_page_lets_the_view_explain_the_model(browser, ranked, svc_model_files):
+    """Fragility asked before calibrating says to calibrate; the page's Calibrate button (disabled
+    while its job runs) then brings the fragility colours, and the message goes."""
+    server, model, _, _ = ranked
+    with PHDClient(server.url, api_key=KEY) as phd:
+        bare = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(3), name="calibrated on the page")
+    _open(browser, server, bare)
+    _call(browser, "phdView3d.setMode('fragility')")
+    status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status")
+    assert status.text.startswith("calibrate the model first")
+    browser.find_element(By.ID, "cal-samples").clear()
+    browser.find_element(By.ID, "cal-samples").send_keys("3")
+    held = hold_worker(server.url, AUTH, model.id)
+    try:
+        browser.find_element(By.ID, "calibrate").click()                      # queued behind the held job
+        WebDriverWait(browser, 10).until(
+            lambda d: d.execute_script("return !document.getElementById('cal-progress').hidden"))
+        assert not browser.find_element(By.ID, "calibrate").is_enabled()
+    finally:
+        httpx.delete(f"{server.url}/v1/jobs/{held}", headers=AUTH)
+    WebDriverWait(browser, 60).until(lambda d: "calibrated: r_drop" in d.find_element(By.ID, "model-info").text)
+    WebDriverWait(browser, 60).until(lambda d: d.execute_script("return phdView3d.debug().explained.length"))
+    assert browser.find_element(By.ID, "calibrate").is_enabled()
+    assert browser.execute_script("return [state.modelId, phdView3d.debug().mode]") == [bare.id, "fragility"]
+    assert "calibrate" not in status.text and "error" not in status.get_attribute("class")
+    assert "fragile (zeta high)" in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    _call(browser, "phdView3d.setMode('colour')")

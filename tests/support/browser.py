@@ -30,3 +30,14 @@ def chromium(profile: Path, width: int = 1280, height: int = 1600):
     driver = webdriver.Chrome(service=webdriver.ChromeService(executable_path=CHROMEDRIVER), options=options)
     driver.set_page_load_timeout(30)
     return driver
+
+
+def hold_worker(url: str, headers: dict[str, str], model_id: str) -> str:
+    """Occupy the server's one worker with a long rank job and return its id (DELETE /v1/jobs/{id}
+    lets go): the page's next job then waits in the queue for as long as the test needs."""
+    import httpx
+
+    answer = httpx.post(f"{url}/v1/models/{model_id}/rank", headers=headers, timeout=30, json={
+        "candidates": {"generator": "hemisphere", "count": 400}, "samples": 32, "downscale": 1, "async": True})
+    assert answer.status_code == 202, answer.text
+    return answer.json()["id"]
