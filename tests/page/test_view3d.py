@@ -220,20 +220,6 @@ def test_colour_modes_show_coverage_fragility_and_what_the_first_pick_sees(brows
     assert _console_errors(browser) == []
 
 
-def test_an_uncalibrated_model_says_what_to_do_under_the_view(browser, ranked, svc_model_files):
-    server, _, _, _ = ranked
-    with PHDClient(server.url, api_key=KEY) as phd:
-        bare = phd.upload_model(svc_model_files["ply_b"], cameras=svc_cameras(4), name="not calibrated")
-    _open(browser, server, bare)
-    _call(browser, "phdView3d.setMode('fragility')")
-    status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status")
-    assert status.text == "calibrate the model first: fragility is measured at its dropout ratio"
-    assert "error" in status.get_attribute("class") and status.is_displayed()
-    assert browser.execute_script("return phdView3d.debug().explained") == []
-    errors = _console_errors(browser)          # the browser logs the refused request itself, and nothing else
-    assert len(errors) == 1 and "/explain" in errors[0] and "409" in errors[0]
-
-
 def test_the_view_files_are_local_and_open(ranked):
     server, _, _, _ = ranked
     page = httpx.get(server.url + "/ui/").text
@@ -285,7 +271,11 @@ def test_calibrating_on_the_page_lets_the_view_explain_the_model(browser, ranked
     _open(browser, server, bare)
     _call(browser, "phdView3d.setMode('fragility')")
     status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status")
-    assert status.text.startswith("calibrate the model first")
+    assert status.text == "calibrate the model first: fragility is measured at its dropout ratio"
+    assert "error" in status.get_attribute("class") and status.is_displayed()
+    assert browser.execute_script("return phdView3d.debug().explained") == []
+    errors = _console_errors(browser)          # the browser logs the refused request itself, and nothing else
+    assert len(errors) == 1 and "/explain" in errors[0] and "409" in errors[0]
     browser.find_element(By.ID, "cal-samples").clear()
     browser.find_element(By.ID, "cal-samples").send_keys("3")
     held = hold_worker(server.url, AUTH, model.id)
