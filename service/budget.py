@@ -123,21 +123,21 @@ def plan_work(models: Sequence[ModelSize], pixels: int, samples: int, kept_bytes
     for model in distinct.values():
         need = resident + load_bytes(model.file_bytes) - model_bytes(model.file_bytes)
         if need > budget:
-            raise over_budget(model.field, need, budget, "a smaller model")
+            raise OverBudget(model.field, need, budget, "a smaller model")
     room = budget - resident
     fixed = (sum(MASK_SAMPLE_UNIT_BYTES * samples * m.units for m in models)
              + pixels * channels * ACCUMULATOR_CHANNEL_BYTES)
     # Before the renders are known, the projection that will bound them.
     fixed += renders.fixed if renders is not None else max(memory_probe_bytes(m.units) for m in models)
     if fixed + kept_bytes > room and kept_bytes:
-        raise over_budget(kept_field, resident + fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
+        raise OverBudget(kept_field, resident + fixed + kept_bytes, budget, "fewer cameras or a lower resolution")
     # While a batch renders the engine still holds the previous one's images; its renderer
     # temporaries are gone once its images reach the engine's float64 terms.
     render = (renders.per_mask if renders is not None else 0) + pixels * 4 * (channels - 3)
     per_mask = max(pixels * channels * ENGINE_CHANNEL_BYTES, render + pixels * channels * CHUNK_CHANNEL_BYTES)
     batch = min(MAX_MASKS_PER_RENDER, samples, (room - fixed - kept_bytes) // per_mask)
     if batch < 1:
-        raise over_budget(size_field, resident + fixed + kept_bytes + per_mask, budget,
+        raise OverBudget(size_field, resident + fixed + kept_bytes + per_mask, budget,
                           "a lower resolution (downscale, or width/height)")
     return MemoryPlan(bytes=fixed + kept_bytes + batch * per_mask, mask_batch=int(batch))
 
@@ -150,10 +150,6 @@ class OverBudget(ServiceError):
                          f"above the service's memory budget of {budget / 2**20:.0f} MiB: ask for {advice} "
                          f"(field '{field}')", field)
         self.need, self.budget = need, budget
-
-
-def over_budget(field: str, need: int, budget: int, advice: str) -> OverBudget:
-    return OverBudget(field, need, budget, advice)
 
 
 @dataclass(eq=False)

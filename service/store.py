@@ -14,8 +14,8 @@ inserted, in one transaction. Deleting removes the row first, then the file. So 
 can leave at most a temp file or a model file without a row; `sweep()` (run at startup)
 removes both, and a row never points at a missing or partial file.
 
-A full disk is an answer, not a crash: every write goes through `writing()` (files:
-`write_file()`, rows: `transaction()`), which turns ENOSPC/EDQUOT and SQLite's "disk full"
+A full disk is an answer, not a crash: every write goes through `writing()` (rows:
+through `transaction()`), which turns ENOSPC/EDQUOT and SQLite's "disk full"
 into 507 `insufficient_storage` naming what could not be written, after removing what the
 write had begun. One SQLite connection stays open for the store's life, so the write-ahead
 log and its index (`-wal`, `-shm`) are never deleted and re-created: reads need no new disk
@@ -250,12 +250,6 @@ class ModelStore:
                 if db.in_transaction:
                     db.execute("ROLLBACK")
                 raise
-
-    def write_file(self, path: Path, data: bytes, what: str, field: str | None = None) -> None:
-        """Write a file of the data directory atomically; a full disk is 507 naming `what`, with
-        nothing of the file left behind (write_bytes_atomic removes its temp file)."""
-        with writing(what, field):
-            write_bytes_atomic(path, data)
 
     def free_bytes(self) -> int:
         """Free space on the data directory's file system, for an unprivileged writer."""

@@ -59,7 +59,6 @@ from .budget import (
     ModelSize,
     OverBudget,
     model_bytes,
-    over_budget,
     plan_work,
 )
 from .errors import ServiceError, busy, invalid, not_found
@@ -226,7 +225,7 @@ class Renders:
                                   self.cheaper.bounds(renderers, lambda fraction: None)[0])
             except OverBudget:
                 raise refused from None
-            raise over_budget("strategy", refused.need, refused.budget,
+            raise OverBudget("strategy", refused.need, refused.budget,
                               f"strategy '{CHEAPER_STRATEGY}', which fits (the strategy's view of what each camera "
                               "sees does not), or a lower resolution (downscale, or width/height)") from None
 

@@ -22,7 +22,7 @@ from client.client import JobFailedError, ServerError
 from phd_core.errors import InputError
 from service.app import create_app
 from service.settings import Settings
-from service.store import DB_NAME, ModelStore
+from service.store import DB_NAME
 from support.fixtures import expect_error, svc_cameras
 
 DISK_BYTES = 8 << 20
@@ -265,24 +265,6 @@ def test_uploads_keep_the_free_space_setting(disk, svc_start, svc_model_files):
     assert Disk(disk.root).files("tmp") == [] and Disk(disk.root).files("models") == []
     with PHDClient(server.url) as phd:
         assert phd.upload_model(svc_model_files["ply"]).num_units == 300
-
-
-def test_the_shared_file_write_is_507_on_a_full_disk_and_leaves_no_temp_file(disk):
-    """`ModelStore.write_file`, the one call for files written beside a model (sidecars, derived
-    artefacts): 507 naming the file, no temp file left, the previous version intact."""
-    store = ModelStore(disk.root / "data")
-    target = store.models_dir / "m.coverage"
-    store.write_file(target, b"first", "the coverage of model 'm'")
-    disk.fill()
-    with pytest.raises(Exception) as refused:
-        store.write_file(target, bytes(64 << 10), "the coverage of model 'm'")
-    assert (refused.value.status, refused.value.code) == (507, "insufficient_storage")   # type: ignore[attr-defined]
-    assert "the coverage of model 'm' could not be written" in refused.value.message    # type: ignore[attr-defined]
-    assert target.read_bytes() == b"first" and sorted(p.name for p in store.models_dir.iterdir()) == ["m.coverage"]
-    disk.free()
-    store.write_file(target, b"second", "the coverage of model 'm'")
-    assert target.read_bytes() == b"second"
-    store.close()
 
 
 def test_a_start_on_a_full_disk_says_so_and_the_next_start_serves(disk, svc_start, svc_model_files):
