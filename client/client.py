@@ -372,7 +372,7 @@ class PHDClient:
         """Candidate poses in the order to capture them (the service's default strategy unless `strategy`
         names another). The first `top_k` are a batch meant to be captured together. `captured`: poses
         already taken, default the model's training cameras. `targets`: the views the model will be
-        looked at from; the coverage strategies then value each part of the model by what they show.
+        looked at from; the coverage strategies then value a candidate by what it fixes in them.
         Instead of `cameras`, `candidates` lets the service make the poses: a spec "orbit:64,rings=2"
         or {"generator": ..., "count": ..., "options": ...}. `coarse` (a scale in (0, 1)) ranks every
         candidate that much smaller first and re-ranks the best `refine` at full size. `signal`: what

@@ -207,9 +207,10 @@ class RankRequest(RenderSize):
                                         "training cameras. " + _CAMERAS_DOC)
     targets: CameraList | None = Field(None, description="The views the model will be looked at from (a walkthrough "
                                        "path, a turntable ring), rendered at the candidates' size: the coverage "
-                                       "strategies (visibility, visibility_sigma, visibility_sigma_fvs) weigh each "
-                                       "part of the model by what these views show of it, so a candidate is worth "
-                                       "what it fixes there. Default: every view alike. " + _CAMERAS_DOC)
+                                       "strategies (visibility, visibility_sigma, visibility_sigma_fvs) value a "
+                                       "candidate by what it fixes in these views: the parts they show that the "
+                                       "captured views missed from their direction. Default: every view alike. "
+                                       + _CAMERAS_DOC)
     heatmaps: HeatmapMode = Field("none", description="zeta heat maps of the returned views: inline base64 PNG, "
                                   "or PNG files to download from the job's artefacts.")
     coarse: FiniteFloat | None = Field(None, gt=0, lt=1, description="Coarse to fine: rank every candidate at this "

@@ -166,8 +166,8 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     `captured_store` keeps what the captured views saw between ranks (strategies that use
     visibility; `phd_core.uq.strategies.captured`): a rank renders only the views it lacks.
     `targets`: the views the model will be looked at from (a walkthrough, a turntable ring):
-    the coverage strategies then weigh each part of the model by what those views show of it
-    (`strategies.visibility.target_weights`); None ranks for every view alike.
+    the coverage strategies then value a candidate by what it fixes in those views
+    (`strategies.targets`); None ranks for every view alike.
 
     Coarse to fine (`coarse`, a scale in (0, 1)): every candidate is ranked at `coarse`
     times its size, then the best `refine` (default: COARSE_REFINE_SHARE of them, at least

@@ -11,16 +11,17 @@ from typing import Sequence
 
 import pytest
 import torch
-from uq.test_visibility_strategy import camera, open_box
+from uq.test_visibility_strategy import SIZE, camera, open_box, splats
 
 from phd_core.errors import InputError
 from phd_core.renderers.gs3d import GaussianRenderer
 from phd_core.renderers.visibility import Seen, Visibility
-from phd_core.scene import Camera
+from phd_core.scene import Camera, look_at
 from phd_core.uq import rank_views
-from phd_core.uq.rank import visibility_evidence
+from phd_core.uq.rank import candidate_evidence, visibility_evidence
 from phd_core.uq.strategies import Evidence, get_strategy
-from phd_core.uq.strategies.visibility import ANGLE_SCALE, EMPTY_WEIGHT, SEEN_SHARE
+from phd_core.uq.strategies.visibility import ANGLE_SCALE, EMPTY_WEIGHT, SEEN_SHARE, SPREAD_FLOOR
+from support.fixtures import svc_random_gaussians
 from support.toy_renderers import BlobRenderer, ring_cameras
 
 COVERAGE = ["visibility", "visibility_sigma", "visibility_sigma_fvs"]
@@ -45,14 +46,9 @@ def test_targets_behind_an_occluder_make_the_candidate_that_sees_them_win(name: 
 def test_a_part_no_target_shows_is_worth_nothing() -> None:
     renderer = open_box()
     far_away = [camera((0.0, 0.0, 5.0), (0.0, 0.0, 12.0))]         # looks up, away from the box: shows nothing
-    scores = get_strategy("visibility").select(visibility_evidence(renderer, [BACK, TOP], CAPTURED, far_away),
-                                                0, 0).scores
-    # What is left is the empty-box term alone (both candidates still look into the scene box).
-    plain = visibility_evidence(renderer, [BACK, TOP], CAPTURED)
-    assert plain.candidate_views is not None
-    for c, vis in enumerate(plain.candidate_views):
-        axis_novelty = reference_axis_novelty(vis, plain.captured_views or [])
-        assert scores[c] == pytest.approx(EMPTY_WEIGHT * vis.empty * axis_novelty, rel=1e-12)
+    for name in COVERAGE:
+        scores = get_strategy(name).select(visibility_evidence(renderer, [BACK, TOP], CAPTURED, far_away), 0, 0).scores
+        assert scores == [0.0, 0.0]      # nothing to fix in the targets (empty space does not count with targets)
 
 
 def seen(vis: Visibility) -> dict[int, tuple[float, torch.Tensor]]:
@@ -72,30 +68,50 @@ def reference_axis_novelty(vis: Visibility, captured: Sequence[Visibility | Seen
     return math.prod(1.0 - math.exp(-(1.0 - float(axis @ -v.camera.c2w[:3, 2])) / ANGLE_SCALE) for v in captured)
 
 
-def reference_values(evidence: Evidence) -> list[float]:
-    """`visibility`'s value of each candidate before any pick, element by element in float64:
-    sum over u of weight(u, c) * prod over captured v (1 - seen(u, v) near(u; c, v)) plus the
-    empty term; weight = the pixels u fills in c, or with targets seen(u, c) times the mean over
-    targets t of the pixels u fills in t times near(u; c, t)."""
+def reference_fragility(evidence: Evidence, fragility: bool) -> list[dict[int, float]]:
+    """Per candidate, element id -> 1 + mean zeta on its pixels / that mean over every candidate (1 without)."""
+    views = evidence.candidate_views or []
+    valued = [v for v in views if v.valued is not None]
+    scale = sum(float(v.valued.sum()) for v in valued) / max(sum(float(v.weight.sum()) for v in valued), 1e-300)
+    return [{int(e): 1.0 + (float(z) / max(float(w), 1e-300) / scale if fragility and v.valued is not None else 0.0)
+             for e, w, z in zip(v.elements, v.weight, v.valued if v.valued is not None else v.weight)}
+            for v in views]
+
+
+def reference_values(evidence: Evidence, fragility: bool = False, picked: Sequence[int] = ()) -> list[float]:
+    """Each candidate's value element by element in float64, with the candidates `picked` counted as
+    captured. Without targets (`visibility`, before any pick): sum over u of the pixels u fills in c
+    times prod over captured v (1 - seen(u, v) near(u; c, v)), plus the empty term. With targets:
+    sum over u that c sees and targets t that show u of pixels(u, t) * n_t(u) * seen(u, c) *
+    near(u; t, c) * fragility(u, c), n_t(u) = prod over captured v (1 - seen(u, v) near(u; t, v))."""
     # The captured views come as the library stores them (`Seen`: ids and visible shares).
     captured = [(v.camera, {int(e): min(1.0, float(s) / SEEN_SHARE) for e, s in zip(v.elements, v.visible_share)})
                 for v in evidence.captured_views or []]
-    targets = [(t.camera, {int(e): float(w) for e, w in zip(t.elements, t.weight)})
+    candidates = evidence.candidate_views or []
+    captured += [(candidates[c].camera, {e: share for e, (share, _) in seen(candidates[c]).items()}) for c in picked]
+    # Per target t: element id -> (pixels it fills in t, its point, n_t(u)).
+    targets = [(t.camera, {int(e): (float(w), p, math.prod(1.0 - by[int(e)] * near(p, t.camera, cam)
+                                                           for cam, by in captured if int(e) in by))
+                           for e, w, p in zip(t.elements, t.weight, t.points)})
                for t in evidence.target_views or []]
+    scale = reference_fragility(evidence, fragility)
     values = []
-    for vis in evidence.candidate_views or []:
+    for c, vis in enumerate(candidates):
         fills = {int(e): float(w) for e, w in zip(vis.elements, vis.weight)}
         total = 0.0
         for element, (share, point) in seen(vis).items():
             if evidence.target_views is None:
-                weight = fills[element]
-            else:
-                weight = share * sum(pixels.get(element, 0.0) * near(point, vis.camera, cam)
-                                     for cam, pixels in targets) / len(targets)
-            novelty = math.prod(1.0 - by[element] * near(point, vis.camera, cam)
-                                for cam, by in captured if element in by)
-            total += weight * novelty
-        values.append(total + EMPTY_WEIGHT * vis.empty * reference_axis_novelty(vis, evidence.captured_views or []))
+                novelty = math.prod(1.0 - by[element] * near(point, vis.camera, cam)
+                                    for cam, by in captured if element in by)
+                total += fills[element] * novelty
+                continue
+            for target, shows in targets:
+                if element in shows:
+                    pixels, at, novelty = shows[element]
+                    total += pixels * novelty * share * near(at, target, vis.camera) * scale[c][element]
+        if evidence.target_views is None:
+            total += EMPTY_WEIGHT * vis.empty * reference_axis_novelty(vis, evidence.captured_views or [])
+        values.append(total)
     return values
 
 
@@ -107,6 +123,88 @@ def test_coverage_values_follow_the_formula_element_by_element(targets: list | N
     evidence = visibility_evidence(renderer, candidates, captured, targets)
     scores = get_strategy("visibility").select(evidence, 0, 0).scores       # k = 0: every value before a pick
     assert scores == pytest.approx(reference_values(evidence), rel=1e-9, abs=1e-9)
+
+
+def ring_evidence() -> Evidence:
+    """Ring candidates (and two twins above) around a cluster of splats, three captured views below,
+    targets on a lower ring; with PH-Dropout statistics, so fragility has its zeta."""
+    renderer = GaussianRenderer(svc_random_gaussians(400, seed=3))
+    candidates = ring_cameras(8, size=20, radius=3.0, height=0.8)
+    candidates += [look_at((0.3, 0.2, 3.5), (0, 0, 0), (0, 1, 0), width=20, height=20, fov_x=0.7)] * 2
+    captured = ring_cameras(3, size=20, radius=3.5, height=-0.5)
+    targets = [look_at((2.5 * math.cos(a), 2.5 * math.sin(a), 0.3), (0, 0, 0), (0, 0, 1), width=20, height=20,
+                       fov_x=0.7) for a in (0.3, 1.1, 1.9, 4.0)]
+    return candidate_evidence(renderer, candidates, ratio=0.4, samples=4, captured=captured, visibility=True,
+                              targets=targets)[0]
+
+
+@pytest.mark.parametrize("name", ["visibility", "visibility_sigma"])
+def test_target_gains_follow_the_formula_with_and_without_fragility(name: str) -> None:
+    evidence = ring_evidence()
+    scores = get_strategy(name).select(evidence, 0, 0).scores
+    expected = reference_values(evidence, fragility=name == "visibility_sigma")
+    assert min(expected) >= 0 and max(expected) > 0
+    assert scores == pytest.approx(expected, rel=1e-9, abs=1e-12)
+
+
+@pytest.mark.parametrize("name", COVERAGE)
+def test_the_lazy_greedy_on_targets_picks_what_a_full_scan_greedy_does(name: str) -> None:
+    """Every candidate rescored from scratch (the reference formula) after every pick, the best
+    (lowest index on ties) counted as captured, against the strategy's lazy greedy."""
+    evidence = ring_evidence()
+    fragility, spread = name != "visibility", name == "visibility_sigma_fvs"
+    centre = torch.stack([c.center for c in evidence.candidates])
+    nearest = [min(float((c - o.center).norm()) for o in evidence.captured) if spread else 1.0 for c in centre]
+    floor = SPREAD_FLOOR * sum(nearest) / len(nearest)
+
+    def values(picked: list[int]) -> list[float]:
+        return [v * max(d, floor) for v, d in zip(reference_values(evidence, fragility, picked), nearest)]
+    picks = 5
+    order: list[int] = []
+    for _ in range(picks):
+        now = values(order)
+        best = max((c for c in range(len(now)) if c not in order), key=lambda c: (now[c], -c))
+        order.append(best)
+        if spread:
+            nearest = [min(d, float((c - centre[best]).norm())) for d, c in zip(nearest, centre)]
+    lazy = get_strategy(name).select(evidence, picks, 0)
+    assert lazy.order[:picks] == order
+    assert not {8, 9} <= set(order[:2])                        # the twins above never share a batch
+    after = values(order)
+    rest = lazy.order[picks:]
+    assert [lazy.scores[c] for c in rest] == pytest.approx([after[c] for c in rest], rel=1e-9, abs=1e-12)
+
+
+def wall() -> GaussianRenderer:
+    """A long wall of splats along x (y = 0), 2 high."""
+    x, z = torch.meshgrid(torch.linspace(-10, 10, 81, dtype=torch.float64),
+                          torch.linspace(-1, 1, 9, dtype=torch.float64), indexing="ij")
+    return GaussianRenderer(splats([torch.stack([x.reshape(-1), torch.zeros(x.numel(), dtype=torch.float64),
+                                                 z.reshape(-1)], 1)], 0.15))
+
+
+def along(x: float, y: float = -5.0, look: float | None = None) -> Camera:
+    """A camera on the path y = const, looking at the wall at x (or at `look`)."""
+    return look_at((x, y, 0.0), (x if look is None else look, 0.0, 0.0), width=SIZE, height=SIZE, fov_x=0.8)
+
+
+@pytest.mark.parametrize("name", COVERAGE)
+def test_the_candidate_that_fixes_the_target_views_wins_over_one_that_sees_their_parts_anew(name: str) -> None:
+    """Targets along one side of a path: a dense run over a stretch the captured views already show
+    from the targets' direction, and one target where nothing was captured. The path's end
+    looking obliquely at the dense run sees much of what the targets show, from a direction no
+    captured view took; the candidate in front of the lone target fixes what the targets lack.
+    Counting novelty from the candidate's direction (the design before, `target_weights`) took
+    the path's end; counting it from the targets' directions takes the one that fixes them."""
+    renderer = wall()
+    captured = [along(1.0), along(3.0)]
+    targets = [along(0.25 * i, -4.0) for i in range(17)] + [along(7.0, -4.0)]
+    candidates = [along(-2.0, look=2.0), along(7.0), along(6.0, look=2.0)]
+    evidence = visibility_evidence(renderer, candidates, captured, targets)
+    selection = get_strategy(name).select(evidence, 0, 0)
+    assert selection.order[0] == 1
+    values = reference_values(evidence)
+    assert values[1] > 3 * max(values[0], values[2])      # by a wide margin: the covered stretch is fixed already
 
 
 def test_without_targets_a_ranking_is_the_one_made_before_targets_existed() -> None:

@@ -24,7 +24,7 @@ class Evidence:
     """What a strategy may use. Distances are between camera centres, in scene units; the
     views' Visibility (one render of the full model each) when the strategy uses it and the
     model's family can report it. Target views, when the caller knows where the model will be
-    looked at from, weight the coverage strategies' elements (`strategies.visibility`)."""
+    looked at from, make the coverage strategies value what a candidate fixes in them (`strategies.targets`)."""
 
     candidates: list[Camera]      # [C] poses to choose from
     captured: list[Camera]        # [T] poses the model was trained on (may be empty)

@@ -14,10 +14,7 @@ shows elements no captured view saw from a nearby direction:
   counts as seen by v, one hidden behind an occluder does not;
 - near(a, b) = exp(-(1 - cos angle(a, b)) / ANGLE_SCALE): directions from the element to
   the two cameras (1 for the same direction, 0.37 at 60 degrees, 0.14 at 90);
-- weight(u, c): pixels of c's image that u fills (alpha times transmittance, summed); with
-  target views (where the model will be looked at from, `target_weights`), the target pixels
-  u fills seen from a direction near c's, per target view, times how fully c sees u: a
-  candidate is worth what it fixes in those views;
+- weight(u, c): pixels of c's image that u fills (alpha times transmittance, summed);
 - fragility (with dropout, `visibility_sigma`): 1 + mean zeta on u's pixels / the mean of
   that over every candidate, so a well-seen part the model holds fragilely still counts;
   1 without dropout (`visibility`);
@@ -29,6 +26,10 @@ its centre to the nearest captured (or already picked) centre, as farthest-view 
 ranks: on the benchmark (docs/nbv.md) the model's coverage alone was level with FVS on the
 object scenes, where every part is seen from some direction early on and what is left is
 how evenly the views surround it; the product is ahead of FVS on all four scenes.
+
+Told the target views (where the model will be looked at from), a candidate is worth what it
+fixes in those views instead: the novelty of each element from each target's direction, and
+how much the candidate lowers it (`strategies.targets`).
 
 Batches are greedy with real conditioning: each pick is counted as captured (its own
 visibility multiplies the novelty of every element it sees) before the next is scored, so
@@ -90,10 +91,7 @@ class Coverage:
     retired.
     """
 
-    def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE,
-                 weights: list[Tensor] | None = None):
-        """weights: [C] each candidate's [K_c] weight per element in place of the pixels it fills
-        (`target_weights`); None: the pixels."""
+    def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE):
         self.angle_scale = angle_scale
         self.union = torch.unique(torch.cat([v.elements for v in candidates]))
         self.size = len(self.union)
@@ -110,7 +108,7 @@ class Coverage:
             index[part] = torch.searchsorted(self.union, vis.elements)
             self.points[index[part]] = vis.points
             dirs[part] = directions(vis.points, vis.camera.center)
-            weight[part] = vis.weight if weights is None else weights[c]
+            weight[part] = vis.weight
             if fragility and reference > 0 and vis.valued is not None:
                 weight[part] *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
         order = torch.argsort(index, stable=True)          # by element, then candidate
@@ -242,30 +240,6 @@ def seen_share(vis: Visibility | Seen) -> Tensor:
     return (vis.visible_share / SEEN_SHARE).clamp_max(1.0)
 
 
-def target_weights(candidates: list[Visibility], targets: list[Visibility],
-                   angle_scale: float = ANGLE_SCALE) -> list[Tensor]:
-    """[C] each candidate's [K_c] float64 weight per element when the model will be looked at from
-    `targets`: the pixels the element fills in the target views (occlusion included), each target
-    counted by how near its direction to the element is to the candidate's, averaged over the
-    targets, times how fully the candidate sees the element (`seen_share`). An element no target
-    shows is worth nothing, however much of a candidate's image it fills."""
-    counts = [len(v.elements) for v in candidates]
-    elements = torch.cat([v.elements for v in candidates])                         # [S]
-    points = torch.cat([v.points for v in candidates])                             # [S, 3]
-    dirs = torch.cat([directions(v.points, v.camera.center) for v in candidates])  # [S, 3]
-    size = 1 + max((int(v.elements.max()) for v in [*candidates, *targets] if len(v.elements)), default=-1)
-    shown = torch.zeros(len(elements), dtype=torch.float64)                        # [S]
-    for target in targets:
-        pixels = torch.zeros(size, dtype=torch.float64)
-        pixels[target.elements] = target.weight
-        hit = pixels[elements]
-        entries = (hit > 0).nonzero().squeeze(1)
-        toward = directions(points[entries], target.camera.center)
-        shown[entries] += hit[entries] * near(dirs[entries], toward, angle_scale)
-    shown /= max(len(targets), 1)
-    return list((shown * torch.cat([seen_share(v) for v in candidates])).split(counts))
-
-
 def _mean_zeta(views: list[Visibility]) -> float:
     """Mean zeta per pixel of model weight over every candidate (the fragility scale)."""
     valued = sum(float(v.valued.sum()) for v in views if v.valued is not None)
@@ -276,7 +250,7 @@ def _mean_zeta(views: list[Visibility]) -> float:
 def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: float = ANGLE_SCALE,
                     spread: bool = False) -> Selection:
     """Greedy batch by coverage (module docstring); the rest follow by their value after it.
-    With the evidence's target views, each element is weighted by what they show of it.
+    With the evidence's target views, a candidate's value is what it fixes in them (`strategies.targets`).
     spread: each value times the distance from the candidate's centre to the nearest captured
     (or picked) one, as farthest-view sampling weighs (`visibility_sigma_fvs`), at least
     SPREAD_FLOOR of the candidates' mean distance: cameras at a captured centre looking
@@ -284,9 +258,12 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: fl
     count = len(evidence.candidates)
     if evidence.candidate_views is None or evidence.captured_views is None:
         return FVS_SIGMA_FLOOR.select(evidence, k, 0)
-    weights = (target_weights(evidence.candidate_views, evidence.target_views, angle_scale)
-               if evidence.target_views is not None else None)
-    coverage = Coverage(evidence.candidate_views, fragility, angle_scale, weights)
+    # targets.py builds on this module's Coverage, so it is imported where it is used
+    from .targets import TargetGain
+
+    coverage: Coverage | TargetGain = (
+        TargetGain(evidence.candidate_views, evidence.target_views, fragility, angle_scale)
+        if evidence.target_views is not None else Coverage(evidence.candidate_views, fragility, angle_scale))
     for vis in evidence.captured_views:
         coverage.capture(vis)
     cand = centres(evidence.candidates)                                         # [C, 3]

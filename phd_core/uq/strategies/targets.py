@@ -1,0 +1,89 @@
+"""Next-best view for target views: a candidate is worth what it fixes in the views the model will be looked at from.
+
+Given target views (a walkthrough, a turntable ring, the views a robot will plan from), every
+element u a target t shows is one target entry (t, u) with a weight, the pixels u fills in t
+(occlusion included, `Visibility.weight`), and a novelty: how badly the captured views cover u
+from the direction t looks at it,
+
+    n_t(u) = prod over captured (and already picked) v of (1 - seen(u, v) * near(dir(u, t), dir(u, v)))
+
+(`Coverage` over the target views, the targets in the role it gives candidates: `seen`, `near`
+as in `strategies.visibility`). A candidate c's value is how much capturing it would lower the
+targets' weighted novelty:
+
+    gain(c) = sum over u that c sees, over target entries (t, u) of
+              weight_t(u) * n_t(u) * seen(u, c) * near(dir(u, t), dir(u, c)) * fragility(u, c)
+
+fragility (with dropout, `visibility_sigma`) as in `strategies.visibility`: 1 + mean zeta on
+u's pixels in c / the mean of that over every candidate; 1 without dropout. An element no
+target shows is worth nothing, and space the model has nothing in (the untargeted ranking's
+empty-box term) is not counted. Capturing c multiplies each n_t(u) by exactly the factor the
+gain sums the loss of, so gains only fall as views are picked (submodular): the lazy greedy of
+`coverage_select` is exact. Unlike the untargeted value, this one counts a candidate by the
+directions the targets look from, so candidates near where the model will be looked at win
+over the far ends of the capture that farthest-view spreading reaches for (docs/nbv.md).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+from ...renderers.visibility import Seen, Visibility
+from .visibility import ANGLE_SCALE, Coverage, _mean_zeta, directions, seen_share
+
+
+class TargetGain:
+    """Each candidate's gain on the target views (module docstring), conditioned on every view counted as captured."""
+
+    def __init__(self, candidates: list[Visibility], targets: list[Visibility], fragility: bool,
+                 angle_scale: float = ANGLE_SCALE):
+        self.angle_scale = angle_scale
+        self.targets = Coverage(targets, fragility=False, angle_scale=angle_scale)   # n_t(u), weight_t(u)
+        reference = _mean_zeta(candidates) if fragility else 0.0
+        # Per candidate, the elements it sees that some target shows: their union ids [K], the
+        # directions from each to the candidate [K, 3] and seen(u, c) * fragility(u, c) [K].
+        self.entries: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = []
+        union = self.targets.union
+        for vis in candidates:
+            scale = seen_share(vis)
+            if fragility and reference > 0 and vis.valued is not None:
+                scale = scale * (1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference)
+            shown = torch.isin(vis.elements, union) & (scale > 0)
+            self.entries.append((torch.searchsorted(union, vis.elements[shown]).numpy(),
+                                 directions(vis.points[shown], vis.camera.center).numpy(), scale[shown].numpy()))
+
+    def capture(self, vis: Visibility | Seen) -> None:
+        """Count `vis` as captured: the targets' novelty of every element it saw falls."""
+        self.targets.capture(vis)
+
+    def retire(self, c: int) -> None:
+        """Candidate c is out of play (picked): its entries go."""
+        self.entries[c] = None
+
+    def value(self, c: int) -> float:
+        """How much capturing candidate c would lower the targets' weighted novelty (module docstring)."""
+        entries = self.entries[c]
+        assert entries is not None, f"candidate {c} was retired"
+        element, toward, scale = entries
+        t = self.targets
+        return _gain(element, toward, scale, t.first.numpy(), t.dirs.numpy(), t.weight.numpy(), t.novelty.numpy(),
+                     self.angle_scale)
+
+
+@numba.njit(cache=True, nogil=True)
+def _gain(element, toward, scale, first, dirs, weight, novelty, angle_scale):  # pragma: no cover
+    """Sum over a candidate's elements k (union id element[k], direction toward[k] to the candidate,
+    seen share times fragility scale[k]) and over the target entries e of that element of
+    weight[e] * novelty[e] * scale[k] * near(dirs[e], toward[k]). The same terms in the same order
+    on every call, so a gain computed later (novelties only fall) is never larger."""
+    total = 0.0
+    for k in range(len(element)):
+        u = element[k]
+        part = 0.0
+        for e in range(first[u], first[u + 1]):
+            dot = dirs[e, 0] * toward[k, 0] + dirs[e, 1] * toward[k, 1] + dirs[e, 2] * toward[k, 2]
+            part += weight[e] * novelty[e] * np.exp(-(1.0 - dot) / angle_scale)
+        total += scale[k] * part
+    return total
