@@ -1,8 +1,9 @@
-"""Target views: where the model will be looked at from weights what the coverage strategies value.
+"""Target views: told where the model will be looked at from, a candidate is worth what it fixes in those views.
 
 On hand-built splat scenes (the open box of test_visibility_strategy: walls around a cluster
-that only a view from above sees), checked against a per-element float64 evaluation of the
-documented formula and through `rank_views`."""
+that only a view from above sees; a ring around a splat cluster; a wall along a path), checked
+against a per-element float64 evaluation of the documented formula, a full-scan greedy and
+through `rank_views`."""
 
 from __future__ import annotations
 
