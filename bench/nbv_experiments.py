@@ -15,6 +15,8 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
 - visibility_sigma_angle0.25: visibility_sigma with a sharper direction kernel (`near` falls
   to 1/e at 41 degrees, not 60): a part's value follows its nearest captured direction more
   than the sum over all of them.
+- visibility_fvs: the default without the fragility weighting (visibility times the distance
+  factor), tried told the target views to measure what fragility adds to the target gain.
 - visibility_sigma_fvs_angle0.25: the default with that sharper kernel, tried told the
   target views (`+targets`): with the default kernel the captured views cover most of what
   the targets show after 4 views, so the distance factor decides.
@@ -65,11 +67,15 @@ def _k_median_strategy(demand: Callable[[Evidence], Tensor], power: int) -> Call
 
 
 EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma_top", "sigma_area", "fvs_top",
-               "visibility_sigma_angle0.25", "visibility_sigma_fvs_angle0.25")
+               "visibility_sigma_angle0.25", "visibility_sigma_fvs_angle0.25", "visibility_fvs")
 
 
 def _visibility_sharp(evidence: Evidence, k: int, seed: int) -> Selection:
     return coverage_select(evidence, k, fragility=True, angle_scale=0.25)
+
+
+def _visibility_fvs(evidence: Evidence, k: int, seed: int) -> Selection:
+    return coverage_select(evidence, k, fragility=False, spread=True)
 
 
 def _visibility_fvs_sharp(evidence: Evidence, k: int, seed: int) -> Selection:
@@ -91,5 +97,7 @@ for _strategy in (
         Strategy("visibility_sigma_angle0.25", "visibility_sigma with the direction kernel at 0.25",
                  _visibility_sharp, uses_visibility=True),
         Strategy("visibility_sigma_fvs_angle0.25", "visibility_sigma_fvs with the direction kernel at 0.25",
-                 _visibility_fvs_sharp, uses_visibility=True)):
+                 _visibility_fvs_sharp, uses_visibility=True),
+        Strategy("visibility_fvs", "visibility_sigma_fvs without the fragility weighting", _visibility_fvs,
+                 uses_dropout=False, uses_visibility=True)):
     STRATEGIES.register(_strategy)
