@@ -82,10 +82,11 @@ KEPT_ELEMENT_BYTES = 56
 SEEN_ELEMENT_BYTES = 16
 # A strategy's working copy of a candidate's element (`phd_core.uq.strategies.visibility.Coverage`):
 # index, direction, weight, novelty, owner and its place in the by-element list (8 + 24 + 4 x 8), and
-# per element of the union (at most every listed element) its id, point and first entry (8 + 24 + 8)
-# and the sort that lists entries by element (16): 120. Counting a view as captured works on at most
-# CAPTURE_CHUNK entries at once, about COVERAGE_CAPTURE_BYTES whatever the views.
-COVERAGE_ELEMENT_BYTES = 120
+# per element of the union (at most every listed element) its id, point, first entry and the number
+# of views a capture counts for it (8 + 24 + 8 + 8) and the sort that lists entries by element (16): 128.
+# Counting views as captured works on at most CAPTURE_CHUNK (element, view) pairs and as many
+# entry-by-pair products at once, about COVERAGE_CAPTURE_BYTES whatever the views.
+COVERAGE_ELEMENT_BYTES = 128
 COVERAGE_CAPTURE_BYTES = 16 << 20
 # A captured view's Seen keeps ids and shares (8 + 8); stored, they take 12 bytes an element.
 # Reading the entry holds the file's bytes, the tensors read and the ids widened (12 + 12 + 8):
