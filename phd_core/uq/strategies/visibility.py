@@ -73,7 +73,8 @@ def viewing_axis(vis: Visibility | Seen) -> Tensor:
     return -vis.camera.c2w[:3, 2].double()
 
 
-CAPTURE_CHUNK = 1 << 16  # (element, view) pairs, then entry x pair products, a capture handles at once (~10 MB)
+CAPTURE_CHUNK = 1 << 16          # (element, view) pairs, then entry x pair products, a capture handles at once (~10 MB)
+CAPTURE_VIEW_ELEMENTS = 1 << 19  # listed elements of the views a capture reads at once (~8 MB)
 
 
 class Coverage:
@@ -161,28 +162,39 @@ class Coverage:
 
     def capture(self, *views: Visibility | Seen) -> None:
         """Count `views` as captured, in order: every candidate's novelty of the elements they saw falls."""
-        if not views:
-            return
-        elements = numba.typed.List([np.ascontiguousarray(v.elements.numpy(), dtype=np.int64) for v in views])
-        visible = numba.typed.List([np.ascontiguousarray(v.visible_share.numpy(), dtype=np.float64) for v in views])
-        if self.size:
-            counts = np.zeros(self.size, dtype=np.int64)         # [U] views that saw each union element
-            _count_pairs(self.union.numpy(), elements, visible, counts)
-            centres = torch.stack([v.camera.center.double() for v in views])             # [V, 3]
-            resume = np.zeros(len(views), dtype=np.int64)          # where each view's walk goes on
-            ends = np.cumsum(counts)
-            begin = 0
-            while begin < self.size:   # union elements begin..end-1: at most CAPTURE_CHUNK pairs, or one element
-                done = int(ends[begin - 1]) if begin else 0
-                end = max(begin + 1, int(np.searchsorted(ends, done + CAPTURE_CHUNK, side="right")))
-                self._capture(elements, visible, centres, begin, end, counts[begin:end], resume)
-                begin = end
+        start = 0
+        while start < len(views):     # consecutive views of at most CAPTURE_VIEW_ELEMENTS elements (or one view)
+            stop, listed = start + 1, len(views[start].elements)
+            while stop < len(views) and listed + len(views[stop].elements) <= CAPTURE_VIEW_ELEMENTS:
+                listed += len(views[stop].elements)
+                stop += 1
+            if self.size:
+                self._capture_views(views[start:stop])
+            start = stop
         for vis in views:
             axis_near = near(self.axes, viewing_axis(vis), self.angle_scale).tolist()
             self.axis_novelty = [n * (1.0 - a) for n, a in zip(self.axis_novelty, axis_near)]
 
-    def _capture(self, elements: numba.typed.List, visible: numba.typed.List, centres: Tensor, begin: int, end: int,
-                 counts: np.ndarray, resume: np.ndarray) -> None:
+    def _capture_views(self, views: Sequence[Visibility | Seen]) -> None:
+        """The novelty update of some consecutive views, by chunks of union elements that hold at
+        most CAPTURE_CHUNK (element, view) pairs (or one element)."""
+        ids = torch.cat([v.elements for v in views]).long().numpy()                  # [K] each view's ascending
+        visible = torch.cat([v.visible_share for v in views]).double().numpy()       # [K]
+        view_ptr = np.cumsum([0] + [len(v.elements) for v in views])                 # [V + 1]
+        counts = np.zeros(self.size, dtype=np.int64)             # [U] views that saw each union element
+        _count_pairs(self.union.numpy(), ids, visible, view_ptr, counts)
+        centres = torch.stack([v.camera.center.double() for v in views])             # [V, 3]
+        resume = view_ptr[:-1].copy()                            # where each view's walk goes on
+        ends = np.cumsum(counts)
+        begin = 0
+        while begin < self.size:
+            done = int(ends[begin - 1]) if begin else 0
+            end = max(begin + 1, int(np.searchsorted(ends, done + CAPTURE_CHUNK, side="right")))
+            self._capture_chunk(ids, visible, view_ptr, centres, begin, end, counts[begin:end], resume)
+            begin = end
+
+    def _capture_chunk(self, ids: np.ndarray, visible: np.ndarray, view_ptr: np.ndarray, centres: Tensor,
+                       begin: int, end: int, counts: np.ndarray, resume: np.ndarray) -> None:
         """The novelty update for union elements begin..end-1 ([end - begin] pairs each in `counts`):
         their (element, view) pairs grouped by element in the views' order, then each entry times
         (1 - seen share * near) for each pair, compiled except the exp, which is torch's as
@@ -191,7 +203,7 @@ class Coverage:
         np.cumsum(counts, out=ptr[1:])
         view = np.empty(int(ptr[-1]), dtype=np.int64)                               # [P]
         share = np.empty(int(ptr[-1]))                                              # [P]
-        _gather_pairs(self.union.numpy(), elements, visible, begin, end, resume, ptr, view, share)
+        _gather_pairs(self.union.numpy(), ids, visible, view_ptr, begin, end, resume, ptr, view, share)
         element = torch.repeat_interleave(torch.arange(begin, end), torch.from_numpy(counts))
         toward = directions(self.points[element], centres[torch.from_numpy(view)]).T.contiguous().numpy()  # [3, P]
         room = max(CAPTURE_CHUNK, len(self.ids))      # an element has at most one entry per candidate
@@ -224,39 +236,37 @@ class Coverage:
 
 
 @numba.njit(cache=True, nogil=True)
-def _count_pairs(union, elements, visible, counts):  # pragma: no cover
-    """counts[u] += 1 for each view (ids [K] ascending, visible shares [K]) that saw union element u
-    (a share above 0), by a merge of the two ascending lists."""
-    for j in range(len(elements)):
-        ids, shares = elements[j], visible[j]
+def _count_pairs(union, ids, visible, view_ptr, counts):  # pragma: no cover
+    """counts[u] += 1 for each view (its ascending ids[view_ptr[j]:view_ptr[j + 1]], and their
+    visible shares) that saw union element u with a share above 0, by a merge of two ascending lists."""
+    for j in range(len(view_ptr) - 1):
         u = 0
-        for i in range(len(ids)):
+        for i in range(view_ptr[j], view_ptr[j + 1]):
             while u < len(union) and union[u] < ids[i]:
                 u += 1
             if u == len(union):
                 break
-            if union[u] == ids[i] and shares[i] > 0:
+            if union[u] == ids[i] and visible[i] > 0:
                 counts[u] += 1
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather_pairs(union, elements, visible, begin, end, resume, ptr, view, share):  # pragma: no cover
+def _gather_pairs(union, ids, visible, view_ptr, begin, end, resume, ptr, view, share):  # pragma: no cover
     """The (element, view) pairs of union elements begin..end-1, grouped by element (element
     begin + i's at ptr[i]:ptr[i + 1]), the views in order: the view and its seen share,
-    min(1, visible share / SEEN_SHARE) as `seen_share`. resume[j]: where view j's ascending ids
-    are read on from (the chunks come in order)."""
+    min(1, visible share / SEEN_SHARE) as `seen_share`. resume[j]: where view j's ids are read
+    on from (the chunks come in order)."""
     fill = ptr[:-1].copy()
     last = union[end - 1]
-    for j in range(len(elements)):
-        ids, shares = elements[j], visible[j]
+    for j in range(len(view_ptr) - 1):
         i, u = resume[j], begin
-        while i < len(ids) and ids[i] <= last:
+        while i < view_ptr[j + 1] and ids[i] <= last:
             while union[u] < ids[i]:
                 u += 1
-            if union[u] == ids[i] and shares[i] > 0:
+            if union[u] == ids[i] and visible[i] > 0:
                 k = fill[u - begin]
                 view[k] = j
-                share[k] = min(shares[i] / SEEN_SHARE, 1.0)
+                share[k] = min(visible[i] / SEEN_SHARE, 1.0)
                 fill[u - begin] = k + 1
             i += 1
         resume[j] = i
