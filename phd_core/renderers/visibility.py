@@ -82,13 +82,14 @@ KEPT_ELEMENT_BYTES = 56
 SEEN_ELEMENT_BYTES = 16
 # A strategy's working copy of a candidate's element (`phd_core.uq.strategies.visibility.Coverage`):
 # index, direction, weight, novelty, owner and its place in the by-element list (8 + 24 + 4 x 8), and
-# per element of the union (at most every listed element) its id, point, first entry and the number
-# of views a capture counts for it (8 + 24 + 8 + 8) and the sort that lists entries by element (16): 128.
+# per element of the union (at most every listed element) its id, point and first entry (8 + 24 + 8)
+# and either the sort that lists entries by element (16, while the list is made) or the number of
+# views a capture counts for the element and their running sum (16, while views are counted): 120.
 # Counting views as captured reads at most CAPTURE_VIEW_ELEMENTS of their listed elements at once (ids
 # and shares: 8 MB) and works on at most CAPTURE_CHUNK (element, view) pairs (their views, shares,
 # points, camera centres and directions: 10 MB) and as many entry-by-pair products (1 MB) at once:
 # COVERAGE_CAPTURE_BYTES whatever the views.
-COVERAGE_ELEMENT_BYTES = 128
+COVERAGE_ELEMENT_BYTES = 120
 COVERAGE_CAPTURE_BYTES = 20 << 20
 # A captured view's Seen keeps ids and shares (8 + 8); stored, they take 12 bytes an element.
 # Reading the entry holds the file's bytes, the tensors read and the ids widened (12 + 12 + 8):
