@@ -208,10 +208,12 @@ class Coverage:
         toward = directions(self.points[element], centres[torch.from_numpy(view)]).T.contiguous().numpy()  # [3, P]
         room = max(CAPTURE_CHUNK, len(self.ids))      # an element has at most one entry per candidate
         exponent = np.empty(room)
+        scratch = np.empty((3, len(self.ids)))
         first, dirs = self.first.numpy(), self.dirs.numpy()
         u, q = begin, 0
         while u < end:
-            stop_u, stop_q, count = _exponents(begin, end, ptr, toward, first, dirs, self.angle_scale, u, q, exponent)
+            stop_u, stop_q, count = _exponents(begin, end, ptr, toward, first, dirs, self.angle_scale, u, q, exponent,
+                                                 scratch)
             similar = torch.exp(torch.from_numpy(exponent[:count])).numpy()           # near(), in torch
             _lower(begin, u, q, stop_u, stop_q, ptr, share, first, similar, self.novelty.numpy(),
                    self.owner.numpy(), self.changed.numpy())
@@ -273,12 +275,13 @@ def _gather_pairs(union, ids, visible, view_ptr, begin, end, resume, ptr, view, 
 
 
 @numba.njit(cache=True, nogil=True)
-def _exponents(begin, end, ptr, toward, first, dirs, scale, u, q, exponent):  # pragma: no cover
+def _exponents(begin, end, ptr, toward, first, dirs, scale, u, q, exponent, scratch):  # pragma: no cover
     """From union element u's pair q on, while the buffer holds them: near()'s exponent,
     -(1 - dir . toward) / scale (the same float operations as `near`), for each of the
     element's pairs in order against each of its entries. Returns the element and pair it
     stopped at and the exponents listed. (The loops run over contiguous slices with the
-    loop-invariant values in registers, which the compiler turns into vector instructions.)"""
+    loop-invariant values in registers, which the compiler turns into vector instructions;
+    scratch [3, R], R at least any element's entries, holds an element's directions by axis.)"""
     m = 0
     while u < end:
         run = first[u + 1] - first[u]
@@ -290,8 +293,9 @@ def _exponents(begin, end, ptr, toward, first, dirs, scale, u, q, exponent):  # 
         if fit == 0:
             break
         stop = min(p1, p0 + q + fit)
-        d = dirs[first[u]:first[u + 1]].T.copy()                     # [3, run] the entries' directions
-        x, y, z = d[0], d[1], d[2]
+        x, y, z = scratch[0, :run], scratch[1, :run], scratch[2, :run]      # the entries' directions
+        for e in range(run):
+            x[e], y[e], z[e] = dirs[first[u] + e, 0], dirs[first[u] + e, 1], dirs[first[u] + e, 2]
         for p in range(p0 + q, stop):
             tx, ty, tz = toward[0, p], toward[1, p], toward[2, p]
             out = exponent[m:m + run]
