@@ -86,11 +86,11 @@ class Coverage:
     camera, its weight (pixels it fills times its fragility), its novelty and its candidate
     (`owner`); a candidate's entries are at `where[c]`, ascending. Counting views as captured
     goes element by element: each entry's novelty is multiplied by the factors of every view that
-    saw its element, in the views' order, while it sits in a register (the same products, in the
-    same order, as one view at a time, which walked every entry once per view). A candidate's value is summed
-    again only when it is asked for after a capture changed it (`updates` counts those sums): a
-    lazy greedy asks for few. A candidate `retire`d (picked) leaves the list once half of it is
-    retired.
+    saw its element, in the views' order (the same products in the same order as counting one
+    view at a time, which walked every entry once per view, out of cache). A candidate's value is
+    summed again only when it is asked for after a capture changed it (`updates` counts those
+    sums): a lazy greedy asks for few. A candidate `retire`d (picked) leaves the list once half of
+    it is retired.
     """
 
     def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE,
