@@ -146,36 +146,41 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, index: Tensor, units: Te
 
     row_ptr [S + 1]: the fragments of row s are row_ptr[s]:row_ptr[s + 1], front to back;
     alpha [E]; fragment e belongs to element units[index[e]] (index [E] of any integer type,
-    units [V] long in [0, num_elements)): the lists a prepared view keeps, walked in place, with
-    no per-fragment array made for the pass; row_values [S] (e.g. zeta) or None.
+    units [V] distinct, in [0, num_elements)): the lists a prepared view keeps, walked in place,
+    with no per-fragment array made for the pass; row_values [S] (e.g. zeta) or None.
     """
-    rows = len(row_ptr) - 1
-    weight, footprint = np.zeros(num_elements), np.zeros(num_elements)
-    valued = np.zeros(num_elements if row_values is not None else 0)
+    rows, listed = len(row_ptr) - 1, len(units)
+    weight, footprint = np.zeros(listed), np.zeros(listed)                 # [V] by listed unit, then spread
+    valued = np.zeros(listed if row_values is not None else 0)
     left = np.empty(rows)
     values = (row_values.double().contiguous().numpy() if row_values is not None else np.zeros(0))
     _visibility_kernel(row_ptr.long().contiguous().numpy(), alpha.detach().contiguous().numpy(),
-                       index.contiguous().numpy(), units.long().contiguous().numpy(), values, weight, footprint,
-                       valued, left)
-    return FragmentSums(weight=torch.from_numpy(weight), footprint=torch.from_numpy(footprint),
-                        valued=None if row_values is None else torch.from_numpy(valued),
-                        left=torch.from_numpy(left))
+                       index.contiguous().numpy(), values, weight, footprint, valued, left)
+    units = units.long()
+
+    def spread(sums: np.ndarray) -> Tensor:
+        out = torch.zeros(num_elements, dtype=torch.float64)
+        out[units] = torch.from_numpy(sums)
+        return out
+    return FragmentSums(weight=spread(weight), footprint=spread(footprint),
+                        valued=None if row_values is None else spread(valued), left=torch.from_numpy(left))
 
 
 @numba.njit(cache=True, nogil=True)
-def _visibility_kernel(row_ptr, alpha, index, units, row_values, weight, footprint, valued,
-                       left):  # pragma: no cover
-    """Per row, front to back: every fragment adds its alpha to its element's footprint; until
+def _visibility_kernel(row_ptr, alpha, index, row_values, weight, footprint, valued, left):  # pragma: no cover
+    """Per row, front to back: every fragment adds its alpha to its unit's footprint; until
     the fragment that would bring the row's transmittance below T_MIN, it adds alpha times the
     transmittance in front of it to the weight (and times row_values[s] to valued, when given).
-    left[s]: the row's transmittance after its used fragments. Serial: rows share elements."""
+    Sums by listed unit (index[e]: the view's few visible units, not the model's, so the sums
+    stay in cache). left[s]: the row's transmittance after its used fragments. Serial: rows
+    share units."""
     with_values = len(row_values) > 0
     for s in range(len(row_ptr) - 1):
         log_t = 0.0
         used = True
         for e in range(row_ptr[s], row_ptr[s + 1]):
             a = np.float64(alpha[e])
-            u = units[index[e]]
+            u = index[e]
             footprint[u] += a
             if used:
                 after = log_t + np.log1p(-a)
