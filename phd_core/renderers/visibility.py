@@ -146,8 +146,8 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, index: Tensor, units: Te
 
     row_ptr [S + 1]: the fragments of row s are row_ptr[s]:row_ptr[s + 1], front to back;
     alpha [E]; fragment e belongs to element units[index[e]] (index [E] of any integer type,
-    units [V] distinct, in [0, num_elements)): the lists a prepared view keeps, walked in place,
-    with no per-fragment array made for the pass; row_values [S] (e.g. zeta) or None.
+    units [V] long in [0, num_elements)): the lists a prepared view keeps, walked in place, with
+    no per-fragment array made for the pass; row_values [S] (e.g. zeta) or None.
     """
     rows, listed = len(row_ptr) - 1, len(units)
     weight, footprint = np.zeros(listed), np.zeros(listed)                 # [V] by listed unit, then spread
@@ -158,10 +158,8 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, index: Tensor, units: Te
                        index.contiguous().numpy(), values, weight, footprint, valued, left)
     units = units.long()
 
-    def spread(sums: np.ndarray) -> Tensor:
-        out = torch.zeros(num_elements, dtype=torch.float64)
-        out[units] = torch.from_numpy(sums)
-        return out
+    def spread(sums: np.ndarray) -> Tensor:     # distinct units (3DGS) land unchanged, bit for bit
+        return torch.zeros(num_elements, dtype=torch.float64).index_add_(0, units, torch.from_numpy(sums))
     return FragmentSums(weight=spread(weight), footprint=spread(footprint),
                         valued=None if row_values is None else spread(valued), left=torch.from_numpy(left))
 
@@ -171,8 +169,8 @@ def _visibility_kernel(row_ptr, alpha, index, row_values, weight, footprint, val
     """Per row, front to back: every fragment adds its alpha to its unit's footprint; until
     the fragment that would bring the row's transmittance below T_MIN, it adds alpha times the
     transmittance in front of it to the weight (and times row_values[s] to valued, when given).
-    Sums by listed unit (index[e]: the view's few visible units, not the model's, so the sums
-    stay in cache). left[s]: the row's transmittance after its used fragments. Serial: rows
+    Sums by listed unit (index[e]: the view's visible units, or 2DGS's tile/surfel pairs, fewer
+    than the model's, so the sums stay in cache). left[s]: the row's transmittance after its used fragments. Serial: rows
     share units."""
     with_values = len(row_values) > 0
     for s in range(len(row_ptr) - 1):
