@@ -74,10 +74,10 @@ class Seen:
 
 # What a visibility pass holds (a memory plan adds it to the view's render bounds), in bytes:
 # nothing per fragment (`fragment_visibility` walks the lists the renders use in place); per unit of the model,
-# the three float64 sums and what `reduce_to_visibility` gathers of them (ids, points: 8 + 24),
-# rounded up; and what a Visibility keeps per element it lists (ids, points, weight, footprint,
-# valued: 8 + 24 + 3 x 8).
-PASS_UNIT_BYTES = 64
+# the three float64 sums, summed by listed unit (at most one a unit: 3 x 8) and spread to the
+# model's (3 x 8), and what `reduce_to_visibility` gathers of them (ids, points: 8 + 24); and
+# what a Visibility keeps per element it lists (ids, points, weight, footprint, valued: 8 + 24 + 3 x 8).
+PASS_UNIT_BYTES = 80
 KEPT_ELEMENT_BYTES = 56
 SEEN_ELEMENT_BYTES = 16
 # A strategy's working copy of a candidate's element (`phd_core.uq.strategies.visibility.Coverage`):
@@ -149,36 +149,41 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, index: Tensor, units: Te
     units [V] long in [0, num_elements)): the lists a prepared view keeps, walked in place, with
     no per-fragment array made for the pass; row_values [S] (e.g. zeta) or None.
     """
-    rows, listed = len(row_ptr) - 1, len(units)
-    weight, footprint = np.zeros(listed), np.zeros(listed)                 # [V] by listed unit, then spread
-    valued = np.zeros(listed if row_values is not None else 0)
-    left = np.empty(rows)
+    # Sums by listed unit when the view lists no more units than the model has (3DGS: its visible
+    # splats, so the sums stay in cache), spread to the model's at the end (added, as 2DGS lists
+    # a surfel once per tile pair); else (many pairs) straight by element, in bounded memory.
+    units = units.long()
+    by_unit = len(units) <= num_elements
+    size = len(units) if by_unit else num_elements
+    weight, footprint = np.zeros(size), np.zeros(size)
+    valued = np.zeros(size if row_values is not None else 0)
+    left = np.empty(len(row_ptr) - 1)
     values = (row_values.double().contiguous().numpy() if row_values is not None else np.zeros(0))
     _visibility_kernel(row_ptr.long().contiguous().numpy(), alpha.detach().contiguous().numpy(),
-                       index.contiguous().numpy(), values, weight, footprint, valued, left)
-    units = units.long()
+                       index.contiguous().numpy(), units.numpy(), by_unit, values, weight, footprint, valued, left)
 
-    def spread(sums: np.ndarray) -> Tensor:     # distinct units (3DGS) land unchanged, bit for bit
-        return torch.zeros(num_elements, dtype=torch.float64).index_add_(0, units, torch.from_numpy(sums))
+    def spread(sums: np.ndarray) -> Tensor:     # distinct units land unchanged, bit for bit
+        out = torch.from_numpy(sums)
+        return torch.zeros(num_elements, dtype=torch.float64).index_add_(0, units, out) if by_unit else out
     return FragmentSums(weight=spread(weight), footprint=spread(footprint),
                         valued=None if row_values is None else spread(valued), left=torch.from_numpy(left))
 
 
 @numba.njit(cache=True, nogil=True)
-def _visibility_kernel(row_ptr, alpha, index, row_values, weight, footprint, valued, left):  # pragma: no cover
+def _visibility_kernel(row_ptr, alpha, index, units, by_unit, row_values, weight, footprint, valued,
+                       left):  # pragma: no cover
     """Per row, front to back: every fragment adds its alpha to its unit's footprint; until
     the fragment that would bring the row's transmittance below T_MIN, it adds alpha times the
     transmittance in front of it to the weight (and times row_values[s] to valued, when given).
-    Sums by listed unit (index[e]: the view's visible units, or 2DGS's tile/surfel pairs, fewer
-    than the model's, so the sums stay in cache). left[s]: the row's transmittance after its used fragments. Serial: rows
-    share units."""
+    Fragment e's sums go to index[e] (by_unit) or to its element units[index[e]]. left[s]: the
+    row's transmittance after its used fragments. Serial: rows share units."""
     with_values = len(row_values) > 0
     for s in range(len(row_ptr) - 1):
         log_t = 0.0
         used = True
         for e in range(row_ptr[s], row_ptr[s + 1]):
             a = np.float64(alpha[e])
-            u = index[e]
+            u = index[e] if by_unit else units[index[e]]
             footprint[u] += a
             if used:
                 after = log_t + np.log1p(-a)
