@@ -24,7 +24,7 @@ from torch import Tensor
 from ..errors import InputError, check_float, check_int
 from ..eval import ssim
 from ..executors import LOCAL, Executor
-from ..renderers import DEFAULT_SIGNAL, Renderer
+from ..renderers import DEFAULT_SIGNAL, CameraView, Renderer
 from ..scene import Camera
 from .sampling import (
     PreparedViews,
@@ -167,10 +167,19 @@ class CalibrationChunk:
 
 def reference_renders(cameras: list[Camera], renderer: Renderer, share: float,
                       signal: str = DEFAULT_SIGNAL) -> CalibrationChunk:
-    """A chunk with the full model's render of each camera (what an executor runs first)."""
+    """A chunk with the full model's render of each camera (what an executor runs first).
+
+    Views are prepared (and kept for the ratios) while the chunk's share of the cache takes
+    them; once one is not kept, the chunk's later views are prepared anew at every ratio
+    anyway, and their reference is the renderer's own unmasked render, which need not list
+    what is hidden (a 3DGS view's fragments behind a spent pixel: `GaussianRenderer.render_full`).
+    A chunk of one view (the local executor's) prepares it as before."""
     chunk = CalibrationChunk(cameras, share, signal)
     views = chunk.views(renderer)
-    chunk.references = [render_masks(views[i], None, signal) for i in range(len(views))]
+    full = False
+    for i, camera in enumerate(cameras):
+        chunk.references.append(render_masks(CameraView(renderer, camera) if full else views[i], None, signal))
+        full = full or i not in views.kept
     return chunk
 
 
