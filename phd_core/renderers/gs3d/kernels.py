@@ -261,14 +261,15 @@ def _pair_splats(box, cursor, tiles_x, opacities, splat, log_opacity):  # pragma
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _cut_log_alpha(start, splat, means2d, conics, log_opacity, tiles_x, tile, width, height, unit, keep_t,
-                   pair_log_alpha, stop):  # pragma: no cover
+                   pair_log_alpha, stop, row_ptr):  # pragma: no cover
     """Tile by tile, front to back over its pairs (start, splat: the pair lists), the entries
     `_pair_log_alpha` writes, for the pixels still open only (NO_FRAGMENT at the others).
 
     unit [V] and keep_t [U, N]: visible splat v is kept by mask n when keep_t[unit[v], n]. A
     pixel closes after the fragment that brings the transmittance of every mask below T_MIN
     by CUT_MARGIN (float64, from a float64 alpha: min(ALPHA_MAX, exp(log alpha))), a tile
-    when all its pixels are closed; stop[t]: the end of tile t's pairs that were walked.
+    when all its pixels are closed; stop[t]: the end of tile t's pairs that were walked, and
+    row_ptr[1 + q] the fragments of pixel q (as `_pixel_counts` counts them).
     A pair's entries are one branch-free pass over all the tile's pixels (SIMD lanes), then the
     fragments found at open pixels take the exp and the masks' update, the others are cleared."""
     pixels = tile * tile
@@ -278,7 +279,9 @@ def _cut_log_alpha(start, splat, means2d, conics, log_opacity, tiles_x, tile, wi
     for t in numba.prange(start.shape[0] - 1):
         tx, ty = t % tiles_x, t // tiles_x
         rows, cols = min(tile, height - ty * tile), min(tile, width - tx * tile)
-        trans = np.ones((pixels, masks))                    # transmittance per pixel and mask
+        trans = np.ones(pixels * masks)                     # transmittance per pixel and mask
+        counts = row_ptr[1 + t * pixels:1 + (t + 1) * pixels]
+        counts[:] = 0
         open_ = np.zeros(pixels, np.bool_)
         for p in range(pixels):
             open_[p] = p // tile < rows and p % tile < cols
@@ -302,12 +305,14 @@ def _cut_log_alpha(start, splat, means2d, conics, log_opacity, tiles_x, tile, wi
                 if not open_[p]:
                     entries[p] = NO_FRAGMENT
                     continue
+                counts[p] += 1
                 step = 1.0 - min(math.exp(np.float64(entries[p])), ALPHA_MAX)
                 live = 0
                 for n in range(masks):
-                    if keep_t[u, n] and trans[p, n] >= t_cut:
-                        trans[p, n] *= step
-                    live += trans[p, n] >= t_cut
+                    q = p * masks + n
+                    if keep_t[u, n] and trans[q] >= t_cut:
+                        trans[q] *= step
+                    live += trans[q] >= t_cut
                 if live == 0:
                     open_[p] = False
                     left -= 1
@@ -374,14 +379,14 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
             _pair_log_alpha(box, cursor, means2d_np, conics_np, opacities_np, tiles_x, tile, width, height, splat,
                             pair_log_alpha)
             stop = start[1:]
+            _pixel_counts(start, stop, pair_log_alpha, row_ptr)
         else:
             unit, keep_t = cut_for
             log_opacity = np.empty(len(opacities_np))
             _pair_splats(box, cursor, tiles_x, opacities_np, splat, log_opacity)
             stop = np.empty(len(start) - 1, np.int64)
             _cut_log_alpha(start, splat, means2d_np, conics_np, log_opacity, tiles_x, tile, width, height,
-                           unit.long().contiguous().numpy(), keep_t.bool().numpy(), pair_log_alpha, stop)
-        _pixel_counts(start, stop, pair_log_alpha, row_ptr)
+                           unit.long().contiguous().numpy(), keep_t.bool().numpy(), pair_log_alpha, stop, row_ptr)
         np.cumsum(row_ptr, out=row_ptr)
         alpha = np.empty(row_ptr[-1], np.float32)
         index = np.empty(row_ptr[-1], np.int32)
