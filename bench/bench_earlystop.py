@@ -12,7 +12,8 @@ Per model (the harness's SH-3 tilings of the donut: 22 copies are 1,003,728 spla
 - N masks at a ratio (a candidate's renders): a complete view (before and now) against a view
   cut for those masks (the kernel can; the renderer does not use it, this row says why);
 - `uq.calibrate` on 8 training poses: `--before`'s calibrate.py and fragment kernel against
-  this code, with the local executor (one view a chunk) and with all views in one chunk.
+  this code (references from the first pass's views), with the local executor (one view a
+  chunk) and with all views in one chunk.
 Writes bench/results/early-stop.json and the table between the `bench:early-stop` markers of
 docs/performance.md.
 """
@@ -169,9 +170,10 @@ def table(record: dict[str, Any], args: argparse.Namespace) -> str:
                      f"{r['masked_cut_s'] / r['masked_complete_s']:.2f}x |")
     lines += ["", f"`uq.calibrate` (defaults: 4 masks a ratio) on {args.views} training poses of donut_200, CPU "
               f"seconds, the best of {args.calibration_repeats} calls after one warm-up, the versions alternating; "
-              "\"same result\": r_drop and the error curve equal bit for bit. With the local executor (one view a "
-              "chunk) both versions run the same calibration code; a chunk of several views renders the references "
-              "of the views its cache cannot keep unmasked, through the cut lists.", "",
+              "\"same result\": r_drop and the error curve equal bit for bit. Now each view's reference comes from "
+              "the view its first pass prepares for its masks, so a view the cache cannot keep is prepared once a pass "
+              "and no longer once more for its reference (local executor: one view a chunk, each with 1/views of the "
+              "256 MB cache; one chunk: all views share it).", "",
               "| splats | executor | before s | now s | speed-up | r_drop | same result |",
               "|---|---|---|---|---|---|---|"]
     for r in record["rows"]:

@@ -16,7 +16,7 @@ one alpha evaluation plus N cheap compositing passes. `rasterize` runs them in t
 (`kernels.py`) and keeps the result as a `SplatView`, which composites any number of mask
 batches with the fused kernel: calibration re-uses one view for every ratio it tries,
 PH-Dropout for every chunk of masks. A render of the full model alone (`render_full` with
-keep None: `phd render`, calibration references) prepares a cut view instead, whose pixels
+keep None: `phd render`, a render request) prepares a cut view instead, whose pixels
 list their fragments only down to where the transmittance is spent (`cut_lengths` is the
 twin of the cut). A dropped splat has opacity 0:
 it contributes nothing and leaves the transmittance unchanged; survivors are untouched.
