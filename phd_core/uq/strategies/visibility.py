@@ -116,7 +116,7 @@ class Coverage:
             weight[part] = vis.weight if weights is None else weights[c]
             if fragility and reference > 0 and vis.valued is not None:
                 weight[part] *= 1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference
-        order = torch.argsort(index, stable=True)          # by element, then candidate
+        order = stable_order(index, self.size)             # by element, then candidate
         self.index = index[order]                                                    # [S]
         del index                                          # each list by candidate goes once it is reordered
         self.dirs = dirs[order]                                                      # [S, 3]
@@ -137,8 +137,9 @@ class Coverage:
 
     def _locate(self) -> None:
         """first[u]: where element u's run starts; where[c]: candidate c's entries, ascending."""
-        self.first = torch.searchsorted(self.index, torch.arange(self.size + 1))     # [U + 1]
-        by_owner = torch.argsort(self.owner, stable=True)
+        self.first = torch.zeros(self.size + 1, dtype=torch.long)                      # [U + 1]
+        torch.cumsum(torch.bincount(self.index, minlength=self.size), 0, out=self.first[1:])
+        by_owner = stable_order(self.owner, len(self.changed))
         counts = torch.bincount(self.owner, minlength=len(self.changed)).tolist()
         self.where = dict(zip(range(len(counts)), by_owner.split(counts)))
 
@@ -146,7 +147,9 @@ class Coverage:
         """Candidate c's weight times novelty summed over its elements, summed again if a capture changed it."""
         if self.changed[c]:
             part = self.where[c]
-            self.sums[c] = float((self.weight[part] * self.novelty[part]).sum())
+            terms = np.empty(len(part))
+            _products(part.numpy(), self.weight.numpy(), self.novelty.numpy(), terms)
+            self.sums[c] = float(torch.from_numpy(terms).sum())          # torch's sum, as always
             self.changed[c] = False
             self.updates += 1
         return self.sums[c]
@@ -235,6 +238,34 @@ class Coverage:
         self.owner = self.owner[keep]
         self.ids = [i for i in self.ids if i not in self.retired]
         self._locate()
+
+
+def stable_order(keys: Tensor, size: int) -> Tensor:
+    """[K] long: the order that sorts keys [K] (ints in [0, size)) stably, as
+    torch.argsort(keys, stable=True) does, by counting (linear in K + size)."""
+    order = np.empty(len(keys), dtype=np.int64)
+    _counting_order(keys.numpy(), size, order)
+    return torch.from_numpy(order)
+
+
+@numba.njit(cache=True, nogil=True)
+def _counting_order(keys, size, order):  # pragma: no cover
+    """order: where each place of the sorted list takes its key from (a stable counting sort)."""
+    start = np.zeros(size + 1, dtype=np.int64)
+    for k in keys:
+        start[k + 1] += 1
+    for i in range(size):
+        start[i + 1] += start[i]
+    for i in range(len(keys)):
+        order[start[keys[i]]] = i
+        start[keys[i]] += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _products(part, weight, novelty, terms):  # pragma: no cover
+    """terms[i] = weight[part[i]] * novelty[part[i]]: a candidate's terms, gathered in one pass."""
+    for i in range(len(part)):
+        terms[i] = weight[part[i]] * novelty[part[i]]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -407,6 +438,8 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: fl
         negative, i = heapq.heappop(heap)
         order.append(i)
         scores[i] = -negative
+        if len(order) == count:
+            break                                 # nothing left whose value the pick would change
         coverage.capture(evidence.candidate_views[i])
         coverage.retire(i)
         if spread:
