@@ -155,10 +155,12 @@ def project(model: SurfelModel, camera: Camera,
     return projected, means2d, visible
 
 
-def splat_alpha(proj: Projected, pairs: Pairs, tile: int,
+def splat_alpha(proj: Projected, pairs: Pairs, tile: int, width: int, height: int,
                 near: float = NEAR_PLANE) -> tuple[torch.Tensor, torch.Tensor]:
     """Stage 3: alpha [M, P] and depth [M, P] of each pair at each of the P = tile^2 pixels
-    of its tile (alpha zero below 1/255).
+    of its tile (alpha zero below 1/255, and at the pixels of the last tile row and column
+    that lie past the image's width x height: no fragment there, so a visibility pass counts
+    only what the image shows).
 
     With T's rows a, b, c the intersection q = (a - x c) x (b - y c) = a x b + x (b x c) +
     y (c x a) is affine in the pixel (x, y), so over a tile it is one [M, 3, 3] x [3, P]
@@ -185,7 +187,8 @@ def splat_alpha(proj: Projected, pairs: Pairs, tile: int,
     rho = torch.where(surfel_wins, rho_surfel, rho_lowpass)
     log_alpha = (torch.log(proj.opacities[pairs.splat])[:, None] - 0.5 * rho).clamp_max(math.log(ALPHA_MAX))
     alpha = log_alpha.float().exp()
-    alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
+    in_image = ((corner[:, :1] + ox < width) & (corner[:, 1:] + oy < height))                # [M, P]
+    alpha = torch.where((alpha >= ALPHA_MIN) & in_image, alpha, torch.zeros_like(alpha))
     depth = torch.where(surfel_wins, det_t / safe_det, proj.depths[pairs.splat][:, None])
     return alpha, depth.float()
 
@@ -196,7 +199,7 @@ def surfel_fragments(model: SurfelModel, camera: Camera, tile: int, near: float
     the tile pairs, each pair's depth at each pixel of its tile [M, P], and the fragments."""
     proj, means2d_all, visible = project(model, camera, near)
     pairs = intersect(proj.box_centres, proj.extents, camera.width, camera.height, tile)
-    alpha, depth = splat_alpha(proj, pairs, tile, near)
+    alpha, depth = splat_alpha(proj, pairs, tile, camera.width, camera.height, near)
     return proj, means2d_all, visible, pairs, depth, fragments(alpha, pairs)
 
 
