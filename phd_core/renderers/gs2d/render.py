@@ -214,7 +214,7 @@ class SurfelView:
     frags: Fragments          # E fragments grouped by covered pixel, front to back
     values: torch.Tensor      # [E, C] colour and depth of each fragment (and normal, depth^2 with geometry)
     pair_units: torch.Tensor  # [M] long, the model surfel of each tile pair: fragment e is of pair_units[frags.pair[e]]
-    pairs: Pairs              # the tile grid (tiles_x, tiles_y), for untile
+    pairs: Pairs              # the tile grid only (tiles_x, tiles_y), for untile
     tile: int
     compositor: Compositor
     means2d: torch.Tensor     # [G, 2] screen positions of all surfels (densification gradients)
@@ -252,8 +252,10 @@ def surfel_view(model: SurfelModel, camera: Camera, background: torch.Tensor, *,
     columns = [proj.colors.float()[splat], entry_depth]
     if geometry:
         columns += [proj.normals.float()[splat], entry_depth.square()]
+    empty = torch.empty(0, dtype=torch.long)
+    grid = Pairs(tile=empty, splat=empty, tile_start=empty, tiles_x=pairs.tiles_x, tiles_y=pairs.tiles_y)
     return SurfelView(camera=camera, background=background, num_units=model.num_splats, frags=frags,
-                      values=torch.cat(columns, dim=-1), pair_units=proj.ids[pairs.splat], pairs=pairs, tile=tile,
+                      values=torch.cat(columns, dim=-1), pair_units=proj.ids[pairs.splat], pairs=grid, tile=tile,
                       compositor=pick_compositor(compositor), means2d=means2d_all, visible=visible)
 
 
