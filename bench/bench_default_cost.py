@@ -29,6 +29,7 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -154,6 +155,8 @@ def main() -> None:
             runs = {}
             for label in args.runs:
                 strategy, old = RUNS[label]
+                if label.endswith("cold"):     # nothing stored by an earlier run
+                    shutil.rmtree(model.with_name(model.name + ".phd-cache"), ignore_errors=True)
                 runs[label] = rank(model, poses, folder / "ranking.json", width, height, samples, strategy,
                                    before if old else None)
                 runs[label]["load"] = load_average()

@@ -44,7 +44,7 @@ def child(copies: int, size: int, version: str) -> dict:
     def visibility_pass() -> vis_module.FragmentSums:
         row_ptr, alpha, index, units, _, _ = renderer.fragment_rows(view)
         return sums_of(row_ptr, alpha, index, units, renderer.num_units)
-    sums_of(torch.tensor([0, 2]), torch.tensor([0.5, 0.5]), torch.tensor([0, 1]), 2)   # compile on a toy
+    sums_of(torch.tensor([0, 2]), torch.tensor([0.5, 0.5]), torch.tensor([0, 1]), torch.tensor([0, 1]), 2)  # compile
     base = reset_peak(os.getpid())                                     # VmHWM starts again from VmRSS
     seconds = []
     for _ in range(3):
