@@ -5,7 +5,9 @@ need, for each captured or candidate view, which parts of the model the view act
 occlusion included. One render of the full model gives it: an element's compositing weight
 (alpha times the transmittance in front of it) summed over the pixels. A family that can
 say this implements `Renderer.visibility(view, pixel_values=None) -> Visibility`; its
-coverage elements are its splats (3DGS, 2DGS) or its occupancy-grid cells (NeRF).
+coverage elements are its splats (3DGS, 2DGS) or its occupancy-grid cells (NeRF). The pass
+reads the view the camera's masked renders use: the splat families' fragment lists, NeRF's
+densities gathered by those renders (`prepare_seeing`), so it renders nothing of its own.
 
 `fragment_visibility` is the sum for any renderer that composites per-pixel lists of
 fragments front to back (the splat families), with the compositors' rules: transmittance
@@ -128,6 +130,15 @@ class ReportsVisibility(Renderer, Protocol):
 def reports_visibility(renderer: object) -> TypeGuard[ReportsVisibility]:
     """True when the renderer's family implements `visibility(view, pixel_values=None)`."""
     return callable(getattr(renderer, "visibility", None))
+
+
+def prepare_seeing(renderer: Renderer, camera: Camera) -> View:
+    """`renderer.prepare(camera)` for a view that will be asked what it sees (`visibility`) after
+    its masked renders. A family whose renders can gather that on the way says so with its own
+    `prepare_seeing` (NeRF: the full model's densities from the samples and first layer its
+    masks share); the splat families' pass walks the prepared view's lists, so `prepare` serves."""
+    seeing = getattr(renderer, "prepare_seeing", None)
+    return seeing(camera) if callable(seeing) else renderer.prepare(camera)
 
 
 @dataclass
