@@ -3,9 +3,10 @@
     .venv/bin/python -m bench.bench_rank_plan [--size 800] [--budget-mib 1024] [--count 10]
     (cd DIR_WITH_AN_OLDER_phd_core_AND_service && python -m bench.bench_rank_plan ...)   # another version
 
-A stand-in for issue 34's "800 px lego rank at 1 GiB": the 45,624-splat SH-3 donut of `tiled_model`
-stored with lego_200's 100 training cameras (200x200) as its captured set, `--count` lego test poses
-at `--size` px as candidates, N = 16. The plan is made as a worker makes it (the model loaded and
+Issue 34's "800 px lego rank at 1 GiB": `--model`, a lego model with its training cameras (what
+`phd train --data lego_200` writes), or a stand-in: the 45,624-splat SH-3 donut of `tiled_model`
+stored with lego_200's 100 training cameras (200x200) as its captured set; `--count` lego test
+poses at `--size` px as candidates, N = 16. The plan is made as a worker makes it (the model loaded and
 projected into every camera); for the default strategy twice when the code stores what the captured
 views saw: before the first rank ("cold") and after it ("warm"). Prints one JSON line per plan.
 """
@@ -20,6 +21,7 @@ from pathlib import Path
 
 from bench._harness import LEGO, tiled_model
 from phd_core.data import load_blender
+from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import write_ply
 from service.budget import MemoryLedger
 from service.errors import ServiceError
@@ -34,16 +36,21 @@ def main() -> None:
     p.add_argument("--size", type=int, default=800)
     p.add_argument("--budget-mib", type=int, default=1024)
     p.add_argument("--count", type=int, default=10)
+    p.add_argument("--model", type=Path, help="a 3DGS PLY with its sidecar (e.g. what `phd train` wrote): its "
+                   "splats and training cameras instead of the stand-in's")
     args = p.parse_args()
     train = load_blender(LEGO, "train", with_images=False).cameras
+    if args.model is not None:
+        opened = load_model(args.model)
+        train = opened.training_cameras or []
     candidates = [c.resized(args.size, args.size) for c in load_blender(LEGO, "test", with_images=False,
                                                                           views=args.count).cameras]
     with tempfile.TemporaryDirectory() as tmp:
         store = ModelStore(Path(tmp))
         path = store.new_temp_path()
-        model = tiled_model(1, 3)
+        model = tiled_model(1, 3) if args.model is None else opened.model
         write_ply(model, path)
-        record = store.add(path, name="donut.ply", kind="3dgs", size_bytes=path.stat().st_size, sha256="0" * 64,
+        record = store.add(path, name="donut.ply" if args.model is None else args.model.name, kind="3dgs", size_bytes=path.stat().st_size, sha256="0" * 64,
                            num_units=model.num_splats, describe={}, training_frames=[c.to_frame() for c in train])
         budget = args.budget_mib << 20
         settings = Settings(data_dir=Path(tmp), memory_budget_bytes=budget)

@@ -15,6 +15,7 @@ from phd_core.errors import InputError
 from phd_core.renderers.gs2d import SurfelModel, SurfelRenderer, rasterize_surfels
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.scene import Camera, look_at
+from support.calls import count_calls
 
 WHITE = torch.ones(3)
 EYE = (0.3, -3.0, 1.0)
@@ -223,19 +224,6 @@ def test_renderer_protocol_and_model_kinds() -> None:
                     torch.zeros(2, 1, 3)).validate()
 
 
-def counting_projections(monkeypatch) -> dict:
-    """Count calls of the surfel projection (stage 1), wherever the renderer makes them."""
-    import phd_core.renderers.gs2d.render as sr
-    calls = {"project": 0}
-    original = sr.project
-
-    def counted(*args, **kwargs):
-        calls["project"] += 1
-        return original(*args, **kwargs)
-    monkeypatch.setattr(sr, "project", counted)
-    return calls
-
-
 @pytest.mark.parametrize("compositor", ["fused", "reference"])
 def test_a_prepared_view_renders_what_the_rasteriser_does_from_one_projection(compositor: str, monkeypatch) -> None:
     model = random_surfels(40, 1, seed=11)
@@ -245,7 +233,8 @@ def test_a_prepared_view_renders_what_the_rasteriser_does_from_one_projection(co
     keep = torch.rand(6, model.num_splats, generator=torch.Generator().manual_seed(1)) >= 0.4
     expected = rasterize_surfels(model, cam, WHITE, keep, compositor=compositor)     # a fresh projection per call
     full = renderer.render(cam)
-    calls = counting_projections(monkeypatch)
+    import phd_core.renderers.gs2d.render as surfel_render
+    calls = count_calls(monkeypatch, surfel_render, "project")         # stage 1, wherever the renderer makes it
     view = renderer.prepare(cam)
     # Batches of masks over one view: the same images, bit for bit, as one rasteriser call.
     color = torch.cat([view.render(keep[:2], "premultiplied"), view.render(keep[2:], "premultiplied")])
@@ -253,7 +242,7 @@ def test_a_prepared_view_renders_what_the_rasteriser_does_from_one_projection(co
     assert torch.equal(view.render(keep[3:4]), expected.rgb[3:4])
     assert torch.equal(view.render(None), full)
     renderer.visibility(view)
-    assert calls["project"] == 1, "the renders and the visibility pass share the view's projection"
+    assert calls["calls"] == 1, "the renders and the visibility pass share the view's projection"
     for n in (0, 5):                                                    # and the float64 brute force's
         rgb = color[n, ..., :3] + (1 - color[n, ..., 3:]) * WHITE
         assert psnr(rgb, reference(model, cam, keep[n].numpy())[0]) >= 50.0

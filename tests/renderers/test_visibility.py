@@ -15,6 +15,7 @@ from phd_core.renderers.nerf.config import CHUNK_SAMPLES
 from phd_core.renderers.nerf.volume import camera_rays, ray_box, ray_samples, render_rays, segment_weights
 from phd_core.renderers.visibility import fragment_visibility, fragment_visibility_reference, prepare_seeing
 from phd_core.scene import look_at
+from support.calls import count_calls
 from support.surfels import random_surfels
 
 
@@ -166,13 +167,7 @@ def test_nerf_visibility_from_the_masked_renders_is_the_full_renders_bit_for_bit
     assert torch.equal(seeing.render(keep[:2]), renders[:2]) and seeing.nbytes > 0
     assert torch.equal(seeing.render(keep[2:]), renders[2:])
     assert seeing.nbytes <= FAMILIES["nerf"].memory(renderer, camera).seen     # what a plan counts for it
-    encoded = {"calls": 0}
-    original = model.encode
-
-    def counted(*args, **kwargs):
-        encoded["calls"] += 1
-        return original(*args, **kwargs)
-    monkeypatch.setattr(model, "encode", counted)
+    encoded = count_calls(monkeypatch, model, "encode")
     gathered = renderer.visibility(seeing, values)
     assert encoded["calls"] == 0, "the visibility of a seen view runs no network"
     by_itself = renderer.visibility(plain, values)           # no densities kept: the density network alone
