@@ -29,6 +29,7 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -125,10 +126,11 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=RESULTS / "default_cost.json", help="results file (adds to it)")
     p.add_argument("--report", nargs="*", type=Path, metavar="RESULTS",
                    help="only write the docs' table from these results files")
+    p.add_argument("--section", default="default-cost", help="the docs' section the report replaces")
     args = p.parse_args()
     if args.report is not None:
         write_doc(DOCS / "performance.md", "\n\n".join(report(json.loads(path.read_text()))
-                                                         for path in args.report), section="default-cost")
+                                                         for path in args.report), section=args.section)
         return
     results = {"machine": machine(omp_num_threads=os.environ.get("OMP_NUM_THREADS")), "before": args.before,
                "command": invocation(), "scenes": {}}
@@ -154,6 +156,8 @@ def main() -> None:
             runs = {}
             for label in args.runs:
                 strategy, old = RUNS[label]
+                if label.endswith("cold"):     # nothing stored by an earlier run
+                    shutil.rmtree(model.with_name(model.name + ".phd-cache"), ignore_errors=True)
                 runs[label] = rank(model, poses, folder / "ranking.json", width, height, samples, strategy,
                                    before if old else None)
                 runs[label]["load"] = load_average()

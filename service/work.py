@@ -240,7 +240,7 @@ class Renders:
                 bound = (RenderMemory(0, 0, DEFAULT_MASK_PIXEL_BYTES * camera.width * camera.height)
                          if memory is None else memory(renderer, camera))
                 if self.visibility:
-                    bound = replace(bound, fixed=bound.fixed + PASS_UNIT_BYTES * record.num_units)
+                    bound = replace(bound, fixed=bound.fixed + PASS_UNIT_BYTES * record.num_units + bound.seen)
                 found.append(bound)
                 kept += bound.kept
         return RenderMemory.largest(found), min(kept, VIEW_CACHE_BYTES) if self.keeps_views else 0

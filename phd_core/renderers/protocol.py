@@ -109,12 +109,13 @@ class RenderMemory:
     kept: int       # what the prepared view keeps between render calls (its `nbytes`)
     per_mask: int   # what each keep-mask of one render call adds
     fragments: int = 0   # a bound on the view's fragments (splat/pixel pairs): what a visibility pass walks
+    seen: int = 0        # what a view prepared to be seen (`visibility.prepare_seeing`) keeps for its pass
 
     @staticmethod
     def largest(items: "list[RenderMemory]") -> "RenderMemory":
         """Each bound's maximum over renders that run one after another."""
         return RenderMemory(max(m.fixed for m in items), max(m.kept for m in items), max(m.per_mask for m in items),
-                            max(m.fragments for m in items))
+                            max(m.fragments for m in items), max(m.seen for m in items))
 
 
 # Memory functions project the model in chunks of MEMORY_PROBE_UNITS units, so that what they

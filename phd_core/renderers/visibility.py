@@ -5,7 +5,9 @@ need, for each captured or candidate view, which parts of the model the view act
 occlusion included. One render of the full model gives it: an element's compositing weight
 (alpha times the transmittance in front of it) summed over the pixels. A family that can
 say this implements `Renderer.visibility(view, pixel_values=None) -> Visibility`; its
-coverage elements are its splats (3DGS, 2DGS) or its occupancy-grid cells (NeRF).
+coverage elements are its splats (3DGS, 2DGS) or its occupancy-grid cells (NeRF). The pass
+reads the view the camera's masked renders use: the splat families' fragment lists, NeRF's
+densities gathered by those renders (`prepare_seeing`), so it renders nothing of its own.
 
 `fragment_visibility` is the sum for any renderer that composites per-pixel lists of
 fragments front to back (the splat families), with the compositors' rules: transmittance
@@ -74,19 +76,23 @@ class Seen:
 
 # What a visibility pass holds (a memory plan adds it to the view's render bounds), in bytes:
 # nothing per fragment (`fragment_visibility` walks the lists the renders use in place); per unit of the model,
-# the three float64 sums and what `reduce_to_visibility` gathers of them (ids, points: 8 + 24),
-# rounded up; and what a Visibility keeps per element it lists (ids, points, weight, footprint,
-# valued: 8 + 24 + 3 x 8).
-PASS_UNIT_BYTES = 64
+# the three float64 sums, summed by listed unit (at most one a unit: 3 x 8) and spread to the
+# model's (3 x 8), and what `reduce_to_visibility` gathers of them (ids, points: 8 + 24); and
+# what a Visibility keeps per element it lists (ids, points, weight, footprint, valued: 8 + 24 + 3 x 8).
+PASS_UNIT_BYTES = 80
 KEPT_ELEMENT_BYTES = 56
 SEEN_ELEMENT_BYTES = 16
 # A strategy's working copy of a candidate's element (`phd_core.uq.strategies.visibility.Coverage`):
 # index, direction, weight, novelty, owner and its place in the by-element list (8 + 24 + 4 x 8), and
 # per element of the union (at most every listed element) its id, point and first entry (8 + 24 + 8)
-# and the sort that lists entries by element (16): 120. Counting a view as captured works on at most
-# CAPTURE_CHUNK entries at once, about COVERAGE_CAPTURE_BYTES whatever the views.
+# and either the sort that lists entries by element (16, while the list is made) or the number of
+# views a capture counts for the element and their running sum (16, while views are counted): 120.
+# Counting views as captured reads at most CAPTURE_VIEW_ELEMENTS of their listed elements at once (ids
+# and shares: 8 MB) and works on at most CAPTURE_CHUNK (element, view) pairs (their views, shares,
+# points, camera centres and directions: 10 MB) and as many entry-by-pair products (1 MB) at once:
+# COVERAGE_CAPTURE_BYTES whatever the views.
 COVERAGE_ELEMENT_BYTES = 120
-COVERAGE_CAPTURE_BYTES = 16 << 20
+COVERAGE_CAPTURE_BYTES = 20 << 20
 # A captured view's Seen keeps ids and shares (8 + 8); stored, they take 12 bytes an element.
 # Reading the entry holds the file's bytes, the tensors read and the ids widened (12 + 12 + 8):
 # SEEN_LOADED_BYTES an element of a stored view. A rank that also writes the entry holds, beside
@@ -126,6 +132,15 @@ def reports_visibility(renderer: object) -> TypeGuard[ReportsVisibility]:
     return callable(getattr(renderer, "visibility", None))
 
 
+def prepare_seeing(renderer: Renderer, camera: Camera) -> View:
+    """`renderer.prepare(camera)` for a view that will be asked what it sees (`visibility`) after
+    its masked renders. A family whose renders can gather that on the way says so with its own
+    `prepare_seeing` (NeRF: the full model's densities from the samples and first layer its
+    masks share); the splat families' pass walks the prepared view's lists, so `prepare` serves."""
+    seeing = getattr(renderer, "prepare_seeing", None)
+    return seeing(camera) if callable(seeing) else renderer.prepare(camera)
+
+
 @dataclass
 class FragmentSums:
     """Per-element and per-pixel sums of one front-to-back compositing of the full model."""
@@ -145,33 +160,41 @@ def fragment_visibility(row_ptr: Tensor, alpha: Tensor, index: Tensor, units: Te
     units [V] long in [0, num_elements)): the lists a prepared view keeps, walked in place, with
     no per-fragment array made for the pass; row_values [S] (e.g. zeta) or None.
     """
-    rows = len(row_ptr) - 1
-    weight, footprint = np.zeros(num_elements), np.zeros(num_elements)
-    valued = np.zeros(num_elements if row_values is not None else 0)
-    left = np.empty(rows)
+    # Sums by listed unit when the view lists no more units than the model has (3DGS: its visible
+    # splats, so the sums stay in cache), spread to the model's at the end (added, as 2DGS lists
+    # a surfel once per tile pair); else (many pairs) straight by element, in bounded memory.
+    units = units.long()
+    by_unit = len(units) <= num_elements
+    size = len(units) if by_unit else num_elements
+    weight, footprint = np.zeros(size), np.zeros(size)
+    valued = np.zeros(size if row_values is not None else 0)
+    left = np.empty(len(row_ptr) - 1)
     values = (row_values.double().contiguous().numpy() if row_values is not None else np.zeros(0))
     _visibility_kernel(row_ptr.long().contiguous().numpy(), alpha.detach().contiguous().numpy(),
-                       index.contiguous().numpy(), units.long().contiguous().numpy(), values, weight, footprint,
-                       valued, left)
-    return FragmentSums(weight=torch.from_numpy(weight), footprint=torch.from_numpy(footprint),
-                        valued=None if row_values is None else torch.from_numpy(valued),
-                        left=torch.from_numpy(left))
+                       index.contiguous().numpy(), units.numpy(), by_unit, values, weight, footprint, valued, left)
+
+    def spread(sums: np.ndarray) -> Tensor:     # distinct units land unchanged, bit for bit
+        out = torch.from_numpy(sums)
+        return torch.zeros(num_elements, dtype=torch.float64).index_add_(0, units, out) if by_unit else out
+    return FragmentSums(weight=spread(weight), footprint=spread(footprint),
+                        valued=None if row_values is None else spread(valued), left=torch.from_numpy(left))
 
 
 @numba.njit(cache=True, nogil=True)
-def _visibility_kernel(row_ptr, alpha, index, units, row_values, weight, footprint, valued,
+def _visibility_kernel(row_ptr, alpha, index, units, by_unit, row_values, weight, footprint, valued,
                        left):  # pragma: no cover
-    """Per row, front to back: every fragment adds its alpha to its element's footprint; until
+    """Per row, front to back: every fragment adds its alpha to its unit's footprint; until
     the fragment that would bring the row's transmittance below T_MIN, it adds alpha times the
     transmittance in front of it to the weight (and times row_values[s] to valued, when given).
-    left[s]: the row's transmittance after its used fragments. Serial: rows share elements."""
+    Fragment e's sums go to index[e] (by_unit) or to its element units[index[e]]. left[s]: the
+    row's transmittance after its used fragments. Serial: rows share units."""
     with_values = len(row_values) > 0
     for s in range(len(row_ptr) - 1):
         log_t = 0.0
         used = True
         for e in range(row_ptr[s], row_ptr[s + 1]):
             a = np.float64(alpha[e])
-            u = units[index[e]]
+            u = index[e] if by_unit else units[index[e]]
             footprint[u] += a
             if used:
                 after = log_t + np.log1p(-a)

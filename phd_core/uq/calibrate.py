@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from functools import partial
 from typing import Callable, Sequence
 
 import torch
@@ -148,12 +147,18 @@ def _finish_calibration(k: int, grid: int, step: float, probes: dict[int, float]
 class CalibrationChunk:
     """Training views of one executor chunk: cameras and full renders, plus their prepared
     views (`Renderer.prepare`), kept where the chunk lives so that every ratio tried re-uses
-    the projection, sort and fragments. Pickling drops them (a worker prepares its own)."""
+    the projection, sort and fragments. Pickling drops them (a worker prepares its own).
+
+    A view's full render (its reference) is taken from the view the first pass prepares for
+    its masks: a view the cache cannot keep is prepared once per pass, not once more for its
+    reference, and the reference costs one unmasked compositing pass, which stops where each
+    pixel is spent. A remote chunk whose references do not come back renders them again at
+    each pass, from the views that pass prepares anyway."""
 
     cameras: list[Camera]
     share: float                                  # of VIEW_CACHE_BYTES, for this chunk's prepared views
     signal: str = DEFAULT_SIGNAL                  # what the renders return (phd_core.renderers.SIGNALS)
-    references: list[Tensor] = field(default_factory=list)   # [1, H, W, C] full renders
+    references: list[Tensor] = field(default_factory=list)   # [1, H, W, C] full renders, in camera order
     prepared: PreparedViews | None = None
 
     def views(self, renderer: Renderer) -> PreparedViews:
@@ -165,23 +170,19 @@ class CalibrationChunk:
         return {**self.__dict__, "prepared": None}
 
 
-def reference_renders(cameras: list[Camera], renderer: Renderer, share: float,
-                      signal: str = DEFAULT_SIGNAL) -> CalibrationChunk:
-    """A chunk with the full model's render of each camera (what an executor runs first)."""
-    chunk = CalibrationChunk(cameras, share, signal)
-    views = chunk.views(renderer)
-    chunk.references = [render_masks(views[i], None, signal) for i in range(len(views))]
-    return chunk
-
-
 def dropout_errors(chunk: CalibrationChunk, renderer: Renderer, keep: Tensor, samples: int) -> list[list[float]]:
     """Per view of a chunk, per group of `samples` consecutive masks in keep [G x samples, U]
-    (one group per ratio): mean |full - dropped| over the group's masks, pixels and channels."""
+    (one group per ratio): mean |full - dropped| over the group's masks, pixels and channels.
+    The first call renders the chunk's references too, from the same prepared views."""
     views = chunk.views(renderer)
     errors = []
-    for i, reference in enumerate(chunk.references):
+    for i in range(len(views)):
+        view = views[i]
+        if i == len(chunk.references):
+            chunk.references.append(render_masks(view, None, chunk.signal))
+        reference = chunk.references[i]
         per_mask = torch.cat([part.to(torch.float64, copy=True).sub_(reference).abs_().sum(dim=(1, 2, 3))  # [m]
-                              for part in masked_renders(views[i], keep, chunk.signal)])
+                              for part in masked_renders(view, keep, chunk.signal)])
         errors.append((per_mask.view(-1, samples).sum(dim=1) / (samples * reference.numel())).tolist())
     return errors
 
@@ -212,7 +213,7 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
     cameras = check_cameras(cameras)
 
     grid = _grid_size(step)
-    ticker = ProgressTicker(progress, len(cameras) * (1 + _expected_passes(grid, method)))
+    ticker = ProgressTicker(progress, len(cameras) * _expected_passes(grid, method))
     model = executor.share(renderer)
     chunks = executor.split(cameras)
 
@@ -220,9 +221,7 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
         ticker.tick(len(chunks[i]))
 
     # Prepared views are kept across ratios within VIEW_CACHE_BYTES in all (split among chunks).
-    prepared = executor.map(partial(reference_renders, share=1 / len(chunks), signal=signal), chunks, model,
-                            done=tick)
-    views = [executor.share(chunk) for chunk in prepared]
+    views = [executor.share(CalibrationChunk(chunk, 1 / len(chunks), signal)) for chunk in chunks]
     uniforms = dropout_uniforms(renderer.num_units, samples, seed)
     probes: dict[int, float] = {}
 

@@ -16,7 +16,7 @@ from torch import Tensor
 from ..errors import InputError
 from ..executors import LOCAL, Executor
 from ..renderers import DEFAULT_SIGNAL, Renderer, View
-from ..renderers.visibility import Visibility, reports_visibility
+from ..renderers.visibility import Visibility, prepare_seeing, reports_visibility
 from ..scene import Camera
 from .sampling import (
     Progress,
@@ -80,10 +80,12 @@ def measure_views(cameras: list[Camera], renderer: Renderer, keep: Tensor, *, dd
                   keep_visibility: bool = False, signal: str = DEFAULT_SIGNAL) -> list[ViewUncertainty]:
     """measure_view for a chunk of cameras (what an executor runs): one `prepare` per camera
     serves the N masked renders of `signal` and, with keep_full, the full model's composited
-    render; with keep_visibility (and a family that reports it), what the view sees of the model."""
+    render; with keep_visibility (and a family that reports it), what the view sees of the model,
+    from the same view (`prepare_seeing`)."""
     visibility = renderer.visibility if keep_visibility and reports_visibility(renderer) else None
-    return [measure_view(renderer.prepare(camera), keep, ddof, keep_maps, dtype, keep_peak, keep_full, visibility,
-                         signal) for camera in cameras]
+    prepare = renderer.prepare if visibility is None else partial(prepare_seeing, renderer)
+    return [measure_view(prepare(camera), keep, ddof, keep_maps, dtype, keep_peak, keep_full, visibility, signal)
+            for camera in cameras]
 
 
 def view_uncertainty(renderer: Renderer, camera: Camera, *, ratio: float, samples: int = DEFAULT_SAMPLES,

@@ -332,8 +332,10 @@ async function modelChosen() {
     $("rank-downscale").value = scale;
     await updateCandidates();
     if (view3d() && model) {
-      await view3d().mount($("view3d"), { modelId: model.id, headers: authHeaders() });
-      state.viewReady = state.modelId === model.id;     // another model may have been chosen meanwhile
+      // false when the view cannot draw (no WebGL: it says why in its own status line) or another
+      // model was chosen meanwhile
+      const drawn = await view3d().mount($("view3d"), { modelId: model.id, headers: authHeaders() });
+      state.viewReady = drawn && state.modelId === model.id;
     }
   } else {
     drawPlots();

@@ -10,7 +10,10 @@
 // need no sort but turns dense surfaces white and hides the colour the toggle is about.
 //
 // API, on window.phdView3d:
-//   mount(element, {modelId, headers})   load and draw the model and its training cameras
+//   mount(element, {modelId, headers})   load and draw the model and its training cameras; resolves
+//                                        to false when it cannot draw (no WebGL: its status line
+//                                        says so, and the other calls do nothing) or another model
+//                                        was mounted meanwhile
 //   showRanking(result, {candidates})    a rank result as the REST API returns it: candidates as
 //                                        frusta coloured by score with their rank; `candidates`
 //                                        (optional, all frames ranked) adds the unreturned, faint
@@ -142,6 +145,7 @@ const view = {
   training: [], ranking: null, frusta: [], selected: null, pickCallbacks: [],
   mode: "colour", explained: null, explaining: null, radius: 1, centre: new THREE.Vector3(),
   sortPending: true, sortMs: null, touched: false, blobs: [],
+  noWebGL: null,      // why the browser cannot draw the view, once it has failed to
 };
 
 function build(element) {
@@ -170,9 +174,10 @@ function build(element) {
   try {
     renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
   } catch (err) {
-    say("this browser cannot draw the 3D view (no WebGL): " + err.message, true);
-    view.root = null;                    // built again on the next mount
-    throw new ViewError("no WebGL");
+    view.noWebGL = err.message;
+    say("this browser cannot draw the 3D view: it needs WebGL (" + err.message + "); the rest of the page works " +
+      "without it", true);
+    return false;
   }
   renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
   renderer.setClearColor(BACKGROUND, 1);
@@ -192,6 +197,7 @@ function build(element) {
   });
   new ResizeObserver(() => resize()).observe(canvasBox);
   resize();
+  return true;
 }
 
 function resize() {
@@ -536,6 +542,7 @@ function clicked(event) {
 }
 
 async function select(index) {
+  if (view.noWebGL) return;
   const v = view.ranking && view.ranking.views.find((x) => x.index === index);
   view.selected = v ? index : null;
   highlight();
@@ -564,7 +571,8 @@ async function select(index) {
 
 async function mount(element, { modelId, headers = {} }) {
   if (!element) throw new ViewError("no element to draw in");
-  if (view.root !== element) build(element);
+  if (view.noWebGL) return false;
+  if (view.root !== element && !build(element)) return false;
   Object.assign(view, { headers, modelId, ranking: null, allCandidates: null, selected: null, explained: null, touched: false });
   if (view.points) { view.scene.remove(view.points); view.points.geometry.dispose(); view.points = null; }
   view.labels.replaceChildren();
@@ -576,7 +584,7 @@ async function mount(element, { modelId, headers = {} }) {
     request(`/v1/models/${modelId}/scene`).then((r) => r.arrayBuffer()).then(parseScene).catch((err) => err),
     request(`/v1/models/${modelId}/cameras`).then((r) => r.json()),
   ]);
-  if (modelId !== view.modelId) return;            // another model was mounted meanwhile
+  if (modelId !== view.modelId) return false;      // another model was mounted meanwhile
   view.training = cameras.frames || [];
   if (scene instanceof Error) {
     view.header = null;
@@ -594,9 +602,11 @@ async function mount(element, { modelId, headers = {} }) {
   drawTraining();
   if (view.mode !== "colour") await setMode(view.mode);
   drawLegend();
+  return true;
 }
 
 function showRanking(result, { candidates = null } = {}) {
+  if (view.noWebGL) return;
   if (!view.renderer) throw new ViewError("mount the view on a model first");
   view.ranking = result;
   view.allCandidates = candidates;

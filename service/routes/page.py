@@ -9,17 +9,19 @@ No inline scripts or styles, so a Content-Security-Policy of `script-src 'self';
 
 /docs (Swagger UI) and /redoc (ReDoc) load their scripts from the `fastapi-offline` package
 (its static/ folder ships swagger-ui-dist and redoc's standalone bundle, MIT), not from a CDN,
-so both work on a machine without internet.
+so both work on a machine without internet. ReDoc's bundle asks one outside host for the logo
+of its menu footer; it is served with that address replaced by an empty image of its own.
 """
 
 from __future__ import annotations
 
 import importlib.util
+from functools import cache
 from pathlib import Path
 
 from fastapi import APIRouter, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
-from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
+from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 
 from ..errors import ServiceError
 
@@ -34,6 +36,8 @@ _offline = importlib.util.find_spec("fastapi_offline")
 DOCS_DIR = Path(_offline.origin).parent / "static" if _offline and _offline.origin else None
 DOCS_FILES = ("swagger-ui-bundle.js", "swagger-ui.css", "redoc.standalone.js")
 FAVICON = "/ui/favicon.svg"
+REDOC_LOGO = b"https://cdn.redoc.ly/redoc/logo-mini.svg"      # the one outside address ReDoc's bundle loads
+NO_IMAGE = b"data:image/svg+xml,%3Csvg xmlns='http://www.w3.org/2000/svg'/%3E"
 
 router = APIRouter(include_in_schema=False)
 
@@ -76,10 +80,19 @@ def _docs_file(name: str) -> Path:
     return DOCS_DIR / name
 
 
+@cache
+def _redoc_bundle() -> bytes:
+    """ReDoc's bundle with its footer logo's outside address replaced by an empty image."""
+    return _docs_file("redoc.standalone.js").read_bytes().replace(REDOC_LOGO, NO_IMAGE)
+
+
 @router.get("/docs-assets/{name}")
-async def docs_asset(name: str) -> FileResponse:
+async def docs_asset(name: str) -> Response:
     path = _docs_file(name)
-    return FileResponse(path, media_type=TYPES[path.suffix], headers={"Cache-Control": "max-age=86400"})
+    headers = {"Cache-Control": "max-age=86400"}
+    if name == "redoc.standalone.js":
+        return Response(_redoc_bundle(), media_type=TYPES[path.suffix], headers=headers)
+    return FileResponse(path, media_type=TYPES[path.suffix], headers=headers)
 
 
 @router.get("/docs")

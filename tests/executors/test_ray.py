@@ -182,7 +182,7 @@ def test_the_service_runs_its_jobs_on_ray(cluster, model, svc_start, monkeypatch
         assert [(v.index, v.rank, v.sigma_max, v.score) for v in ranked.views] == \
                [(r.index, r.rank, r.sigma_max, r.score) for r in expected]
         assert all(v.heatmap_png for v in ranked.views)
-        assert {name for name, _ in maps} == {"reference_renders", "dropout_errors", "measure_views"}
+        assert {name for name, _ in maps} == {"dropout_errors", "measure_views"}
         assert all(thread.startswith("phd-worker") for _, thread in maps)   # dispatched from the job workers
         assert len(models_put) == 1          # the cached model went to the object store once for all jobs
 

@@ -293,3 +293,41 @@ def test_calibrating_on_the_page_lets_the_view_explain_the_model(browser, ranked
     assert "calibrate" not in status.text and "error" not in status.get_attribute("class")
     assert "fragile (zeta high)" in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
     _call(browser, "phdView3d.setMode('colour')")
+
+
+def test_without_webgl_the_view_says_why_and_the_rest_of_the_page_works(ranked, tmp_path):
+    """A browser without WebGL (remote desktops, locked-down machines): the 3D view says in its
+    own status line that it needs WebGL, the page's own message line stays free of errors, the
+    model's facts are shown, and a rank from the page shows its cards (the view's calls do nothing)."""
+    server, model, _, _ = ranked
+    driver = chromium(tmp_path / "profile", flags=("--disable-webgl", "--disable-3d-apis"))
+    try:
+        driver.get(server.url + "/health")
+        driver.execute_script("localStorage.setItem('phd-api-key', arguments[0])", KEY)
+        driver.get(server.url + "/ui/")
+        WebDriverWait(driver, 20).until(lambda d: d.execute_script("return !!window.phdView3d && state.models.length"))
+        Select(driver.find_element(By.ID, "model-select")).select_by_value(model.id)
+        status = lambda d: d.find_element(By.CSS_SELECTOR, "#view3d .v3d-status").text   # noqa: E731
+        WebDriverWait(driver, 20).until(lambda d: "WebGL" in status(d))
+        assert "cannot draw the 3D view" in status(driver)
+        WebDriverWait(driver, 20).until(lambda d: d.execute_script("return state.modelId") == model.id)
+        assert "error" not in driver.find_element(By.ID, "message").get_attribute("class")
+        assert "WebGL" not in driver.find_element(By.ID, "message").text
+        assert "r_drop" in driver.find_element(By.ID, "model-info").text
+        count = driver.find_element(By.ID, "gen-count")
+        count.clear()
+        count.send_keys("3")
+        driver.find_element(By.ID, "gen-elevation").click()          # the change event takes the new count
+        samples = driver.find_element(By.ID, "rank-samples")
+        samples.clear()
+        samples.send_keys("3")
+        WebDriverWait(driver, 20).until(lambda d: (d.execute_script("return state.spec") or {}).get("count") == 3)
+        driver.find_element(By.ID, "rank-run").click()
+        WebDriverWait(driver, 60).until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")) == 3)
+        driver.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")[1].click()      # picks it: the view ignores it
+        assert driver.find_element(By.ID, "rank-message").get_attribute("class") == "message"   # no error
+        assert "error" not in driver.find_element(By.ID, "message").get_attribute("class")
+        assert [e["message"] for e in driver.get_log("browser") if e["level"] == "SEVERE"
+                and "WebGL" not in e["message"] and "/favicon.ico" not in e["message"]] == []
+    finally:
+        driver.quit()

@@ -20,10 +20,20 @@ from phd_core.renderers.composite import COMPOSITORS
 from phd_core.renderers.gs2d import rasterize_surfels
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.gs3d.kernels import project_splats, splat_fragments, splat_values
-from phd_core.renderers.gs3d.render import DILATION, NEAR_PLANE, project, rasterize, splat_alpha, splat_colors
+from phd_core.renderers.gs3d.render import (
+    DILATION,
+    NEAR_PLANE,
+    cut_lengths,
+    prepare_view,
+    project,
+    rasterize,
+    splat_alpha,
+    splat_colors,
+)
 from phd_core.renderers.splats import ALPHA_MIN, fragments, intersect
 
 TOL = 1e-5
+WHITE = torch.ones(3)
 
 
 def masks(n: int, g: int, drop: float, seed: int) -> torch.Tensor:
@@ -307,3 +317,75 @@ def test_threads_rendering_at_once_get_the_serial_results() -> None:
     for t in threads:
         t.join()
     assert all(torch.equal(results[i], serial[i]) for i in range(4))
+
+
+def deep_scene(seed: int) -> GaussianModel:
+    """Opaque splats packed in front of the camera: most pixels are spent long before their last fragment."""
+    model = random_scene(200, 1, seed=seed, spread=0.5)
+    model.opacity_logits.add_(4.0)
+    model.log_scales.add_(1.0)
+    return model
+
+
+@pytest.mark.parametrize("tile", [1, 4, 16])
+@pytest.mark.parametrize("drop", [None, 0.0, 0.5, 1.0])
+def test_a_cut_view_lists_the_prefix_its_torch_twin_names_and_renders_the_same(tile: int, drop: float | None) -> None:
+    """The compiled cut (`kernels._cut_log_alpha`) against its twin (`render.cut_lengths`) on the
+    complete lists: the same length at every pixel, the same splats and alphas bit for bit; and
+    the cut view composites its masks to the complete view's images bit for bit."""
+    model = deep_scene(seed=tile)
+    cam = camera(37, 23)
+    keep = None if drop is None else masks(6, model.num_splats, drop, seed=tile)
+    full = prepare_view(model, cam, WHITE, tile=tile)
+    cut = prepare_view(model, cam, WHITE, tile=tile, cut=True, keep=keep)
+    splats = full.units[full.index.long()]                                     # [E] model splat of each fragment
+    lengths = cut_lengths(full.row_ptr, full.alpha, splats, keep)
+    assert torch.equal(cut.row_ptr.diff(), lengths)
+    counts = full.row_ptr.diff()
+    row = torch.repeat_interleave(torch.arange(len(counts)), counts)
+    listed = torch.arange(len(full.alpha)) - full.row_ptr[:-1][row] < lengths[row]
+    assert torch.equal(cut.units[cut.index.long()], splats[listed]) and torch.equal(cut.alpha, full.alpha[listed])
+    if drop == 1.0:
+        assert torch.equal(lengths, counts), "masks that keep nothing are never spent"
+    elif drop in (None, 0.0):
+        assert lengths.sum() < 0.6 * counts.sum(), "the scene must be deep enough for the cut to matter"
+    for name in ("rgb", "alpha", "depth"):
+        assert torch.equal(getattr(cut.render_full(keep), name), getattr(full.render_full(keep), name)), name
+
+
+def test_an_unmasked_render_is_cut_and_agrees_with_the_twins_and_brute_force(monkeypatch) -> None:
+    import phd_core.renderers.gs3d.render as gr
+    cuts = []
+    original = gr.prepare_view
+
+    def spied(*args, **kwargs):
+        cuts.append(kwargs.get("cut", False))
+        return original(*args, **kwargs)
+    monkeypatch.setattr(gr, "prepare_view", spied)
+    model = deep_scene(seed=7)
+    cam = camera()
+    fused, pure = renderers(model)
+    out = fused.render_full(cam)
+    assert cuts == [True]
+    assert_twins(model, cam, None)
+    rgb, alpha, depth = reference(model, cam)
+    assert_close(out.rgb[0], rgb)
+    assert_close(out.alpha[0], alpha)
+    assert_close(out.depth[0], depth)
+    assert torch.equal(out.rgb, fused.prepare(cam).render_full(None).rgb)
+    fused.render_full(cam, masks(3, model.num_splats, 0.5, seed=7))
+    assert cuts[-1] is False, "masked renders list every fragment"
+
+
+def test_a_cut_view_renders_only_its_masks_and_visibility_counts_hidden_fragments() -> None:
+    model = deep_scene(seed=8)
+    cam = camera()
+    fused, _ = renderers(model)
+    complete, cut = fused.prepare(cam), prepare_view(model, cam, WHITE, cut=True)
+    with pytest.raises(ValueError, match="cut for its keep-masks"):
+        cut.render(masks(2, model.num_splats, 0.5, seed=8))
+    assert len(cut.alpha) < len(complete.alpha)
+    for a, b in zip(fused.fragment_rows(cut)[:3], fused.fragment_rows(complete)[:3]):
+        assert torch.equal(a, b)
+    seen, expected = fused.visibility(cut), fused.visibility(complete)
+    assert torch.equal(seen.elements, expected.elements) and torch.equal(seen.footprint, expected.footprint)

@@ -59,11 +59,11 @@ def test_surfel_bounds_hold_the_fragments_a_render_builds(count, scale):
     with torch.no_grad():
         proj, _, _ = project_surfels(renderer.model, CAMERA)
         listed = intersect(proj.box_centres, proj.extents, CAMERA.width, CAMERA.height, renderer.tile)
-        alpha, _ = surfel_alpha(proj, listed, renderer.tile)
+        alpha, _ = surfel_alpha(proj, listed, renderer.tile, CAMERA.width, CAMERA.height)
     pairs, fragments = box_counts(proj.box_centres, proj.extents, CAMERA.width, CAMERA.height, renderer.tile)
     assert pairs == len(listed.tile) and int((alpha > 0).sum()) <= fragments
     memory = FAMILIES["2dgs"].memory(renderer, CAMERA)
-    assert memory.kept == 0                                     # nothing is prepared: a render starts anew
+    assert memory.kept >= renderer.prepare(CAMERA).nbytes > 0      # what the prepared view keeps
     assert memory.per_mask >= fragments                         # each mask's flag for every fragment
 
 

@@ -15,6 +15,7 @@ from phd_core.errors import InputError
 from phd_core.renderers.gs2d import SurfelModel, SurfelRenderer, rasterize_surfels
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.scene import Camera, look_at
+from support.calls import count_calls
 
 WHITE = torch.ones(3)
 EYE = (0.3, -3.0, 1.0)
@@ -221,3 +222,47 @@ def test_renderer_protocol_and_model_kinds() -> None:
     with pytest.raises(InputError, match=r"log_scales.*\[G, 2\]"):
         SurfelModel(torch.zeros(2, 3), torch.zeros(2, 3), torch.ones(2, 4), torch.zeros(2),
                     torch.zeros(2, 1, 3)).validate()
+
+
+@pytest.mark.parametrize("compositor", ["fused", "reference"])
+def test_a_prepared_view_renders_what_the_rasteriser_does_from_one_projection(compositor: str, monkeypatch) -> None:
+    model = random_surfels(40, 1, seed=11)
+    edge_on(model, 0)
+    cam = camera()
+    renderer = SurfelRenderer(model, compositor=compositor)
+    keep = torch.rand(6, model.num_splats, generator=torch.Generator().manual_seed(1)) >= 0.4
+    expected = rasterize_surfels(model, cam, WHITE, keep, compositor=compositor)     # a fresh projection per call
+    full = renderer.render(cam)
+    import phd_core.renderers.gs2d.render as surfel_render
+    calls = count_calls(monkeypatch, surfel_render, "project")         # stage 1, wherever the renderer makes it
+    view = renderer.prepare(cam)
+    # Batches of masks over one view: the same images, bit for bit, as one rasteriser call.
+    color = torch.cat([view.render(keep[:2], "premultiplied"), view.render(keep[2:], "premultiplied")])
+    assert torch.equal(color[..., :3], expected.color) and torch.equal(color[..., 3], expected.alpha)
+    assert torch.equal(view.render(keep[3:4]), expected.rgb[3:4])
+    assert torch.equal(view.render(None), full)
+    renderer.visibility(view)
+    assert calls["calls"] == 1, "the renders and the visibility pass share the view's projection"
+    for n in (0, 5):                                                    # and the float64 brute force's
+        rgb = color[n, ..., :3] + (1 - color[n, ..., 3:]) * WHITE
+        assert psnr(rgb, reference(model, cam, keep[n].numpy())[0]) >= 50.0
+    assert (color[0] - color[1]).abs().max() > 1e-3, "different masks must give different images"
+    assert view.nbytes > 0
+
+
+def test_the_visibility_of_a_prepared_view_is_the_pass_of_a_fresh_projection() -> None:
+    from phd_core.renderers import CameraView
+    model = random_surfels(60, 1, seed=12)
+    cam = camera(24, 18)
+    renderer = SurfelRenderer(model)
+    values = torch.rand(cam.height, cam.width, generator=torch.Generator().manual_seed(2))
+    prepared = renderer.visibility(renderer.prepare(cam), values)
+    fresh = renderer.visibility(CameraView(renderer, cam), values)        # projects, lists and rasterises anew
+    assert len(prepared.elements) >= 10
+    for name in ("elements", "points", "weight", "footprint", "valued"):
+        assert torch.equal(getattr(prepared, name), getattr(fresh, name)), name
+    assert (prepared.empty, prepared.in_box) == (fresh.empty, fresh.in_box)
+    # 18 rows are not a whole number of 4-pixel tiles: the weights still add up to the image's
+    # alpha (an independent route: the compositor), with nothing counted past the last row.
+    assert cam.height % renderer.tile != 0
+    assert float(prepared.weight.sum()) == pytest.approx(float(renderer.render_full(cam).alpha.sum()), rel=1e-5)

@@ -7,11 +7,15 @@ import pytest
 import torch
 from reference.gaussians import render_reference
 
+from phd_core.renderers import FAMILIES
 from phd_core.renderers.gs2d import SurfelRenderer
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField
-from phd_core.renderers.visibility import fragment_visibility, fragment_visibility_reference
+from phd_core.renderers.nerf.config import CHUNK_SAMPLES
+from phd_core.renderers.nerf.volume import camera_rays, ray_box, ray_samples, render_rays, segment_weights
+from phd_core.renderers.visibility import fragment_visibility, fragment_visibility_reference, prepare_seeing
 from phd_core.scene import look_at
+from support.calls import count_calls
 from support.surfels import random_surfels
 
 
@@ -98,13 +102,19 @@ def test_surfel_weights_add_up_to_the_rendered_alpha_and_empty_space_is_counted(
     assert len(nothing.elements) == 0 and nothing.in_box == 0 and nothing.empty == 0.0
 
 
-def test_nerf_cell_weights_add_up_to_the_rendered_alpha_and_follow_the_samples() -> None:
+def structured_field(seed: int = 1) -> RadianceField:
+    """A small NeRF whose density has structure (not a flat fog), on an 8^3 occupancy grid."""
     model = RadianceField(NeRFConfig(depth=3, width=16, color_width=8, pos_freqs=3, dir_freqs=2, samples=24, near=1.0,
                                      far=7.0, bounds=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], grid_resolution=8))
-    gen = torch.Generator().manual_seed(1)
-    with torch.no_grad():                                  # a field with structure, not a flat fog
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
         for p in model.parameters():
             p.copy_(torch.randn(p.shape, generator=gen) * (1.0 if p.dim() == 1 else 1.5 / p.shape[-1] ** 0.5))
+    return model
+
+
+def test_nerf_cell_weights_add_up_to_the_rendered_alpha_and_follow_the_samples() -> None:
+    model = structured_field()
     renderer = NeRFRenderer(model)
     camera = look_at((2.5, -3.0, 2.0), (0.0, 0.0, 0.0), width=12, height=10, fov_x=0.8)
     vis = renderer.visibility(renderer.prepare(camera), torch.ones(10, 12))
@@ -118,3 +128,61 @@ def test_nerf_cell_weights_add_up_to_the_rendered_alpha_and_follow_the_samples()
     model.grid.set_density(torch.zeros(8 ** 3))
     empty = renderer.visibility(renderer.prepare(camera))
     assert len(empty.elements) == 0 and empty.empty == pytest.approx(empty.in_box) and empty.in_box > 0
+
+
+def nerf_visibility_by_a_full_render(renderer: NeRFRenderer, camera, values: torch.Tensor) -> dict:
+    """The cell sums as the visibility pass made them before it read the masked renders' view: one
+    unmasked render per ray chunk (colour branch and compositing included), its densities summed."""
+    model, grid = renderer.model, renderer.model.grid
+    origins, dirs = camera_rays(camera)
+    sums = {name: torch.zeros(grid.resolution ** 3, dtype=torch.float64) for name in ("weight", "footprint", "valued")}
+    chunk = max(1, CHUNK_SAMPLES // model.config.samples)
+    for start in range(0, len(origins), chunk):
+        o, d = origins[start:start + chunk], dirs[start:start + chunk]
+        _, delta, points, valid = ray_samples(model, o, d, use_grid=renderer.use_grid)
+        sigma = render_rays(model, o, d, use_grid=renderer.use_grid, with_sigma=True).sigma[0]
+        tau = (sigma * delta).double() * valid
+        w, _ = segment_weights(tau)
+        cell = grid.cells(points.reshape(-1, 3))
+        sums["weight"].index_add_(0, cell, w.reshape(-1))
+        sums["footprint"].index_add_(0, cell, -torch.expm1(-tau).reshape(-1))
+        sums["valued"].index_add_(0, cell, (w * values.reshape(-1).double()[start:start + chunk, None]).reshape(-1))
+    return sums
+
+
+@pytest.mark.parametrize("use_grid", [True, False])
+def test_nerf_visibility_from_the_masked_renders_is_the_full_renders_bit_for_bit(use_grid: bool, monkeypatch) -> None:
+    model = structured_field(seed=2)
+    density = model.cell_density()
+    model.grid.set_density(torch.where(density > density.median(), density, torch.zeros_like(density)))
+    assert 0.2 < model.grid.fraction < 0.8                 # samples in empty cells are skipped
+    renderer = NeRFRenderer(model, use_grid=use_grid)
+    camera = look_at((2.5, -3.0, 2.0), (0.0, 0.0, 0.0), width=12, height=10, fov_x=0.8)
+    values = torch.rand(10, 12, generator=torch.Generator().manual_seed(3))
+    keep = torch.rand(5, renderer.num_units, generator=torch.Generator().manual_seed(4)) >= 0.5
+    plain = renderer.prepare(camera)
+    renders = plain.render(keep)
+    # A view prepared to be seen renders the same images, and keeps the full model's densities.
+    seeing = prepare_seeing(renderer, camera)
+    assert torch.equal(seeing.render(keep[:2]), renders[:2]) and seeing.nbytes > 0
+    assert torch.equal(seeing.render(keep[2:]), renders[2:])
+    assert seeing.nbytes <= FAMILIES["nerf"].memory(renderer, camera).seen     # what a plan counts for it
+    encoded = count_calls(monkeypatch, model, "encode")
+    gathered = renderer.visibility(seeing, values)
+    assert encoded["calls"] == 0, "the visibility of a seen view runs no network"
+    by_itself = renderer.visibility(plain, values)           # no densities kept: the density network alone
+    assert encoded["calls"] > 0
+    expected = nerf_visibility_by_a_full_render(renderer, camera, values)
+    seen = expected["weight"] > 0
+    assert int(seen.sum()) >= 10
+    for vis in (gathered, by_itself):
+        assert torch.equal(vis.elements, seen.nonzero().squeeze(1))
+        for name in ("weight", "footprint", "valued"):
+            assert torch.equal(getattr(vis, name), expected[name][vis.elements]), name
+    assert (gathered.empty, gathered.in_box) == (by_itself.empty, by_itself.in_box)
+    origins, dirs = camera_rays(camera)
+    t_in, t_out = ray_box(origins, dirs, model.grid.lo, model.grid.lo + model.grid.size)
+    in_box = ((t_out > t_in) & (t_out > 0)).view(10, 12)
+    light = 1 - renderer.render_full(camera).alpha[0]       # transmittance left, by the compositing of a render
+    assert gathered.in_box == int(in_box.sum())
+    assert gathered.empty == pytest.approx(float(light[in_box].sum()), abs=1e-4)

@@ -18,13 +18,14 @@ def have_browser() -> bool:
     return Path(CHROMIUM).exists() and Path(CHROMEDRIVER).exists()
 
 
-def chromium(profile: Path, width: int = 1280, height: int = 1600):
-    """A headless Chromium whose console log the test can read (goog:loggingPrefs)."""
+def chromium(profile: Path, width: int = 1280, height: int = 1600, flags: tuple[str, ...] = ()):
+    """A headless Chromium whose console log the test can read (goog:loggingPrefs); `flags`: more
+    command-line switches (e.g. `--disable-webgl`, a browser without WebGL)."""
     from selenium import webdriver
 
     options = webdriver.ChromeOptions()
     options.binary_location = CHROMIUM
-    for flag in (*FLAGS, f"--window-size={width},{height}", f"--user-data-dir={profile}"):
+    for flag in (*FLAGS, f"--window-size={width},{height}", f"--user-data-dir={profile}", *flags):
         options.add_argument(flag)
     options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     driver = webdriver.Chrome(service=webdriver.ChromeService(executable_path=CHROMEDRIVER), options=options)

@@ -22,6 +22,7 @@ from phd_core.uq.strategies.visibility import (
     Coverage,
     _mean_zeta,
     coverage_select,
+    stable_order,
     viewing_axis,
 )
 from support.fixtures import svc_random_gaussians
@@ -331,3 +332,10 @@ def test_the_lazy_greedy_picks_and_scores_what_a_full_greedy_does_with_fewer_upd
     assert lazy.scores == scores                            # bit for bit
     assert len(set(order[:2])) == 2 and {14, 15} & set(order[:2]) != {14, 15}   # the twins split
     assert sum(counted) < computed / 2                      # sums redone only for the candidates asked for
+
+
+@pytest.mark.parametrize("size", [1, 7, 1000])
+def test_the_counting_order_is_torchs_stable_argsort(size: int) -> None:
+    keys = torch.randint(0, size, (5000,), generator=torch.Generator().manual_seed(size))
+    assert torch.equal(stable_order(keys, size), torch.argsort(keys, stable=True))
+    assert len(stable_order(torch.zeros(0, dtype=torch.long), size)) == 0

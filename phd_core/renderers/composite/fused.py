@@ -188,10 +188,10 @@ def composite_indexed(row_ptr: torch.Tensor, alpha: torch.Tensor, index: torch.T
     """
     if log_1ma is None:
         log_1ma = torch.log1p(-alpha.float())
-    return _launch(row_ptr, alpha, log_1ma, index, *_keep_columns(keep, unit), values)
+    return _launch(row_ptr, alpha, log_1ma, index, *keep_columns(keep, unit), values)
 
 
-def _keep_columns(keep: torch.Tensor | None, unit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def keep_columns(keep: torch.Tensor | None, unit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(unit, keep_t [U, N]) for the kernels: keep None is one mask keeping every unit.
     Units are looked up in any order: one unit's N flags share a cache line ([U, N] copy, small)."""
     if keep is None:
@@ -206,7 +206,7 @@ def composite(frags: Fragments, values: torch.Tensor, keep: torch.Tensor | None,
 
     Returns (accumulated values [N, num_pixels, C], accumulated alpha [N, num_pixels]).
     """
-    sums, alpha = _Composite.apply(frags.alpha, values, frags.row_ptr, *_keep_columns(keep, unit))
+    sums, alpha = _Composite.apply(frags.alpha, values, frags.row_ptr, *keep_columns(keep, unit))
     totals = sums.new_zeros(sums.shape[0], num_pixels, sums.shape[-1]).index_copy(1, frags.pixel, sums)
     acc_alpha = alpha.new_zeros(alpha.shape[0], num_pixels).index_copy(1, frags.pixel, alpha)
     return totals, acc_alpha

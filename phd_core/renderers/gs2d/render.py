@@ -23,6 +23,12 @@ and the renderer (`SplatRenderer`); only what a surfel is differs:
                 the intersection's where the surfel's Gaussian wins, the centre's otherwise.
 4. `composite`: front-to-back in log space, once per keep-mask (a backend by name).
 
+Stages 1-3 and each fragment's values do not depend on the keep-mask: `surfel_view` runs
+them once and keeps the result as a `SurfelView`, which composites any number of mask batches
+(`SurfelRenderer.prepare`: PH-Dropout's chunks of masks, calibration's ratios) and whose
+fragment lists the visibility pass walks in place. `rasterize_surfels` is a view built and
+composited once, differentiable (training).
+
 Outputs: RGB, alpha, depth (alpha-weighted), and with `geometry=True` the alpha-weighted
 camera-frame normal (OpenCV axes, facing the camera) and the depth distortion
 sum_ij w_i w_j (d_i - d_j)^2 / 2 per pixel, which the 2DGS trainer regularises.
@@ -38,8 +44,9 @@ import torch
 
 from ...scene import Camera
 from ...scene.rotations import quaternion_to_rotation
-from ..composite import pick_compositor
-from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
+from ..composite import Compositor, pick_compositor
+from ..protocol import MEMORY_PROBE_UNITS, RenderMemory, View, check_keep
+from ..signals import DEFAULT_SIGNAL, signal_image
 from ..splats.maths import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -148,10 +155,12 @@ def project(model: SurfelModel, camera: Camera,
     return projected, means2d, visible
 
 
-def splat_alpha(proj: Projected, pairs: Pairs, tile: int,
+def splat_alpha(proj: Projected, pairs: Pairs, tile: int, width: int, height: int,
                 near: float = NEAR_PLANE) -> tuple[torch.Tensor, torch.Tensor]:
     """Stage 3: alpha [M, P] and depth [M, P] of each pair at each of the P = tile^2 pixels
-    of its tile (alpha zero below 1/255).
+    of its tile (alpha zero below 1/255, and at the pixels of the last tile row and column
+    that lie past the image's width x height: no fragment there, so a visibility pass counts
+    only what the image shows).
 
     With T's rows a, b, c the intersection q = (a - x c) x (b - y c) = a x b + x (b x c) +
     y (c x a) is affine in the pixel (x, y), so over a tile it is one [M, 3, 3] x [3, P]
@@ -178,7 +187,8 @@ def splat_alpha(proj: Projected, pairs: Pairs, tile: int,
     rho = torch.where(surfel_wins, rho_surfel, rho_lowpass)
     log_alpha = (torch.log(proj.opacities[pairs.splat])[:, None] - 0.5 * rho).clamp_max(math.log(ALPHA_MAX))
     alpha = log_alpha.float().exp()
-    alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
+    in_image = ((corner[:, :1] + ox < width) & (corner[:, 1:] + oy < height))                # [M, P]
+    alpha = torch.where((alpha >= ALPHA_MIN) & in_image, alpha, torch.zeros_like(alpha))
     depth = torch.where(surfel_wins, det_t / safe_det, proj.depths[pairs.splat][:, None])
     return alpha, depth.float()
 
@@ -189,8 +199,64 @@ def surfel_fragments(model: SurfelModel, camera: Camera, tile: int, near: float
     the tile pairs, each pair's depth at each pixel of its tile [M, P], and the fragments."""
     proj, means2d_all, visible = project(model, camera, near)
     pairs = intersect(proj.box_centres, proj.extents, camera.width, camera.height, tile)
-    alpha, depth = splat_alpha(proj, pairs, tile, near)
+    alpha, depth = splat_alpha(proj, pairs, tile, camera.width, camera.height, near)
     return proj, means2d_all, visible, pairs, depth, fragments(alpha, pairs)
+
+
+@dataclass
+class SurfelView:
+    """One camera's mask-independent state (stages 1-3 and each fragment's values), composited
+    per batch of keep-masks. Built by `surfel_view`; a `phd_core.renderers.View`."""
+
+    camera: Camera
+    background: torch.Tensor  # [3]
+    num_units: int            # G, the width of a keep-mask
+    frags: Fragments          # E fragments grouped by covered pixel, front to back
+    values: torch.Tensor      # [E, C] colour and depth of each fragment (and normal, depth^2 with geometry)
+    pair_units: torch.Tensor  # [M] long, the model surfel of each tile pair: fragment e is of pair_units[frags.pair[e]]
+    pairs: Pairs              # the tile grid only (tiles_x, tiles_y), for untile
+    tile: int
+    compositor: Compositor
+    means2d: torch.Tensor     # [G, 2] screen positions of all surfels (densification gradients)
+    visible: torch.Tensor     # [G] bool, survived culling
+
+    @property
+    def nbytes(self) -> int:
+        f = self.frags
+        return sum(t.numel() * t.element_size() for t in (f.alpha, f.pair, f.start, f.row, f.row_ptr, f.pixel,
+                                                         self.values, self.pair_units, self.means2d, self.visible))
+
+    def accumulate(self, keep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Stage 4 once per keep-mask (keep: [N, G] bool, None = all surfels): accumulated values
+        [N, H, W, C], alpha [N, H, W] and RGB over the background [N, H, W, 3]."""
+        keep = check_keep(keep, self.num_units)
+        cam = self.camera
+        return composite_images(self.compositor, self.frags, self.values, keep,
+                                self.pair_units.index_select(0, self.frags.pair), self.pairs, self.tile, cam.width,
+                                cam.height, self.background)
+
+    def render(self, keep: torch.Tensor | None = None, signal: str = DEFAULT_SIGNAL) -> torch.Tensor:
+        acc_v, acc_a, _ = self.accumulate(keep)
+        return signal_image(signal, acc_v[..., :3], acc_a, self.background)
+
+
+def surfel_view(model: SurfelModel, camera: Camera, background: torch.Tensor, *, tile: int = DEFAULT_TILE,
+                near: float = NEAR_PLANE, compositor: str | None = None, geometry: bool = False) -> SurfelView:
+    """Stages 1-3 for `camera` and the values each fragment composites: colour and the depth of
+    its intersection (geometry: also the normal and the squared depth). Differentiable."""
+    proj, means2d_all, visible, pairs, depth, frags = surfel_fragments(model, camera, tile, near)
+    per_tile = tile * tile
+    splat = pairs.splat[frags.pair]                                     # [E] index into proj
+    in_tile = frags.pixel.index_select(0, frags.row) % per_tile
+    entry_depth = depth.reshape(-1).index_select(0, frags.pair * per_tile + in_tile)[:, None]   # [E, 1]
+    columns = [proj.colors.float()[splat], entry_depth]
+    if geometry:
+        columns += [proj.normals.float()[splat], entry_depth.square()]
+    empty = torch.empty(0, dtype=torch.long)
+    grid = Pairs(tile=empty, splat=empty, tile_start=empty, tiles_x=pairs.tiles_x, tiles_y=pairs.tiles_y)
+    return SurfelView(camera=camera, background=background, num_units=model.num_splats, frags=frags,
+                      values=torch.cat(columns, dim=-1), pair_units=proj.ids[pairs.splat], pairs=grid, tile=tile,
+                      compositor=pick_compositor(compositor), means2d=means2d_all, visible=visible)
 
 
 def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tensor,
@@ -203,20 +269,10 @@ def rasterize_surfels(model: SurfelModel, camera: Camera, background: torch.Tens
     geometry: also composite normals and the depth distortion (for training and normal maps).
     """
     keep = check_keep(keep, model.num_splats)
-    composite = pick_compositor(compositor)
-    proj, means2d_all, visible, pairs, depth, frags = surfel_fragments(model, camera, tile, near)
-    per_tile = tile * tile
-    splat = pairs.splat[frags.pair]                                     # [E] index into proj
-    in_tile = frags.pixel.index_select(0, frags.row) % per_tile
-    entry_depth = depth.reshape(-1).index_select(0, frags.pair * per_tile + in_tile)[:, None]   # [E, 1]
-    columns = [proj.colors.float()[splat], entry_depth]
-    if geometry:
-        columns += [proj.normals.float()[splat], entry_depth.square()]
-    values = torch.cat(columns, dim=-1)                                  # [E, 4] or [E, 8]
-    acc_v, acc_a, rgb = composite_images(composite, frags, values, keep, proj.ids[splat], pairs, tile,
-                                         camera.width, camera.height, background)
-    out = SurfelOutput(rgb=rgb, color=acc_v[..., :3], alpha=acc_a, depth=acc_v[..., 3], means2d=means2d_all,
-                       visible=visible)
+    view = surfel_view(model, camera, background, tile=tile, near=near, compositor=compositor, geometry=geometry)
+    acc_v, acc_a, rgb = view.accumulate(keep)
+    out = SurfelOutput(rgb=rgb, color=acc_v[..., :3], alpha=acc_a, depth=acc_v[..., 3], means2d=view.means2d,
+                       visible=view.visible)
     if geometry:
         out.normal = acc_v[..., 4:7]
         out.distortion = (acc_a * acc_v[..., 7] - acc_v[..., 3].square()).clamp_min(0.0)
@@ -253,36 +309,52 @@ def surfel_counts(renderer: "SurfelRenderer", camera: Camera) -> tuple[int, int,
     return counts[0], counts[1], counts[2]
 
 
+# What a SurfelView keeps (its nbytes), in bytes per item: per fragment its alpha, pair, start and
+# row (4 + 8 x 3) and its colour and depth (16); per covered pixel (at most the tile grid's) its row
+# offset and tile-layout position (8 + 8); per tile pair its surfel (8); per surfel its screen
+# position (float64) and culling flag.
+VIEW_FRAGMENT_BYTES, VIEW_GRID_PIXEL_BYTES, VIEW_PAIR_BYTES, VIEW_SURFEL_BYTES = 44, 16, 8, 17
+
+
 def surfel_memory(renderer: "SurfelRenderer", camera: Camera) -> RenderMemory:
-    """Bounds of one render of `camera` (the family's `memory`): every render call projects,
-    lists and rasterises anew (no prepared view), so all of it is `fixed`."""
+    """Bounds of `prepare(camera)` and its renders (the family's `memory`): `fixed` is what
+    projecting, listing and rasterising hold at their peak, `kept` what the view keeps."""
     visible, pairs, fragments_ = surfel_counts(renderer, camera)
     model, tile = renderer.model, renderer.tile
     grid = math.ceil(camera.width / tile) * math.ceil(camera.height / tile) * tile * tile
     fixed = (SURFEL_BYTES * model.num_splats + (VISIBLE_BYTES + SH_COEFF_BYTES * model.sh.shape[1]) * visible
              + pairs * (PAIR_BYTES + PAIR_PIXEL_BYTES * tile * tile) + FRAGMENT_BYTES * fragments_
              + GRID_PIXEL_BYTES * grid)
-    return RenderMemory(fixed=fixed, kept=0, per_mask=MASK_FRAGMENT_BYTES * fragments_ + MASK_GRID_PIXEL_BYTES * grid,
+    kept = (VIEW_FRAGMENT_BYTES * fragments_ + VIEW_GRID_PIXEL_BYTES * grid + VIEW_PAIR_BYTES * pairs
+            + VIEW_SURFEL_BYTES * model.num_splats)
+    return RenderMemory(fixed=fixed, kept=kept,
+                        per_mask=MASK_FRAGMENT_BYTES * fragments_ + MASK_GRID_PIXEL_BYTES * grid,
                         fragments=fragments_)
 
 
 class SurfelRenderer(SplatRenderer):
-    """A trained 2DGS model behind the renderer protocol; dropout units are the surfels."""
+    """A trained 2DGS model behind the renderer protocol; dropout units are the surfels.
+
+    `prepare` returns a `SurfelView`: one projection, tile list, depth order and set of
+    fragments per camera, composited per batch of keep-masks with the renderer's compositor,
+    and walked in place by the visibility pass."""
 
     kind = "2dgs"
     model_type = SurfelModel
     model: SurfelModel          # __init__ refuses any other model (model_type)
     rasterizer = staticmethod(rasterize_surfels)
 
-    def prepare(self, camera: Camera) -> View:
-        # The compiled SplatView projects 3D Gaussians; surfels render anew through their own stages.
-        return CameraView(self, camera)
-
     @torch.no_grad()
+    def prepare(self, camera: Camera) -> SurfelView:
+        return surfel_view(self.model, camera, self.background, tile=self.tile, near=self.near,
+                           compositor=self.compositor)
+
     def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
                                                  torch.Tensor, Pairs]:
-        proj, _, _, pairs, _, frags = surfel_fragments(self.model, view.camera, self.tile, self.near)
-        return frags.row_ptr, frags.alpha, frags.pair, proj.ids[pairs.splat], frags.pixel, pairs
+        if not isinstance(view, SurfelView):
+            view = self.prepare(view.camera)
+        f = view.frags
+        return f.row_ptr, f.alpha, f.pair, view.pair_units, f.pixel, view.pairs
 
     @torch.no_grad()
     def render_full(self, camera: Camera, keep: torch.Tensor | None = None, *,

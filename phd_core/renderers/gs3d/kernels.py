@@ -9,6 +9,11 @@ is kept when >= ALPHA_MIN (decided in float64; the kept alphas are one vectorise
 The output is the fused compositor's layout: fragments grouped by pixel over ALL T * P pixels
 of the tile grid (pixels outside the image have none), front to back within a pixel, each
 naming its projected splat. Runs of splats, then tiles, are spread over the cores.
+
+A render that knows its masks (none: the full model) needs less: `splat_fragments(...,
+cut_for=...)` walks each tile's pairs front to back instead and ends a pixel's list after the
+fragment where the transmittance of every one of those masks is spent, so the fragments behind
+are neither evaluated nor listed (`_cut_log_alpha`).
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import numpy as np
 import torch
 
 from ...scene import Camera
-from ..splats.maths import ALPHA_MAX, ALPHA_MIN, LAUNCH_LOCK, SH_C0, SH_C1, SH_C2, SH_C3
+from ..splats.maths import ALPHA_MAX, ALPHA_MIN, LAUNCH_LOCK, LOG_T_MIN, SH_C0, SH_C1, SH_C2, SH_C3
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -157,6 +162,11 @@ def splat_values(means: torch.Tensor, sh: torch.Tensor, ids: torch.Tensor, camer
 
 PAIR_CHUNKS = 16    # runs of visible splats listed in parallel (each keeps a cursor per tile)
 NO_FRAGMENT = 1.0   # a pair's entry at a pixel it does not reach (a log alpha is never above 0)
+# A cut list runs on until every mask's log transmittance is this far below LOG_T_MIN. The compositor
+# sums float32 log(1 - alpha) of the float32 alphas; the cut, float64 ones of its own float64 alphas: the
+# two sums differ by about 1e-4 at most over a spent pixel, so the compositor has stopped every mask
+# inside the list, and composites the cut list exactly as the whole one.
+CUT_MARGIN = 0.01
 
 
 @numba.njit(cache=True, nogil=True)
@@ -191,6 +201,14 @@ def _tile_lists(means2d, extents, tiles_x, tiles_y, tile, chunks):  # pragma: no
     return box, start, cursor
 
 
+@numba.njit(inline="always", cache=True, nogil=True)
+def _power(tx, ty, ox, oy, tile, mx, my, ca, cb, cc):  # pragma: no cover
+    """The Gaussian's exponent at pixel (ox, oy) of tile (tx, ty): -d^T conic d / 2, float64."""
+    dy = ty * tile + oy + 0.5 - my
+    dx = tx * tile + ox + 0.5 - mx
+    return -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _pair_log_alpha(box, cursor, means2d, conics, opacities, tiles_x, tile, width, height, splat,
                     pair_log_alpha):  # pragma: no cover
@@ -217,34 +235,112 @@ def _pair_log_alpha(box, cursor, means2d, conics, opacities, tiles_x, tile, widt
                     splat[k] = v
                     cols = min(tile, width - tx * tile)
                     for oy in range(tile):
-                        dy = ty * tile + oy + 0.5 - my
                         for ox in range(tile):
-                            dx = tx * tile + ox + 0.5 - mx
-                            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                            power = _power(tx, ty, ox, oy, tile, mx, my, ca, cb, cc)
                             kept = oy < rows and ox < cols and power >= cutoff
                             pair_log_alpha[k, oy * tile + ox] = power + log_opacity if kept else NO_FRAGMENT
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _pixel_counts(start, pair_log_alpha, row_ptr):  # pragma: no cover
-    """row_ptr[1 + q]: the number of fragments of pixel q (tile layout)."""
+def _pair_splats(box, cursor, tiles_x, opacities, splat, log_opacity):  # pragma: no cover
+    """Each visible splat, run by run, lists itself in every tile of its box (splat[k]), where
+    `_pair_log_alpha` would, without evaluating anything; and its log opacity (as
+    `_pair_log_alpha` takes it)."""
+    chunks = cursor.shape[0]
+    count = box.shape[0]
+    run = max(1, (count + chunks - 1) // chunks)
+    for c in numba.prange(chunks):
+        for v in range(c * run, min(count, (c + 1) * run)):
+            log_opacity[v] = math.log(opacities[v])
+            for ty in range(box[v, 1], box[v, 3] + 1):
+                for tx in range(box[v, 0], box[v, 2] + 1):
+                    t = ty * tiles_x + tx
+                    splat[cursor[c, t]] = v
+                    cursor[c, t] += 1
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _cut_log_alpha(start, splat, means2d, conics, log_opacity, tiles_x, tile, width, height, unit, keep_t,
+                   pair_log_alpha, stop, row_ptr):  # pragma: no cover
+    """Tile by tile, front to back over its pairs (start, splat: the pair lists), the entries
+    `_pair_log_alpha` writes, for the pixels still open only (NO_FRAGMENT at the others).
+
+    unit [V] and keep_t [U, N]: visible splat v is kept by mask n when keep_t[unit[v], n]. A
+    pixel closes after the fragment that brings the transmittance of every mask below T_MIN
+    by CUT_MARGIN (float64, from a float64 alpha: min(ALPHA_MAX, exp(log alpha))), a tile
+    when all its pixels are closed; stop[t]: the end of tile t's pairs that were walked, and
+    row_ptr[1 + q] the fragments of pixel q (as `_pixel_counts` counts them).
+    A pair's entries are one branch-free pass over all the tile's pixels (SIMD lanes), then the
+    fragments found at open pixels take the exp and the masks' update, the others are cleared."""
+    pixels = tile * tile
+    masks = keep_t.shape[1]
+    t_cut = math.exp(LOG_T_MIN - CUT_MARGIN)
+    log_alpha_min = math.log(ALPHA_MIN)
+    for t in numba.prange(start.shape[0] - 1):
+        tx, ty = t % tiles_x, t // tiles_x
+        rows, cols = min(tile, height - ty * tile), min(tile, width - tx * tile)
+        trans = np.ones(pixels * masks)                     # transmittance per pixel and mask
+        counts = row_ptr[1 + t * pixels:1 + (t + 1) * pixels]
+        counts[:] = 0
+        open_ = np.zeros(pixels, np.bool_)
+        for p in range(pixels):
+            open_[p] = p // tile < rows and p % tile < cols
+        left = rows * cols if rows > 0 and cols > 0 else 0
+        k = start[t]
+        while k < start[t + 1] and left > 0:
+            v = splat[k]
+            lo = log_opacity[v]
+            cutoff = log_alpha_min - lo
+            mx, my = means2d[v, 0], means2d[v, 1]
+            ca, cb, cc = conics[v, 0], conics[v, 1], conics[v, 2]
+            entries = pair_log_alpha[k]
+            for oy in range(tile):
+                for ox in range(tile):
+                    power = _power(tx, ty, ox, oy, tile, mx, my, ca, cb, cc)
+                    entries[oy * tile + ox] = power + lo if power >= cutoff else NO_FRAGMENT
+            u = unit[v]
+            for p in range(pixels):
+                if entries[p] == NO_FRAGMENT:
+                    continue
+                if not open_[p]:
+                    entries[p] = NO_FRAGMENT
+                    continue
+                counts[p] += 1
+                step = 1.0 - min(math.exp(np.float64(entries[p])), ALPHA_MAX)
+                live = 0
+                for n in range(masks):
+                    q = p * masks + n
+                    if keep_t[u, n] and trans[q] >= t_cut:
+                        trans[q] *= step
+                    live += trans[q] >= t_cut
+                if live == 0:
+                    open_[p] = False
+                    left -= 1
+            k += 1
+        stop[t] = k
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _pixel_counts(start, stop, pair_log_alpha, row_ptr):  # pragma: no cover
+    """row_ptr[1 + q]: the number of fragments of pixel q (tile layout) among tile t's pairs
+    start[t]:stop[t]."""
     pixels = pair_log_alpha.shape[1]
     for t in numba.prange(start.shape[0] - 1):
         for p in range(pixels):
             n = 0
-            for k in range(start[t], start[t + 1]):
+            for k in range(start[t], stop[t]):
                 n += pair_log_alpha[k, p] != NO_FRAGMENT
             row_ptr[1 + t * pixels + p] = n
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _gather(start, splat, pair_log_alpha, row_ptr, log_alpha, index):  # pragma: no cover
+def _gather(start, stop, splat, pair_log_alpha, row_ptr, log_alpha, index):  # pragma: no cover
     """The fragments, pixel by pixel, front to back: one pass over a tile's pairs (in depth
-    order) appends each pair's fragments at its pixels' cursors."""
+    order, start[t]:stop[t]) appends each pair's fragments at its pixels' cursors."""
     pixels = pair_log_alpha.shape[1]
     for t in numba.prange(start.shape[0] - 1):
         cursor = row_ptr[t * pixels:(t + 1) * pixels].copy()     # next free entry of each pixel
-        for k in range(start[t], start[t + 1]):
+        for k in range(start[t], stop[t]):
             for p in range(pixels):
                 a = pair_log_alpha[k, p]
                 if a != NO_FRAGMENT:
@@ -255,7 +351,9 @@ def _gather(start, splat, pair_log_alpha, row_ptr, log_alpha, index):  # pragma:
 
 
 def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, extents: torch.Tensor,
-                    width: int, height: int, tile: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, int]:
+                    width: int, height: int, tile: int,
+                    cut_for: tuple[torch.Tensor, torch.Tensor] | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, int]:
     """Stages 2 and 3 for V projected splats in front-to-back order (means2d [V, 2], conics
     [V, 3], opacities [V], extents [V, 2], float64).
 
@@ -263,6 +361,11 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     tiles_x, tiles_y); the fragments of pixel q (tile layout) are row_ptr[q]:row_ptr[q + 1].
     Which pixels a splat reaches is decided in float64; the alphas are one float32 exp over
     the fragments (numpy's vectorised exp, 4e-7 of the float64 value), clamped at ALPHA_MAX.
+
+    cut_for: None lists every fragment (lists that serve any keep-mask); (unit [V] long,
+    keep_t [U, N] bool), with splat v kept by mask n when keep_t[unit[v], n], ends each
+    pixel's list once all N masks are spent (`_cut_log_alpha`): a prefix of the whole list,
+    the same bit for bit, that composites to the same images under those masks only.
     """
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
     means2d_np, conics_np, opacities_np, extents_np = (t.detach().double().contiguous().numpy()
@@ -271,14 +374,23 @@ def splat_fragments(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     with LAUNCH_LOCK:
         box, start, cursor = _tile_lists(means2d_np, extents_np, tiles_x, tiles_y, tile, PAIR_CHUNKS)
         splat = np.empty(start[-1], np.int32)
-        pair_log_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P]
-        _pair_log_alpha(box, cursor, means2d_np, conics_np, opacities_np, tiles_x, tile, width, height, splat,
-                        pair_log_alpha)
-        _pixel_counts(start, pair_log_alpha, row_ptr)
+        pair_log_alpha = np.empty((len(splat), tile * tile), np.float32)      # [M, P], written up to stop
+        if cut_for is None:
+            _pair_log_alpha(box, cursor, means2d_np, conics_np, opacities_np, tiles_x, tile, width, height, splat,
+                            pair_log_alpha)
+            stop = start[1:]
+            _pixel_counts(start, stop, pair_log_alpha, row_ptr)
+        else:
+            unit, keep_t = cut_for
+            log_opacity = np.empty(len(opacities_np))
+            _pair_splats(box, cursor, tiles_x, opacities_np, splat, log_opacity)
+            stop = np.empty(len(start) - 1, np.int64)
+            _cut_log_alpha(start, splat, means2d_np, conics_np, log_opacity, tiles_x, tile, width, height,
+                           unit.long().contiguous().numpy(), keep_t.bool().numpy(), pair_log_alpha, stop, row_ptr)
         np.cumsum(row_ptr, out=row_ptr)
         alpha = np.empty(row_ptr[-1], np.float32)
         index = np.empty(row_ptr[-1], np.int32)
-        _gather(start, splat, pair_log_alpha, row_ptr, alpha, index)
+        _gather(start, stop, splat, pair_log_alpha, row_ptr, alpha, index)
     np.exp(alpha, out=alpha)
     np.minimum(alpha, np.float32(ALPHA_MAX), out=alpha)
     return torch.from_numpy(row_ptr), torch.from_numpy(alpha), torch.from_numpy(index), tiles_x, tiles_y

@@ -15,7 +15,10 @@ one alpha evaluation plus N cheap compositing passes. `rasterize` runs them in t
 (differentiable: training); `GaussianRenderer.prepare` runs stages 2-3 compiled
 (`kernels.py`) and keeps the result as a `SplatView`, which composites any number of mask
 batches with the fused kernel: calibration re-uses one view for every ratio it tries,
-PH-Dropout for every chunk of masks. A dropped splat has opacity 0:
+PH-Dropout for every chunk of masks. A render of the full model alone (`render_full` with
+keep None: `phd render`, a render request) prepares a cut view instead, whose pixels
+list their fragments only down to where the transmittance is spent (`cut_lengths` is the
+twin of the cut). A dropped splat has opacity 0:
 it contributes nothing and leaves the transmittance unchanged; survivors are untouched.
 
 Compositing follows the reference rasteriser: alpha = min(0.99, opacity * G(x)), pairs
@@ -41,13 +44,14 @@ from ...errors import InputError
 from ...scene import Camera
 from ...scene.rotations import quaternion_to_rotation
 from ..composite import pick_compositor
-from ..composite.fused import composite_indexed
+from ..composite.fused import composite_indexed, keep_columns
 from ..protocol import MEMORY_PROBE_UNITS, CameraView, RenderMemory, View, check_keep
 from ..signals import DEFAULT_SIGNAL, over, signal_image
 from ..splats.maths import (
     ALPHA_MAX,
     ALPHA_MIN,
     DEFAULT_TILE,
+    LOG_T_MIN,
     Pairs,
     box_counts,
     composite_images,
@@ -58,7 +62,7 @@ from ..splats.maths import (
 )
 from ..splats.model import GaussianModel
 from ..splats.renderer import NEAR_PLANE, RenderOutput, SplatRenderer
-from .kernels import PAIR_CHUNKS, project_splats, splat_fragments, splat_values
+from .kernels import CUT_MARGIN, PAIR_CHUNKS, project_splats, splat_fragments, splat_values
 
 DILATION = 0.3          # px^2 added to the 2D covariance diagonal (anti-aliasing low-pass)
 
@@ -183,6 +187,25 @@ def rasterize(model: GaussianModel, camera: Camera, background: torch.Tensor,
                         visible=visible)
 
 
+def cut_lengths(row_ptr: torch.Tensor, alpha: torch.Tensor, units: torch.Tensor,
+                keep: torch.Tensor | None) -> torch.Tensor:
+    """[S] how many fragments of each pixel's complete list (row_ptr [S + 1], alpha [E], units [E]:
+    the model splat of each fragment) a view cut for `keep` ([N, G] bool, None: the full model)
+    lists: up to and including the first fragment after which every mask's transmittance lies
+    CUT_MARGIN below T_MIN. The pure-torch twin of `kernels._cut_log_alpha` (float64 log sums)."""
+    counts = row_ptr[1:] - row_ptr[:-1]                                       # [S]
+    row = torch.repeat_interleave(torch.arange(len(counts)), counts)         # [E]
+    kept = torch.ones(1, len(alpha), dtype=torch.bool) if keep is None else keep[:, units]   # [N, E]
+    steps = torch.where(kept, torch.log1p(-alpha.double()), 0.0)
+    inclusive = torch.cumsum(steps, 1)
+    first = row_ptr[:-1].clamp_max(max(len(alpha) - 1, 0))
+    base = (inclusive - steps)[:, first][:, row]                             # log T before each row's first fragment
+    spent = (inclusive - base < LOG_T_MIN - CUT_MARGIN).all(0)               # [E] every mask spent here
+    position = torch.arange(len(alpha)) - row_ptr[:-1][row]                  # [E] place in its row
+    last = torch.where(spent, position + 1, counts[row])                     # the length a cut at e gives
+    return counts.clone().scatter_reduce_(0, row, last, "amin")
+
+
 @dataclass
 class SplatView:
     """One camera's mask-independent state (stages 1-3), composited per batch of keep-masks
@@ -191,8 +214,8 @@ class SplatView:
     camera: Camera
     background: torch.Tensor  # [3]
     num_units: int          # G, the width of a keep-mask
-    units: torch.Tensor     # [V] long, the model splat of each visible splat (front to back)
-    values: torch.Tensor    # [V, 4] float32 colour and camera depth of each visible splat
+    units: torch.Tensor     # [V] long, the model splat of each visible splat (front to back; cut: the listed ones)
+    values: torch.Tensor    # [V, 4] float32 colour and camera depth of each of them
     row_ptr: torch.Tensor   # [T * P + 1] long, fragments of pixel q (tile layout): row_ptr[q]:row_ptr[q + 1]
     alpha: torch.Tensor     # [E] float32
     log_1ma: torch.Tensor   # [E] float32, log1p(-alpha): mask-independent, so computed once
@@ -201,6 +224,8 @@ class SplatView:
     tile: int
     means2d: torch.Tensor   # [G, 2] screen positions of all splats
     visible: torch.Tensor   # [G] bool, survived culling
+    complete: bool = True   # the lists hold every fragment; False: cut for `cut_for` (`prepare_view`)
+    cut_for: torch.Tensor | None = None     # the only keep a cut view renders (None: the full model)
 
     @property
     def nbytes(self) -> int:
@@ -209,6 +234,8 @@ class SplatView:
 
     def accumulate(self, keep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Colour over black and camera depth [N, H, W, 4], alpha [N, H, W]: one per keep-mask."""
+        if not self.complete and keep is not self.cut_for:
+            raise ValueError("a view cut for its keep-masks renders those only; prepare a complete view for others")
         keep = check_keep(keep, self.num_units)
         acc_v, acc_a = composite_indexed(self.row_ptr, self.alpha, self.index, self.units, keep, self.values,
                                          self.log_1ma)
@@ -229,20 +256,34 @@ class SplatView:
 
 @torch.no_grad()
 def prepare_view(model: GaussianModel, camera: Camera, background: torch.Tensor, *, tile: int = DEFAULT_TILE,
-                 near: float = NEAR_PLANE) -> SplatView:
-    """Stages 1-3 for `camera`, compiled (`kernels.py`); SH colours of the visible splats only."""
+                 near: float = NEAR_PLANE, cut: bool = False, keep: torch.Tensor | None = None) -> SplatView:
+    """Stages 1-3 for `camera`, compiled (`kernels.py`); SH colours of the visible splats only.
+
+    cut=False: every fragment is listed, and the view renders any keep-masks and reports
+    visibility. cut=True: the view renders `keep` only ([N, G] bool; None: the full model),
+    and each pixel's list ends where all of its masks' transmittance is spent: the fragments
+    behind are never evaluated, and the images are the same bit for bit (a render that knows
+    its masks: `GaussianRenderer.render_full`)."""
+    if cut:
+        keep = check_keep(keep, model.num_splats)
     means2d, conics, opacities, extents, depths, visible = project_splats(
         model.means, model.quats, model.log_scales, model.opacity_logits, camera, near, DILATION)
     ids = front_to_back(visible, depths)
     row_ptr, alpha, index, tiles_x, tiles_y = splat_fragments(means2d[ids], conics[ids], opacities[ids],
-                                                              extents[ids], camera.width, camera.height, tile)
+                                                              extents[ids], camera.width, camera.height, tile,
+                                                              keep_columns(keep, ids) if cut else None)
+    if cut:                         # the splats a cut list still names: often a small share of the visible ones
+        used = torch.zeros(len(ids), dtype=torch.bool)
+        used[index] = True
+        rows = torch.cumsum(used, 0, dtype=torch.int32) - 1        # [V] new row of each used splat
+        index, ids = rows[index], ids[used]
     empty = torch.empty(0, dtype=torch.long)
     grid = Pairs(tile=empty, splat=empty, tile_start=empty, tiles_x=tiles_x, tiles_y=tiles_y)
     values = splat_values(model.means, model.sh, ids, camera, depths)
     return SplatView(camera=camera, background=background.float(), num_units=model.num_splats, units=ids,
                      values=values, row_ptr=row_ptr, alpha=alpha, log_1ma=torch.log1p(-alpha),
                      index=index, pairs=grid, tile=tile,
-                     means2d=means2d.float(), visible=visible)
+                     means2d=means2d.float(), visible=visible, complete=not cut, cut_for=keep if cut else None)
 
 
 # What `prepare_view` and a SplatView render hold, in bytes per item (upper envelopes of the peaks
@@ -314,14 +355,21 @@ class GaussianRenderer(SplatRenderer):
 
     @torch.no_grad()
     def render_full(self, camera: Camera, keep: torch.Tensor | None = None) -> RenderOutput:
+        """With the fused compositor, the full model (keep None) from a cut view (`prepare_view`):
+        no fragment behind the depth where a pixel's transmittance is spent is evaluated or
+        listed. Masked renders list every fragment: tracking N masks' transmittance while
+        listing costs about what compositing them does, and measured slower
+        (docs/performance.md, "A view of the full model charged for its visible fragments")."""
         if self.compositor == "fused":
-            return prepare_view(self.model, camera, self.background, tile=self.tile, near=self.near).render_full(keep)
+            view = prepare_view(self.model, camera, self.background, tile=self.tile, near=self.near,
+                                cut=keep is None)
+            return view.render_full(keep)
         return rasterize(self.model, camera, self.background, keep, tile=self.tile, near=self.near,
                          compositor=self.compositor)
 
     def fragment_rows(self, view: View) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
                                                  torch.Tensor, Pairs]:
-        if not isinstance(view, SplatView):
+        if not isinstance(view, SplatView) or not view.complete:       # visibility counts hidden fragments too
             view = prepare_view(self.model, view.camera, self.background, tile=self.tile, near=self.near)
         rows = torch.arange(len(view.row_ptr) - 1)
         return view.row_ptr, view.alpha, view.index, view.units, rows, view.pairs

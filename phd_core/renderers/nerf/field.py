@@ -247,7 +247,10 @@ class RadianceField(nn.Module):
 
     def density(self, points: Tensor, weights: Tensor | None = None) -> Tensor:
         """Density of the full model at world points [P, 3] -> [P] (no colour branch)."""
-        h1, skip_term = self.units(points, weights)
+        return self.units_density(*self.units(points, weights))
+
+    def units_density(self, h1: Tensor, skip_term: Tensor | None) -> Tensor:
+        """Density of the full model from the dropout units [P, W] and the skip term: [P]."""
         return self.sigma(self.trunk(h1[None], skip_term))[0]
 
     def stem(self, points: Tensor, dirs: Tensor, weights: Tensor | None = None,

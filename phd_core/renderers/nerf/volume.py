@@ -42,6 +42,7 @@ class RayOutput:
     depth: Tensor    # [n, R] alpha-weighted distance along the ray
     sigma: Tensor | None  # [n, R, S] density of every sample (0 where skipped), if asked for
     samples: int     # samples the network evaluated
+    full_density: Tensor | None = None  # [K] the full model's density at the K evaluated samples, if asked for
 
 
 def ray_samples(model: RadianceField, origins: Tensor, dirs: Tensor, *, generator: torch.Generator | None = None,
@@ -71,7 +72,8 @@ def ray_samples(model: RadianceField, origins: Tensor, dirs: Tensor, *, generato
 def render_rays(model: RadianceField, origins: Tensor, dirs: Tensor, *, keep: Tensor | None = None,
                 rescale: bool = False, use_grid: bool = True, generator: torch.Generator | None = None,
                 weights: Tensor | None = None, dir_weights: Tensor | None = None,
-                background: Tensor | None = None, with_sigma: bool = False) -> RayOutput:
+                background: Tensor | None = None, with_sigma: bool = False,
+                full_density: bool = False) -> RayOutput:
     """Render rays [R, 3] once per keep-mask [n, W] (None: n = 1, the full model).
 
     Sampling, the grid lookup, the encoding and the first layer run once; the rest of the
@@ -79,7 +81,9 @@ def render_rays(model: RadianceField, origins: Tensor, dirs: Tensor, *, keep: Te
     Deterministic unless a `generator` is given (stratified sampling, for training);
     `use_grid=False` evaluates every sample in the box. `weights`/`dir_weights` are the
     FreeNeRF band weights of the position and direction encodings. `with_sigma` also
-    returns every sample's density (training's occlusion penalty needs it).
+    returns every sample's density (training's occlusion penalty needs it); `full_density`
+    the full model's density at the evaluated samples, from the same first layer (the trunk
+    once more, no colour branch: what a visibility pass needs beside the masked renders).
     """
     c = model.config
     bg = torch.tensor(c.background) if background is None else background
@@ -101,5 +105,6 @@ def render_rays(model: RadianceField, origins: Tensor, dirs: Tensor, *, keep: Te
         depths.append(depth)
         if with_sigma:
             sigmas.append(sigma)
+    full = model.units_density(stem[0], stem[1]) if full_density else None       # [K]
     return RayOutput(torch.cat(colors), torch.cat(alphas), torch.cat(depths),
-                     torch.cat(sigmas) if with_sigma else None, int(flat.numel()))
+                     torch.cat(sigmas) if with_sigma else None, int(flat.numel()), full)

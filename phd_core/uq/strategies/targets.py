@@ -56,9 +56,9 @@ class TargetGain:
             self.entries.append((torch.searchsorted(union, vis.elements[shown]).numpy(),
                                  directions(vis.points[shown], vis.camera.center).numpy(), scale[shown].numpy()))
 
-    def capture(self, vis: Visibility | Seen) -> None:
-        """Count `vis` as captured: the targets' novelty of every element it saw falls."""
-        self.targets.capture(vis)
+    def capture(self, *views: Visibility | Seen) -> None:
+        """Count `views` as captured: the targets' novelty of every element they saw falls."""
+        self.targets.capture(*views)
 
     def retire(self, c: int) -> None:
         """Candidate c is out of play (picked): its entries go."""
