@@ -82,7 +82,7 @@ class Seen:
 PASS_UNIT_BYTES = 80
 KEPT_ELEMENT_BYTES = 56
 SEEN_ELEMENT_BYTES = 16
-# A strategy's working copy of a candidate's element (`phd_core.uq.strategies.visibility.Coverage`):
+# A strategy's working copy of a candidate's element (`phd_core.uq.strategies.coverage.Coverage`):
 # index, direction, weight, novelty, owner and its place in the by-element list (8 + 24 + 4 x 8), and
 # per element of the union (at most every listed element) its id, point and first entry (8 + 24 + 8)
 # and either the sort that lists entries by element (16, while the list is made) or the number of

@@ -21,7 +21,8 @@ from phd_core.scene import Camera, look_at
 from phd_core.uq import rank_views
 from phd_core.uq.rank import candidate_evidence, visibility_evidence
 from phd_core.uq.strategies import Evidence, get_strategy
-from phd_core.uq.strategies.visibility import ANGLE_SCALE, EMPTY_WEIGHT, SEEN_SHARE, SPREAD_FLOOR
+from phd_core.uq.strategies.coverage import ANGLE_SCALE, EMPTY_WEIGHT, SEEN_SHARE
+from phd_core.uq.strategies.visibility import SPREAD_FLOOR
 from support.fixtures import svc_random_gaussians
 from support.toy_renderers import BlobRenderer, ring_cameras
 

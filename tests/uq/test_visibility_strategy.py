@@ -14,17 +14,16 @@ from phd_core.scene import look_at
 from phd_core.uq import select_models
 from phd_core.uq.rank import add_fisher, candidate_evidence, visibility_evidence
 from phd_core.uq.strategies import Evidence, get_strategy
-from phd_core.uq.strategies.visibility import (
+from phd_core.uq.strategies.coverage import (
     ANGLE_SCALE,
     EMPTY_WEIGHT,
     SEEN_SHARE,
-    SPREAD_FLOOR,
     Coverage,
-    _mean_zeta,
-    coverage_select,
+    mean_zeta,
     stable_order,
     viewing_axis,
 )
+from phd_core.uq.strategies.visibility import SPREAD_FLOOR, coverage_select
 from support.fixtures import svc_random_gaussians
 from support.toy_renderers import BlobRenderer, ring_cameras
 
@@ -264,7 +263,7 @@ def full_scan_coverage(evidence: Evidence, k: int, fragility: bool, spread: bool
     """The coverage order as a plain full greedy: every candidate's novelty recomputed from every
     view counted as captured, every value rescored at every pick. (order, scores, values computed)."""
     views, count = evidence.candidate_views, len(evidence.candidates)
-    reference = _mean_zeta(views) if fragility else 0.0
+    reference = mean_zeta(views) if fragility else 0.0
     weights = []
     for vis in views:
         weight = vis.weight.clone()

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from ...renderers.visibility import Seen, Visibility
-from .visibility import ANGLE_SCALE, Coverage, _mean_zeta, directions, seen_share
+from .coverage import ANGLE_SCALE, Coverage, directions, mean_zeta, seen_share
 
 
 class TargetGain:
@@ -43,7 +43,7 @@ class TargetGain:
                  angle_scale: float = ANGLE_SCALE):
         self.angle_scale = angle_scale
         self.targets = Coverage(targets, fragility=False, angle_scale=angle_scale)   # n_t(u), weight_t(u)
-        reference = _mean_zeta(candidates) if fragility else 0.0
+        reference = mean_zeta(candidates) if fragility else 0.0
         # Per candidate, the elements it sees that some target shows: their union ids [K], the
         # directions from each to the candidate [K, 3] and seen(u, c) * fragility(u, c) [K].
         self.entries: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = []
