@@ -175,6 +175,7 @@ function build(element) {
     renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
   } catch (err) {
     view.noWebGL = err.message;
+    element.replaceChildren(status);          // no empty stage or colour modes: only why
     say("this browser cannot draw the 3D view: it needs WebGL (" + err.message + "); the rest of the page works " +
       "without it", true);
     return false;

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import zipfile
 from pathlib import Path
 
@@ -21,13 +20,11 @@ from phd_core import uq
 from phd_core.data import candidate_name, export_cameras
 from phd_core.scene import camera_from_frame
 from phd_core.uq.candidates import candidate_cameras
-from support.browser import hold_worker
+from support.browser import chromium, have_browser, hold_worker
 from support.fixtures import LEGO, svc_cameras, svc_random_gaussians
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
-webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install -e '.[test]')")
-if not (Path(CHROMIUM).exists() and Path(CHROMEDRIVER).exists()):
+pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install -e '.[test]')")
+if not have_browser():
     pytest.skip("no browser: install Debian's chromium and chromium-driver (scripts/test.sh does, as root)",
                 allow_module_level=True)
 from selenium.common.exceptions import TimeoutException  # noqa: E402
@@ -38,17 +35,7 @@ KEY = "page-test-key"
 AUTH = {"Authorization": f"Bearer {KEY}"}
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory):
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--disable-dev-shm-usage", "--window-size=1280,1600",
-                 f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}"):
-        options.add_argument(flag)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    # An explicit driver path: Selenium Manager then downloads nothing.
-    driver = webdriver.Chrome(service=webdriver.ChromeService(executable_path=CHROMEDRIVER), options=options)
-    driver.set_page_load_timeout(30)
+    driver = chromium(tmp_path_factory.mktemp("chromium-profile"))
     yield driver
     driver.quit()
 
@@ -648,3 +635,27 @@ def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, traine
         assert [(f["w"], f["h"]) for f in phd.training_cameras(stored.id)] == [(24, 24)] * 3
         assert stored.camera_format == "nerfstudio"
     assert _console_errors(browser) == []
+
+
+def test_without_webgl_the_view_says_why_and_the_rest_of_the_page_works(models, tmp_path):
+    """A browser without WebGL (remote desktops, locked-down machines): the 3D view says in its
+    own status line that it needs WebGL, the page's message line stays free of errors, the
+    model's facts are shown, and a rank from the page shows its cards (the view's calls do nothing)."""
+    server, model_a, _ = models
+    driver = chromium(tmp_path / "profile", flags=("--disable-webgl", "--disable-3d-apis"))
+    try:
+        _open(driver, server)
+        Select(driver.find_element(By.ID, "model-select")).select_by_value(model_a.id)
+        status = lambda d: d.find_element(By.CSS_SELECTOR, "#view3d .v3d-status").text   # noqa: E731
+        _wait(driver, lambda d: "WebGL" in status(d), what="the view's word on WebGL")
+        assert "cannot draw the 3D view" in status(driver)
+        assert not driver.find_elements(By.CSS_SELECTOR, "#view3d .v3d-stage, #view3d .v3d-modes")   # only the why
+        _wait(driver, lambda d: "r_drop" in d_text(d, "model-info"), what="the model's facts")
+        assert "error" not in _classes(driver, "message") and "WebGL" not in d_text(driver, "message")
+        _run_on_candidates(driver, 3, "rank", {"rank-samples": 3, "rank-downscale": 1, "rank-seed": 0})
+        driver.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")[1].click()      # picks it: the view ignores it
+        assert _classes(driver, "rank-message") == ["message"] and "error" not in _classes(driver, "message")
+        driver.save_screenshot(str(tmp_path / "page_no_webgl.png"))
+        assert _console_errors(driver, expected=("WebGL",)) == []
+    finally:
+        driver.quit()
