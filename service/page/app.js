@@ -698,8 +698,8 @@ async function rank(event) {
     `${r.samples} samples, rendered at ${r.width} x ${r.height} px; ` +
     `heat maps share one scale: yellow = zeta ${fmt(r.heatmap_vmax)}, dark blue = 0`;
   drawPlots();
-  const all = body.cameras && body.cameras.every((f) => f.transform_matrix) ? { candidates: body.cameras } : {};
-  if (view3d()) view3d().showRanking(r, all);        // with the user's own list: the unreturned ones too
+  // With the user's own list: the unreturned ones too.
+  if (view3d()) view3d().showRanking(r, body.cameras ? { candidates: body.cameras } : {});
   showDownload(r, model);
   await drawRankGrid(r);
   say("rank-message", "Ranked: capture candidate " + r.views[0].index + " first.");

@@ -127,8 +127,14 @@ async function request(path, options = {}) {
   return response;
 }
 
-// A transforms frame -> its camera-to-world matrix (OpenGL) and intrinsics.
+// A frame -> its camera-to-world matrix (OpenGL) and intrinsics: a transforms frame, or a reference
+// trainer's cameras.json entry (OpenCV axes, y down and looking along +z; principal point at the centre).
 function frameCamera(frame) {
+  if (!frame.transform_matrix) {
+    const r = frame.rotation, p = frame.position;
+    const c2w = new THREE.Matrix4().set(...[0, 1, 2].flatMap((i) => [r[i][0], -r[i][1], -r[i][2], p[i]]), 0, 0, 0, 1);
+    return { c2w, w: frame.width, h: frame.height, fx: frame.fx, fy: frame.fy, cx: frame.width / 2, cy: frame.height / 2 };
+  }
   const m = frame.transform_matrix;
   const c2w = new THREE.Matrix4().set(...m[0], ...m[1], ...m[2], ...(m[3] || [0, 0, 0, 1]));
   const w = frame.w, h = frame.h;
