@@ -17,6 +17,9 @@
 //   showRanking(result, {candidates})    a rank result as the REST API returns it: candidates as
 //                                        frusta coloured by score with their rank; `candidates`
 //                                        (optional, all frames ranked) adds the unreturned, faint
+//   showTargets(frames)                  the rank request's target views (where the model will be
+//                                        looked at from), faint frusta in their own colour; [] for
+//                                        none. Kept when another model is mounted
 //   onPick(callback(index))              a candidate frustum was clicked
 //   clear()                              no ranking: its frusta and detail panel go
 //   refresh()                            the model changed (calibrated): explained again for the mode shown
@@ -30,6 +33,8 @@ const EXPLAIN_SAMPLES = 8;          // masks per view for fragility: the page's 
 const EXPLAIN_SIDE = 160;           // explain renders at most this many pixels a side (downscaled from the frames)
 const FRUSTUM_SHARE = 0.12;         // a frustum's depth, of the scene's radius
 const BACKGROUND = 0x15181d;
+// Target views: orange, off the candidates' ramp and the cameras' greys, and faint (under the candidates).
+const TARGET = { rgb: [255, 140, 0], fill: 0.25, opacity: 0.8 };
 
 // Ramps: five stops each, low to high. Scores and fragility on the heat maps' ramp (viridis);
 // coverage from red (no captured view saw it) to teal (seen by many); novelty grey to magenta.
@@ -148,7 +153,7 @@ function frameCamera(frame) {
 const view = {
   root: null, renderer: null, scene: null, camera: null, controls: null,
   headers: {}, modelId: null, header: null, points: null, positions: null,
-  training: [], ranking: null, frusta: [], selected: null, pickCallbacks: [],
+  training: [], ranking: null, frusta: [], selected: null, pickCallbacks: [], targets: [], targetFrusta: [],
   mode: "colour", explained: null, explaining: null, radius: 1, centre: new THREE.Vector3(),
   sortPending: true, sortMs: null, touched: false, blobs: [],
   noWebGL: null,      // why the browser cannot draw the view, once it has failed to
@@ -321,6 +326,17 @@ function drawTraining() {
   view.scene.add(view.trainingGroup);
 }
 
+// Drawn before the candidates (a lower order), so a candidate is never hidden under a target.
+function drawTargets() {
+  if (view.targetGroup) view.scene.remove(view.targetGroup);
+  view.targetGroup = new THREE.Group();
+  view.targetFrusta = view.targets.map((frame) => frustum(frame, new THREE.Color(css(TARGET.rgb)),
+    { fill: TARGET.fill, opacity: TARGET.opacity, order: 2 }));
+  for (const f of view.targetFrusta) view.targetGroup.add(f.group);
+  view.scene.add(view.targetGroup);
+  draw();
+}
+
 function drawCandidates() {
   if (view.candidateGroup) view.scene.remove(view.candidateGroup);
   view.candidateGroup = new THREE.Group();
@@ -396,7 +412,7 @@ function drawNow() {
 function fit() {
   const up = new THREE.Vector3(...(view.header ? view.header.up : [0, 0, 1])).normalize();
   const frames = view.training.concat(view.ranking ? view.ranking.views.map((v) => v.camera) : [])
-    .concat(view.allCandidates || []);
+    .concat(view.allCandidates || [], view.targets);
   const b = view.header ? view.header.bounds : { min: [-1, -1, -1], max: [1, 1, 1] };
   const centre = new THREE.Vector3(...b.min).add(new THREE.Vector3(...b.max)).multiplyScalar(0.5);
   const shown = [0, 1, 2, 3, 4, 5, 6, 7].map((k) => new THREE.Vector3(k & 1 ? b.max[0] : b.min[0],
@@ -518,6 +534,12 @@ function drawLegend() {
     parts.push(el("span", { class: "v3d-key" }, el("span", { text: "candidate score: low " }), bar, el("span", { text: " high (capture first); #n = rank" })));
   }
   parts.push(el("span", { class: "v3d-key" }, el("span", { class: "v3d-swatch train" }), el("span", { text: " training camera" })));
+  if (view.targets.length) {
+    const swatch = el("span", { class: "v3d-swatch target" });   // in the frusta's own colours (TARGET)
+    swatch.style.borderColor = css(TARGET.rgb);
+    swatch.style.backgroundColor = `rgba(${TARGET.rgb.join(",")}, ${TARGET.fill})`;
+    parts.push(el("span", { class: "v3d-key" }, swatch, el("span", { text: ` target view (${view.targets.length})` })));
+  }
   if (view.ranking && view.allCandidates && view.allCandidates.length > view.ranking.views.length) {
     parts.push(el("span", { class: "v3d-key" }, el("span", { class: "v3d-swatch none" }), el("span", { text: " not returned" })));
   }
@@ -606,9 +628,8 @@ async function mount(element, { modelId, headers = {} }) {
       "drawn by opacity and size)" : `${h.total.toLocaleString("en")} splats`);
   }
   fit();
-  drawTraining();
+  drawFrusta();
   if (view.mode !== "colour") await setMode(view.mode);
-  drawLegend();
   return true;
 }
 
@@ -621,7 +642,21 @@ function showRanking(result, { candidates = null } = {}) {
   view.detail.hidden = true;
   if (view.mode !== "colour") setMode(view.mode);        // a new first pick: explained again (novelty)
   if (!view.touched) fit();
-  drawTraining();                           // frustum sizes follow the scene's reach
+  drawFrusta();
+}
+
+// The target views: fitted into the picture unless the user has turned the view.
+function showTargets(frames) {
+  view.targets = frames;
+  if (view.noWebGL || !view.renderer) return;   // drawn when a model is mounted
+  if (!view.touched) fit();
+  drawFrusta();
+}
+
+// Every frustum again (their size follows the scene's reach, which fit() sets) and the legend.
+function drawFrusta() {
+  drawTraining();
+  drawTargets();
   drawCandidates();
   drawLegend();
 }
@@ -659,6 +694,7 @@ function debug() {
     total: view.header ? view.header.total : 0, training: view.training.length, mode: view.mode,
     explained: view.explained ? Object.keys(view.explained.values) : [], selected: view.selected,
     frusta: view.frusta.map((f) => ({ index: f.index, rank: f.rank, rgb: f.rgb, centre: f.centre.toArray() })),
+    targets: view.targetFrusta.map((f) => ({ rgb: TARGET.rgb, fill: TARGET.fill, centre: f.centre.toArray() })),
     centre: view.centre.toArray(), sortMs: view.sortMs,
   };
 }
@@ -666,5 +702,5 @@ function debug() {
 // The style sheet travels with the script (one tag in the page): a same-origin file, as the CSP asks.
 document.head.append(el("link", { rel: "stylesheet", href: new URL("view3d.css", import.meta.url).pathname }));
 // drawNow: draw at once (tests read the canvas after it); with resort, sort the points again first.
-window.phdView3d = { mount, showRanking, clear, refresh, onPick, select, setMode, debug,
+window.phdView3d = { mount, showRanking, showTargets, clear, refresh, onPick, select, setMode, debug,
   drawNow: (resort = false) => { view.sortPending = view.sortPending || resort; drawNow(); } };

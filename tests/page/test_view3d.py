@@ -220,6 +220,64 @@ def test_colour_modes_show_coverage_fragility_and_what_the_first_pick_sees(brows
     assert _console_errors(browser) == []
 
 
+# The heat maps' ramp (viridis), which colours the candidates by score.
+SCORE_RAMP = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], float)
+
+
+def test_target_views_are_drawn_faint_in_their_own_colour_where_they_project(browser, ranked):
+    """Target views given as a reference trainer's cameras.json: a frustum each where the pose
+    puts its image rectangle, filled with the target colour at its faint opacity over what lies
+    behind (the same picture without them, the view turned by hand so it stays put), in a colour
+    off the candidates' ramp, under the candidates, with a legend entry."""
+    from phd_core.data.inria import camera_entry
+
+    server, model, ranking, candidates = ranked
+    _open(browser, server, model)
+    cameras = svc_cameras(3, phase=0.6, radius=2.8)
+    entries = [camera_entry(c) for c in cameras]
+    _call(browser, "phdView3d.showTargets(arguments[0])", entries)
+    assert "target view (3)" in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    canvas = browser.find_element(By.CSS_SELECTOR, "#view3d canvas")
+    ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(25, 10).release().perform()
+    state = browser.execute_script("return phdView3d.debug()")
+    with_targets = _pixels(browser).astype(float)
+    _call(browser, "phdView3d.showTargets([])")                # the view was turned: it stays where it is
+    assert browser.execute_script("return phdView3d.debug().view") == state["view"]
+    without = _pixels(browser).astype(float)
+    assert len(state["targets"]) == 3
+    for camera, drawn in zip(cameras, state["targets"]):
+        centre = _image_centre(camera.to_frame(), state["frustumDepth"])
+        assert np.allclose(centre, drawn["centre"], atol=1e-4)              # the entry's pose, OpenCV axes read
+        px, py, depth = _project(state, centre)
+        assert 2 < px < state["width"] - 3 and 2 < py < state["height"] - 3 and -1 < depth < 1
+        area = (slice(int(py) - 2, int(py) + 3), slice(int(px) - 2, int(px) + 3))
+        blend = drawn["fill"] * np.array(drawn["rgb"]) + (1 - drawn["fill"]) * without[area]
+        assert np.median(np.abs(with_targets[area] - blend).max(-1)) <= 6, (with_targets[area], blend)
+        assert np.abs(with_targets[area] - without[area]).max() > 20
+    # Not a colour of the score ramp (sampled finely), nor the training cameras' grey.
+    ramp = np.concatenate([a + (b - a) * t[:, None] for a, b, t in
+                           zip(SCORE_RAMP, SCORE_RAMP[1:], [np.linspace(0, 1, 50)] * 4)])
+    target = np.array(state["targets"][0]["rgb"])
+    assert np.linalg.norm(ramp - target, axis=1).min() > 60
+    assert np.linalg.norm(target - [0xe8, 0xec, 0xf0]) > 60
+    # Targets at the returned candidates' own poses lie under them: each candidate keeps its colour.
+    _call(browser, "phdView3d.showRanking(arguments[0], {candidates: arguments[1]})", ranking, candidates)
+    alone = _pixels(browser).astype(float)
+    _call(browser, "phdView3d.showTargets(arguments[0])", [v["camera"] for v in ranking["views"]])
+    state = browser.execute_script("return phdView3d.debug()")
+    covered = _pixels(browser).astype(float)
+    assert len(state["targets"]) == len(state["frusta"]) == TOP_K
+    for f in state["frusta"]:
+        px, py, _ = _project(state, f["centre"])
+        assert 0 < px < state["width"] and 0 < py < state["height"]
+        assert np.abs(covered[int(py), int(px)] - alone[int(py), int(px)]).max() <= 8
+    legend = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    assert "candidate score" in legend and f"target view ({TOP_K})" in legend
+    _call(browser, "phdView3d.showTargets([])")
+    assert "target view" not in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    assert _console_errors(browser) == []
+
+
 def test_the_view_files_are_local_and_open(ranked):
     server, _, _, _ = ranked
     page = httpx.get(server.url + "/ui/").text
