@@ -14,8 +14,9 @@ const state = {
   candidates: [],      // the user's own frames (file mode), sent as the rank request's cameras
   candidatesSized: true, // false: the file's frames lack w/h, taken from the width/height fields
   spec: null,          // generate mode: the rank request's candidates {generator, count, options}
+  targets: [],         // frames of the target views file (where the model will be looked at from), [] for none
   ranking: null,       // the last RankResult, with the id of the model it ranked (modelId)
-  rankToken: 0,        // raised when a rank starts or the candidates change: an older job's answer is not drawn
+  rankToken: 0,        // raised when a rank starts or the candidates or targets change: an older job's answer is not drawn
   job: null,           // id of the running rank job (for Cancel)
   blobs: [],           // object URLs to revoke when a grid is redrawn
   dropped: null,       // files dropped on the upload zone: [{file, path}]
@@ -73,7 +74,12 @@ const LABELS = {
   training_cameras: "the training cameras", model_b: "model B", model_a: "model A", rule: "rule",
   file: "the model file", files: "the folder", archive: "the zip", name: "name", background: "background",
   camera_format: "the cameras' format", Authorization: "API key", format: "pose format", indices: "the poses",
+  targets: "the target views",
 };
+
+// Request fields whose errors are shown beside their own control (the message line under it)
+// rather than in the section's line.
+const FIELD_LINES = { targets: "targets-message" };
 
 // A service message without its API words: no routes, no "(field x)", no pydantic prefixes.
 function plainText(message) {
@@ -85,11 +91,14 @@ function plainText(message) {
     .replace(/\bmodel '[0-9a-f]{16}'/g, "the model");
 }
 
+// A request field without its item and key: "targets[2].w" -> "targets".
+const fieldBase = (field) => field.replace(/\[\d+\].*$/, "").replace(/\..*$/, "");
+
 function fieldLabel(field, where) {
   if (!field) return null;
   const labels = where === "upload-message" ? Object.assign({}, LABELS, UPLOAD_LABELS) : LABELS;
   if (labels[field]) return labels[field];
-  const base = field.replace(/\[\d+\].*$/, "").replace(/\..*$/, "");
+  const base = fieldBase(field);
   const item = field.match(/\[(\d+)\]/);
   return (labels[base] || base.replace(/_/g, " ")) + (item ? " (pose " + item[1] + ")" : "");
 }
@@ -183,13 +192,15 @@ function say(where, text, kind = "") {
   if (kind === "error") p.scrollIntoView({ block: "center" });
 }
 
-// Run an action; its error is shown next to the control that started it, in plain words.
+// Run an action; its error is shown next to the control that started it, or beside the control
+// of the field it names (FIELD_LINES), in plain words.
 async function guarded(where, action) {
   say(where, "");                      // an old error does not outlive the next action
   try {
     await action();
   } catch (err) {
-    say(where, plain(err, where), "error");
+    const beside = err instanceof ApiError && err.field && FIELD_LINES[fieldBase(err.field)];
+    say(beside || where, plain(err, where), "error");
   }
 }
 
@@ -265,12 +276,13 @@ const hasSize = (f) => isEntry(f) || (f.w !== undefined && f.h !== undefined);
 // True when some frame does not say its image size.
 const lacksSize = (frames) => !frames.every(hasSize);
 
-// Frames with the size fields' width and height where they give none; an error naming the fields.
+// Frames with the size fields' width and height where they give none; an error naming the fields,
+// on the field the prefix names (so the target views' is said beside their control: FIELD_LINES).
 function sized(frames, prefix) {
   if (!lacksSize(frames)) return frames;
   const w = Number($(prefix + "-width").value), h = Number($(prefix + "-height").value);
   if (!(w >= 1 && h >= 1)) {
-    throw new ApiError("These poses do not say their image size: fill in width and height (in pixels).");
+    throw new ApiError("These poses do not say their image size: fill in width and height (in pixels).", "page", prefix);
   }
   return frames.map((f) => (hasSize(f) ? f : Object.assign({ w, h }, f)));
 }
@@ -529,16 +541,18 @@ function shownCandidates() {
   return state.ranking ? state.ranking.views.map((v) => ({ index: v.index, frame: v.camera })) : [];
 }
 
-// Width and height fields for camera files without an image size, filled with the size of the
-// model's training images when the model has them.
+// Width and height fields for camera files without an image size (candidates, target views),
+// filled with the size of the model's training images when the model has them.
 function prefillSizes() {
   const sizedFrame = state.training.find((f) => f.w && f.h);
-  if (sizedFrame && !$("cand-width").value && !$("cand-height").value) {
-    $("cand-width").value = sizedFrame.w;
-    $("cand-height").value = sizedFrame.h;
+  for (const prefix of ["cand", "targets"]) {
+    if (sizedFrame && !$(prefix + "-width").value && !$(prefix + "-height").value) {
+      $(prefix + "-width").value = sizedFrame.w;
+      $(prefix + "-height").value = sizedFrame.h;
+    }
+    $(prefix + "-size-hint").textContent = "These poses do not say their image size: give it in pixels" +
+      (sizedFrame ? ` (filled in: the size of the model's training images, ${sizedFrame.w} x ${sizedFrame.h}).` : ".");
   }
-  $("cand-size-hint").textContent = "These poses do not say their image size: give it in pixels" +
-    (sizedFrame ? ` (filled in: the size of the model's training images, ${sizedFrame.w} x ${sizedFrame.h}).` : ".");
 }
 
 async function updateCandidates() {
@@ -572,6 +586,60 @@ async function updateCandidates() {
     drawPlots();
   }
 }
+
+// ------------------------------------------------------------------ target views
+
+// The optional target views file (where the model will be looked at from), read as a candidates
+// file is, drawn in the 3D view and sent as the rank request's targets. A ranking belongs to the
+// target views it was made for, as to its candidates.
+async function updateTargets() {
+  const file = $("targets-file").files[0];
+  state.targets = [];
+  forgetRanking();
+  state.rankToken++;
+  $("targets-size").hidden = true;
+  $("targets-info").textContent = "";
+  $("targets-clear").hidden = !file;          // for a file that could not be read too
+  try {
+    if (file) {
+      state.targets = framesOf(await file.text(), file.name);
+      $("targets-size").hidden = !lacksSize(state.targets);
+      prefillSizes();
+      $("targets-info").textContent = `${state.targets.length} target pose${state.targets.length > 1 ? "s" : ""} ` +
+        `from ${file.name}: the coverage strategies value a candidate by what it fixes in these views`;
+    }
+  } finally {
+    drawTargets();
+  }
+}
+
+// The target views in the 3D view, at the size fields' size where they say none (drawn once
+// those are filled in: the frusta's shape needs it).
+function drawTargets() {
+  if (!view3d()) return;
+  let frames = [];
+  try {
+    frames = sized(state.targets, "targets");
+  } catch (_) { /* no size yet: the hint above the fields asks for it */ }
+  view3d().showTargets(frames);
+}
+
+function clearTargets() {
+  $("targets-file").value = "";
+  return updateTargets();
+}
+
+// The rank request's target views ({} for none), sized as the candidates are. A file chosen but
+// not read is an error, not a ranking without it.
+function targetBody() {
+  if ($("targets-file").files.length && state.targets.length === 0) {
+    throw new ApiError("The target views file could not be read: choose another, or clear it to rank for every view alike.",
+      "page", "targets");
+  }
+  return state.targets.length ? { targets: sized(state.targets, "targets") } : {};
+}
+
+// ------------------------------------------------------------------ plots
 
 const SVG = "http://www.w3.org/2000/svg";
 
@@ -667,13 +735,15 @@ function candidateBody() {
 
 async function rank(event) {
   event.preventDefault();
+  say("targets-message", "");             // an old error beside the target views goes, as the section's own does
   const model = currentModel();
   if (!model) throw new ApiError("Choose or upload a model first.");
   const body = Object.assign({ samples: Number($("rank-samples").value), seed: Number($("rank-seed").value),
-    heatmaps: "files" }, sizeOptions("rank"), candidateBody());
+    heatmaps: "files" }, sizeOptions("rank"), candidateBody(), targetBody());
   if ($("rank-strategy").value) body.strategy = $("rank-strategy").value;
   if ($("rank-topk").value) body.top_k = Number($("rank-topk").value);
-  say("rank-message", "ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates...");
+  const aimed = body.targets ? ` for the ${body.targets.length} target view${body.targets.length > 1 ? "s" : ""}` : "";
+  say("rank-message", "ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates" + aimed + "...");
   forgetRanking();                        // no stale cards or frusta while the new ranking runs
   const token = ++state.rankToken;
   $("rank-run").disabled = true;
@@ -686,14 +756,14 @@ async function rank(event) {
     $("rank-run").disabled = false;
     $("rank-cancel").hidden = true;
   }
-  // The model or the candidates changed while the job ran: its order belongs to them, not to what is chosen now.
+  // The model, the candidates or the targets changed while the job ran: its order belongs to them, not to what is chosen now.
   if (token !== state.rankToken || !currentModel() || currentModel().id !== model.id) {
-    say("rank-message", "That ranking was for another model or other candidates than those chosen now, " +
+    say("rank-message", "That ranking was for another model, other candidates or other target views than those chosen now, " +
       "so it is not shown: press \"Rank\" again.", "warning");
     return;
   }
   state.ranking = Object.assign({}, r, { modelId: model.id });
-  $("rank-summary").textContent = `${r.views.length} of ${r.num_candidates} candidates, in the order to capture them; ` +
+  $("rank-summary").textContent = `${r.views.length} of ${r.num_candidates} candidates, in the order to capture them${aimed}; ` +
     `strategy ${r.strategy}, dropout ratio ${r.dropout_ratio} (${r.ratio_source === "calibration" ? "calibrated" : "given"}), ` +
     `${r.samples} samples, rendered at ${r.width} x ${r.height} px; ` +
     `heat maps share one scale: yellow = zeta ${fmt(r.heatmap_vmax)}, dark blue = 0`;
@@ -876,6 +946,9 @@ function start() {
   });
   document.querySelectorAll("input[name=cand-mode], #generate-options input, #generate-options select, #cand-file")
     .forEach((input) => input.addEventListener("change", () => guarded("cand-message", updateCandidates)));
+  $("targets-file").addEventListener("change", () => guarded("targets-message", updateTargets));
+  $("targets-clear").addEventListener("click", () => guarded("targets-message", clearTargets));
+  for (const id of ["targets-width", "targets-height"]) $(id).addEventListener("change", drawTargets);
   $("rank-form").addEventListener("submit", (e) => guarded("rank-message", () => rank(e)));
   $("rank-cancel").addEventListener("click", () => guarded("rank-message", cancelRank));
   $("poses-download").addEventListener("click", () => guarded("rank-message", downloadPoses));

@@ -302,6 +302,102 @@ def test_page_takes_the_users_own_candidate_list(browser, models, tmp_path):
     assert len(browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand.none")) == 5   # not ranked yet
 
 
+def _record_requests(driver) -> None:
+    """From now on the page's fetch calls are kept in `window.sent` as [url, parsed JSON body]."""
+    driver.execute_script(
+        "window.sent = []; const fetch_ = window.fetch; window.fetch = (url, options = {}) => { "
+        "if (typeof options.body === 'string') window.sent.push([url, JSON.parse(options.body)]); "
+        "return fetch_(url, options); };")
+
+
+def _choose_targets(browser, server, model, tmp_path) -> list[dict]:
+    """The page on `model` with 5 candidates of the user's own and 2 target views from a file as
+    Blender writes them (camera_angle_x, no image size); returns the target frames as the
+    service reads them (the model's training images' 24 x 24)."""
+    candidates = tmp_path / "candidates.json"
+    candidates.write_text(json.dumps([c.to_frame() for c in svc_cameras(5, phase=0.9, radius=2.5)]))
+    targets = [c.to_frame() for c in svc_cameras(2, phase=2.0)]
+    walkthrough = tmp_path / "walkthrough.json"
+    walkthrough.write_text(json.dumps({"camera_angle_x": 0.7, "frames": [
+        {"transform_matrix": f["transform_matrix"]} for f in targets]}))
+    _open(browser, server)
+    Select(browser.find_element(By.ID, "model-select")).select_by_value(model.id)
+    _wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model.id),
+          what="the model's 3D view")
+    browser.find_element(By.CSS_SELECTOR, "input[name=cand-mode][value=file]").click()
+    _choose_files(browser, "cand-file", candidates)
+    _wait(browser, lambda d: d.execute_script("return state.candidates.length") == 5, what="the 5 candidates")
+    _choose_files(browser, "targets-file", walkthrough)
+    _wait(browser, lambda d: d_text(d, "targets-info").startswith("2 target poses from walkthrough.json"),
+          what="the target views' line")
+    # No size in the file: the fields beside it, filled with the training images' size.
+    assert browser.find_element(By.ID, "targets-size").is_displayed()
+    assert [browser.find_element(By.ID, f).get_attribute("value") for f in ("targets-width", "targets-height")] \
+        == ["24", "24"]
+    assert browser.find_element(By.ID, "targets-clear").is_displayed()
+    for field, value in (("rank-samples", 3), ("rank-downscale", 1), ("rank-seed", 0)):
+        _set(browser, field, value)
+    return [{"camera_angle_x": 0.7, "transform_matrix": f["transform_matrix"], "w": 24, "h": 24} for f in targets]
+
+
+def test_page_ranks_for_target_views_from_a_file(browser, models, tmp_path):
+    """Target views from a file go to the service as the rank request's `targets`; the page shows
+    the order the REST API gives for them (not the order without them), says so in the summary,
+    draws them in the 3D view, and Clear drops them."""
+    server, model_a, _ = models
+    targets = _choose_targets(browser, server, model_a, tmp_path)
+    assert len(browser.execute_script("return phdView3d.debug().targets")) == 2     # drawn before ranking
+    _record_requests(browser)
+    browser.find_element(By.ID, "rank-run").click()
+    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")) == 5, what="the rank grid")
+    (url, body), = [(u, b) for u, b in browser.execute_script("return window.sent") if u.endswith("/rank")]
+    assert body["targets"] == targets and body["strategy"] == uq.DEFAULT_STRATEGY
+    # The REST API's answer to the same request, and without the targets (another order on this model).
+    rest = {key: value for key, value in body.items() if key != "async"}
+    aimed = httpx.post(server.url + url, json=rest, headers=AUTH, timeout=120)
+    plain = httpx.post(server.url + url, json={k: v for k, v in rest.items() if k != "targets"}, headers=AUTH,
+                       timeout=120)
+    order, untargeted = ([v["index"] for v in answer.json()["views"]] for answer in (aimed, plain))
+    cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
+    assert [int(c.get_attribute("data-index")) for c in cards] == order != untargeted
+    assert "in the order to capture them for the 2 target views;" in d_text(browser, "rank-summary")
+    assert d_text(browser, "targets-message") == ""
+    browser.find_element(By.ID, "targets-clear").click()
+    _wait(browser, lambda d: d.execute_script("return phdView3d.debug().targets.length") == 0, what="cleared targets")
+    assert d_text(browser, "targets-info") == "" and not browser.find_element(By.ID, "targets-clear").is_displayed()
+    assert browser.execute_script("return [state.targets.length, state.ranking]") == [0, None]   # it was for them
+    assert "target view" not in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    assert _console_errors(browser) == []
+
+
+def test_page_says_beside_the_target_views_when_the_strategy_ignores_them(browser, models, tmp_path):
+    """A strategy that does not weigh coverage by target views (sigma_max, fvs): the service's
+    refusal of `targets` is said under the target views' control, in words and in view, not in
+    the rank section's line; a target views file that cannot be read is said there too and
+    stops the rank rather than ranking without it."""
+    server, model_a, _ = models
+    _choose_targets(browser, server, model_a, tmp_path)
+    for strategy in ("sigma_max", "fvs"):
+        _set(browser, "rank-strategy", strategy)
+        browser.find_element(By.ID, "rank-run").click()
+        _wait(browser, lambda d: "error" in _classes(d, "targets-message"), what=f"{strategy}'s refusal")
+        said = d_text(browser, "targets-message")
+        assert said.startswith(f"The target views: strategy '{strategy}' ignores target views; choose one that "
+                               "weighs the model's coverage by them (visibility, ")
+        assert _in_view(browser, "targets-message") and "error" not in _classes(browser, "rank-message")
+        assert not any(word in said for word in ("422", "field", "/v1"))
+        assert browser.find_element(By.ID, "rank-progress").get_attribute("hidden") is not None
+    _set(browser, "rank-strategy", uq.DEFAULT_STRATEGY)
+    broken = tmp_path / "broken.json"
+    broken.write_text('{"frames": [{"transform_matrix": 1}')
+    _choose_files(browser, "targets-file", broken)
+    _wait(browser, lambda d: "broken.json is not valid JSON" in d_text(d, "targets-message"), what="the bad file")
+    browser.find_element(By.ID, "rank-run").click()
+    _wait(browser, lambda d: "could not be read" in d_text(d, "targets-message"), what="the refused rank")
+    assert browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card") == []
+    assert _console_errors(browser, expected=("status of 422",)) == []
+
+
 def test_page_fits_a_phone_and_names_a_wrong_key(browser, models, tmp_path):
     server, _, _ = models
     browser.set_window_size(390, 844)
