@@ -199,8 +199,9 @@ async function guarded(where, action) {
   try {
     await action();
   } catch (err) {
-    const beside = err instanceof ApiError && err.field && FIELD_LINES[fieldBase(err.field)];
-    say(beside || where, plain(err, where), "error");
+    const line = (err instanceof ApiError && err.field && FIELD_LINES[fieldBase(err.field)]) || where;
+    say(where, "");                    // the action's own words ("ranking...") end with it
+    say(line, plain(err, where), "error");
   }
 }
 
@@ -775,9 +776,10 @@ async function rank(event) {
   say("rank-message", "Ranked: capture candidate " + r.views[0].index + " first.");
 }
 
-// No ranking: its cards, summary, download row and frusta go with it.
+// No ranking: its cards, summary, download row, plotted dots and frusta go with it.
 function forgetRanking() {
   state.ranking = null;
+  drawPlots();
   $("rank-grid").replaceChildren();
   $("rank-summary").textContent = "";
   $("poses-row").hidden = true;

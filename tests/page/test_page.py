@@ -362,10 +362,12 @@ def test_page_ranks_for_target_views_from_a_file(browser, models, tmp_path):
     assert [int(c.get_attribute("data-index")) for c in cards] == order != untargeted
     assert "in the order to capture them for the 2 target views;" in d_text(browser, "rank-summary")
     assert d_text(browser, "targets-message") == ""
+    assert len(browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand[fill]")) == 5
     browser.find_element(By.ID, "targets-clear").click()
     _wait(browser, lambda d: d.execute_script("return phdView3d.debug().targets.length") == 0, what="cleared targets")
     assert d_text(browser, "targets-info") == "" and not browser.find_element(By.ID, "targets-clear").is_displayed()
     assert browser.execute_script("return [state.targets.length, state.ranking]") == [0, None]   # it was for them
+    assert browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand[fill]") == []           # its dots too
     assert "target view" not in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
     assert _console_errors(browser) == []
 
@@ -384,7 +386,7 @@ def test_page_says_beside_the_target_views_when_the_strategy_ignores_them(browse
         said = d_text(browser, "targets-message")
         assert said.startswith(f"The target views: strategy '{strategy}' ignores target views; choose one that "
                                "weighs the model's coverage by them (visibility, ")
-        assert _in_view(browser, "targets-message") and "error" not in _classes(browser, "rank-message")
+        assert _in_view(browser, "targets-message") and d_text(browser, "rank-message") == ""   # no "ranking..." left
         assert not any(word in said for word in ("422", "field", "/v1"))
         assert browser.find_element(By.ID, "rank-progress").get_attribute("hidden") is not None
     _set(browser, "rank-strategy", uq.DEFAULT_STRATEGY)
