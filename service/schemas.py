@@ -341,6 +341,8 @@ class RankResult(_Response):
     width: int = Field(description="Render width of the first candidate.")
     height: int
     num_candidates: int
+    num_targets: int = Field(0, description="The target views the order was made for (0: for every view alike), so "
+                             "a client reading the job later knows which question it answers.")
     heatmap_vmax: float | None = Field(None, description="zeta value drawn as the top colour of every heat map.")
     camera_format: str | None = Field(None, description="The pose convention of the model's camera source "
                                       "(colmap, 3dgs-output, nerfstudio, blender), in which source_pose is given.")

@@ -743,8 +743,8 @@ async function rank(event) {
     heatmaps: "files" }, sizeOptions("rank"), candidateBody(), targetBody());
   if ($("rank-strategy").value) body.strategy = $("rank-strategy").value;
   if ($("rank-topk").value) body.top_k = Number($("rank-topk").value);
-  const aimed = body.targets ? ` for the ${body.targets.length} target view${body.targets.length > 1 ? "s" : ""}` : "";
-  say("rank-message", "ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates" + aimed + "...");
+  say("rank-message", "ranking " + (state.spec ? state.spec.count : state.candidates.length) + " candidates" +
+    forTargets(body.targets ? body.targets.length : 0) + "...");
   forgetRanking();                        // no stale cards or frusta while the new ranking runs
   const token = ++state.rankToken;
   $("rank-run").disabled = true;
@@ -764,7 +764,7 @@ async function rank(event) {
     return;
   }
   state.ranking = Object.assign({}, r, { modelId: model.id });
-  $("rank-summary").textContent = `${r.views.length} of ${r.num_candidates} candidates, in the order to capture them${aimed}; ` +
+  $("rank-summary").textContent = `${r.views.length} of ${r.num_candidates} candidates, in the order to capture them${forTargets(r.num_targets)}; ` +
     `strategy ${r.strategy}, dropout ratio ${r.dropout_ratio} (${r.ratio_source === "calibration" ? "calibrated" : "given"}), ` +
     `${r.samples} samples, rendered at ${r.width} x ${r.height} px; ` +
     `heat maps share one scale: yellow = zeta ${fmt(r.heatmap_vmax)}, dark blue = 0`;
@@ -775,6 +775,9 @@ async function rank(event) {
   await drawRankGrid(r);
   say("rank-message", "Ranked: capture candidate " + r.views[0].index + " first.");
 }
+
+// " for the N target views" of a ranking made for them, "" of one made for every view alike.
+const forTargets = (count) => (count ? ` for the ${count} target view${count > 1 ? "s" : ""}` : "");
 
 // No ranking: its cards, summary, download row, plotted dots and frusta go with it.
 function forgetRanking() {

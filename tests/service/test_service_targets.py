@@ -27,6 +27,7 @@ def test_rank_with_target_views_equals_the_library(svc_start, svc_model_files):
         assert [v.index for v in told.views] == [r.index for r in expected]
         assert [v.score for v in told.views] == pytest.approx([r.score for r in expected], rel=1e-6)
         assert [r.score for r in expected] != [r.score for r in plain]
+        assert told.num_targets == 4 and phd.rank(info.id, candidates, samples=4, dropout_ratio=0.2).num_targets == 0
         with pytest.raises(InvalidInputError) as refused:
             phd.rank(info.id, candidates, samples=4, dropout_ratio=0.2, strategy="fvs", targets=targets)
         assert refused.value.field == "targets" and "ignores target views" in str(refused.value)
