@@ -13,7 +13,8 @@ scenes no strategy was tuned on, in the Blender layout `bench.bench_nbv` reads:
 3. Cameras (radius about 4, lego's field of view, looking at the scene): the train split (the
    candidates) is one of CANDIDATE_SHAPES and the test split one of TEST_SHAPES, every pair once
    over 12 scenes; the val split (target views for `+targets` runs) is drawn from the test
-   split's shape with other poses, so targets and test views never coincide.
+   split's shape with other poses, so targets and test views never coincide (a one-sided test
+   split's val stands on the same side).
 4. Images: the composed model rendered at SIZE px, RGBA (colour un-premultiplied, alpha the
    accumulated opacity), as donut_200 was made.
 
@@ -230,10 +231,12 @@ def cap(rng: random.Random, count: int) -> list[Pose]:
             for _ in range(count)]
 
 
-def side(rng: random.Random, count: int) -> list[Pose]:
+def side(rng: random.Random, count: int, place: random.Random | None = None) -> list[Pose]:
     """One side only: random poses within 70 degrees of azimuth of a random direction, low to middle
-    height, nearer than the candidates (where a viewer stands in front of the scene)."""
-    facing = rng.uniform(0, 2 * math.pi)
+    height, nearer than the candidates (where a viewer stands in front of the scene). The direction is
+    drawn from `place` (default rng): the val split passes the test split's seed, so the target views
+    stand on the test views' side, at other poses."""
+    facing = (place or rng).uniform(0, 2 * math.pi)
     return [(_eye(facing + rng.uniform(-1.2, 1.2), math.radians(rng.uniform(5, 40)), RADIUS * rng.uniform(0.8, 1.0)),
              [0.0, 0.0, 0.0]) for _ in range(count)]
 
@@ -274,8 +277,12 @@ def write_scene(plan: dict, models: dict[str, GaussianModel], out: Path) -> None
     renderer = GaussianRenderer(model, (1.0, 1.0, 1.0))
     shapes = {**CANDIDATE_SHAPES, **TEST_SHAPES}
     for split, count in COUNTS.items():
-        write_split(out / plan["name"], split, shapes[plan[split]](random.Random(plan["seeds"][split]), count),
-                    renderer)
+        rng = random.Random(plan["seeds"][split])
+        if split == "val" and plan["val"] == "side":     # where the model will be looked at: the test views' side
+            poses = side(rng, count, place=random.Random(plan["seeds"]["test"]))
+        else:
+            poses = shapes[plan[split]](rng, count)
+        write_split(out / plan["name"], split, poses, renderer)
     print(f"{plan['name']}: {len(plan['layout'])} objects "
           f"({', '.join(p['asset'] for p in plan['layout'])}), {model.num_splats} splats, "
           f"candidates {plan['train']}, test {plan['test']}", flush=True)
