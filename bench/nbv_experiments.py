@@ -20,6 +20,11 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
 - visibility_sigma_fvs_angle0.25: the default with that sharper kernel, tried told the
   target views (`+targets`): with the default kernel the captured views cover most of what
   the targets show after 4 views, so the distance factor decides.
+- tkmedian, tlogmedian (told the target views only): greedy facility location over the target
+  views' centres, how much a candidate lowers the targets' distance (or log distance) to their
+  nearest captured centre, so picks follow where the targets crowd, as random capture follows a
+  hand-held path's density on cup_colmap; visibility_tkmedian, visibility_tlogmedian: the target
+  gain (no fragility) times that value in place of the distance factor.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from torch import Tensor
 
 from phd_core.uq.strategies import STRATEGIES, Evidence, Selection, Strategy
 from phd_core.uq.strategies.base import by_score, centres, greedy
+from phd_core.uq.strategies.targets import TargetGain
 from phd_core.uq.strategies.visibility import coverage_select
 
 
@@ -67,7 +73,8 @@ def _k_median_strategy(demand: Callable[[Evidence], Tensor], power: int) -> Call
 
 
 EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma_top", "sigma_area", "fvs_top",
-               "visibility_sigma_angle0.25", "visibility_sigma_fvs_angle0.25", "visibility_fvs")
+               "visibility_sigma_angle0.25", "visibility_sigma_fvs_angle0.25", "visibility_fvs", "tkmedian",
+               "tlogmedian", "visibility_tkmedian", "visibility_tlogmedian")
 
 
 def _visibility_sharp(evidence: Evidence, k: int, seed: int) -> Selection:
@@ -99,5 +106,72 @@ for _strategy in (
         Strategy("visibility_sigma_fvs_angle0.25", "visibility_sigma_fvs with the direction kernel at 0.25",
                  _visibility_fvs_sharp, uses_visibility=True),
         Strategy("visibility_fvs", "visibility_sigma_fvs without the fragility weighting", _visibility_fvs,
+                 uses_dropout=False, uses_visibility=True)):
+    STRATEGIES.register(_strategy)
+
+
+
+class _TargetDistance:
+    """Facility location over the target views' centres: how much capturing candidate i lowers the
+    targets' distance to their nearest captured centre (log: log(distance + eps), eps the median
+    distance from a target to its nearest other target), so candidates follow where targets crowd."""
+
+    def __init__(self, evidence: Evidence, log: bool):
+        assert evidence.target_views is not None
+        targets = centres([view.camera for view in evidence.target_views])               # [T, 3]
+        self.to_candidate = torch.cdist(targets, centres(evidence.candidates))           # [T, C]
+        self.nearest = (torch.cdist(targets, centres(evidence.captured)).min(dim=1).values if evidence.captured
+                        else self.to_candidate.max(dim=1).values)                         # [T]
+        apart = torch.cdist(targets, targets).fill_diagonal_(float("inf")).min(dim=1).values
+        eps = float(apart.median()) if len(targets) > 1 else 1.0
+        self.f = (lambda d: torch.log(d + eps)) if log else (lambda d: d)
+
+    def value(self, i: int) -> float:
+        return float((self.f(self.nearest) - self.f(torch.minimum(self.nearest, self.to_candidate[:, i]))).sum())
+
+    def capture(self, i: int) -> None:
+        self.nearest = torch.minimum(self.nearest, self.to_candidate[:, i])
+
+
+def _full_scan(count: int, k: int, value: Callable[[int], float], capture: Callable[[int], None]) -> Selection:
+    """Greedy by a full scan of every value at each pick (ties to the lower index); the rest by value."""
+    order, scores, left = [], [0.0] * count, list(range(count))
+    for _ in range(min(k, count)):
+        best = max(left, key=lambda i: (value(i), -i))
+        scores[best] = value(best)
+        order.append(best)
+        left.remove(best)
+        capture(best)
+    rest = sorted(((value(i), i) for i in left), key=lambda item: (-item[0], item[1]))
+    for v, i in rest:
+        scores[i] = v
+    return Selection(order + [i for _, i in rest], scores)
+
+
+def _target_density(coverage: bool, log: bool) -> Callable[[Evidence, int, int], Selection]:
+    """The target distance's facility location alone, or times the target gain (no fragility)."""
+    def select(evidence: Evidence, k: int, seed: int) -> Selection:
+        spread = _TargetDistance(evidence, log)
+        if not coverage:
+            return _full_scan(len(evidence.candidates), k, spread.value, spread.capture)
+        assert evidence.candidate_views is not None and evidence.captured_views is not None
+        gain = TargetGain(evidence.candidate_views, evidence.target_views, fragility=False)
+        gain.capture(*evidence.captured_views)
+
+        def capture(i: int) -> None:
+            gain.capture(evidence.candidate_views[i])
+            spread.capture(i)
+        return _full_scan(len(evidence.candidates), k, lambda i: gain.value(i) * spread.value(i), capture)
+    return select
+
+
+for _strategy in (
+        Strategy("tkmedian", "k-median over the target views' centres", _target_density(False, False),
+                 uses_dropout=False, uses_visibility=True),
+        Strategy("tlogmedian", "k-median over the target views' centres on log distances",
+                 _target_density(False, True), uses_dropout=False, uses_visibility=True),
+        Strategy("visibility_tkmedian", "the target gain times tkmedian's value", _target_density(True, False),
+                 uses_dropout=False, uses_visibility=True),
+        Strategy("visibility_tlogmedian", "the target gain times tlogmedian's value", _target_density(True, True),
                  uses_dropout=False, uses_visibility=True)):
     STRATEGIES.register(_strategy)
