@@ -426,6 +426,32 @@ def comparison(tasks: list[dict], name: str, baseline: str, final: bool = True) 
             "mean": statistics.fmean(diffs), "low": low, "high": high}
 
 
+def targets_markdown(every_seed: dict[str, list[dict]]) -> str:
+    """The runs told the target views, scene by scene, paired seed by seed with FVS, random and the default
+    told nothing: the mean final difference, its 95 % bootstrap interval over seeds and the seeds ahead."""
+    names = sorted({n for tasks in every_seed.values() for t in tasks for n in t["runs"] if variant(n)[2]},
+                   key=lambda n: (n != TARGETED, n))     # the default told the targets first
+    lines = ["Final PSNR after the last round minus the other run's on the same seed: the mean over the seeds both "
+             f"ran, its 95 % bootstrap interval (seeds resampled, {BOOTSTRAP} resamples) and the seeds ahead.", "",
+             f"| told the targets | scene | seeds | vs fvs | vs random | vs {DEFAULT_STRATEGY} told nothing |",
+             "|---|---|---|---|---|---|"]
+    for name in names:
+        for scene, tasks in sorted(every_seed.items()):
+            seeds = sum(name in t["runs"] for t in tasks)
+            cells = []
+            for baseline in (*BASELINES, DEFAULT_STRATEGY):
+                diffs = pair_differences(tasks, name, baseline).get(scene, [])
+                if len(diffs) < 2:      # one seed: its difference, no interval
+                    cells.append(f"{diffs[0]:+.2f} (one seed)" if diffs else "")
+                    continue
+                low, high = bootstrap_interval({str(i): [d] for i, d in enumerate(diffs)})
+                cells.append(f"{statistics.fmean(diffs):+.2f} [{low:+.2f}, {high:+.2f}] "
+                             f"({sum(d > 0 for d in diffs)} of {len(diffs)})")
+            if seeds:
+                lines.append(f"| {name} | {scene} | {seeds} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def interval_text(c: dict) -> str:
     return f"{c['mean']:+.2f} [{c['low']:+.2f}, {c['high']:+.2f}]"
 
@@ -465,12 +491,12 @@ def family_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -
              f"{args.per_round} views per round, {args.rounds} rounds, PSNR on the {args.test_views} test views, "
              f"N = {args.samples} masks; `+targets` runs are told the val split (drawn from the test views' "
              f"shape, other poses). {len(by_scene)} scenes, seeds {', '.join(map(str, args.seeds))}.", "",
-             "Each strategy's mean over the (scene, seed) tasks that every strategy completed, so the rows "
-             "compare the same tasks:", "",
+             "Each strategy's mean over every (scene, seed) task, for the strategies run on all of them (one "
+             "tried on part of the family is only paired below, on the tasks it ran):", "",
              "| strategy | runs | mean final PSNR | mean over rounds | cost per candidate |", "|---|---|---|---|---|"]
-    complete = [t for t in tasks if all(n in t["runs"] for n in names)]
-    rows = {n: summary(complete, n) for n in names}
-    for name in sorted(names, key=lambda n: -rows[n]["final"]):
+    everywhere = [n for n in names if all(n in t["runs"] for t in tasks)]
+    rows = {n: summary(tasks, n) for n in everywhere}
+    for name in sorted(everywhere, key=lambda n: -rows[n]["final"]):
         row = rows[name]
         lines.append(f"| {label(name)} | {row['seeds']} | {row['final']:.2f} | {row['rounds']:.2f} | "
                      f"{cost_text(row)} |")
@@ -596,7 +622,10 @@ def main() -> None:
         write_doc(args.doc, family_markdown(by_scene, args), section=f"nbv{tag(args)}")
         print(f"wrote {args.doc}")
         return
-    write_doc(args.doc, markdown(by_scene, load_results(args, every_seed=True), args), section=f"nbv{tag(args)}")
+    every_seed = load_results(args, every_seed=True)
+    write_doc(args.doc, markdown(by_scene, every_seed, args), section=f"nbv{tag(args)}")
+    if any(variant(n)[2] for tasks in every_seed.values() for t in tasks for n in t["runs"]):
+        write_doc(args.doc, targets_markdown(every_seed), section=f"nbv{tag(args)}_targets")
     plots(by_scene, args)
     print(f"wrote {args.doc}")
 
