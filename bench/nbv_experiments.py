@@ -89,28 +89,6 @@ def _visibility_fvs_sharp(evidence: Evidence, k: int, seed: int) -> Selection:
     return coverage_select(evidence, k, fragility=True, angle_scale=0.25, spread=True)
 
 
-for _strategy in (
-        Strategy("kmedian", "greedy k-median over the candidate poses", _k_median_strategy(_uniform, 1),
-                 uses_dropout=False),
-        Strategy("kmedian_sigma", "greedy k-median weighted by sigma_mean",
-                 _k_median_strategy(lambda ev: ev.sigma_mean, 1)),
-        Strategy("kmedian_sq", "greedy k-median on squared distances", _k_median_strategy(_uniform, 2),
-                 uses_dropout=False),
-        Strategy("fvs_prefilter", "the most uncertain of the farther half of the candidates", _prefilter),
-        Strategy("sigma_top", "highest mean of the top 10 % of pixels' zeta",
-                 lambda ev, k, seed: by_score(ev.sigma_top)),
-        Strategy("sigma_area", "largest share of pixels with zeta above 0.05", lambda ev, k, seed: by_score(ev.area)),
-        Strategy("fvs_top", "distance times (sigma_top + its mean), greedy", _fvs_top),
-        Strategy("visibility_sigma_angle0.25", "visibility_sigma with the direction kernel at 0.25",
-                 _visibility_sharp, uses_visibility=True),
-        Strategy("visibility_sigma_fvs_angle0.25", "visibility_sigma_fvs with the direction kernel at 0.25",
-                 _visibility_fvs_sharp, uses_visibility=True),
-        Strategy("visibility_fvs", "visibility_sigma_fvs without the fragility weighting", _visibility_fvs,
-                 uses_dropout=False, uses_visibility=True)):
-    STRATEGIES.register(_strategy)
-
-
-
 class _TargetDistance:
     """Facility location over the target views' centres: how much capturing candidate i lowers the
     targets' distance to their nearest captured centre (log: log(distance + eps), eps the median
@@ -166,6 +144,23 @@ def _target_density(coverage: bool, log: bool) -> Callable[[Evidence, int, int],
 
 
 for _strategy in (
+        Strategy("kmedian", "greedy k-median over the candidate poses", _k_median_strategy(_uniform, 1),
+                 uses_dropout=False),
+        Strategy("kmedian_sigma", "greedy k-median weighted by sigma_mean",
+                 _k_median_strategy(lambda ev: ev.sigma_mean, 1)),
+        Strategy("kmedian_sq", "greedy k-median on squared distances", _k_median_strategy(_uniform, 2),
+                 uses_dropout=False),
+        Strategy("fvs_prefilter", "the most uncertain of the farther half of the candidates", _prefilter),
+        Strategy("sigma_top", "highest mean of the top 10 % of pixels' zeta",
+                 lambda ev, k, seed: by_score(ev.sigma_top)),
+        Strategy("sigma_area", "largest share of pixels with zeta above 0.05", lambda ev, k, seed: by_score(ev.area)),
+        Strategy("fvs_top", "distance times (sigma_top + its mean), greedy", _fvs_top),
+        Strategy("visibility_sigma_angle0.25", "visibility_sigma with the direction kernel at 0.25",
+                 _visibility_sharp, uses_visibility=True),
+        Strategy("visibility_sigma_fvs_angle0.25", "visibility_sigma_fvs with the direction kernel at 0.25",
+                 _visibility_fvs_sharp, uses_visibility=True),
+        Strategy("visibility_fvs", "visibility_sigma_fvs without the fragility weighting", _visibility_fvs,
+                 uses_dropout=False, uses_visibility=True),
         Strategy("tkmedian", "k-median over the target views' centres", _target_density(False, False),
                  uses_dropout=False, uses_visibility=True),
         Strategy("tlogmedian", "k-median over the target views' centres on log distances",
