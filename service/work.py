@@ -427,7 +427,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
         result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, strategy=body.strategy,
                             signal=signal, samples=samples,
                             seed=body.seed, width=cameras[0].width, height=cameras[0].height,
-                            num_candidates=len(cameras), num_targets=len(targets or []), heatmap_vmax=vmax, camera_format=convention, views=views,
+                            num_candidates=len(cameras), num_targets=len(targets or []), heatmap_vmax=vmax,
+                            camera_format=convention, views=views,
                             notes=list(record.describe.get("notes", [])))
         return result, artifacts
 
