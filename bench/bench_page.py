@@ -2,7 +2,11 @@
 loaded, against the same request through the Python client, interleaved in one run; and the
 screenshots that docs/service.md shows.
 
-    .venv/bin/python -m bench.bench_page --model-a A.ply --model-b B.ply --out docs --repeats 3
+    .venv/bin/python -m bench.bench_page --model-a A.ply --model-b B.ply --out docs --repeats 3 \
+        [--targets walkthrough.json]
+
+With `--targets`, a pose file in the models' frame, also a ranking of the first 4 candidates for
+those target views: the 3D view and the rank section together (page_targets.png).
 
 Both PLYs need their training cameras (the sidecar JSON `phd train` writes beside them): the
 page uploads each with its sidecar, as a user picks the two files. `--repeats 0` takes the
@@ -60,6 +64,7 @@ def main() -> int:
     parser.add_argument("--candidates", type=int, default=12)
     parser.add_argument("--samples", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--targets", type=Path, default=None, help="target views: a pose file the page reads")
     args = parser.parse_args()
 
     server = BackgroundServer(Settings(data_dir=Path(tempfile.mkdtemp()) / "data", api_key=KEY))
@@ -123,6 +128,15 @@ def main() -> int:
             driver.find_element(By.ID, "select-run").click()
             WebDriverWait(driver, 600).until(grid_ready("select-grid", args.candidates))
             driver.find_element(By.ID, "select-section").screenshot(str(args.out / "page_select.png"))
+            if args.targets:      # where the model will be looked at from: drawn, sent, named in the summary
+                set_field(driver, "rank-topk", 4)
+                driver.find_element(By.ID, "targets-file").send_keys(str(args.targets.resolve()))
+                WebDriverWait(driver, 60).until(lambda d: d.execute_script("return state.targets.length") > 0)
+                driver.find_element(By.ID, "rank-run").click()
+                WebDriverWait(driver, 600).until(grid_ready("rank-grid", 4))
+                others = "#model-section, #candidate-section, #select-section, #rank-grid, .plots"
+                driver.execute_script(f"document.querySelectorAll('{others}').forEach(e => e.style.display = 'none')")
+                driver.find_element(By.TAG_NAME, "main").screenshot(str(args.out / "page_targets.png"))
             phone = browser(390, 2400)
             try:
                 phone.get(server.url + "/ui/")
