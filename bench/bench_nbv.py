@@ -25,6 +25,15 @@ will be looked at from (`rank_views(targets=...)`): the scene's val split, disjo
 test views (a capture with one image list, cup_colmap: its train frames, the path between the
 held-out ones). The results carry the name as their strategy label.
 
+Holdout folds of a capture with one image list (`--scenes cup_colmap@1 ...`): fold k tests on every
+8th frame from k and captures from the rest, so a deterministic strategy, whose seeds share one
+set of 10 test views on the LLFF split, is measured on other test views too; `--report` pairs the
+runs fold by fold (fold 0 is the scene itself) in their own section of docs/nbv.md:
+
+    .venv/bin/python -m bench.bench_nbv --jobs 2 --scenes cup_colmap@1 cup_colmap@2 cup_colmap@3 cup_colmap@4 \
+        cup_colmap@5 cup_colmap@6 cup_colmap@7 --seeds 0 1 --strategies random fvs visibility_sigma_fvs+targets \
+        visibility_sigma_fvs
+
 The held-out family (`--family`, issue 37): the scenes bench/nbv_scenes.py generates, no
 strategy tuned on them, reported as paired differences per scene and seed (win rate, mean
 margin, 95 % bootstrap interval over scenes) in their own section of docs/nbv.md:
@@ -50,9 +59,10 @@ from pathlib import Path
 import torch
 
 from bench import nbv_experiments  # importing registers the strategies tried, not shipped
-from bench._harness import DATA, DOCS, RESULTS, fmt, machine, svg_plot, train, write_doc, write_result
+from bench._harness import DATA, DOCS, RESULTS, fmt, machine, subset, svg_plot, train, write_doc, write_result
 from phd_core import uq as phd
 from phd_core.data import Dataset, load_dataset
+from phd_core.data.frames import HOLDOUT
 from phd_core.errors import InputError
 from phd_core.eval import psnr, rmse, spearman
 from phd_core.renderers import DEFAULT_SIGNAL, SIGNALS
@@ -69,6 +79,7 @@ PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma",
 # Image width per scene where it is not --resolution (square): the real capture is 4:3, 80x60 px
 # at the default resolution (as its training benchmark, docs/formats.md).
 WIDTH_SCALE = {"cup_colmap": 1.6}
+FOLD = "@"      # "cup_colmap@3": holdout fold 3 of a capture with one image list (scene_fold)
 TARGETS = "targets"         # the run-name suffix of a run told the target views
 TARGETED = f"{DEFAULT_STRATEGY}+{TARGETS}"
 FAMILY = RESULTS / "nbv_scenes"   # bench/nbv_scenes.py's output: the held-out family
@@ -158,11 +169,34 @@ def initial_views(cameras: list, count: int, seed: int) -> list[int]:
     return [start] + [pool[i] for i in order[:count - 1]]
 
 
+def scene_fold(scene: str) -> tuple[str, int | None]:
+    """'cup_colmap@3' -> ('cup_colmap', 3): a capture with one image list whose test views are every
+    HOLDOUT-th frame from 3 (a holdout fold; 0 is the LLFF split) and whose train views are the rest."""
+    name, _, fold = scene.partition(FOLD)
+    if fold and not (fold.isdigit() and int(fold) < HOLDOUT):
+        raise InputError("scenes", f"{scene!r}: the fold after {FOLD!r} must be 0..{HOLDOUT - 1}")
+    return name, int(fold) if fold else None
+
+
 def load_split(args: argparse.Namespace, scene: str, split: str, **kw) -> Dataset:
-    """A split of a scene at the protocol's size (--resolution wide; WIDTH_SCALE for 4:3 captures)."""
-    size = load_dataset(args.data / scene, "train", with_images=False).cameras[0].width
-    return load_dataset(args.data / scene, split, downscale=size / (args.resolution * WIDTH_SCALE.get(scene, 1.0)),
-                        **kw)
+    """A split of a scene at the protocol's size (--resolution wide; WIDTH_SCALE for 4:3 captures); of a
+    holdout fold (`scene_fold`), the fold's frames of the capture's "all" split."""
+    name, fold = scene_fold(scene)
+    size = load_dataset(args.data / name, "train", with_images=False).cameras[0].width
+    downscale = size / (args.resolution * WIDTH_SCALE.get(name, 1.0))
+    if fold is None:
+        return load_dataset(args.data / name, split, downscale=downscale, **kw)
+    if split not in ("train", "test"):
+        raise InputError("split", f"a holdout fold has the splits train and test, not {split!r}")
+    views = kw.pop("views", None)
+    every = load_dataset(args.data / name, "all", downscale=downscale, **kw)
+    chosen = [i for i in range(len(every.cameras)) if (i % HOLDOUT == fold) == (split == "test")]
+    if views is not None and views < len(chosen):
+        raise InputError("test_views", f"a holdout fold tests on all of its {len(chosen)} views")
+    if every.images is None:          # cameras only
+        return dataclasses.replace(every, cameras=[every.cameras[i] for i in chosen],
+                                   indices=[every.indices[i] for i in chosen])
+    return subset(every, chosen)
 
 
 def target_cameras(args: argparse.Namespace, scene: str) -> list:
@@ -185,7 +219,7 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     if stored.get("protocol") != protocol(args):
         stored = {}
     train_data = load_split(args, scene, "train")
-    tests = len(load_dataset(args.data / scene, "test", with_images=False).cameras)
+    tests = len(load_split(args, scene, "test", with_images=False).cameras)
     test = load_split(args, scene, "test", views=min(args.test_views, tests))
     init = initial_views(train_data.cameras, args.initial, seed)
     result = stored or {"scene": scene, "seed": seed, "protocol": protocol(args), "initial": init, "runs": {},
@@ -452,6 +486,49 @@ def targets_markdown(every_seed: dict[str, list[dict]]) -> str:
     return "\n".join(lines)
 
 
+def fold_tasks(args: argparse.Namespace) -> dict[str, dict[int, list[dict]]]:
+    """Stored tasks of holdout folds (`scene_fold`), by capture and fold. Fold 0 is the capture's own
+    LLFF split, so its tasks are the capture's, of the seeds the other folds ran."""
+    tasks = [json.loads(path.read_text()) for path in sorted(args.results.glob("*.json"))]
+    tasks = [t for t in tasks if t.get("protocol") == protocol(args)]
+    folds: dict[str, dict[int, list[dict]]] = {}
+    for task in tasks:
+        name, fold = scene_fold(task["scene"])
+        if fold is not None:
+            folds.setdefault(name, {}).setdefault(fold, []).append(task)
+    for name, by_fold in folds.items():
+        seeds = {t["seed"] for group in by_fold.values() for t in group}
+        by_fold.setdefault(0, [t for t in tasks if t["scene"] == name and t["seed"] in seeds])
+    return folds
+
+
+def folds_markdown(folds: dict[str, dict[int, list[dict]]]) -> str:
+    """Each strategy against FVS and random over a capture's holdout folds: a fold's seeds share its test
+    views, so the folds are the independent draws (bootstrap over folds, each with all of its seeds)."""
+    lines = ["Final PSNR after the last round minus the other run's on the same fold and seed: the mean over the "
+             f"pairs, its 95 % bootstrap interval (folds resampled with all of their seeds, {BOOTSTRAP} resamples), "
+             "the pairs ahead, and the mean difference on each fold (fold 0 is the LLFF split of the tables above).",
+             "", "| strategy | capture | folds | pairs | vs | mean [95 %] (ahead) | per fold |",
+             "|---|---|---|---|---|---|---|"]
+    for capture, by_fold in sorted(folds.items()):
+        names = sorted({n for tasks in by_fold.values() for t in tasks for n in t["runs"]} - set(BASELINES),
+                       key=lambda n: (n != TARGETED, n))
+        for name in names:
+            for baseline in BASELINES:
+                diffs = {str(fold): pair_differences(tasks, name, baseline).get(tasks[0]["scene"], [])
+                         for fold, tasks in sorted(by_fold.items()) if tasks}
+                diffs = {fold: d for fold, d in diffs.items() if d}
+                pooled = [d for values in diffs.values() for d in values]
+                if len(diffs) < 2:
+                    continue
+                low, high = bootstrap_interval(diffs)
+                per_fold = ", ".join(f"{fold}: {statistics.fmean(d):+.2f}" for fold, d in diffs.items())
+                lines.append(f"| {name} | {capture} | {len(diffs)} | {len(pooled)} | {baseline} | "
+                             f"{statistics.fmean(pooled):+.2f} [{low:+.2f}, {high:+.2f}] "
+                             f"({sum(d > 0 for d in pooled)} of {len(pooled)}) | {per_fold} |")
+    return "\n".join(lines)
+
+
 def interval_text(c: dict) -> str:
     return f"{c['mean']:+.2f} [{c['low']:+.2f}, {c['high']:+.2f}]"
 
@@ -626,6 +703,9 @@ def main() -> None:
     write_doc(args.doc, markdown(by_scene, every_seed, args), section=f"nbv{tag(args)}")
     if any(variant(n)[2] for tasks in every_seed.values() for t in tasks for n in t["runs"]):
         write_doc(args.doc, targets_markdown(every_seed), section=f"nbv{tag(args)}_targets")
+    folds = fold_tasks(args)
+    if folds:
+        write_doc(args.doc, folds_markdown(folds), section=f"nbv{tag(args)}_folds")
     plots(by_scene, args)
     print(f"wrote {args.doc}")
 
