@@ -81,6 +81,7 @@ PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma",
 WIDTH_SCALE = {"cup_colmap": 1.6}
 FOLD = "@"      # "cup_colmap@3": holdout fold 3 of a capture with one image list (scene_fold)
 TARGETS = "targets"         # the run-name suffix of a run told the target views
+TEST_VIEWS = "testviews"    # ... told the test views themselves: the target gain's ceiling, not a protocol
 TARGETED = f"{DEFAULT_STRATEGY}+{TARGETS}"
 FAMILY = RESULTS / "nbv_scenes"   # bench/nbv_scenes.py's output: the held-out family
 
@@ -124,18 +125,20 @@ def parse_args() -> argparse.Namespace:
 
 def run_names() -> list[str]:
     """Every strategy, each dropout strategy on each signal other than the default, and each coverage
-    strategy told the target views."""
+    strategy told the target views (or the test views themselves)."""
     return (list(STRATEGIES) + [f"{name}+{signal}" for name, strategy in STRATEGIES.items() if strategy.uses_dropout
                                 for signal in SIGNALS if signal != DEFAULT_SIGNAL]
-            + [f"{name}+{TARGETS}" for name, strategy in STRATEGIES.items() if strategy.uses_visibility])
+            + [f"{name}+{told}" for name, strategy in STRATEGIES.items() if strategy.uses_visibility
+               for told in (TARGETS, TEST_VIEWS)])
 
 
-def variant(name: str) -> tuple[str, str, bool]:
-    """(strategy, signal, told the targets) of a run name: `visibility_sigma+premultiplied`,
-    `visibility_sigma_fvs+targets`, or a plain strategy name."""
+def variant(name: str) -> tuple[str, str, str | None]:
+    """(strategy, signal, what it is told: TARGETS, TEST_VIEWS or None) of a run name:
+    `visibility_sigma+premultiplied`, `visibility_sigma_fvs+targets`, or a plain strategy name."""
     strategy, *suffixes = name.split("+")
-    signals = [s for s in suffixes if s != TARGETS]
-    return strategy, signals[0] if signals else DEFAULT_SIGNAL, TARGETS in suffixes
+    signals = [s for s in suffixes if s not in (TARGETS, TEST_VIEWS)]
+    told = [s for s in suffixes if s in (TARGETS, TEST_VIEWS)]
+    return strategy, signals[0] if signals else DEFAULT_SIGNAL, told[0] if told else None
 
 
 def tag(args: argparse.Namespace) -> str:
@@ -232,7 +235,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     base = train(train_data, init, args.iterations, seed)
     base_psnr, base_rmse = test_errors(base, test)
     captured = [train_data.cameras[i] for i in init]
-    targets = target_cameras(args, scene) if any(variant(n)[2] for n in todo) else None
+    views_told = {TARGETS: target_cameras(args, scene) if any(variant(n)[2] == TARGETS for n in todo) else None,
+                  TEST_VIEWS: test.cameras}
     initial: dict[str, tuple[float, Evidence]] = {}     # by signal: r_drop of the initial model, test evidence
     for signal in dict.fromkeys(variant(n)[1] for n in todo):
         ratio = calibrated_ratio(base, captured, signal)
@@ -245,7 +249,7 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
         strategy_name, signal, told = variant(name)
         strategy = get_strategy(strategy_name)
         ratio, test_evidence = initial[signal]
-        told_targets = targets if told else None
+        told_targets = views_told[told] if told else None
         if told_targets:
             test_evidence = dataclasses.replace(test_evidence, target_views=view_visibility(base, told_targets))
         result["spearman"][name] = spearman(strategy.select(test_evidence, 0, seed).scores, base_rmse)
@@ -336,7 +340,7 @@ def label(name: str) -> str:
     if signal != DEFAULT_SIGNAL:
         return f"{name} ({strategy} with zeta and r_drop on the {signal} signal)"
     if told:
-        return f"{name} ({strategy} told the target views)"
+        return f"{name} ({strategy} told the {'test views themselves' if told == TEST_VIEWS else 'target views'})"
     return (f"**{name}** (default)" if name == DEFAULT_STRATEGY else
             f"{name} (tried, bench/nbv_experiments.py)" if name in EXPERIMENTS
             else name if name in STRATEGIES else f"{name} (tried, removed; docs/nbv.md says where its code is)")
