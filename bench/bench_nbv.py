@@ -517,19 +517,18 @@ def folds_markdown(folds: dict[str, dict[int, list[dict]]]) -> str:
     for capture, by_fold in sorted(folds.items()):
         names = sorted({n for tasks in by_fold.values() for t in tasks for n in t["runs"]} - set(BASELINES),
                        key=lambda n: (n != TARGETED, n))
-        for name in names:
-            for baseline in BASELINES:
-                diffs = {str(fold): pair_differences(tasks, name, baseline).get(tasks[0]["scene"], [])
-                         for fold, tasks in sorted(by_fold.items()) if tasks}
-                diffs = {fold: d for fold, d in diffs.items() if d}
-                pooled = [d for values in diffs.values() for d in values]
-                if len(diffs) < 2:
-                    continue
-                low, high = bootstrap_interval(diffs)
-                per_fold = ", ".join(f"{fold}: {statistics.fmean(d):+.2f}" for fold, d in diffs.items())
-                lines.append(f"| {name} | {capture} | {len(diffs)} | {len(pooled)} | {baseline} | "
-                             f"{statistics.fmean(pooled):+.2f} [{low:+.2f}, {high:+.2f}] "
-                             f"({sum(d > 0 for d in pooled)} of {len(pooled)}) | {per_fold} |")
+        for name, baseline in [(n, b) for n in names for b in BASELINES] + [BASELINES[::-1]]:  # and random - fvs
+            diffs = {str(fold): pair_differences(tasks, name, baseline).get(tasks[0]["scene"], [])
+                     for fold, tasks in sorted(by_fold.items()) if tasks}
+            diffs = {fold: d for fold, d in diffs.items() if d}
+            pooled = [d for values in diffs.values() for d in values]
+            if len(diffs) < 2:
+                continue
+            low, high = bootstrap_interval(diffs)
+            per_fold = ", ".join(f"{fold}: {statistics.fmean(d):+.2f}" for fold, d in diffs.items())
+            lines.append(f"| {name} | {capture} | {len(diffs)} | {len(pooled)} | {baseline} | "
+                         f"{statistics.fmean(pooled):+.2f} [{low:+.2f}, {high:+.2f}] "
+                         f"({sum(d > 0 for d in pooled)} of {len(pooled)}) | {per_fold} |")
     return "\n".join(lines)
 
 
