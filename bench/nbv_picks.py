@@ -7,7 +7,8 @@ of where its captured views stand, by camera centre (scene units):
 - target_nn, target_near: the same over the target views the strategies are told (the train frames);
 - spacing: the mean distance from a captured view to the nearest other one.
 Each measure and the final PSNR are taken less their mean over the runs of the same fold and seed
-(so the seed's start and the fold's test views drop out), then correlated over the runs. A
+(so the seed's start and the fold's test views drop out), then correlated over the runs, and
+test_near once test_nn is accounted for (partial correlation). A
 measure over the test views shows what the benchmark rewards; the same over the targets, what a
 strategy told only the targets could aim at. Then each strategy's mean of each measure.
 
@@ -72,6 +73,11 @@ def main() -> None:
     for m, measure in enumerate(MEASURES):
         print(f"{measure:12s} correlation with final PSNR within a (fold, seed): "
               f"{np.corrcoef(within_x[:, m], within_y)[0, 1]:+.2f}")
+    # test_near once test_nn is accounted for: both less their least-squares fit on test_nn
+    fit = np.c_[within_x[:, 0], np.ones(len(y))]
+    rest_y = within_y - fit @ np.linalg.lstsq(fit, within_y, rcond=None)[0]
+    rest_near = within_x[:, 1] - fit @ np.linalg.lstsq(fit, within_x[:, 1], rcond=None)[0]
+    print(f"test_near given test_nn (partial correlation): {np.corrcoef(rest_near, rest_y)[0, 1]:+.2f}")
     print("\nmeans per strategy (runs): " + " ".join(MEASURES))
     for name in sorted(set(names), key=lambda n: -names.count(n)):
         mine = np.array([n == name for n in names])
