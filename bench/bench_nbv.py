@@ -512,7 +512,7 @@ def folds_markdown(folds: dict[str, dict[int, list[dict]]]) -> str:
     are the independent draws (bootstrap over folds, each with all of its seeds)."""
     lines = ["Final PSNR after the last round minus the other run's on the same fold and seed: the mean over the "
              f"pairs, its 95 % bootstrap interval (folds resampled with all of their seeds, {BOOTSTRAP} resamples), "
-             "the pairs ahead, and the mean difference on each fold (fold 0 is the LLFF split of the tables above).",
+             "the pairs ahead, and the mean difference on each fold (fold 0 is the LLFF split: the scene's tables).",
              "", "| strategy | capture | folds | pairs | vs | mean [95 %] (ahead) | per fold |",
              "|---|---|---|---|---|---|---|"]
     for capture, by_fold in sorted(folds.items()):
