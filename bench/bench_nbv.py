@@ -467,7 +467,7 @@ def comparison(tasks: list[dict], name: str, baseline: str, final: bool = True) 
 def targets_markdown(every_seed: dict[str, list[dict]]) -> str:
     """The runs told the target views, scene by scene, paired seed by seed with FVS, random and the default
     told nothing: the mean final difference, its 95 % bootstrap interval over seeds and the seeds ahead."""
-    names = sorted({n for tasks in every_seed.values() for t in tasks for n in t["runs"] if variant(n)[2]},
+    names = sorted({n for tasks in every_seed.values() for t in tasks for n in t["runs"] if variant(n)[2] == TARGETS},
                    key=lambda n: (n != TARGETED, n))     # the default told the targets first
     lines = ["Final PSNR after the last round minus the other run's on the same seed: the mean over the seeds both "
              f"ran, its 95 % bootstrap interval (seeds resampled, {BOOTSTRAP} resamples) and the seeds ahead.", "",
