@@ -31,8 +31,11 @@ set of 10 test views on the LLFF split, is measured on other test views too; `--
 runs fold by fold (fold 0 is the scene itself) in their own section of docs/nbv.md:
 
     .venv/bin/python -m bench.bench_nbv --jobs 2 --scenes cup_colmap@1 cup_colmap@2 cup_colmap@3 cup_colmap@4 \
-        cup_colmap@5 cup_colmap@6 cup_colmap@7 --seeds 0 1 --strategies random fvs visibility_sigma_fvs+targets \
+        cup_colmap@5 cup_colmap@6 cup_colmap@7 --seeds 0 1 2 --strategies random fvs visibility_sigma_fvs+targets \
         visibility_sigma_fvs
+
+A run `<strategy>+testviews` is told the test views themselves: how much the target gain could
+gain if the targets said exactly where the model will be looked at (a ceiling, not a protocol).
 
 The held-out family (`--family`, issue 37): the scenes bench/nbv_scenes.py generates, no
 strategy tuned on them, reported as paired differences per scene and seed (win rate, mean
