@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -50,7 +51,7 @@ def measures(train: np.ndarray, test: np.ndarray, chosen: list[int]) -> list[flo
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--scene", default="cup_colmap")
-    p.add_argument("--results", default=RESULTS / "nbv")
+    p.add_argument("--results", type=Path, default=RESULTS / "nbv")
     p.add_argument("--resolution", type=int, default=50)
     args = p.parse_args()
     args.data = DATA
