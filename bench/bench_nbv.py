@@ -199,9 +199,6 @@ def load_split(args: argparse.Namespace, scene: str, split: str, **kw) -> Datase
     chosen = [i for i in range(len(every.cameras)) if (i % HOLDOUT == fold) == (split == "test")]
     if views is not None and views < len(chosen):
         raise InputError("test_views", f"a holdout fold tests on all of its {len(chosen)} views")
-    if every.images is None:          # cameras only
-        return dataclasses.replace(every, cameras=[every.cameras[i] for i in chosen],
-                                   indices=[every.indices[i] for i in chosen])
     return subset(every, chosen)
 
 
