@@ -22,7 +22,7 @@ from phd_core.uq import rank_views
 from phd_core.uq.rank import candidate_evidence, visibility_evidence
 from phd_core.uq.strategies import Evidence, get_strategy
 from phd_core.uq.strategies.coverage import ANGLE_SCALE, EMPTY_WEIGHT, SEEN_SHARE
-from phd_core.uq.strategies.visibility import SPREAD_FLOOR
+from phd_core.uq.strategies.visibility import SPREAD_FLOOR, coverage_select
 from support.fixtures import svc_random_gaussians
 from support.toy_renderers import BlobRenderer, ring_cameras
 
@@ -80,17 +80,21 @@ def reference_fragility(evidence: Evidence, fragility: bool) -> list[dict[int, f
             for v in views]
 
 
-def reference_values(evidence: Evidence, fragility: bool = False, picked: Sequence[int] = ()) -> list[float]:
+def reference_values(evidence: Evidence, fragility: bool = False, picked: Sequence[int] = (),
+                     support: float = 1.0) -> list[float]:
     """Each candidate's value element by element in float64, with the candidates `picked` counted as
     captured. Without targets (`visibility`, before any pick): sum over u of the pixels u fills in c
     times prod over captured v (1 - seen(u, v) near(u; c, v)), plus the empty term. With targets:
     sum over u that c sees and targets t that show u of pixels(u, t) * n_t(u) * seen(u, c) *
-    near(u; t, c) * fragility(u, c), n_t(u) = prod over captured v (1 - seen(u, v) near(u; t, v))."""
+    near(u; t, c) * fragility(u, c), n_t(u) = prod over captured v (1 - seen(u, v) near(u; t, v)).
+    support: every seen(u, v) (of a captured view or the candidate) times it."""
     # The captured views come as the library stores them (`Seen`: ids and visible shares).
-    captured = [(v.camera, {int(e): min(1.0, float(s) / SEEN_SHARE) for e, s in zip(v.elements, v.visible_share)})
+    captured = [(v.camera, {int(e): support * min(1.0, float(s) / SEEN_SHARE)
+                            for e, s in zip(v.elements, v.visible_share)})
                 for v in evidence.captured_views or []]
     candidates = evidence.candidate_views or []
-    captured += [(candidates[c].camera, {e: share for e, (share, _) in seen(candidates[c]).items()}) for c in picked]
+    captured += [(candidates[c].camera, {e: support * share for e, (share, _) in seen(candidates[c]).items()})
+                 for c in picked]
     # Per target t: element id -> (pixels it fills in t, its point, n_t(u)).
     targets = [(t.camera, {int(e): (float(w), p, math.prod(1.0 - by[int(e)] * near(p, t.camera, cam)
                                                            for cam, by in captured if int(e) in by))
@@ -110,7 +114,7 @@ def reference_values(evidence: Evidence, fragility: bool = False, picked: Sequen
             for target, shows in targets:
                 if element in shows:
                     pixels, at, novelty = shows[element]
-                    total += pixels * novelty * share * near(at, target, vis.camera) * scale[c][element]
+                    total += pixels * novelty * support * share * near(at, target, vis.camera) * scale[c][element]
         if evidence.target_views is None:
             total += EMPTY_WEIGHT * vis.empty * reference_axis_novelty(vis, evidence.captured_views or [])
         values.append(total)
@@ -125,6 +129,20 @@ def test_coverage_values_follow_the_formula_element_by_element(targets: list | N
     evidence = visibility_evidence(renderer, candidates, captured, targets)
     scores = get_strategy("visibility").select(evidence, 0, 0).scores       # k = 0: every value before a pick
     assert scores == pytest.approx(reference_values(evidence), rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("targets", [None, ABOVE + BEHIND], ids=["no targets", "above and behind"])
+def test_a_view_removes_only_its_support_of_what_it_saw(targets: list | None) -> None:
+    """support < 1 (bench/nbv_experiments.py's multi-view support): one view removes that share of
+    a part's novelty, so a part seen once is worth more than with support 1 and never nothing."""
+    renderer = open_box()
+    candidates = [BACK, TOP, camera((3.0, 3.5, 1.5)), camera((0.5, -4.0, 3.0))]
+    captured = CAPTURED + [camera((0.0, 5.0, 0.5))]
+    evidence = visibility_evidence(renderer, candidates, captured, targets)
+    half = coverage_select(evidence, 0, fragility=False, support=0.5).scores
+    whole = coverage_select(evidence, 0, fragility=False).scores
+    assert half == pytest.approx(reference_values(evidence, support=0.5), rel=1e-9, abs=1e-9)
+    assert half != pytest.approx(whole, rel=1e-3)
 
 
 def ring_evidence() -> Evidence:
@@ -149,10 +167,11 @@ def test_target_gains_follow_the_formula_with_and_without_fragility(name: str) -
     assert scores == pytest.approx(expected, rel=1e-9, abs=1e-12)
 
 
-@pytest.mark.parametrize("name", COVERAGE)
-def test_the_lazy_greedy_on_targets_picks_what_a_full_scan_greedy_does(name: str) -> None:
+@pytest.mark.parametrize("name, power", [(name, 1.0) for name in COVERAGE] + [("visibility_sigma_fvs", 0.5)])
+def test_the_lazy_greedy_on_targets_picks_what_a_full_scan_greedy_does(name: str, power: float) -> None:
     """Every candidate rescored from scratch (the reference formula) after every pick, the best
-    (lowest index on ties) counted as captured, against the strategy's lazy greedy."""
+    (lowest index on ties) counted as captured, against the strategy's lazy greedy (power: the
+    distance factor's exponent, `spread_power`, tried in bench/nbv_experiments.py)."""
     evidence = ring_evidence()
     fragility, spread = name != "visibility", name == "visibility_sigma_fvs"
     centre = torch.stack([c.center for c in evidence.candidates])
@@ -160,7 +179,7 @@ def test_the_lazy_greedy_on_targets_picks_what_a_full_scan_greedy_does(name: str
     floor = SPREAD_FLOOR * sum(nearest) / len(nearest)
 
     def values(picked: list[int]) -> list[float]:
-        return [v * max(d, floor) for v, d in zip(reference_values(evidence, fragility, picked), nearest)]
+        return [v * max(d, floor) ** power for v, d in zip(reference_values(evidence, fragility, picked), nearest)]
     picks = 5
     order: list[int] = []
     for _ in range(picks):
@@ -169,7 +188,8 @@ def test_the_lazy_greedy_on_targets_picks_what_a_full_scan_greedy_does(name: str
         order.append(best)
         if spread:
             nearest = [min(d, float((c - centre[best]).norm())) for d, c in zip(nearest, centre)]
-    lazy = get_strategy(name).select(evidence, picks, 0)
+    lazy = (get_strategy(name).select(evidence, picks, 0) if power == 1.0
+            else coverage_select(evidence, picks, fragility, spread=spread, spread_power=power))
     assert lazy.order[:picks] == order
     assert not {8, 9} <= set(order[:2])                        # the twins above never share a batch
     after = values(order)

@@ -19,6 +19,7 @@ from ...renderers.visibility import Seen, Visibility
 
 SEEN_SHARE = 0.25        # visible share at which a captured view counts as having seen an element
 ANGLE_SCALE = 0.5        # 1 - cos(angle) at which `near` falls to 1/e (60 degrees)
+SUPPORT = 1.0            # the share of an element's novelty one view that fully saw it from the same direction removes
 EMPTY_WEIGHT = 0.1       # a pixel of empty box against a pixel of unseen model (0.5 lost 1.1 dB on lego, docs/nbv.md)
 
 
@@ -58,8 +59,10 @@ class Coverage:
     it is retired.
     """
 
-    def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE):
+    def __init__(self, candidates: list[Visibility], fragility: bool, angle_scale: float = ANGLE_SCALE,
+                 support: float = SUPPORT):
         self.angle_scale = angle_scale
+        self.support = support
         self.union = torch.unique(torch.cat([v.elements for v in candidates]))
         self.size = len(self.union)
         self.points = torch.zeros(self.size, 3, dtype=torch.float64)                  # [U, 3]
@@ -168,7 +171,7 @@ class Coverage:
         np.cumsum(counts, out=ptr[1:])
         view = np.empty(int(ptr[-1]), dtype=np.int64)                               # [P]
         share = np.empty(int(ptr[-1]))                                              # [P]
-        _gather_pairs(self.union.numpy(), ids, visible, view_ptr, begin, end, resume, ptr, view, share)
+        _gather_pairs(self.union.numpy(), ids, visible, view_ptr, begin, end, resume, ptr, view, share, self.support)
         element = torch.repeat_interleave(torch.arange(begin, end), torch.from_numpy(counts))
         toward = directions(self.points[element], centres[torch.from_numpy(view)]).T.contiguous().numpy()  # [3, P]
         room = max(CAPTURE_CHUNK, len(self.ids))      # an element has at most one entry per candidate
@@ -246,10 +249,10 @@ def _count_pairs(union, ids, visible, view_ptr, counts):  # pragma: no cover
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather_pairs(union, ids, visible, view_ptr, begin, end, resume, ptr, view, share):  # pragma: no cover
+def _gather_pairs(union, ids, visible, view_ptr, begin, end, resume, ptr, view, share, support):  # pragma: no cover
     """The (element, view) pairs of union elements begin..end-1, grouped by element (element
     begin + i's at ptr[i]:ptr[i + 1]), the views in order: the view and its seen share,
-    min(1, visible share / SEEN_SHARE) as `seen_share`. resume[j]: where view j's ids are read
+    support * min(1, visible share / SEEN_SHARE) as `seen_share`. resume[j]: where view j's ids are read
     on from (the chunks come in order)."""
     fill = ptr[:-1].copy()
     last = union[end - 1]
@@ -261,7 +264,7 @@ def _gather_pairs(union, ids, visible, view_ptr, begin, end, resume, ptr, view, 
             if union[u] == ids[i] and visible[i] > 0:
                 k = fill[u - begin]
                 view[k] = j
-                share[k] = min(visible[i] / SEEN_SHARE, 1.0)
+                share[k] = support * min(visible[i] / SEEN_SHARE, 1.0)
                 fill[u - begin] = k + 1
             i += 1
         resume[j] = i
@@ -324,9 +327,9 @@ def _lower(begin, u, q, stop_u, stop_q, ptr, share, first, similar, novelty, own
         u, q = u + 1, 0
 
 
-def seen_share(vis: Visibility | Seen) -> Tensor:
-    """[K] how fully the view saw each of its elements: min(1, visible share / SEEN_SHARE)."""
-    return (vis.visible_share / SEEN_SHARE).clamp_max(1.0)
+def seen_share(vis: Visibility | Seen, support: float = SUPPORT) -> Tensor:
+    """[K] how fully the view saw each of its elements: support * min(1, visible share / SEEN_SHARE)."""
+    return support * (vis.visible_share / SEEN_SHARE).clamp_max(1.0)
 
 
 def mean_zeta(views: list[Visibility]) -> float:

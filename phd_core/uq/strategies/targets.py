@@ -33,23 +33,24 @@ import numpy as np
 import torch
 
 from ...renderers.visibility import Seen, Visibility
-from .coverage import ANGLE_SCALE, Coverage, directions, mean_zeta, seen_share
+from .coverage import ANGLE_SCALE, SUPPORT, Coverage, directions, mean_zeta, seen_share
 
 
 class TargetGain:
     """Each candidate's gain on the target views (module docstring), conditioned on every view counted as captured."""
 
     def __init__(self, candidates: list[Visibility], targets: list[Visibility], fragility: bool,
-                 angle_scale: float = ANGLE_SCALE):
+                 angle_scale: float = ANGLE_SCALE, support: float = SUPPORT):
         self.angle_scale = angle_scale
-        self.targets = Coverage(targets, fragility=False, angle_scale=angle_scale)   # n_t(u), weight_t(u)
+        # n_t(u), weight_t(u): the targets in the role Coverage gives candidates
+        self.targets = Coverage(targets, fragility=False, angle_scale=angle_scale, support=support)
         reference = mean_zeta(candidates) if fragility else 0.0
         # Per candidate, the elements it sees that some target shows: their union ids [K], the
         # directions from each to the candidate [K, 3] and seen(u, c) * fragility(u, c) [K].
         self.entries: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = []
         union = self.targets.union
         for vis in candidates:
-            scale = seen_share(vis)
+            scale = seen_share(vis, support)
             if fragility and reference > 0 and vis.valued is not None:
                 scale = scale * (1.0 + vis.valued / vis.weight.clamp_min(1e-300) / reference)
             shown = torch.isin(vis.elements, union) & (scale > 0)

@@ -11,7 +11,8 @@ shows elements no captured view saw from a nearby direction:
                     + EMPTY_WEIGHT * empty(c) * axis_novelty(c)
 
 - seen(u, v) = min(1, visible share / SEEN_SHARE): an element half hidden from v still
-  counts as seen by v, one hidden behind an occluder does not;
+  counts as seen by v, one hidden behind an occluder does not (times `support`, 1 in the
+  product: below 1 a part seen once stays partly novel; docs/nbv.md measured 0.5 and kept 1);
 - near(a, b) = exp(-(1 - cos angle(a, b)) / ANGLE_SCALE): directions from the element to
   the two cameras (1 for the same direction, 0.37 at 60 degrees, 0.14 at 90);
 - weight(u, c): pixels of c's image that u fills (alpha times transmittance, summed);
@@ -47,7 +48,7 @@ from torch import Tensor
 
 from ...renderers.visibility import Seen, Visibility
 from .base import Evidence, Selection, Strategy, centres
-from .coverage import ANGLE_SCALE, Coverage
+from .coverage import ANGLE_SCALE, SUPPORT, Coverage
 from .hybrid import FVS_SIGMA_FLOOR
 from .targets import TargetGain
 
@@ -56,19 +57,20 @@ SPREAD_FLOOR = 1e-3      # the least distance factor, of the mean: over 10x belo
 
 
 def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: float = ANGLE_SCALE,
-                    spread: bool = False) -> Selection:
+                    spread: bool = False, support: float = SUPPORT, spread_power: float = 1.0) -> Selection:
     """Greedy batch by coverage (module docstring); the rest follow by their value after it.
     With the evidence's target views, a candidate's value is what it fixes in them (`strategies.targets`).
     spread: each value times the distance from the candidate's centre to the nearest captured
     (or picked) one, as farthest-view sampling weighs (`visibility_sigma_fvs`), at least
     SPREAD_FLOOR of the candidates' mean distance: cameras at a captured centre looking
-    different ways still rank by what they see."""
+    different ways still rank by what they see; raised to spread_power.
+    support: the share of an element's novelty one view that saw it from the same direction removes."""
     count = len(evidence.candidates)
     if evidence.candidate_views is None or evidence.captured_views is None:
         return FVS_SIGMA_FLOOR.select(evidence, k, 0)
     coverage: Coverage | TargetGain = (
-        TargetGain(evidence.candidate_views, evidence.target_views, fragility, angle_scale)
-        if evidence.target_views is not None else Coverage(evidence.candidate_views, fragility, angle_scale))
+        TargetGain(evidence.candidate_views, evidence.target_views, fragility, angle_scale, support)
+        if evidence.target_views is not None else Coverage(evidence.candidate_views, fragility, angle_scale, support))
     coverage.capture(*evidence.captured_views)
     cand = centres(evidence.candidates)                                         # [C, 3]
     nearest = (torch.cdist(cand, centres(evidence.captured)).min(dim=1).values
@@ -76,7 +78,7 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: fl
     floor = SPREAD_FLOOR * float(nearest.mean()) or 1.0                         # all at captured centres: 1
 
     def value(i: int) -> float:
-        return coverage.value(i) * max(float(nearest[i]), floor)
+        return coverage.value(i) * max(float(nearest[i]), floor) ** spread_power
 
     # Lazy greedy: a value can only fall as views are counted as captured (every novelty factor
     # lies in [0, 1] and the nearest distance only shrinks), so a value computed before the last
