@@ -20,11 +20,21 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
 - visibility_sigma_fvs_angle0.25: the default with that sharper kernel, tried told the
   target views (`+targets`): with the default kernel the captured views cover most of what
   the targets show after 4 views, so the distance factor decides.
+- visibility_sigma_fvs_support0.5: the default where one view removes at most half of an
+  element's novelty (`support`), so a part seen once is only partly covered and a second view
+  near the first still gains (multi-view support: depth from one view is unconstrained);
+  _sqrt: the same with the square root of the distance factor, which otherwise outweighs that
+  gain (a neighbour at 0.5 units against a lone frame at 3 is a factor of 6); visibility_sigma_fvs_sqrt:
+  the square root alone. Tried told the targets on cup_colmap's holdout folds, where random
+  capture, whose picks stand closer together, is level with the default.
 - tkmedian, tlogmedian (told the target views only): greedy facility location over the target
   views' centres, how much a candidate lowers the targets' distance (or log distance) to their
   nearest captured centre, so picks follow where the targets crowd, as random capture follows a
   hand-held path's density on cup_colmap; visibility_tkmedian, visibility_tlogmedian: the target
-  gain (no fragility) times that value in place of the distance factor.
+  gain (no fragility) times that value in place of the distance factor; visibility_tlogstands:
+  visibility_tlogmedian over the targets and every pose the camera can stand at (candidates and
+  captured views, each centre once), which fills sparse targets in and is the same set on
+  cup_colmap, whose targets are those poses.
 """
 
 from __future__ import annotations
@@ -74,7 +84,8 @@ def _k_median_strategy(demand: Callable[[Evidence], Tensor], power: int) -> Call
 
 EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma_top", "sigma_area", "fvs_top",
                "visibility_sigma_angle0.25", "visibility_sigma_fvs_angle0.25", "visibility_fvs", "tkmedian",
-               "tlogmedian", "visibility_tkmedian", "visibility_tlogmedian")
+               "tlogmedian", "visibility_tkmedian", "visibility_tlogmedian", "visibility_sigma_fvs_support0.5",
+               "visibility_sigma_fvs_support0.5_sqrt", "visibility_sigma_fvs_sqrt", "visibility_tlogstands")
 
 
 def _visibility_sharp(evidence: Evidence, k: int, seed: int) -> Selection:
@@ -89,14 +100,21 @@ def _visibility_fvs_sharp(evidence: Evidence, k: int, seed: int) -> Selection:
     return coverage_select(evidence, k, fragility=True, angle_scale=0.25, spread=True)
 
 
+def _visibility_support(support: float, spread_power: float) -> Callable[[Evidence, int, int], Selection]:
+    return lambda evidence, k, seed: coverage_select(evidence, k, fragility=True, spread=True, support=support,
+                                                     spread_power=spread_power)
+
+
 class _TargetDistance:
     """Facility location over the target views' centres: how much capturing candidate i lowers the
     targets' distance to their nearest captured centre (log: log(distance + eps), eps the median
     distance from a target to its nearest other target), so candidates follow where targets crowd."""
 
-    def __init__(self, evidence: Evidence, log: bool):
+    def __init__(self, evidence: Evidence, log: bool, stands: bool = False):
         assert evidence.target_views is not None
         targets = centres([view.camera for view in evidence.target_views])               # [T, 3]
+        if stands:      # and where the camera can stand: the candidates and captured views, each centre once
+            targets = torch.unique(torch.cat([targets, centres(evidence.candidates + evidence.captured)]), dim=0)
         self.to_candidate = torch.cdist(targets, centres(evidence.candidates))           # [T, C]
         self.nearest = (torch.cdist(targets, centres(evidence.captured)).min(dim=1).values if evidence.captured
                         else self.to_candidate.max(dim=1).values)                         # [T]
@@ -126,10 +144,10 @@ def _full_scan(count: int, k: int, value: Callable[[int], float], capture: Calla
     return Selection(order + [i for _, i in rest], scores)
 
 
-def _target_density(coverage: bool, log: bool) -> Callable[[Evidence, int, int], Selection]:
+def _target_density(coverage: bool, log: bool, stands: bool = False) -> Callable[[Evidence, int, int], Selection]:
     """The target distance's facility location alone, or times the target gain (no fragility)."""
     def select(evidence: Evidence, k: int, seed: int) -> Selection:
-        spread = _TargetDistance(evidence, log)
+        spread = _TargetDistance(evidence, log, stands)
         if not coverage:
             return _full_scan(len(evidence.candidates), k, spread.value, spread.capture)
         assert evidence.candidate_views is not None and evidence.captured_views is not None
@@ -161,6 +179,12 @@ for _strategy in (
                  _visibility_fvs_sharp, uses_visibility=True),
         Strategy("visibility_fvs", "visibility_sigma_fvs without the fragility weighting", _visibility_fvs,
                  uses_dropout=False, uses_visibility=True),
+        Strategy("visibility_sigma_fvs_support0.5", "visibility_sigma_fvs where one view removes at most half of "
+                 "an element's novelty", _visibility_support(0.5, 1.0), uses_visibility=True),
+        Strategy("visibility_sigma_fvs_support0.5_sqrt", "visibility_sigma_fvs_support0.5 times the square root of "
+                 "the distance, not the distance", _visibility_support(0.5, 0.5), uses_visibility=True),
+        Strategy("visibility_sigma_fvs_sqrt", "visibility_sigma_fvs times the square root of the distance, not the "
+                 "distance", _visibility_support(1.0, 0.5), uses_visibility=True),
         Strategy("tkmedian", "k-median over the target views' centres", _target_density(False, False),
                  uses_dropout=False, uses_visibility=True),
         Strategy("tlogmedian", "k-median over the target views' centres on log distances",
@@ -168,5 +192,8 @@ for _strategy in (
         Strategy("visibility_tkmedian", "the target gain times tkmedian's value", _target_density(True, False),
                  uses_dropout=False, uses_visibility=True),
         Strategy("visibility_tlogmedian", "the target gain times tlogmedian's value", _target_density(True, True),
+                 uses_dropout=False, uses_visibility=True),
+        Strategy("visibility_tlogstands", "visibility_tlogmedian over the target views and every pose the camera "
+                 "can stand at (candidates, captured)", _target_density(True, True, stands=True),
                  uses_dropout=False, uses_visibility=True)):
     STRATEGIES.register(_strategy)
