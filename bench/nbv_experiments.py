@@ -41,7 +41,7 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
@@ -90,21 +90,9 @@ EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma
                "visibility_sigma_fvs_support0.5_sqrt", "visibility_sigma_fvs_sqrt", "visibility_tlogstands")
 
 
-def _visibility_sharp(evidence: Evidence, k: int, seed: int) -> Selection:
-    return coverage_select(evidence, k, fragility=True, angle_scale=0.25)
-
-
-def _visibility_fvs(evidence: Evidence, k: int, seed: int) -> Selection:
-    return coverage_select(evidence, k, fragility=False, spread=True)
-
-
-def _visibility_fvs_sharp(evidence: Evidence, k: int, seed: int) -> Selection:
-    return coverage_select(evidence, k, fragility=True, angle_scale=0.25, spread=True)
-
-
-def _visibility_support(support: float, spread_power: float) -> Callable[[Evidence, int, int], Selection]:
-    return lambda evidence, k, seed: coverage_select(evidence, k, fragility=True, spread=True, support=support,
-                                                     spread_power=spread_power)
+def _coverage(**options: Any) -> Callable[[Evidence, int, int], Selection]:
+    """`coverage_select` with other options than the shipped coverage strategies' (bench only)."""
+    return lambda evidence, k, seed: coverage_select(evidence, k, **options)
 
 
 class _TargetDistance:
@@ -176,17 +164,18 @@ for _strategy in (
         Strategy("sigma_area", "largest share of pixels with zeta above 0.05", lambda ev, k, seed: by_score(ev.area)),
         Strategy("fvs_top", "distance times (sigma_top + its mean), greedy", _fvs_top),
         Strategy("visibility_sigma_angle0.25", "visibility_sigma with the direction kernel at 0.25",
-                 _visibility_sharp, uses_visibility=True),
+                 _coverage(fragility=True, angle_scale=0.25), uses_visibility=True),
         Strategy("visibility_sigma_fvs_angle0.25", "visibility_sigma_fvs with the direction kernel at 0.25",
-                 _visibility_fvs_sharp, uses_visibility=True),
-        Strategy("visibility_fvs", "visibility_sigma_fvs without the fragility weighting", _visibility_fvs,
-                 uses_dropout=False, uses_visibility=True),
+                 _coverage(fragility=True, angle_scale=0.25, spread=True), uses_visibility=True),
+        Strategy("visibility_fvs", "visibility_sigma_fvs without the fragility weighting",
+                 _coverage(fragility=False, spread=True), uses_dropout=False, uses_visibility=True),
         Strategy("visibility_sigma_fvs_support0.5", "visibility_sigma_fvs where one view removes at most half of "
-                 "an element's novelty", _visibility_support(0.5, 1.0), uses_visibility=True),
+                 "an element's novelty", _coverage(fragility=True, spread=True, support=0.5), uses_visibility=True),
         Strategy("visibility_sigma_fvs_support0.5_sqrt", "visibility_sigma_fvs_support0.5 times the square root of "
-                 "the distance, not the distance", _visibility_support(0.5, 0.5), uses_visibility=True),
+                 "the distance, not the distance",
+                 _coverage(fragility=True, spread=True, support=0.5, spread_power=0.5), uses_visibility=True),
         Strategy("visibility_sigma_fvs_sqrt", "visibility_sigma_fvs times the square root of the distance, not the "
-                 "distance", _visibility_support(1.0, 0.5), uses_visibility=True),
+                 "distance", _coverage(fragility=True, spread=True, spread_power=0.5), uses_visibility=True),
         Strategy("tkmedian", "k-median over the target views' centres", _target_density(False, False),
                  uses_dropout=False, uses_visibility=True),
         Strategy("tlogmedian", "k-median over the target views' centres on log distances",
