@@ -38,7 +38,6 @@ from phd_core.renderers.visibility import (
     COVERAGE_CAPTURE_BYTES,
     PASS_UNIT_BYTES,
     SEEN_LOADED_BYTES,
-    SEEN_STORED_BYTES,
     seen_bytes,
     visibility_bytes,
 )
@@ -380,16 +379,18 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     kept = kept if heatmaps else 0
     # A strategy that uses visibility keeps what every candidate and target view sees
     # (`visibility_bytes`, the candidates' measured with their dropout renders, the targets'
-    # rendered once each). What the captured poses saw comes from the model's stored coverage
-    # (read whole); the poses it lacks are rendered, one visibility pass each, kept in compact form
-    # and stored with the rest (`captured_seen`; a rank that renders none writes nothing).
+    # rendered once each). What the captured poses saw is read from the model's stored coverage
+    # where it holds them (a stored view stays stored, so the job finds what this plan counts);
+    # the rest are rendered, one visibility pass each, kept in compact form and stored
+    # (`captured_seen`; a rank that renders none writes nothing).
     coverage = (CapturedStore(store.cache(record), default=stored_cameras(record))
                 if visibility and store is not None else None)
     stored = coverage.index() if coverage is not None else {}
-    fresh = [c for c in captured if camera_key(c) not in stored] if visibility else []
+    keys = [camera_key(c) for c in captured] if visibility else []
+    fresh = [c for c, key in zip(captured, keys) if key not in stored]
     aimed = targets or []              # given only to a strategy that uses visibility (check_target_strategy)
-    read = SEEN_STORED_BYTES if fresh else SEEN_LOADED_BYTES
-    seen = (sum(visibility_bytes(record.num_units, c) for c in cameras + aimed) + sum(stored.values()) * read
+    read = SEEN_LOADED_BYTES * sum(stored[key] for key in dict.fromkeys(keys) if key in stored)
+    seen = (sum(visibility_bytes(record.num_units, c) for c in cameras + aimed) + read
             + seen_bytes(record.num_units, fresh) + COVERAGE_CAPTURE_BYTES) if visibility else 0
     renders = Renders([(record, "model_id", cameras + fresh + aimed)], samples, kept_bytes=kept + seen,
                       kept_field="heatmaps" if kept >= seen else "downscale", visibility=visibility, signal=signal)

@@ -94,10 +94,10 @@ SEEN_ELEMENT_BYTES = 16
 COVERAGE_ELEMENT_BYTES = 120
 COVERAGE_CAPTURE_BYTES = 20 << 20
 # A captured view's Seen keeps ids and shares (8 + 8); stored, they take 12 bytes an element.
-# Reading the entry holds the file's bytes, the tensors read and the ids widened (12 + 12 + 8):
-# SEEN_LOADED_BYTES an element of a stored view. A rank that also writes the entry holds, beside
-# the kept views, the tensors concatenated, the serialised bytes and their copy (12 x 3):
-# SEEN_STORED_BYTES an element of every view it stores.
+# Reading a stored view holds the file's bytes, the tensors read and the ids widened (12 + 12 + 8):
+# SEEN_LOADED_BYTES an element of a stored view. A rank that also writes a view holds, beside the
+# kept views, its tensors narrowed, the serialised bytes and their copy (12 x 3): SEEN_STORED_BYTES
+# an element of every view it stores (at most: the views are written one by one).
 SEEN_LOADED_BYTES = 32
 SEEN_STORED_BYTES = 56
 

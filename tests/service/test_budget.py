@@ -19,7 +19,7 @@ from phd_core.renderers.visibility import (
     seen_bytes,
     visibility_bytes,
 )
-from phd_core.uq.strategies.captured import CapturedStore
+from phd_core.uq.strategies.captured import CapturedStore, camera_key
 from service.budget import MemoryLedger, ModelSize, load_bytes, model_bytes, plan_work
 from service.errors import ServiceError
 from support.fixtures import svc_random_gaussians
@@ -305,6 +305,13 @@ def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(
     assert again.kept_bytes - plain.kept_bytes == (sum(visibility_bytes(300, c) for c in views) + COVERAGE_CAPTURE_BYTES
                                                    + SEEN_LOADED_BYTES * sum(stored.values()))
     assert again_plan.bytes < seen_plan.bytes
+    # A rank told one of those poses as captured reads that view alone, and plans that one only.
+    body = RankRequest(cameras=candidates, samples=8, dropout_ratio=0.1, strategy="visibility_sigma",
+                       captured=[captured[1].to_frame()])
+    one, _ = rank_job(record, body, service.settings, lambda name: name, service.ledger, store=service.store)
+    assert one.renders.kept_bytes - plain.kept_bytes == (sum(visibility_bytes(300, c) for c in views)
+                                                         + COVERAGE_CAPTURE_BYTES
+                                                         + SEEN_LOADED_BYTES * stored[camera_key(captured[1])])
     # Deleting the model deletes what was stored with it.
     cache_dir = service.store.cache(record).dir
     assert cache_dir.is_dir()

@@ -11,7 +11,7 @@ from phd_core.io import ModelCache
 from phd_core.renderers.gs3d import GaussianRenderer, write_ply
 from phd_core.renderers.visibility import Seen
 from phd_core.uq import rank_views
-from phd_core.uq.strategies.captured import CapturedStore, camera_key, captured_seen
+from phd_core.uq.strategies.captured import FORMAT, KIND, CapturedStore, camera_key, captured_seen
 from support.fixtures import svc_cameras, svc_random_gaussians
 
 
@@ -87,6 +87,9 @@ def test_other_renderer_settings_or_a_changed_model_render_again(tmp_path: Path)
     passes.clear()
     captured_seen(renderer, rig, CapturedStore(ModelCache(tmp_path / "model.ply")))
     assert len(passes) == 2
+    passes.clear()                                                     # and what it saw replaced the views
+    captured_seen(renderer, rig, CapturedStore(ModelCache(tmp_path / "model.ply")))
+    assert passes == []
     write_ply(svc_random_gaussians(400, seed=5), tmp_path / "model.ply")          # another model at the path
     passes.clear()
     captured_seen(renderer, rig, CapturedStore(ModelCache(tmp_path / "model.ply")))
@@ -99,16 +102,32 @@ def test_other_renderer_settings_or_a_changed_model_render_again(tmp_path: Path)
     assert len(passes) == 2
 
 
-def test_the_models_own_captured_set_replaces_another_stored_first(tmp_path: Path) -> None:
+def test_the_models_own_captured_set_is_stored_beside_another_and_a_planned_rank_finds_its_views(
+        tmp_path: Path) -> None:
     renderer, passes = counting_renderer(tmp_path / "model.ply")
     training, other = svc_cameras(3, size=24), svc_cameras(2, size=24, phase=0.7)
     store = CapturedStore(ModelCache(tmp_path / "model.ply"), default=training)
     captured_seen(renderer, other, store)                       # the first rank asked for another set
-    assert set(store.index()) == {camera_key(c) for c in other}
-    captured_seen(renderer, training, store)                    # the default rank: now it is kept
-    assert set(store.index()) == {camera_key(c) for c in training}
-    captured_seen(renderer, other, store)                       # and stays
-    assert set(store.index()) == {camera_key(c) for c in training}
+    planned = store.index()                                     # a job is planned on it (as the service does)
+    assert set(planned) == {camera_key(c) for c in other}
+    captured_seen(renderer, training, store)                    # meanwhile the default rank stores its own
+    assert set(store.index()) == {camera_key(c) for c in other + training}
     passes.clear()
+    captured_seen(renderer, other, store)                       # the planned job renders nothing
     captured_seen(renderer, training, store)
     assert passes == []
+    assert {k: store.index()[k] for k in planned} == planned
+    captured_seen(renderer, svc_cameras(2, size=24, phase=0.4), store)       # any other set adds nothing
+    assert set(store.index()) == {camera_key(c) for c in other + training}
+
+
+def test_a_view_stored_but_missing_from_the_index_is_read_and_named_again(tmp_path: Path) -> None:
+    renderer, passes = counting_renderer(tmp_path / "model.ply")
+    rig = svc_cameras(3, size=24)
+    cache = ModelCache(tmp_path / "model.ply")
+    captured_seen(renderer, rig, CapturedStore(cache))
+    counts = CapturedStore(cache).index()
+    cache.path(KIND, {"format": FORMAT}, ".json").unlink()      # a crash after the views, before the index
+    passes.clear()
+    captured_seen(renderer, rig, CapturedStore(cache))
+    assert passes == [] and CapturedStore(cache).index() == counts

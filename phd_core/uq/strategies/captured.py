@@ -3,21 +3,27 @@
 The coverage strategies (the default among them) count every captured view as seen before
 they pick, and what a view saw takes a full render of the model from its camera. The model and
 its captured poses do not change between ranks, so `captured_seen` keeps each view's `Seen`
-(element ids and visible shares: 12 bytes an element on disk) in one `ModelCache` entry beside
+(element ids and visible shares: 12 bytes an element on disk) as its own `ModelCache` entry beside
 the model (the CLI's cache folder beside the file; the service's beside the stored model, deleted
-with it). A view is found by its camera's exact pose, intrinsics and size, so:
+with it), with one small index of every stored view's element count for memory plans. A view is
+found by its camera's exact pose, intrinsics and size, so:
 
 - a rank whose captured poses are all stored renders none of them;
 - a rank whose poses extend the stored set (a rig's captures since) renders only the new ones
-  and stores the larger set, so asking again after each batch costs what changed;
-- a rank with the model's own captured set (its training cameras) stores that set in place of
-  any other that does not hold it, so the default rank is the one served however the first
-  rank asked;
-- any other set is served from the store where it can and rendered where it cannot, and the
-  stored set stays as it was.
+  and stores them, so asking again after each batch costs what changed;
+- a rank with the model's own captured set (its training cameras) stores that set beside any
+  other stored first, so the default rank is the one served however the first rank asked;
+- any other set is served from the store where it can and rendered where it cannot, and
+  nothing is added.
+
+A stored view is never removed (only with the model): a rank planned on the index (the service
+plans its memory before the job runs) finds every view the plan counted as stored, whatever
+other ranks stored meanwhile. The index is written after the views it names, so it never names a
+view that is not there; a view it misses (a crash between the two, or two ranks writing it at
+once) is only planned as rendered and found when read.
 
 The renderer's settings that change what a view sees (family, tile, near plane, grid) are stored
-with the views; other settings start the entry afresh.
+with each view; a view stored under other settings is rendered again and replaced.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ from ...renderers.visibility import ELEMENTS_PER_PIXEL, ReportsVisibility, Seen
 from ...scene import Camera
 
 KIND = "captured-coverage"
-PARAMS = {"format": 1}       # the entry's layout; a new layout is a new entry
+FORMAT = 2                   # the entries' layout (1: every view in one entry); a new layout is a new entry
 
 
 def camera_key(camera: Camera) -> str:
@@ -65,7 +71,7 @@ def _untext(tensor: Tensor) -> Any:
 
 
 class CapturedStore:
-    """The stored views of one model (a `ModelCache` entry, and a small index of it for memory plans);
+    """The stored views of one model (an entry per view, and an index of them for memory plans);
     `default`: the model's own captured set (its training cameras), the one to keep."""
 
     def __init__(self, cache: ModelCache, default: Sequence[Camera] | None = None):
@@ -73,40 +79,43 @@ class CapturedStore:
         self.default = {camera_key(camera) for camera in default or []}
 
     def keeps(self, stored: set[str], asked: set[str]) -> bool:
-        """Whether a rank asking for `asked` replaces the `stored` set with the views it has: when
-        it extends it, or holds the default set that `stored` lacks (module docstring)."""
-        if not asked or asked == stored:
+        """Whether a rank asking for `asked` stores the views it has: when it extends the `stored`
+        set, or holds the default set that `stored` lacks (module docstring)."""
+        if not asked or asked <= stored:
             return False
         return stored <= asked or (bool(self.default) and self.default <= asked and not self.default <= stored)
 
     def index(self) -> dict[str, int]:
         """{camera key: elements} of the stored views, without reading them ({} when none)."""
-        found = self.cache.load_json(KIND, PARAMS)
+        found = self.cache.load_json(KIND, {"format": FORMAT})
         views = found.get("views") if isinstance(found, dict) else None
         return {str(k): int(v) for k, v in views.items()} if isinstance(views, dict) else {}
 
-    def load(self, settings: dict[str, Any]) -> dict[str, tuple[Tensor, Tensor]]:
-        """{camera key: (elements [K] long, visible share [K] float64)} stored with these settings."""
-        entry = self.cache.load_tensors(KIND, PARAMS)
-        try:
-            if entry is None or _untext(entry["settings"]) != settings:
-                return {}
-            keys, counts = _untext(entry["keys"]), entry["counts"].tolist()
-            elements, shares = entry["elements"].long(), entry["share"]
-            if len(keys) != len(counts) or sum(counts) != len(elements) or len(shares) != len(elements):
-                return {}
-        except (KeyError, ValueError, TypeError, AttributeError, UnicodeDecodeError):
-            return {}
-        return dict(zip(keys, zip(elements.split(counts), shares.split(counts))))
+    def load(self, settings: dict[str, Any], keys: Sequence[str]) -> dict[str, tuple[Tensor, Tensor]]:
+        """{camera key: (elements [K] long, visible share [K] float64)} of the views among `keys`
+        stored with these settings."""
+        views = {}
+        for key in dict.fromkeys(keys):
+            entry = self.cache.load_tensors(KIND, {"format": FORMAT, "view": key})
+            try:
+                if entry is None or _untext(entry["settings"]) != settings:
+                    continue
+                elements, share = entry["elements"].long(), entry["share"]
+            except (KeyError, ValueError, TypeError, AttributeError, UnicodeDecodeError):
+                continue
+            if elements.ndim == 1 and share.shape == elements.shape:
+                views[key] = (elements, share)
+        return views
 
     def save(self, settings: dict[str, Any], views: dict[str, tuple[Tensor, Tensor]]) -> bool:
-        """Store these views (in place of any before): the tensors, then their index."""
-        counts = [len(elements) for elements, _ in views.values()]
-        stored = self.cache.save_tensors(KIND, PARAMS, {
-            "settings": _text(settings), "keys": _text(list(views)), "counts": torch.tensor(counts),
-            "elements": torch.cat([e.int() for e, _ in views.values()]) if views else torch.zeros(0, dtype=torch.int32),
-            "share": torch.cat([s for _, s in views.values()]) if views else torch.zeros(0, dtype=torch.float64)})
-        return stored and self.cache.save_json(KIND, PARAMS, {"views": dict(zip(views, counts))})
+        """Store these views, each beside the others, then add them to the index (read again just
+        before, so views another rank indexed meanwhile stay named)."""
+        for key, (elements, share) in views.items():
+            if not self.cache.save_tensors(KIND, {"format": FORMAT, "view": key}, {
+                    "settings": _text(settings), "elements": elements.int(), "share": share}):
+                return False
+        counts = {**self.index(), **{key: len(elements) for key, (elements, _) in views.items()}}
+        return self.cache.save_json(KIND, {"format": FORMAT}, {"views": counts})
 
 
 def captured_seen(renderer: ReportsVisibility, cameras: Sequence[Camera],
@@ -116,13 +125,19 @@ def captured_seen(renderer: ReportsVisibility, cameras: Sequence[Camera],
     if store is None:
         return [renderer.visibility(renderer.prepare(camera)).seen() for camera in cameras]
     settings = renderer_settings(renderer)
-    stored = store.load(settings)
     keys = [camera_key(camera) for camera in cameras]
-    views = dict(stored)
+    views = store.load(settings, keys)
+    indexed = store.index()
+    fresh = {}
     for key, camera in zip(keys, cameras):
-        if key not in views:
+        if key not in views and key not in fresh:
             seen = renderer.visibility(renderer.prepare(camera)).seen()
-            views[key] = (seen.elements, seen.visible_share)
-    if store.keeps(set(stored), set(keys)):
-        store.save(settings, {key: views[key] for key in dict.fromkeys(keys)})
+            fresh[key] = (seen.elements, seen.visible_share)
+    # A stored view rendered again (under other settings, or unreadable) is replaced; with the
+    # policy's consent the new views are added too, and those read but missing from the index.
+    added = ({**{k: v for k, v in views.items() if k not in indexed}, **fresh}
+             if store.keeps(set(indexed), set(keys)) else {k: v for k, v in fresh.items() if k in indexed})
+    if added:
+        store.save(settings, added)
+    views.update(fresh)
     return [Seen(camera, *views[key]) for key, camera in zip(keys, cameras)]
