@@ -14,11 +14,13 @@ scenes no strategy was tuned on, in the Blender layout `bench.bench_nbv` reads:
    candidates) is one of CANDIDATE_SHAPES and the test split one of TEST_SHAPES, every pair once
    over 12 scenes; the val split (target views for `+targets` runs) is drawn from the test
    split's shape with other poses, so targets and test views never coincide (a one-sided test
-   split's val stands on the same side).
+   split's val stands on the same side). Twelve walk scenes more (`walk_plan`) are captures
+   along one hand-held walk of uneven speed, held out as cup_colmap is: every 8th frame a test
+   view, the rest the candidates and the target views (their own layouts, their own seeds).
 4. Images: the composed model rendered at SIZE px, RGBA (colour un-premultiplied, alpha the
    accumulated opacity), as donut_200 was made.
 
-    .venv/bin/python -m bench.nbv_scenes            # assets (once), then held_00 .. held_11
+    .venv/bin/python -m bench.nbv_scenes            # assets (once), held_00 .. held_11, walk_00 .. walk_11
 
 Written under bench/results/nbv_scenes/ (not in git; `layouts.json` there and in
 bench/results/nbv_scenes.json records every draw). The same seeds give the same scenes.
@@ -38,6 +40,8 @@ import torch
 
 from bench._harness import DATA, RESULTS, write_result
 from phd_core.data import load_dataset
+from phd_core.data.colmap import write_colmap_text
+from phd_core.data.frames import HOLDOUT
 from phd_core.io import png_bytes, write_bytes_atomic, write_json_atomic
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, read_ply, write_ply
 from phd_core.renderers.splats import SH_C0
@@ -58,6 +62,14 @@ FOV_X = 0.6911112070083618    # lego's camera_angle_x
 RADIUS = 4.03                 # camera distance of the Blender scenes
 SCENE_RADIUS = 1.4            # the layout is scaled to this radius around the origin (lego's scene fits in 1.5)
 COUNTS = {"train": 60, "val": 20, "test": 40}
+WALKS = 12                    # walk_00 .. walk_11: every split from one hand-held walk, as cup_colmap's
+WALK_FRAMES = 96              # frames of a walk: every HOLDOUT-th a test view, the rest candidates and targets
+LINGER = 0.7                  # a walk's speed varies from 0.3 to 1.7 times its mean
+ROOMS = 12                    # room_00 .. room_11: walks in a textured room, written as COLMAP captures
+ROOM_RADIUS = 7.0             # the room's wall, around the cameras (at about RADIUS)
+ROOM_HEIGHT = 5.0
+ROOM_SPACING = 0.1            # between the room's splats (a pixel at the far wall spans about 0.1 at SIZE)
+ROOM_POINTS = 4000            # SfM points of a room capture: splat centres, as COLMAP triangulates surfaces
 
 
 # ----------------------------------------------------------------------------- assets
@@ -172,8 +184,49 @@ def compose(layout: list[dict], models: dict[str, GaussianModel]) -> GaussianMod
     reach = float(max((torch.cat([m.means[torch.sigmoid(m.opacity_logits) > 0.5] for m in parts]).double()
                        - centre).norm(dim=1).quantile(0.98), 1e-6))
     factor = SCENE_RADIUS / reach
-    parts = [transformed(m, torch.eye(3, dtype=torch.float64), factor, -centre * factor) for m in parts]
-    return GaussianModel(*(torch.cat([getattr(m, f) for m in parts]).contiguous()
+    return merged([transformed(m, torch.eye(3, dtype=torch.float64), factor, -centre * factor) for m in parts])
+
+
+def texture(rng: random.Random, uv: torch.Tensor) -> torch.Tensor:
+    """[P, 3] colours in [0.08, 0.92] at surface coordinates uv [P, 2]: a base colour and eight random
+    gratings (0.3 to 2 cycles a unit, any orientation): detail at the scales a view at the benchmark's
+    32 px resolves (a pixel spans about 0.1 at the scene, 0.2 at the far wall)."""
+    colour = torch.tensor([rng.uniform(0.3, 0.7) for _ in range(3)], dtype=torch.float64).expand(len(uv), 3).clone()
+    for _ in range(8):
+        angle, frequency, phase = rng.uniform(0, math.pi), rng.uniform(0.3, 2.0), rng.uniform(0, 2 * math.pi)
+        wave = torch.sin(2 * math.pi * frequency * (uv[:, 0] * math.cos(angle) + uv[:, 1] * math.sin(angle)) + phase)
+        colour += wave[:, None] * torch.tensor([rng.uniform(-0.12, 0.12) for _ in range(3)], dtype=torch.float64)
+    return colour.clamp(0.08, 0.92)
+
+
+def room(rng: random.Random, floor: float) -> GaussianModel:
+    """A textured floor (a disc at height `floor`) and wall (a cylinder ROOM_HEIGHT tall) of ROOM_RADIUS,
+    flat opaque splats ROOM_SPACING apart, each surface with its own texture: the surroundings a real
+    capture sees behind the object, which only views from nearby directions reconstruct."""
+    d = ROOM_SPACING
+    grid = torch.arange(-ROOM_RADIUS, ROOM_RADIUS, d, dtype=torch.float64) + d / 2
+    xy = torch.cartesian_prod(grid, grid)
+    xy = xy[xy.norm(dim=1) < ROOM_RADIUS]                                               # [F, 2]
+    turns, heights = round(2 * math.pi * ROOM_RADIUS / d), round(ROOM_HEIGHT / d)
+    angle = torch.arange(turns, dtype=torch.float64) * (2 * math.pi / turns)
+    th = torch.cartesian_prod(angle, torch.arange(heights, dtype=torch.float64) * d + d / 2)    # [W, 2]
+    wall = torch.stack([ROOM_RADIUS * th[:, 0].cos(), ROOM_RADIUS * th[:, 0].sin(), floor + th[:, 1]], 1)
+    means = torch.cat([torch.cat([xy, torch.full((len(xy), 1), floor, dtype=torch.float64)], 1), wall])
+    colours = torch.cat([texture(rng, xy), texture(rng, torch.stack([th[:, 0] * ROOM_RADIUS, th[:, 1]], 1))])
+    # A splat's thin axis (its local z) along the surface normal: +z on the floor, the radius on the wall.
+    half = th[:, 0] / 2
+    to_x = torch.tensor([math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0], dtype=torch.float64)  # z -> x
+    about_z = torch.stack([half.cos(), torch.zeros_like(half), torch.zeros_like(half), half.sin()], 1)
+    quats = torch.cat([torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).expand(len(xy), 4),
+                       quaternion_multiply(about_z, to_x.expand(len(th), 4))])
+    scales = torch.tensor([0.7 * d, 0.7 * d, 0.05 * d], dtype=torch.float64).log().expand(len(means), 3)
+    return GaussianModel(means=means.float(), log_scales=scales.float().contiguous(), quats=quats.float().contiguous(),
+                         opacity_logits=torch.full((len(means),), 4.0),
+                         sh=((colours.float() - 0.5) / SH_C0)[:, None, :].contiguous())
+
+
+def merged(models: list[GaussianModel]) -> GaussianModel:
+    return GaussianModel(*(torch.cat([getattr(m, f) for m in models]).contiguous()
                            for f in ("means", "log_scales", "quats", "opacity_logits", "sh")))
 
 
@@ -203,12 +256,15 @@ def rings(rng: random.Random, count: int) -> list[Pose]:
     return poses
 
 
-def path(rng: random.Random, count: int) -> list[Pose]:
-    """A hand-held walk: a 240-degree arc whose height and distance wander, looking about the centre."""
+def path(rng: random.Random, count: int, linger: float = 0.0) -> list[Pose]:
+    """A hand-held walk: a 240-degree arc whose height and distance wander, looking about the centre.
+    `linger` in [0, 1) makes the walker's speed uneven (1 - linger to 1 + linger of the mean, twice
+    over the walk), so frames taken at a steady rate crowd where the walker lingers."""
     start, height, phase = rng.uniform(0, 2 * math.pi), rng.uniform(20, 35), rng.uniform(0, 2 * math.pi)
     poses: list[Pose] = []
     for k in range(count):
-        t = k / max(count - 1, 1)
+        clock = k / max(count - 1, 1)
+        t = clock + linger * (math.sin(4 * math.pi * clock + phase) - math.sin(phase)) / (4 * math.pi)  # walked
         azimuth = start + math.radians(240) * t
         elevation = math.radians(height + 15 * math.sin(phase + 3 * math.pi * t))
         radius = RADIUS * (1 + 0.12 * math.sin(phase + 5 * math.pi * t))
@@ -272,17 +328,69 @@ def scene_plan(index: int) -> dict:
             "test": test, "val": test, "seeds": {split: rng.randrange(1 << 30) for split in COUNTS}}
 
 
-def write_scene(plan: dict, models: dict[str, GaussianModel], out: Path) -> None:
-    model = compose(plan["layout"], models)
-    renderer = GaussianRenderer(model, (1.0, 1.0, 1.0))
+def walk_plan(index: int) -> dict:
+    """Walk scene `index`'s draws (seeded apart from the held scenes'): its layout and its walk's seed."""
+    rng = random.Random(FAMILY_SEED * 1000 + 500 + index)
+    return {"name": f"walk_{index:02d}", "layout": draw_layout(rng, 1 + index % 4), "train": "walk", "test": "walk",
+            "val": "walk", "seeds": {"walk": rng.randrange(1 << 30)}}
+
+
+def split_poses(plan: dict) -> dict[str, list[Pose]]:
+    """Each split's poses. A walk scene is a capture along one uneven walk (`path` with LINGER) held out
+    as cup_colmap is: every HOLDOUT-th frame a test view, the rest both the candidates and the target
+    views (a capture is looked at from where it was walked, as cup_colmap's `+targets` runs are told)."""
+    if plan["train"] == "walk":
+        frames = path(random.Random(plan["seeds"]["walk"]), WALK_FRAMES, LINGER)
+        rest = [pose for k, pose in enumerate(frames) if k % HOLDOUT]
+        return {"train": rest, "val": rest, "test": frames[::HOLDOUT]}
     shapes = {**CANDIDATE_SHAPES, **TEST_SHAPES}
+    poses = {}
     for split, count in COUNTS.items():
         rng = random.Random(plan["seeds"][split])
         if split == "val" and plan["val"] == "side":     # where the model will be looked at: the test views' side
-            poses = side(rng, count, place=random.Random(plan["seeds"]["test"]))
+            poses[split] = side(rng, count, place=random.Random(plan["seeds"]["test"]))
         else:
-            poses = shapes[plan[split]](rng, count)
-        write_split(out / plan["name"], split, poses, renderer)
+            poses[split] = shapes[plan[split]](rng, count)
+    return poses
+
+
+def room_plan(index: int) -> dict:
+    """Room scene `index`'s draws (seeded apart from the others'): its layout, its walk's and its room's seeds."""
+    rng = random.Random(FAMILY_SEED * 1000 + 700 + index)
+    return {"name": f"room_{index:02d}", "layout": draw_layout(rng, 1 + index % 4), "train": "room", "test": "room",
+            "val": "room", "seeds": {"walk": rng.randrange(1 << 30), "room": rng.randrange(1 << 30)}}
+
+
+def write_capture(root: Path, poses: list[Pose], model: GaussianModel, seed: int) -> None:
+    """A COLMAP capture of `model` from `poses`: opaque PNGs in images/, sparse/0 with the cameras
+    and ROOM_POINTS of the opaque splats' centres as its SfM points (drawn by `seed`)."""
+    renderer = GaussianRenderer(model, (1.0, 1.0, 1.0))
+    cameras = [look_at(eye, target, width=SIZE, height=SIZE, fov_x=FOV_X) for eye, target in poses]
+    names = [f"r_{k:03d}.png" for k in range(len(cameras))]
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    for camera, name in zip(cameras, names):
+        write_bytes_atomic(root / "images" / name, png_bytes(renderer.render(camera)[0]))
+    write_colmap_text(root / "sparse" / "0", cameras, names)
+    opaque = torch.nonzero(torch.sigmoid(model.opacity_logits) > 0.5).flatten()
+    chosen = opaque[torch.randperm(len(opaque), generator=torch.Generator().manual_seed(seed))[:ROOM_POINTS]]
+    rgb = ((model.sh[chosen, 0] * SH_C0 + 0.5).clamp(0, 1) * 255).round().int().tolist()
+    lines = ["# POINT3D_ID X Y Z R G B ERROR TRACK[]"] + [
+        f"{k + 1} {x!r} {y!r} {z!r} {r} {g} {b} 0.5" for k, ((x, y, z), (r, g, b))
+        in enumerate(zip(model.means[chosen].double().tolist(), rgb))]
+    write_bytes_atomic(root / "sparse" / "0" / "points3D.txt", ("\n".join(lines) + "\n").encode())
+
+
+def write_scene(plan: dict, models: dict[str, GaussianModel], out: Path) -> None:
+    model = compose(plan["layout"], models)
+    if plan["train"] == "room":     # the layout in its room, captured along a walk
+        opaque = model.means[torch.sigmoid(model.opacity_logits) > 0.5, 2].double()
+        model = merged([model, room(random.Random(plan["seeds"]["room"]), float(opaque.quantile(0.02)))])
+        write_capture(out / plan["name"], path(random.Random(plan["seeds"]["walk"]), WALK_FRAMES, LINGER), model,
+                      plan["seeds"]["room"])
+    else:
+        renderer = GaussianRenderer(model, (1.0, 1.0, 1.0))
+        for split, poses in split_poses(plan).items():
+            write_split(out / plan["name"], split, poses, renderer)
     print(f"{plan['name']}: {len(plan['layout'])} objects "
           f"({', '.join(p['asset'] for p in plan['layout'])}), {model.num_splats} splats, "
           f"candidates {plan['train']}, test {plan['test']}", flush=True)
@@ -292,13 +400,17 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=OUT)
     p.add_argument("--scenes", type=int, default=SCENES)
+    p.add_argument("--walks", type=int, default=WALKS)
+    p.add_argument("--rooms", type=int, default=ROOMS)
     args = p.parse_args()
     torch.set_num_threads(1)
     models = assets(args.out)
-    plans = [scene_plan(i) for i in range(args.scenes)]
+    plans = ([scene_plan(i) for i in range(args.scenes)] + [walk_plan(i) for i in range(args.walks)]
+             + [room_plan(i) for i in range(args.rooms)])
     for plan in plans:
         write_scene(plan, models, args.out)
-    record = {"family_seed": FAMILY_SEED, "size": SIZE, "counts": COUNTS, "scenes": plans}
+    record = {"family_seed": FAMILY_SEED, "size": SIZE, "counts": COUNTS, "walk_frames": WALK_FRAMES,
+              "linger": LINGER, "scenes": plans}
     write_result(args.out / "layouts.json", record)
     write_result(RESULTS / "nbv_scenes.json", record)
     print(json.dumps({"scenes": len(plans), "out": str(args.out)}))
