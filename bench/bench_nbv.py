@@ -86,7 +86,8 @@ FOLD = "@"      # "cup_colmap@3": holdout fold 3 of a capture with one image lis
 TARGETS = "targets"         # the run-name suffix of a run told the target views
 TEST_VIEWS = "testviews"    # ... told the test views themselves: the target gain's ceiling, not a protocol
 TARGETED = f"{DEFAULT_STRATEGY}+{TARGETS}"
-FAMILY = RESULTS / "nbv_scenes"   # bench/nbv_scenes.py's output: the held-out family
+FAMILY = RESULTS / "nbv_scenes"   # bench/nbv_scenes.py's output: the held-out families
+FAMILIES = ("held", "walk", "room")   # its kinds of scene (bench/nbv_scenes.py's docstring)
 
 
 def parse_args() -> argparse.Namespace:
@@ -113,14 +114,16 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--report", action="store_true", help="only rewrite the doc from the stored results")
     p.add_argument("--costs", action="store_true", help="time rank_views per candidate for every strategy on one "
                    "model (the first scene and seed), one run, to bench/results/nbv/costs.json")
-    p.add_argument("--family", action="store_true", help="the held-out family of bench/nbv_scenes.py (default "
-                   "--scenes: every one generated), results in bench/results/nbv_heldout, its own doc section")
+    p.add_argument("--family", nargs="?", const="held", default=None, choices=FAMILIES,
+                   help="a held-out family of bench/nbv_scenes.py: held (the default), walk or room (default "
+                   "--scenes: every one of that kind generated), results in bench/results/nbv_heldout, a doc "
+                   "section for each kind")
     p.add_argument("--repeat-of", type=Path, default=None, help="with --family --report: a results directory "
                    "holding the same runs again, to report how far two identical runs differ (the noise floor)")
     args = p.parse_args()
     if args.family:
         if args.scenes == p.get_default("scenes"):
-            args.scenes = sorted(path.name for path in FAMILY.glob("held_*") if path.is_dir())
+            args.scenes = sorted(path.name for path in FAMILY.glob(f"{args.family}_*") if path.is_dir())
         if args.data == DATA:
             args.data = FAMILY
     return args
@@ -144,10 +147,12 @@ def variant(name: str) -> tuple[str, str, str | None]:
     return strategy, signals[0] if signals else DEFAULT_SIGNAL, told[0] if told else None
 
 
-def tag(args: argparse.Namespace) -> str:
-    """What names this resolution's (or the family's) results, doc section and plots apart from the
-    four scenes at the default 50 px."""
-    return ("_heldout" if args.family else "") + ("" if args.resolution == 50 else f"_{args.resolution}px")
+def tag(args: argparse.Namespace, results: bool = False) -> str:
+    """What names this resolution's (or the family's) doc section and plots apart from the four scenes
+    at the default 50 px; with `results`, its results directory (one for every family: a task is
+    found by its scene's name)."""
+    family = "" if args.family is None else "_heldout" if results or args.family == "held" else f"_{args.family}s"
+    return family + ("" if args.resolution == 50 else f"_{args.resolution}px")
 
 
 def protocol(args: argparse.Namespace) -> dict:
@@ -561,20 +566,24 @@ def noise_floor(args: argparse.Namespace, tasks: list[dict]) -> list[str]:
 
 
 def family_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> str:
-    """The held-out family: each strategy's mean, then every strategy paired with FVS and random."""
+    """A held-out family: each strategy's mean, then every strategy paired with FVS and random."""
     tasks = [t for scene_tasks in by_scene.values() for t in scene_tasks]
     names = sorted({n for t in tasks for n in t["runs"]})
     plans = {p["name"]: p for p in json.loads((args.data / "layouts.json").read_text())["scenes"]} \
         if (args.data / "layouts.json").exists() else {}
-    lines = [f"Command: `OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 nice -n 5 .venv/bin/python -m bench.bench_nbv --family "
-             f"--jobs 2 --resolution {args.resolution} --iterations {args.iterations} --rounds {args.rounds} "
-             f"--seeds {' '.join(map(str, args.seeds))} --strategies {' '.join(args.strategies)}` after "
+    kind = "" if args.family == "held" else f" {args.family}"
+    told = ("the val split (drawn from the test views' shape, other poses)" if args.family == "held" else
+            "the capture's train frames (the walk between the held-out frames, as cup_colmap's)")
+    lines = [f"Command: `OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 nice -n 5 .venv/bin/python -m bench.bench_nbv "
+             f"--family{kind} --jobs 2 --resolution {args.resolution} --iterations {args.iterations} "
+             f"--rounds {args.rounds} --seeds {' '.join(map(str, args.seeds))} "
+             f"--strategies {' '.join(args.strategies)}` after "
              f"`.venv/bin/python -m bench.nbv_scenes` ({platform.machine()}, {os.cpu_count()} cores shared with "
              f"other work, one thread per task). Protocol: {args.resolution}x{args.resolution} px, "
              f"{args.iterations} iterations, {args.initial} initial views (one by the seed, then FVS), "
              f"{args.per_round} views per round, {args.rounds} rounds, PSNR on the {args.test_views} test views, "
-             f"N = {args.samples} masks; `+targets` runs are told the val split (drawn from the test views' "
-             f"shape, other poses). {len(by_scene)} scenes, seeds {', '.join(map(str, args.seeds))}.", "",
+             f"N = {args.samples} masks; `+targets` runs are told {told}. {len(by_scene)} scenes, seeds "
+             f"{', '.join(map(str, args.seeds))}.", "",
              "Each strategy's mean over every (scene, seed) task, for the strategies run on all of them (one "
              "tried on part of the family is only paired below, on the tasks it ran):", "",
              "| strategy | runs | mean final PSNR | mean over rounds | cost per candidate |", "|---|---|---|---|---|"]
@@ -692,7 +701,7 @@ def cost_table(args: argparse.Namespace) -> list[str]:
 
 def main() -> None:
     args = parse_args()
-    args.results = args.results or RESULTS / f"nbv{tag(args)}"
+    args.results = args.results or RESULTS / f"nbv{tag(args, results=True)}"
     if args.costs:
         measure_costs(args)
         return
