@@ -119,6 +119,9 @@ def test_the_models_own_captured_set_is_stored_beside_another_and_a_planned_rank
     assert {k: store.index()[k] for k in planned} == planned
     captured_seen(renderer, svc_cameras(2, size=24, phase=0.4), store)       # any other set adds nothing
     assert set(store.index()) == {camera_key(c) for c in other + training}
+    since = svc_cameras(1, size=24, phase=0.9)                  # the model's own set and a capture since: kept
+    captured_seen(renderer, training + since, store)
+    assert set(store.index()) == {camera_key(c) for c in other + training + since}
 
 
 def test_a_view_stored_but_missing_from_the_index_is_read_and_named_again(tmp_path: Path) -> None:

@@ -9,10 +9,11 @@ with it), with one small index of every stored view's element count for memory p
 found by its camera's exact pose, intrinsics and size, so:
 
 - a rank whose captured poses are all stored renders none of them;
-- a rank whose poses extend the stored set (a rig's captures since) renders only the new ones
-  and stores them, so asking again after each batch costs what changed;
-- a rank with the model's own captured set (its training cameras) stores that set beside any
-  other stored first, so the default rank is the one served however the first rank asked;
+- a rank whose poses extend the stored set, or hold the model's own captured set (its training
+  cameras) and more (a rig's captures since), renders only the new ones and stores them, so
+  asking again after each batch costs what changed;
+- a rank with the model's own captured set stores it beside any other stored first, so the
+  default rank is the one served however the first rank asked;
 - any other set is served from the store where it can and rendered where it cannot, and
   nothing is added.
 
@@ -79,11 +80,11 @@ class CapturedStore:
         self.default = {camera_key(camera) for camera in default or []}
 
     def keeps(self, stored: set[str], asked: set[str]) -> bool:
-        """Whether a rank asking for `asked` stores the views it has: when it extends the `stored`
-        set, or holds the default set that `stored` lacks (module docstring)."""
-        if not asked or asked <= stored:
+        """Whether a rank asking for `asked` stores the views it has that `stored` lacks: when it
+        extends the stored set or holds the default set (module docstring)."""
+        if asked <= stored:
             return False
-        return stored <= asked or (bool(self.default) and self.default <= asked and not self.default <= stored)
+        return stored <= asked or (bool(self.default) and self.default <= asked)
 
     def index(self) -> dict[str, int]:
         """{camera key: elements} of the stored views, without reading them ({} when none)."""
