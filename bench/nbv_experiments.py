@@ -37,6 +37,9 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
   captured views, each centre once), which fills sparse targets in and is the same set on
   cup_colmap, whose targets are those poses. visibility_tlogmedian beats random on cup_colmap's
   folds (+0.60 dB) and is behind FVS on every Blender scene (docs/nbv.md).
+- visibility_sigma_fvs_far: the default with the distance factor whatever the targets, as it was
+  before it followed the density of targets that are the capture's own path (`targets.walked`);
+  runs stored as the default told the targets on such scenes before that change carry this name.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ from torch import Tensor
 
 from phd_core.uq.strategies import STRATEGIES, Evidence, Selection, Strategy
 from phd_core.uq.strategies.base import by_score, centres, greedy
-from phd_core.uq.strategies.targets import TargetGain
+from phd_core.uq.strategies.targets import TargetDensity, TargetGain
 from phd_core.uq.strategies.visibility import coverage_select
 
 
@@ -87,36 +90,24 @@ def _k_median_strategy(demand: Callable[[Evidence], Tensor], power: int) -> Call
 EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma_top", "sigma_area", "fvs_top",
                "visibility_sigma_angle0.25", "visibility_sigma_fvs_angle0.25", "visibility_fvs", "tkmedian",
                "tlogmedian", "visibility_tkmedian", "visibility_tlogmedian", "visibility_sigma_fvs_support0.5",
-               "visibility_sigma_fvs_support0.5_sqrt", "visibility_sigma_fvs_sqrt", "visibility_tlogstands")
+               "visibility_sigma_fvs_support0.5_sqrt", "visibility_sigma_fvs_sqrt", "visibility_tlogstands",
+               "visibility_sigma_fvs_far")
 
 
 def _coverage(**options: Any) -> Callable[[Evidence, int, int], Selection]:
-    """`coverage_select` with other options than the shipped coverage strategies' (bench only)."""
-    return lambda evidence, k, seed: coverage_select(evidence, k, **options)
+    """`coverage_select` with other options than the shipped coverage strategies' (bench only), and
+    the distance factor whatever the targets, as these were measured (`follow_walk` False)."""
+    return lambda evidence, k, seed: coverage_select(evidence, k, follow_walk=False, **options)
 
 
-class _TargetDistance:
-    """Facility location over the target views' centres: how much capturing candidate i lowers the
-    targets' distance to their nearest captured centre (log: log(distance + eps), eps the median
-    distance from a target to its nearest other target), so candidates follow where targets crowd."""
-
-    def __init__(self, evidence: Evidence, log: bool, stands: bool = False):
-        assert evidence.target_views is not None
-        targets = centres([view.camera for view in evidence.target_views])               # [T, 3]
-        if stands:      # and where the camera can stand: the candidates and captured views, each centre once
-            targets = torch.unique(torch.cat([targets, centres(evidence.candidates + evidence.captured)]), dim=0)
-        self.to_candidate = torch.cdist(targets, centres(evidence.candidates))           # [T, C]
-        self.nearest = (torch.cdist(targets, centres(evidence.captured)).min(dim=1).values if evidence.captured
-                        else self.to_candidate.max(dim=1).values)                         # [T]
-        apart = torch.cdist(targets, targets).fill_diagonal_(float("inf")).min(dim=1).values
-        eps = float(apart.median()) if len(targets) > 1 else 1.0
-        self.f = (lambda d: torch.log(d + eps)) if log else (lambda d: d)
-
-    def value(self, i: int) -> float:
-        return float((self.f(self.nearest) - self.f(torch.minimum(self.nearest, self.to_candidate[:, i]))).sum())
-
-    def capture(self, i: int) -> None:
-        self.nearest = torch.minimum(self.nearest, self.to_candidate[:, i])
+def _target_distance(evidence: Evidence, log: bool, stands: bool) -> TargetDensity:
+    """`TargetDensity` over the target views' centres, or with `stands` over them and every pose the
+    camera can stand at (the candidates and captured views, each centre once)."""
+    assert evidence.target_views is not None
+    targets = centres([view.camera for view in evidence.target_views])                  # [T, 3]
+    if stands:
+        targets = torch.unique(torch.cat([targets, centres(evidence.candidates + evidence.captured)]), dim=0)
+    return TargetDensity(targets, centres(evidence.candidates), centres(evidence.captured), log)
 
 
 def _full_scan(count: int, k: int, value: Callable[[int], float], capture: Callable[[int], None]) -> Selection:
@@ -137,7 +128,7 @@ def _full_scan(count: int, k: int, value: Callable[[int], float], capture: Calla
 def _target_density(coverage: bool, log: bool, stands: bool = False) -> Callable[[Evidence, int, int], Selection]:
     """The target distance's facility location alone, or times the target gain (no fragility)."""
     def select(evidence: Evidence, k: int, seed: int) -> Selection:
-        spread = _TargetDistance(evidence, log, stands)
+        spread = _target_distance(evidence, log, stands)
         if not coverage:
             return _full_scan(len(evidence.candidates), k, spread.value, spread.capture)
         assert evidence.candidate_views is not None and evidence.captured_views is not None
@@ -174,6 +165,9 @@ for _strategy in (
         Strategy("visibility_sigma_fvs_support0.5_sqrt", "visibility_sigma_fvs_support0.5 times the square root of "
                  "the distance, not the distance",
                  _coverage(fragility=True, spread=True, support=0.5, spread_power=0.5), uses_visibility=True),
+        Strategy("visibility_sigma_fvs_far", "visibility_sigma_fvs with the distance factor whatever the targets "
+                 "(the default before it followed a walked path's density)",
+                 _coverage(fragility=True, spread=True), uses_visibility=True),
         Strategy("visibility_sigma_fvs_sqrt", "visibility_sigma_fvs times the square root of the distance, not the "
                  "distance", _coverage(fragility=True, spread=True, spread_power=0.5), uses_visibility=True),
         Strategy("tkmedian", "k-median over the target views' centres", _target_density(False, False),

@@ -49,6 +49,7 @@ from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
 from phd_core.uq.strategies import CHEAPER_STRATEGY, get_strategy
 from phd_core.uq.strategies.captured import CapturedStore, camera_key
+from phd_core.uq.strategies.targets import density_bytes
 
 from .budget import (
     DEFAULT_MASK_PIXEL_BYTES,
@@ -382,7 +383,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     # rendered once each). What the captured poses saw is read from the model's stored coverage
     # where it holds them (a stored view stays stored, so the job finds what this plan counts);
     # the rest are rendered, one visibility pass each, kept in compact form and stored
-    # (`captured_seen`; a rank that renders none writes nothing).
+    # (`captured_seen`; a rank that renders none writes nothing). Told targets, the default also
+    # holds their distances to the poses (`density_bytes`: whether they are the capture's own path).
     coverage = (CapturedStore(store.cache(record), default=stored_cameras(record))
                 if visibility and store is not None else None)
     stored = coverage.index() if coverage is not None else {}
@@ -391,7 +393,8 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
     aimed = targets or []              # given only to a strategy that uses visibility (check_target_strategy)
     read = SEEN_LOADED_BYTES * sum(stored[key] for key in dict.fromkeys(keys) if key in stored)
     seen = (sum(visibility_bytes(record.num_units, c) for c in cameras + aimed) + read
-            + seen_bytes(record.num_units, fresh) + COVERAGE_CAPTURE_BYTES) if visibility else 0
+            + seen_bytes(record.num_units, fresh) + COVERAGE_CAPTURE_BYTES
+            + density_bytes(len(aimed), len(cameras), len(captured))) if visibility else 0
     renders = Renders([(record, "model_id", cameras + fresh + aimed)], samples, kept_bytes=kept + seen,
                       kept_field="heatmaps" if kept >= seen else "downscale", visibility=visibility, signal=signal)
     if visibility and not aimed:   # over the budget for the strategy's own memory: say which strategy fits

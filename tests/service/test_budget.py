@@ -20,6 +20,7 @@ from phd_core.renderers.visibility import (
     visibility_bytes,
 )
 from phd_core.uq.strategies.captured import CapturedStore, camera_key
+from phd_core.uq.strategies.targets import density_bytes
 from service.budget import MemoryLedger, ModelSize, load_bytes, model_bytes, plan_work
 from service.errors import ServiceError
 from support.fixtures import svc_random_gaussians
@@ -305,6 +306,13 @@ def test_a_visibility_strategy_plans_its_captured_views_and_what_each_view_sees(
     assert again.kept_bytes - plain.kept_bytes == (sum(visibility_bytes(300, c) for c in views) + COVERAGE_CAPTURE_BYTES
                                                    + SEEN_LOADED_BYTES * sum(stored.values()))
     assert again_plan.bytes < seen_plan.bytes
+    # Told target views, the rank also plans what each target sees and their distances to the poses.
+    aimed = svc_cameras(3, size=40, phase=0.8)
+    body = RankRequest(cameras=candidates, samples=8, dropout_ratio=0.1, strategy="visibility_sigma_fvs",
+                       targets=[c.to_frame() for c in aimed])
+    told, _ = rank_job(record, body, service.settings, lambda name: name, service.ledger, store=service.store)
+    assert told.renders.kept_bytes - again.kept_bytes == (sum(visibility_bytes(300, c) for c in aimed)
+                                                          + density_bytes(3, len(candidates), 3))
     # A rank told one of those poses as captured reads that view alone, and plans that one only.
     body = RankRequest(cameras=candidates, samples=8, dropout_ratio=0.1, strategy="visibility_sigma",
                        captured=[captured[1].to_frame()])

@@ -7,6 +7,7 @@ through `rank_views`."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Sequence
 
@@ -22,6 +23,7 @@ from phd_core.uq import rank_views
 from phd_core.uq.rank import candidate_evidence, visibility_evidence
 from phd_core.uq.strategies import Evidence, get_strategy
 from phd_core.uq.strategies.coverage import ANGLE_SCALE, EMPTY_WEIGHT, SEEN_SHARE
+from phd_core.uq.strategies.targets import walked
 from phd_core.uq.strategies.visibility import SPREAD_FLOOR, coverage_select
 from support.fixtures import svc_random_gaussians
 from support.toy_renderers import BlobRenderer, ring_cameras
@@ -198,6 +200,62 @@ def test_the_lazy_greedy_on_targets_picks_what_a_full_scan_greedy_does(name: str
     after = values(order)
     rest = lazy.order[picks:]
     assert [lazy.scores[c] for c in rest] == pytest.approx([after[c] for c in rest], rel=1e-9, abs=1e-12)
+
+
+def test_targets_are_the_captures_own_path_when_most_stand_where_the_camera_stands() -> None:
+    stands = torch.tensor([[3.0, 0.0, 1.0], [0.0, 3.0, 1.0], [-3.0, 0.0, 1.0], [0.0, -3.0, 1.0]], dtype=torch.float64)
+    elsewhere = torch.tensor([[2.0, 2.0, 2.0], [-2.0, 2.0, 2.0]], dtype=torch.float64)
+    assert walked(stands, stands)                                        # the capture's own frames
+    assert walked(stands[:2] + 1e-9, stands)                             # parsed again: rounding apart
+    assert walked(torch.cat([stands[:2], elsewhere]), stands)            # half of them: a path with detours
+    assert not walked(torch.cat([stands[:1], elsewhere]), stands)        # a third
+    assert not walked(stands + 1e-4, stands)                             # beside the path, not on it
+    assert not walked(elsewhere, stands) and not walked(stands[:0], stands) and not walked(stands, stands[:0])
+
+
+def walk_evidence() -> Evidence:
+    """ring_evidence's scene and candidates, told as targets every pose the camera stands at (the
+    candidates and the captured views): a capture told its own frames."""
+    evidence = ring_evidence()
+    assert evidence.candidate_views is not None
+    stands = [view.camera for view in evidence.candidate_views] + list(evidence.captured)
+    renderer = GaussianRenderer(svc_random_gaussians(400, seed=3))
+    return dataclasses.replace(evidence, target_views=[renderer.visibility(renderer.prepare(c)) for c in stands])
+
+
+def test_told_its_own_frames_the_default_follows_the_targets_density_as_a_full_scan_greedy_does() -> None:
+    """The default told the capture's own frames: each candidate's target gain (no fragility) times
+    how much it lowers the targets' log distance to their nearest captured centre (eps the median
+    distance from a target to its nearest other target), rescored from scratch in float64 after
+    every pick, against the lazy greedy; and the order is not the distance factor's."""
+    evidence = walk_evidence()
+    assert evidence.target_views is not None
+    aimed = [view.camera.center for view in evidence.target_views]
+    centre = [c.center for c in evidence.candidates]
+    apart = sorted(min(float((a - b).norm()) for j, b in enumerate(aimed) if j != i and float((a - b).norm()) > 0)
+                   for i, a in enumerate(aimed))
+    eps = (apart[(len(apart) - 1) // 2])                      # torch's median: the lower middle value
+
+    def density(picked: list[int]) -> list[float]:
+        nearest = [min(float((t - o).norm()) for o in [c.center for c in evidence.captured]
+                       + [centre[p] for p in picked]) for t in aimed]
+        return [sum(math.log(n + eps) - math.log(min(n, float((t - c).norm())) + eps) for n, t in zip(nearest, aimed))
+                for c in centre]
+
+    def values(picked: list[int]) -> list[float]:
+        return [g * d for g, d in zip(reference_values(evidence, False, picked), density(picked))]
+    picks = 5
+    order: list[int] = []
+    for _ in range(picks):
+        now = values(order)
+        order.append(max((c for c in range(len(now)) if c not in order), key=lambda c: (now[c], -c)))
+    lazy = get_strategy("visibility_sigma_fvs").select(evidence, picks, 0)
+    assert lazy.order[:picks] == order
+    after = values(order)
+    rest = lazy.order[picks:]
+    assert [lazy.scores[c] for c in rest] == pytest.approx([after[c] for c in rest], rel=1e-9, abs=1e-12)
+    spread = dataclasses.replace(evidence, target_views=evidence.target_views[:1])   # one target: not the path
+    assert get_strategy("visibility_sigma_fvs").select(spread, picks, 0).order[:picks] != order
 
 
 def wall() -> GaussianRenderer:

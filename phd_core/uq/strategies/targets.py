@@ -24,6 +24,12 @@ design before), it counts novelty from the directions the targets look from, so 
 that sees what the captured views already show the targets gains nothing. The default's
 distance factor multiplies the gain as without targets: without it cup_colmap lost 2.5 dB
 (docs/nbv.md, "Target views on the four scenes").
+
+Targets that are the capture's own path (`walked`: most of them stand where a candidate or a
+captured view stands, as when a capture is told its own frames) say where the model will be
+looked at densely: there the distance factor, which sends picks to the path's sparse ends, gives
+way to `TargetDensity`, how much a candidate brings the targets closer to a captured centre, so
+picks follow where the targets crowd (docs/nbv.md, "Following the targets' density").
 """
 
 from __future__ import annotations
@@ -34,6 +40,51 @@ import torch
 
 from ...renderers.visibility import Seen, Visibility
 from .coverage import ANGLE_SCALE, SUPPORT, Coverage, directions, mean_zeta, seen_share
+
+WALKED_SHARE = 0.5       # `walked`: the share of the targets standing where the camera stands
+SAME_PLACE = 1e-6        # `walked`: centres this close, of the poses' mean distance from their mean, are one
+
+
+def walked(targets: torch.Tensor, stands: torch.Tensor) -> bool:
+    """Whether the target centres [T, 3] are the capture's own path: at least WALKED_SHARE of them
+    where a candidate or captured view stands (`stands` [S, 3], to SAME_PLACE of the scene's size)."""
+    if not len(targets) or not len(stands):
+        return False
+    size = float((stands - stands.mean(0)).norm(dim=1).mean()) or 1.0
+    there = torch.cdist(targets, stands).min(dim=1).values <= SAME_PLACE * size
+    return float(there.double().mean()) >= WALKED_SHARE
+
+
+def density_bytes(targets: int, candidates: int, captured: int) -> int:
+    """The most `walked` and `TargetDensity` hold at once (float64): the targets' distances to every
+    pose the camera stands at, to the candidates, and to each other."""
+    return 8 * targets * (2 * candidates + captured + targets)
+
+
+class TargetDensity:
+    """Facility location over the target centres [T, 3]: how much capturing candidate i lowers the
+    targets' distance to their nearest captured centre, on log(distance + eps) (eps the median
+    distance from a target to its nearest other one elsewhere) or on the distance itself, so picks follow
+    where the targets crowd. A value only falls as centres are captured (the lazy greedy holds)."""
+
+    def __init__(self, targets: torch.Tensor, candidates: torch.Tensor, captured: torch.Tensor, log: bool = True):
+        self.to_candidate = torch.cdist(targets, candidates)                                   # [T, C]
+        self.nearest = (torch.cdist(targets, captured).min(dim=1).values if len(captured)
+                        else self.to_candidate.max(dim=1).values)                              # [T]
+        # Each target's nearest other target elsewhere: itself, and a target given twice, at (about) 0 are not.
+        size = float((targets - targets.mean(0)).norm(dim=1).mean()) if len(targets) else 0.0
+        apart = torch.cdist(targets, targets)
+        apart = apart.masked_fill(apart <= SAME_PLACE * size, float("inf")).min(dim=1).values
+        apart = apart[torch.isfinite(apart)]
+        eps = float(apart.median()) if len(apart) else 1.0
+        self.f = (lambda d: torch.log(d + eps)) if log else (lambda d: d)
+
+    def value(self, i: int) -> float:
+        return float((self.f(self.nearest) - self.f(torch.minimum(self.nearest, self.to_candidate[:, i]))).sum())
+
+    def capture(self, i: int) -> None:
+        """Candidate i is captured: every target's nearest captured centre is at most that far."""
+        self.nearest = torch.minimum(self.nearest, self.to_candidate[:, i])
 
 
 class TargetGain:

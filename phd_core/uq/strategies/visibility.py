@@ -30,7 +30,10 @@ how evenly the views surround it; the product is ahead of FVS on all four scenes
 
 Told the target views (where the model will be looked at from), a candidate is worth what it
 fixes in those views instead: the novelty of each element from each target's direction, and
-how much the candidate lowers it (`strategies.targets`).
+how much the candidate lowers it (`strategies.targets`). Told the capture's own path (targets
+standing where the camera stands, `targets.walked`), the default weighs that gain by how much a
+candidate brings the targets closer to a captured centre (`targets.TargetDensity`) in place of
+the distance factor, without the fragility weighting, as measured (docs/nbv.md).
 
 Batches are greedy with real conditioning: each pick is counted as captured (its own
 visibility multiplies the novelty of every element it sees) before the next is scored, so
@@ -50,34 +53,43 @@ from ...renderers.visibility import Seen, Visibility
 from .base import Evidence, Selection, Strategy, centres
 from .coverage import ANGLE_SCALE, SUPPORT, Coverage
 from .hybrid import FVS_SIGMA_FLOOR
-from .targets import TargetGain
+from .targets import TargetDensity, TargetGain, walked
 
 SPREAD_FLOOR = 1e-3      # the least distance factor, of the mean: over 10x below the closest two poses of any
                          # benchmark scene (lego_200), so the benchmark's picks never meet it
 
 
 def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: float = ANGLE_SCALE,
-                    spread: bool = False, support: float = SUPPORT, spread_power: float = 1.0) -> Selection:
+                    spread: bool = False, support: float = SUPPORT, spread_power: float = 1.0,
+                    follow_walk: bool = True) -> Selection:
     """Greedy batch by coverage (module docstring); the rest follow by their value after it.
     With the evidence's target views, a candidate's value is what it fixes in them (`strategies.targets`).
     spread: each value times the distance from the candidate's centre to the nearest captured
     (or picked) one, as farthest-view sampling weighs (`visibility_sigma_fvs`), at least
     SPREAD_FLOOR of the candidates' mean distance: cameras at a captured centre looking
-    different ways still rank by what they see; raised to spread_power.
+    different ways still rank by what they see; raised to spread_power. Told the capture's own
+    path as targets, the targets' density in its place (module docstring; not with follow_walk False).
     support: the share of an element's novelty one view that saw it from the same direction removes."""
     count = len(evidence.candidates)
     if evidence.candidate_views is None or evidence.captured_views is None:
         return FVS_SIGMA_FLOOR.select(evidence, k, 0)
+    cand, captured = centres(evidence.candidates), centres(evidence.captured)   # [C, 3], [V, 3]
+    targets = evidence.target_views
+    aimed = centres([view.camera for view in targets]) if targets is not None else None
+    density = (TargetDensity(aimed, cand, captured)
+               if spread and follow_walk and aimed is not None and walked(aimed, torch.cat([cand, captured]))
+               else None)
     coverage: Coverage | TargetGain = (
-        TargetGain(evidence.candidate_views, evidence.target_views, fragility, angle_scale, support)
-        if evidence.target_views is not None else Coverage(evidence.candidate_views, fragility, angle_scale, support))
+        TargetGain(evidence.candidate_views, targets, fragility and density is None, angle_scale, support)
+        if targets is not None else Coverage(evidence.candidate_views, fragility, angle_scale, support))
     coverage.capture(*evidence.captured_views)
-    cand = centres(evidence.candidates)                                         # [C, 3]
-    nearest = (torch.cdist(cand, centres(evidence.captured)).min(dim=1).values
+    nearest = (torch.cdist(cand, captured).min(dim=1).values
                if spread and evidence.captured else torch.ones(count, dtype=torch.float64))
     floor = SPREAD_FLOOR * float(nearest.mean()) or 1.0                         # all at captured centres: 1
 
     def value(i: int) -> float:
+        if density is not None:
+            return coverage.value(i) * density.value(i)
         return coverage.value(i) * max(float(nearest[i]), floor) ** spread_power
 
     # Lazy greedy: a value can only fall as views are counted as captured (every novelty factor
@@ -101,7 +113,9 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: fl
             break                                 # nothing left whose value the pick would change
         coverage.capture(evidence.candidate_views[i])
         coverage.retire(i)
-        if spread:
+        if density is not None:
+            density.capture(i)
+        elif spread:
             nearest = torch.minimum(nearest, (cand - cand[i]).norm(dim=1))
     taken = set(order)
     rest = [(value(i), i) for i in range(count) if i not in taken]
@@ -140,5 +154,7 @@ VISIBILITY_SIGMA = Strategy("visibility_sigma", "as visibility, each part weight
                             uses_visibility=True)
 VISIBILITY_SIGMA_FVS = Strategy("visibility_sigma_fvs", "as visibility_sigma, each candidate's value times the "
                                 "distance from its centre to the nearest captured (or picked) one, so a batch "
-                                "also spreads as farthest-view sampling does", _visibility_sigma_fvs,
+                                "also spreads as farthest-view sampling does; told target views that stand where "
+                                "the camera stands (the capture's own path), times how much it brings them closer "
+                                "to a captured view instead, so picks follow where they crowd", _visibility_sigma_fvs,
                                 uses_visibility=True)
