@@ -14,13 +14,15 @@ scenes no strategy was tuned on, in the Blender layout `bench.bench_nbv` reads:
    candidates) is one of CANDIDATE_SHAPES and the test split one of TEST_SHAPES, every pair once
    over 12 scenes; the val split (target views for `+targets` runs) is drawn from the test
    split's shape with other poses, so targets and test views never coincide (a one-sided test
-   split's val stands on the same side). Twelve walk scenes more (`walk_plan`) are captures
+   split's val stands on the same side). Twelve walk scenes more (`capture_plan`) are captures
    along one hand-held walk of uneven speed, held out as cup_colmap is: every 8th frame a test
-   view, the rest the candidates and the target views (their own layouts, their own seeds).
+   view, the rest the candidates and the target views (their own layouts, their own seeds); and
+   twelve room scenes, the same inside a textured room (`room`), written as COLMAP captures with
+   SfM points, so the views also see surroundings as a real capture's do.
 4. Images: the composed model rendered at SIZE px, RGBA (colour un-premultiplied, alpha the
    accumulated opacity), as donut_200 was made.
 
-    .venv/bin/python -m bench.nbv_scenes            # assets (once), held_00 .. held_11, walk_00 .. walk_11
+    .venv/bin/python -m bench.nbv_scenes       # assets (once), held_00 .. 11, walk_00 .. 11, room_00 .. 11
 
 Written under bench/results/nbv_scenes/ (not in git; `layouts.json` there and in
 bench/results/nbv_scenes.json records every draw). The same seeds give the same scenes.
@@ -63,6 +65,7 @@ RADIUS = 4.03                 # camera distance of the Blender scenes
 SCENE_RADIUS = 1.4            # the layout is scaled to this radius around the origin (lego's scene fits in 1.5)
 COUNTS = {"train": 60, "val": 20, "test": 40}
 WALKS = 12                    # walk_00 .. walk_11: every split from one hand-held walk, as cup_colmap's
+CAPTURES = {"walk": 500, "room": 700}   # the seed offsets of the scenes split as a capture is
 WALK_FRAMES = 96              # frames of a walk: every HOLDOUT-th a test view, the rest candidates and targets
 LINGER = 0.7                  # a walk's speed varies from 0.3 to 1.7 times its mean
 ROOMS = 12                    # room_00 .. room_11: walks in a textured room, written as COLMAP captures
@@ -328,11 +331,20 @@ def scene_plan(index: int) -> dict:
             "test": test, "val": test, "seeds": {split: rng.randrange(1 << 30) for split in COUNTS}}
 
 
-def walk_plan(index: int) -> dict:
-    """Walk scene `index`'s draws (seeded apart from the held scenes'): its layout and its walk's seed."""
-    rng = random.Random(FAMILY_SEED * 1000 + 500 + index)
-    return {"name": f"walk_{index:02d}", "layout": draw_layout(rng, 1 + index % 4), "train": "walk", "test": "walk",
-            "val": "walk", "seeds": {"walk": rng.randrange(1 << 30)}}
+def capture_plan(kind: str, index: int) -> dict:
+    """Walk or room scene `index`'s draws (seeded apart from the other kinds'): its layout, its walk's
+    seed and a room's."""
+    rng = random.Random(FAMILY_SEED * 1000 + CAPTURES[kind] + index)
+    plan = {"name": f"{kind}_{index:02d}", "layout": draw_layout(rng, 1 + index % 4), "train": kind, "test": kind,
+            "val": kind, "seeds": {"walk": rng.randrange(1 << 30)}}
+    if kind == "room":
+        plan["seeds"]["room"] = rng.randrange(1 << 30)
+    return plan
+
+
+def walk(plan: dict) -> list[Pose]:
+    """The frames of a walk or room scene's capture: one uneven walk (`path` with LINGER)."""
+    return path(random.Random(plan["seeds"]["walk"]), WALK_FRAMES, LINGER)
 
 
 def split_poses(plan: dict) -> dict[str, list[Pose]]:
@@ -340,7 +352,7 @@ def split_poses(plan: dict) -> dict[str, list[Pose]]:
     as cup_colmap is: every HOLDOUT-th frame a test view, the rest both the candidates and the target
     views (a capture is looked at from where it was walked, as cup_colmap's `+targets` runs are told)."""
     if plan["train"] == "walk":
-        frames = path(random.Random(plan["seeds"]["walk"]), WALK_FRAMES, LINGER)
+        frames = walk(plan)
         rest = [pose for k, pose in enumerate(frames) if k % HOLDOUT]
         return {"train": rest, "val": rest, "test": frames[::HOLDOUT]}
     shapes = {**CANDIDATE_SHAPES, **TEST_SHAPES}
@@ -352,13 +364,6 @@ def split_poses(plan: dict) -> dict[str, list[Pose]]:
         else:
             poses[split] = shapes[plan[split]](rng, count)
     return poses
-
-
-def room_plan(index: int) -> dict:
-    """Room scene `index`'s draws (seeded apart from the others'): its layout, its walk's and its room's seeds."""
-    rng = random.Random(FAMILY_SEED * 1000 + 700 + index)
-    return {"name": f"room_{index:02d}", "layout": draw_layout(rng, 1 + index % 4), "train": "room", "test": "room",
-            "val": "room", "seeds": {"walk": rng.randrange(1 << 30), "room": rng.randrange(1 << 30)}}
 
 
 def write_capture(root: Path, poses: list[Pose], model: GaussianModel, seed: int) -> None:
@@ -385,8 +390,7 @@ def write_scene(plan: dict, models: dict[str, GaussianModel], out: Path) -> None
     if plan["train"] == "room":     # the layout in its room, captured along a walk
         opaque = model.means[torch.sigmoid(model.opacity_logits) > 0.5, 2].double()
         model = merged([model, room(random.Random(plan["seeds"]["room"]), float(opaque.quantile(0.02)))])
-        write_capture(out / plan["name"], path(random.Random(plan["seeds"]["walk"]), WALK_FRAMES, LINGER), model,
-                      plan["seeds"]["room"])
+        write_capture(out / plan["name"], walk(plan), model, plan["seeds"]["room"])
     else:
         renderer = GaussianRenderer(model, (1.0, 1.0, 1.0))
         for split, poses in split_poses(plan).items():
@@ -405,12 +409,13 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(1)
     models = assets(args.out)
-    plans = ([scene_plan(i) for i in range(args.scenes)] + [walk_plan(i) for i in range(args.walks)]
-             + [room_plan(i) for i in range(args.rooms)])
+    plans = ([scene_plan(i) for i in range(args.scenes)] + [capture_plan("walk", i) for i in range(args.walks)]
+             + [capture_plan("room", i) for i in range(args.rooms)])
     for plan in plans:
         write_scene(plan, models, args.out)
     record = {"family_seed": FAMILY_SEED, "size": SIZE, "counts": COUNTS, "walk_frames": WALK_FRAMES,
-              "linger": LINGER, "scenes": plans}
+              "linger": LINGER, "room": {"radius": ROOM_RADIUS, "height": ROOM_HEIGHT, "spacing": ROOM_SPACING,
+                                         "points": ROOM_POINTS}, "scenes": plans}
     write_result(args.out / "layouts.json", record)
     write_result(RESULTS / "nbv_scenes.json", record)
     print(json.dumps({"scenes": len(plans), "out": str(args.out)}))
