@@ -577,8 +577,10 @@ def family_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -
     plans = {p["name"]: p for p in json.loads((args.data / "layouts.json").read_text())["scenes"]} \
         if (args.data / "layouts.json").exists() else {}
     kind = "" if args.family == "held" else f" {args.family}"
-    told = ("the val split (drawn from the test views' shape, other poses)" if args.family == "held" else
+    held = args.family == "held"
+    told = ("the val split (drawn from the test views' shape, other poses)" if held else
             "the capture's train frames (the walk between the held-out frames, as cup_colmap's)")
+    tested = f"the {args.test_views} test views" if held else "every test view (every 8th frame of the walk)"
     lines = [f"Command: `OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 nice -n 5 .venv/bin/python -m bench.bench_nbv "
              f"--family{kind} --jobs 2 --resolution {args.resolution} --iterations {args.iterations} "
              f"--rounds {args.rounds} --seeds {' '.join(map(str, args.seeds))} "
@@ -586,7 +588,7 @@ def family_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -
              f"`.venv/bin/python -m bench.nbv_scenes` ({platform.machine()}, {os.cpu_count()} cores shared with "
              f"other work, one thread per task). Protocol: {args.resolution}x{args.resolution} px, "
              f"{args.iterations} iterations, {args.initial} initial views (one by the seed, then FVS), "
-             f"{args.per_round} views per round, {args.rounds} rounds, PSNR on the {args.test_views} test views, "
+             f"{args.per_round} views per round, {args.rounds} rounds, PSNR on {tested}, "
              f"N = {args.samples} masks; `+targets` runs are told {told}. {len(by_scene)} scenes, seeds "
              f"{', '.join(map(str, args.seeds))}.", "",
              "Each strategy's mean over every (scene, seed) task, for the strategies run on all of them (one "
