@@ -518,7 +518,8 @@ def fold_tasks(args: argparse.Namespace) -> dict[str, dict[int, list[dict]]]:
 
 def folds_markdown(folds: dict[str, dict[int, list[dict]]]) -> str:
     """Each strategy against FVS and random (a run told views: and the default told nothing; told the
-    targets: and the default told them too) over a capture's holdout folds, and random against FVS:
+    targets: and the default told them too, and its earlier rule) over a capture's holdout folds, and
+    random against FVS:
     a fold's seeds share its test views, so the folds are the independent draws (bootstrap over
     folds, each with all of its seeds)."""
     lines = ["Final PSNR after the last round minus the other run's on the same fold and seed: the mean over the "
@@ -530,7 +531,7 @@ def folds_markdown(folds: dict[str, dict[int, list[dict]]]) -> str:
         names = sorted({n for tasks in by_fold.values() for t in tasks for n in t["runs"]} - set(BASELINES),
                        key=lambda n: (n != TARGETED, n))
         pairs = [(n, b) for n in names for b in BASELINES + ((DEFAULT_STRATEGY,) if variant(n)[2] else ())
-                 + ((TARGETED,) if variant(n)[2] == TARGETS and n != TARGETED else ())]
+                 + tuple(b for b in (TARGETED, DISTANCE_RULE) if variant(n)[2] == TARGETS and n != b)]
         for name, baseline in pairs + [BASELINES[::-1]]:       # and random against fvs
             diffs = {str(fold): pair_differences(tasks, name, baseline).get(tasks[0]["scene"], [])
                      for fold, tasks in sorted(by_fold.items()) if tasks}
