@@ -36,7 +36,8 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
   visibility_tlogmedian over the targets and every pose the camera can stand at (candidates and
   captured views, each centre once), which fills sparse targets in and is the same set on
   cup_colmap, whose targets are those poses. visibility_tlogmedian beats random on cup_colmap's
-  folds (+0.60 dB) and is behind FVS on every Blender scene (docs/nbv.md).
+  folds (+0.60 dB) and is behind FVS on every Blender scene (docs/nbv.md); the default now makes
+  its computation when the targets are the capture's own frames (`targets.walked`).
 - visibility_sigma_fvs_far: the default with the distance factor whatever the targets, as it was
   before it followed the density of targets that are the capture's own path (`targets.walked`);
   runs stored as the default told the targets on such scenes before that change carry this name.
