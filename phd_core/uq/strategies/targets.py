@@ -45,13 +45,17 @@ WALKED_SHARE = 0.5       # `walked`: the share of the targets standing where the
 SAME_PLACE = 1e-6        # `walked`: centres this close, of the poses' mean distance from their mean, are one
 
 
+def spread_of(points: torch.Tensor) -> float:
+    """The mean distance of points [N, 3] from their mean (0 for none): the size SAME_PLACE is of."""
+    return float((points - points.mean(0)).norm(dim=1).mean()) if len(points) else 0.0
+
+
 def walked(targets: torch.Tensor, stands: torch.Tensor) -> bool:
     """Whether the target centres [T, 3] are the capture's own path: at least WALKED_SHARE of them
     where a candidate or captured view stands (`stands` [S, 3], to SAME_PLACE of the scene's size)."""
     if not len(targets) or not len(stands):
         return False
-    size = float((stands - stands.mean(0)).norm(dim=1).mean()) or 1.0
-    there = torch.cdist(targets, stands).min(dim=1).values <= SAME_PLACE * size
+    there = torch.cdist(targets, stands).min(dim=1).values <= SAME_PLACE * (spread_of(stands) or 1.0)
     return float(there.double().mean()) >= WALKED_SHARE
 
 
@@ -72,19 +76,20 @@ class TargetDensity:
         self.nearest = (torch.cdist(targets, captured).min(dim=1).values if len(captured)
                         else self.to_candidate.max(dim=1).values)                              # [T]
         # Each target's nearest other target elsewhere: itself, and a target given twice, at (about) 0 are not.
-        size = float((targets - targets.mean(0)).norm(dim=1).mean()) if len(targets) else 0.0
         apart = torch.cdist(targets, targets)
-        apart = apart.masked_fill(apart <= SAME_PLACE * size, float("inf")).min(dim=1).values
+        apart = apart.masked_fill(apart <= SAME_PLACE * spread_of(targets), float("inf")).min(dim=1).values
         apart = apart[torch.isfinite(apart)]
         eps = float(apart.median()) if len(apart) else 1.0
         self.f = (lambda d: torch.log(d + eps)) if log else (lambda d: d)
+        self.now = self.f(self.nearest)                  # [T] f of each target's nearest distance, kept
 
     def value(self, i: int) -> float:
-        return float((self.f(self.nearest) - self.f(torch.minimum(self.nearest, self.to_candidate[:, i]))).sum())
+        return float((self.now - self.f(torch.minimum(self.nearest, self.to_candidate[:, i]))).sum())
 
     def capture(self, i: int) -> None:
         """Candidate i is captured: every target's nearest captured centre is at most that far."""
         self.nearest = torch.minimum(self.nearest, self.to_candidate[:, i])
+        self.now = self.f(self.nearest)
 
 
 class TargetGain:
