@@ -1,4 +1,5 @@
-"""Pinhole cameras: the `Camera`, its one world-to-pixel projection, pose checks, look-at.
+"""Pinhole cameras: the `Camera`, its one world-to-pixel projection, pose checks, look-at,
+and which cameras of two lists stand at the same pose.
 
 A `Camera` stores a camera-to-world matrix in the OpenGL convention used by Blender and
 nerfstudio frames (+x right, +y up, the camera looks down -z) plus pinhole intrinsics in
@@ -21,6 +22,7 @@ DEFAULT_MAX_SIZE = 4096
 ORTHONORMAL_TOL = 1e-3
 MAX_INTRINSIC = 1e7        # |focal length| and |principal point| in pixels: larger ones overflow projections
 MAX_COORDINATE = 1e6       # |camera position| in scene units: beyond it float32 splat maths loses every digit
+SAME_POSE = 1e-3           # centres this close (x the cameras' spread) and directions this close (radians) coincide
 # OpenGL camera axes -> OpenCV camera axes: flip y and z.
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 
@@ -156,3 +158,20 @@ def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] =
     c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, true_up, -forward, eye_t
     focal = 0.5 * width / math.tan(0.5 * fov_x)
     return Camera(c2w, focal, focal, width / 2, height / 2, width, height)
+
+
+def pose_matches(cameras: Sequence[Camera], others: Sequence[Camera]) -> list[int | None]:
+    """For each of `cameras`, the index of a camera of `others` at the same centre (within
+    SAME_POSE times the spread of `cameras`) looking the same way (within SAME_POSE radians),
+    or None: which views two captures share, whatever their image sizes."""
+    if not cameras or not others:
+        return [None] * len(cameras)
+    centres = torch.stack([c.center for c in cameras])                                 # [N, 3]
+    spread = float((centres - centres.median(dim=0).values).norm(dim=-1).median()) or 1.0
+    forward = torch.stack([-c.c2w[:3, 2] for c in cameras])                            # [N, 3]
+    other_centres = torch.stack([c.center for c in others])                            # [M, 3]
+    other_forward = torch.stack([-c.c2w[:3, 2] for c in others])                       # [M, 3]
+    close = torch.cdist(centres, other_centres) <= SAME_POSE * spread                  # [N, M]
+    aligned = (forward @ other_forward.T).clamp(-1, 1).acos() <= SAME_POSE             # [N, M]
+    same = close & aligned
+    return [int(row.nonzero()[0]) if row.any() else None for row in same]
