@@ -6,8 +6,8 @@ its file name.
 they are loaded, which file extension the service stores them under, which trainer
 `phd train` calls (named, so loading a model never imports a trainer) with which options,
 how much memory a render of one camera takes (`RenderMemory`, which the service budgets
-with), whether it renders over a background given, and what the API shows of it. The CLI
-and the service know a family only through this entry. Anything no family
+with), whether it renders over a background given, where its content lies, and what the API
+shows of it. The CLI and the service know a family only through this entry. Anything no family
 recognises (a pickle, an archive, random bytes) is refused before it is parsed, so no file
 can execute code on load. A new family is one module defining its `Family` plus one
 `FAMILIES.register` call (`phd_core/renderers/__init__.py` registers the built-in ones); the
@@ -58,6 +58,9 @@ class Family:
     # Renders over the colour given (a checked [r, g, b]); None: the model carries its own.
     set_background: Callable[[Any, tuple[float, float, float]], None] | None = None
     units: str = "dropout units"                            # what its dropout units are: "splats"
+    # Where its content lies: points [P, 3] (splat centres, a NeRF's occupied cells), which
+    # `provenance.unseen_views` projects to tell cameras that see none of it; None: unknown.
+    content_points: Callable[[Any], Any] | None = None
     network: tuple[str, ...] = ()                           # describe() keys the API shows as its network's size
 
     def train(self, data: str | Path, **kwargs: Any) -> Renderer:

@@ -34,6 +34,7 @@ from ..data import Dataset, load_dataset
 from ..errors import InputError, check_bool, check_color, check_float, check_int
 from ..renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, band_weights, camera_rays, render_rays, save_nerf
 from ..renderers.nerf.family import NeRFOptions
+from ..renderers.provenance import record_training
 from ..scene import Camera, frustum_bounds, visual_hull
 
 # 100x100 images, 16 views, 2 shared CPU cores: about 0.1 s per iteration, 4 minutes (docs/nerf.md).
@@ -79,7 +80,9 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
                encoding: str = NeRFOptions.encoding, freenerf: bool = NeRFOptions.freenerf,
                iterations: int | None = None, seed: int = 0, out: str | Path | None, progress: bool = True,
                **overrides: Any) -> NeRFRenderer:
-    """Train a NeRF on the "train" split of `data` and write it to `out` (None: don't write).
+    """Train a NeRF on the "train" split of `data` and write it to `out` (None: don't write),
+    with what identifies the capture and the fit reached on it when `data` is a path
+    (`phd_core.renderers.provenance`; a Dataset in memory names no capture).
 
     `views`: a count of evenly spaced training frames or a list of frame indices, loaded at
     1/`downscale` resolution (both ignored when `data` is an already loaded Dataset).
@@ -127,6 +130,8 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
     fit(model, dataset, settings, iterations=iterations, seed=seed, hull=hull, progress=progress)
     model.grid.set_density(model.cell_density())
     renderer = NeRFRenderer(model, list(dataset.cameras))
+    if not isinstance(data, Dataset):
+        renderer.trained_on = record_training(renderer, data)
     if out is not None:
         save_nerf(renderer, out)
     return renderer

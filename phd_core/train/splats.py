@@ -44,6 +44,7 @@ from ..errors import InputError, check_color, check_float, check_int
 from ..eval import ssim
 from ..io import write_json_atomic
 from ..renderers.composite import COMPOSITORS, DEFAULT_COMPOSITOR
+from ..renderers.provenance import record_training
 from ..renderers.splats import SH_C0, SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
 from ..renderers.splats.renderer import RenderOutput, SplatRenderer
 from ..scene import Camera, footprint, scene_bounds, visual_hull
@@ -347,7 +348,8 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
                  **overrides: Any) -> SplatRenderer:
     """Train `recipe`'s family on the `train` split of a capture (Blender, nerfstudio, COLMAP,
     LLFF) and write `out` (PLY) plus the sidecar `<stem>.json` with the training cameras, the
-    views and the settings."""
+    views, the settings and what identifies the capture with the fit reached on it
+    (`phd_core.renderers.provenance`)."""
     extra: dict[str, Any] = {} if iterations is None else {"iterations": iterations}
     config = TrainConfig(seed=seed, **overrides, **extra)
     source = locate(data, "train")[0].name            # the capture's format: its pose convention
@@ -357,14 +359,15 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
     started = time.perf_counter()
     model, history = fit(dataset, config, recipe, progress=progress)
     seconds = time.perf_counter() - started
+    renderer = recipe.renderer_type(model, background, dataset.cameras, tile=config.tile, camera_format=source)
+    renderer.trained_on = record_training(renderer, data)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_ply(model, out)
     sidecar = {
         "format": SIDECAR_FORMAT,
         "model": recipe.kind,
-        "dataset": str(Path(data).resolve()),
-        "dataset_format": source,
+        **renderer.trained_on.fields(),
         "split": "train",
         "view_indices": dataset.indices,
         "downscale": downscale,
@@ -376,8 +379,7 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
         "final_loss": history[-1] if history else None,
     }
     write_json_atomic(sidecar_path(out), sidecar)
-    return recipe.renderer_type(model, background, dataset.cameras, tile=config.tile,
-                                camera_format=source)
+    return renderer
 
 
 def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,

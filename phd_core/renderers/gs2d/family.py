@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from ...errors import check_float
 from ...scene import Camera
 from ..families import Family, option
-from ..splats.renderer import set_background, with_sidecar
+from ..splats.renderer import set_background, splat_centres, with_sidecar
 from .ply import is_2dgs_ply, parse_surfel_ply
 from .render import SurfelRenderer, surfel_memory
 
@@ -32,4 +32,4 @@ def _load(data: bytes, name: str, cameras: list[Camera] | None) -> SurfelRendere
 
 GS2D = Family("2dgs", "a 2DGS PLY", ".ply", is_2dgs_ply, _load, with_sidecar,
               trainer="phd_core.train.gs2d:train_surfels", train_options=SurfelOptions, memory=surfel_memory,
-              set_background=set_background, units="splats")
+              set_background=set_background, units="splats", content_points=splat_centres)

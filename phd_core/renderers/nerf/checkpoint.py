@@ -1,5 +1,6 @@
 """Checkpoints: safetensors files (tensors that cannot execute code on load) with the config
-in the header and the training cameras as JSON frames."""
+and the capture the model was trained on (`provenance.TrainedOn`) in the header and the
+training cameras as JSON frames."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from safetensors.torch import save as st_save
 from ...errors import InputError
 from ...io import write_bytes_atomic
 from ...scene import Camera, cameras_from_json
+from ..provenance import TrainedOn
 from .config import NeRFConfig
 from .field import RadianceField
 from .renderer import NeRFRenderer
@@ -38,9 +40,11 @@ def save_nerf(renderer_or_model: NeRFRenderer | RadianceField, path: str | Path,
 
 def nerf_bytes(renderer_or_model: NeRFRenderer | RadianceField, training_cameras: list[Camera] | None = None) -> bytes:
     """The checkpoint as bytes: safetensors with our metadata in the header."""
+    trained_on = None
     if isinstance(renderer_or_model, NeRFRenderer):
         model = renderer_or_model.model
         training_cameras = training_cameras if training_cameras is not None else renderer_or_model.training_cameras
+        trained_on = renderer_or_model.trained_on
     else:
         model = renderer_or_model
     tensors = {name: t.detach().contiguous() for name, t in model.state_dict().items()}
@@ -49,6 +53,8 @@ def nerf_bytes(renderer_or_model: NeRFRenderer | RadianceField, training_cameras
         tensors[CAMERAS_TENSOR] = torch.frombuffer(bytearray(frames), dtype=torch.uint8)
     metadata = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
                 "config": json.dumps(model.config.to_dict())}
+    if trained_on is not None:
+        metadata["trained_on"] = json.dumps(trained_on.fields())
     return st_save(tensors, metadata=metadata)
 
 
@@ -100,7 +106,8 @@ def load_nerf_bytes(data: bytes, name: str = "model", **renderer_options: Any) -
 
     Every failure is an `InputError(field="model")` saying what is wrong: not a
     safetensors file, not ours, truncated or tampered (tensor missing, wrong shape or
-    dtype, non-finite values), a config out of range, or unreadable training cameras.
+    dtype, non-finite values), a config out of range, or unreadable training cameras or
+    capture record (checkpoints written before the record have none).
     """
     def bad(reason: str) -> InputError:
         return InputError("model", f"{name}: {reason}")
@@ -154,4 +161,8 @@ def load_nerf_bytes(data: bytes, name: str = "model", **renderer_options: Any) -
             raise bad(f"training cameras are not valid JSON ({exc})") from None
         except InputError as exc:
             raise bad(f"training cameras: {exc}") from None
-    return NeRFRenderer(model, cameras, **renderer_options)
+    try:
+        trained_on = TrainedOn.from_fields(json.loads(meta.get("trained_on", "{}")))
+    except (json.JSONDecodeError, AttributeError, InputError) as exc:
+        raise bad(f"the record of its training capture is unreadable ({exc})") from None
+    return NeRFRenderer(model, cameras, trained_on=trained_on, **renderer_options)

@@ -1,5 +1,6 @@
-"""The NeRF model family: our safetensors checkpoint, which carries its training cameras and
-its background; trained by `phd_core.train.nerf` with the options below."""
+"""The NeRF model family: our safetensors checkpoint, which carries its training cameras, its
+background and the capture it was trained on; trained by `phd_core.train.nerf` with the
+options below."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from ...scene import Camera
 from ..families import Family, option
 from .checkpoint import is_nerf_checkpoint, load_nerf_bytes
 from .config import ENCODINGS, check_encoding
-from .renderer import NeRFRenderer, nerf_memory
+from .renderer import NeRFRenderer, nerf_memory, occupied_cells
 
 
 @dataclass(frozen=True)
@@ -29,9 +30,11 @@ def _load(data: bytes, name: str, cameras: list[Camera] | None) -> NeRFRenderer:
     renderer = load_nerf_bytes(data, name)
     if cameras is None:
         return renderer
-    return NeRFRenderer(renderer.model, cameras, rescale=renderer.rescale, use_grid=renderer.use_grid)
+    return NeRFRenderer(renderer.model, cameras, rescale=renderer.rescale, use_grid=renderer.use_grid,
+                        trained_on=renderer.trained_on)
 
 
 NERF = Family("nerf", "a phd NeRF checkpoint", ".nerf", is_nerf_checkpoint, _load,
               trainer="phd_core.train.nerf:train_nerf", train_options=NeRFOptions, memory=nerf_memory,
-              units="first-layer hidden units", network=("encoding", "depth", "width", "parameters", "samples_per_ray"))
+              units="first-layer hidden units", network=("encoding", "depth", "width", "parameters", "samples_per_ray"),
+              content_points=occupied_cells)

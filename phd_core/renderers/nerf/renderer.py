@@ -10,6 +10,7 @@ from torch import Tensor
 
 from ...scene import Camera
 from ..protocol import RenderMemory, View, check_keep
+from ..provenance import TrainedOn
 from ..signals import DEFAULT_SIGNAL, over, signal_image
 from ..visibility import FragmentSums, Visibility, reduce_to_visibility
 from .config import CHUNK_ELEMENTS, CHUNK_SAMPLES, NeRFConfig
@@ -94,9 +95,10 @@ class NeRFRenderer:
     kind = "nerf"
 
     def __init__(self, model: RadianceField, training_cameras: list[Camera] | None = None, *,
-                 rescale: bool = False, use_grid: bool = True):
+                 rescale: bool = False, use_grid: bool = True, trained_on: TrainedOn | None = None):
         self.model = model.eval()
         self.training_cameras = training_cameras
+        self.trained_on = trained_on            # the capture `phd train` fitted it to, when its checkpoint says
         self.rescale = rescale
         self.use_grid = use_grid
 
@@ -212,4 +214,12 @@ class NeRFRenderer:
             "freenerf": {"frequency_mask": c.freenerf_frequency, "occlusion": c.freenerf_occlusion},
             "rescale": self.rescale,
             "has_training_cameras": self.training_cameras is not None,
+            "trained_on": None if self.trained_on is None else self.trained_on.fields(),
         }
+
+
+def occupied_cells(renderer: NeRFRenderer) -> Tensor:
+    """[C, 3] the centres of the occupancy grid's occupied cells: where a radiance field's
+    content lies (the family's `content_points`)."""
+    grid = renderer.model.grid
+    return grid.cell_points(torch.full((1, 3), 0.5))[grid.occupied.flatten()]

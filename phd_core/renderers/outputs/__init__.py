@@ -9,7 +9,7 @@ and cameras), so every pose in and out of the project is in the frame the user h
 docs/formats.md describes each. A new trainer is one module calling `OUTPUTS.register`.
 """
 
-from .base import OUTPUTS, OutputFormat, TrainerOutput, empty_views, load_output, read_output
+from .base import OUTPUTS, OutputFormat, TrainerOutput, load_output, read_output
 from . import inria, nerfstudio, gsplat  # noqa: E402,F401  (registration; each states its detection order)
 
-__all__ = ["OUTPUTS", "OutputFormat", "TrainerOutput", "empty_views", "load_output", "read_output"]
+__all__ = ["OUTPUTS", "OutputFormat", "TrainerOutput", "load_output", "read_output"]

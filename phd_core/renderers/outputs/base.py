@@ -1,5 +1,5 @@
-"""What every trainer-output reader returns, the registry they join, and the check that a
-model's cameras see its splats."""
+"""What every trainer-output reader returns, the registry they join, and the warning when a
+folder's cameras do not see its splats (`provenance.unseen_views`)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,7 @@ from ...errors import InputError, ModelNote, ModelWarning
 from ...registry import Registry
 from ...scene import Camera, Similarity
 from ..gs3d import GaussianModel, GaussianRenderer
-
-EMPTY_VIEW_SHARE = 0.01      # a view whose frustum holds fewer than 1% of the splat centres renders (nearly) empty
-CHECKED_SPLATS = 20_000      # the check looks at up to this many splats (every n-th)
+from ..provenance import UNSEEN_SHARE, unseen_views
 
 
 @dataclass
@@ -68,11 +66,11 @@ def read_output(path: str | Path, within: str | Path | None = None) -> TrainerOu
         if output_format.detect(path):
             output = output_format.read(path, None if within is None else Path(within))
             output.name = output.name or path.resolve().name
-            empty = empty_views(output.model, output.cameras)
-            if output.cameras and len(empty) * 2 > len(output.cameras):
+            empty = unseen_views(output.renderer(), output.cameras)
+            if empty:
                 output.warnings.append(
                     f"{len(empty)} of the model's {len(output.cameras)} training cameras see almost none of its "
-                    f"splats (fewer than {EMPTY_VIEW_SHARE:.0%} of the centres in view): the cameras and the splats "
+                    f"splats (fewer than {UNSEEN_SHARE:.0%} of the centres in view): the cameras and the splats "
                     "are probably in different frames, so renders will be empty and rankings meaningless")
             for note in output.notes:
                 warnings.warn(note, ModelNote, stacklevel=2)
@@ -86,22 +84,6 @@ def read_output(path: str | Path, within: str | Path | None = None) -> TrainerOu
 def load_output(path: str | Path) -> GaussianRenderer:
     """A trainer's output folder as a renderer with its training cameras and background."""
     return read_output(path).renderer()
-
-
-def empty_views(model: GaussianModel, cameras: list[Camera]) -> list[int]:
-    """Indices of the cameras whose frustum holds fewer than EMPTY_VIEW_SHARE of the splat centres."""
-    if not cameras or model.num_splats == 0:
-        return []
-    step = max(1, model.num_splats // CHECKED_SPLATS)
-    means = model.means[::step].double()                                  # [S, 3]
-    empty = []
-    for i, camera in enumerate(cameras):
-        pixels, depth = camera.project(means)                             # [S, 2], [S]
-        inside = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] <= camera.width)
-                  & (pixels[:, 1] >= 0) & (pixels[:, 1] <= camera.height))
-        if inside.double().mean() < EMPTY_VIEW_SHARE:
-            empty.append(i)
-    return empty
 
 
 def sh_from_parts(dc: torch.Tensor, rest: torch.Tensor, field: str) -> torch.Tensor:

@@ -5,7 +5,8 @@ A family subclasses `SplatRenderer` with its `kind`, model class and differentia
 rasteriser, and how it renders: `render_full` (a keep-mask batch), `prepare` (a camera's
 reusable state) and `fragment_rows` (a view's fragments, for visibility). The rest is here:
 checking the model, the background, Fisher information, the scene box, visibility and
-`describe`; and what the family entries share: `set_background` and `with_sidecar`.
+`describe`; and what the family entries share: `set_background`, `with_sidecar` and
+`splat_centres`.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from ...errors import InputError
 from ...scene import Camera, cameras_from_json, pixels_in_box
 from ..composite import COMPOSITORS, DEFAULT_COMPOSITOR
 from ..protocol import NO_CAMERAS_NOTE, View
+from ..provenance import TrainedOn
 from ..signals import DEFAULT_SIGNAL, signal_image
 from ..visibility import Visibility, fragment_visibility, reduce_to_visibility, robust_box
 from .maths import DEFAULT_TILE, Pairs, tile_layout
@@ -52,7 +54,7 @@ class SplatRenderer(ABC):
     def __init__(self, model: GaussianModel, background: Sequence[float] = (1.0, 1.0, 1.0),
                  training_cameras: list[Camera] | None = None, *, tile: int = DEFAULT_TILE,
                  near: float = NEAR_PLANE, compositor: str = DEFAULT_COMPOSITOR, camera_format: str | None = None,
-                 notes: Sequence[str] = ()):
+                 notes: Sequence[str] = (), trained_on: TrainedOn | None = None):
         if not isinstance(model, self.model_type) or model.scale_axes != self.model_type.scale_axes:
             raise InputError("model", f"a {self.kind} renderer needs a {self.model_type.__name__}, "
                                       f"got {type(model).__name__}")
@@ -63,6 +65,7 @@ class SplatRenderer(ABC):
         self.training_cameras = training_cameras
         self.camera_format = camera_format      # the source's pose convention (phd_core.data.POSES), when known
         self.notes = list(notes)                # what loading found that the user should know (frames, cameras)
+        self.trained_on = trained_on            # the capture `phd train` fitted it to, when its sidecar says
         self.tile = tile
         self.near = near
         self.compositor = compositor
@@ -142,6 +145,7 @@ class SplatRenderer(ABC):
             "has_training_cameras": self.training_cameras is not None,
             "camera_format": self.camera_format,
             "notes": list(self.notes),
+            "trained_on": None if self.trained_on is None else self.trained_on.fields(),
         }
 
 
@@ -151,10 +155,15 @@ def set_background(renderer: SplatRenderer, color: tuple[float, float, float]) -
     renderer.background = torch.tensor(color, dtype=torch.float32)
 
 
+def splat_centres(renderer: SplatRenderer) -> torch.Tensor:
+    """[G, 3] where a splat model's content lies (a splat family's `content_points`)."""
+    return renderer.model.means.detach()
+
+
 def with_sidecar(path: Path, renderer: SplatRenderer) -> SplatRenderer:
-    """The renderer rebuilt with the training cameras, background and capture format of the
-    sidecar beside `path` (a splat family's `beside`); without one, and without cameras, a note
-    says so."""
+    """The renderer rebuilt with the training cameras, background, capture format and capture
+    record of the sidecar beside `path` (a splat family's `beside`); without one, and without
+    cameras, a note says so."""
     sidecar = read_sidecar(path)
     if sidecar is None:
         if renderer.training_cameras is None:
@@ -162,4 +171,4 @@ def with_sidecar(path: Path, renderer: SplatRenderer) -> SplatRenderer:
         return renderer
     return type(renderer)(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
                           cameras_from_json(sidecar["training_cameras"]), camera_format=sidecar.get("dataset_format"),
-                          notes=renderer.notes)
+                          notes=renderer.notes, trained_on=TrainedOn.from_fields(sidecar))

@@ -1,0 +1,145 @@
+"""What a model records of the capture it was trained on, how well a capture's photos fit the
+model, and which cameras see none of it: how a capture other than the model's is caught.
+
+A trainer records a `TrainedOn` (the `phd train` sidecar's keys, a checkpoint's metadata): the
+capture's path (a hint: captures move), its format, its fingerprint (`phd_core.data.identity`:
+the image names and camera centres of its train split) and the model's fit on it: the PSNR
+of FIT_VIEWS of its training views rendered at FIT_SIZE pixels against their photos
+(`measure_fit`). A capture given later with the same fingerprint is that capture wherever it
+lies. Any other is measured the same way, on its frames at the model's training poses when it
+has them, else on evenly spaced frames of its train split, and is not the model's capture when
+its fit falls more than FIT_MARGIN dB below the recorded one (`falls_short`; the measurements
+that chose the margin are in docs/formats.md, "The wrong capture caught").
+
+Without photos, cameras tell only their frame: `unseen_views` are the cameras that see almost
+none of the model (its family's `content_points` in their frustum) when they are most of them,
+as another capture's cameras are when its world frame is not the model's.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import torch
+
+from ..data import Dataset, load_dataset, locate, select_views
+from ..data.identity import fingerprint
+from ..errors import InputError
+from ..scene import Camera, pose_matches
+from .families import FAMILIES
+from .protocol import Renderer
+
+FIT_VIEWS = 4            # views a fit is measured on
+FIT_SIZE = 64            # pixels on their longer side: a few renders of this size cost well under a second
+FIT_MARGIN = 6.0         # dB: a capture whose fit falls further below the model's own is another capture
+UNSEEN_SHARE = 0.01      # a view with fewer than 1% of the model's content points in its frustum sees almost none
+CHECKED_POINTS = 20_000  # `unseen_views` projects up to this many content points (every n-th)
+
+
+@dataclass(frozen=True)
+class Fit:
+    """How well a model renders a capture's photos: the PSNR of the views' pooled squared error."""
+
+    psnr: float
+    frames: list[int]        # the frames of the capture's train split it was measured on
+    width: int               # the size they were rendered at (the first, when sizes differ)
+    height: int
+
+
+@dataclass(frozen=True)
+class TrainedOn:
+    """What a model records of the capture it was trained on."""
+
+    path: str | None                    # where the capture lay at training: a hint, since captures move
+    format: str | None                  # its format (phd_core.data.FORMATS)
+    fingerprint: str | None = None      # its train split's identity (phd_core.data.identity)
+    fit: Fit | None = None              # what the model reached on its training views (`measure_fit`)
+
+    def fields(self) -> dict[str, Any]:
+        """As a sidecar and a checkpoint store it (sidecars before the fingerprint hold the first two)."""
+        return {"dataset": self.path, "dataset_format": self.format, "dataset_fingerprint": self.fingerprint,
+                "training_fit": None if self.fit is None else asdict(self.fit)}
+
+    @classmethod
+    def from_fields(cls, fields: Mapping[str, Any]) -> "TrainedOn | None":
+        """What `fields` wrote, read back; None when no capture is named."""
+        path, fit = fields.get("dataset"), fields.get("training_fit")
+        if not isinstance(path, str):
+            return None
+        if fit is not None:
+            try:
+                fit = Fit(float(fit["psnr"]), [int(i) for i in fit["frames"]], int(fit["width"]), int(fit["height"]))
+            except (KeyError, TypeError, ValueError):
+                raise InputError("training_fit", f"expected psnr, frames, width and height, got {fit!r}") from None
+        data_format, identity = fields.get("dataset_format"), fields.get("dataset_fingerprint")
+        return cls(path, data_format if isinstance(data_format, str) else None,
+                   identity if isinstance(identity, str) else None, fit)
+
+
+def record_training(renderer: Renderer, capture: str | Path) -> TrainedOn:
+    """What a trainer records of `capture` after training `renderer` on its train split."""
+    data_format, _ = locate(capture, "train")
+    split = load_dataset(capture, "train", with_images=False)
+    return TrainedOn(str(Path(capture).resolve()), data_format.name, fingerprint(split),
+                     measure_fit(renderer, capture, split))
+
+
+def measure_fit(renderer: Renderer, capture: str | Path, split: Dataset | None = None, name: str = "train") -> Fit:
+    """`renderer`'s fit on FIT_VIEWS frames of the split `name` of `capture` (`split`: that split
+    loaded without images, if at hand), rendered at FIT_SIZE pixels against their photos
+    composited on the model's background: the frames at the model's training poses when the
+    split has them, else evenly spaced ones."""
+    split = split if split is not None else load_dataset(capture, name, with_images=False)
+    frames = fit_frames(split.cameras, renderer.training_cameras or [])
+    first = split.cameras[frames[0]]
+    background = tuple(renderer.describe().get("background") or (1.0, 1.0, 1.0))
+    photos = load_dataset(capture, name, views=frames, downscale=max(1.0, max(first.width, first.height) / FIT_SIZE),
+                          background=background)
+    assert photos.images is not None                    # loaded with its images (the default)
+    squared = [float(((renderer.render(camera)[0].double() - photo.double()) ** 2).mean())
+               for camera, photo in zip(photos.cameras, photos.images)]
+    mse = max(sum(squared) / len(squared), 1e-10)       # identical images: 100 dB, not infinity
+    return Fit(round(10 * math.log10(1 / mse), 2), frames, photos.cameras[0].width, photos.cameras[0].height)
+
+
+def fit_frames(cameras: Sequence[Camera], training: Sequence[Camera]) -> list[int]:
+    """FIT_VIEWS evenly spaced frames of `cameras` among those at a pose of `training` (the
+    model's training views), or among all of them when none is."""
+    shared = sorted({i for i in pose_matches(training, cameras) if i is not None}) if training else []
+    pool = shared or list(range(len(cameras)))
+    return [pool[i] for i in select_views(len(pool), min(FIT_VIEWS, len(pool)))]
+
+
+def falls_short(given: Fit, reference: Fit) -> bool:
+    """Whether a capture's fit is so far below the model's own that it is another capture."""
+    return given.psnr < reference.psnr - FIT_MARGIN
+
+
+def unseen_views(renderer: Renderer, cameras: Sequence[Camera]) -> list[int]:
+    """The cameras that see almost none of the model (fewer than UNSEEN_SHARE of its content
+    points in their frustum) when they are most of `cameras`, as another capture's cameras are,
+    or cameras in another frame; [] otherwise, and for a family that does not say where its
+    content lies."""
+    family = FAMILIES.get(renderer.kind)
+    if family is None or family.content_points is None:
+        return []
+    unseen = empty_frustums(family.content_points(renderer), cameras)
+    return unseen if len(unseen) * 2 > len(cameras) else []
+
+
+def empty_frustums(points: torch.Tensor, cameras: Sequence[Camera]) -> list[int]:
+    """Indices of the cameras whose frustum holds fewer than UNSEEN_SHARE of points [P, 3]."""
+    if not cameras or len(points) == 0:
+        return []
+    checked = points[::max(1, len(points) // CHECKED_POINTS)].double()               # [S, 3]
+    empty = []
+    for i, camera in enumerate(cameras):
+        pixels, depth = camera.project(checked)                                       # [S, 2], [S]
+        inside = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] <= camera.width)
+                  & (pixels[:, 1] >= 0) & (pixels[:, 1] <= camera.height))
+        if inside.double().mean() < UNSEEN_SHARE:
+            empty.append(i)
+    return empty
