@@ -4,12 +4,17 @@ A model is a file of any registered family (a PLY with its `phd train` sidecar, 
 checkpoint) or a trainer's output folder as the trainer left it (`phd_core.renderers.outputs`:
 the reference 3DGS trainer's, splatfacto's, gsplat's). A folder brings its own cameras and,
 when the capture it was trained on is found, that capture and the run's own train/test split:
-`phd render --model <run>` renders the frames the run held out, with no --data or --split.
+`phd render --model <run>` renders the frames the run held out, with no --data or --split. A
+model file trained by `phd train` names its capture too: without --data, commands use it.
 
-A capture given with --data must be in the model's frame (`check_frame`): a capture holding
-images of the run's own capture at other poses is refused with what to give instead. A
-splatfacto run, for example, holds its poses in the frame of the transforms.json it read, not
-in that of the COLMAP folder ns-process-data started from.
+A capture given with --data must be the one the model was trained on (`check_capture`). One
+in another frame is refused: a capture holding images of the run's own capture at other poses
+(`check_frame`; a splatfacto run, for example, holds its poses in the frame of the
+transforms.json it read, not in that of the COLMAP folder ns-process-data started from), and
+one whose cameras see almost none of the model. One with the recorded fingerprint is the
+model's capture wherever it lies; any other is measured: its photos against the model's renders
+(`phd_core.renderers.provenance`), refused when they fit far worse than the model's own
+training views did, unless the command is told --other-capture.
 """
 
 from __future__ import annotations
@@ -18,17 +23,23 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import torch
-
 from phd_core.data import Dataset, load_dataset, locate, select_views
+from phd_core.data.identity import fingerprint
 from phd_core.errors import InputError, ModelNote
 from phd_core.renderers import Renderer, load_model
 from phd_core.renderers.outputs import TrainerOutput, read_output
-from phd_core.scene import Camera
+from phd_core.renderers.provenance import (
+    FIT_MARGIN,
+    UNSEEN_SHARE,
+    Fit,
+    TrainedOn,
+    falls_short,
+    measure_fit,
+    unseen_views,
+)
+from phd_core.scene import Camera, pose_matches
 
 from .options import apply_background
-
-SAME_POSE = 1e-3         # centres this close (x the cameras' spread) and directions this close (radians) coincide
 
 
 @dataclass
@@ -36,11 +47,19 @@ class OpenedModel:
     path: Path
     renderer: Renderer
     output: TrainerOutput | None = None         # a trainer's folder: what it holds (capture, split)
-    checked: set[Path] = field(default_factory=set)     # captures found in its frame (check_frame)
+    checked: set[Path] = field(default_factory=set)     # captures already checked (check_capture)
 
     @property
     def label(self) -> str:
         return str(self.path)
+
+    @property
+    def trained_on(self) -> TrainedOn | None:
+        """The capture the model was trained on: what its sidecar or checkpoint records, or the
+        capture a trainer's folder names (by path alone); None when nothing names one."""
+        if self.output is not None:
+            return None if self.output.capture is None else TrainedOn(str(self.output.capture), None)
+        return TrainedOn.from_fields(self.renderer.describe().get("trained_on") or {})
 
 
 def open_model(path: Path, background: list[str] | None = None) -> OpenedModel:
@@ -57,10 +76,11 @@ def open_model(path: Path, background: list[str] | None = None) -> OpenedModel:
 
 def model_views(model: OpenedModel, data: Path | None, split: str, *, views: int | list[int] | None = None,
                 downscale: float = 1.0, background: tuple[float, float, float] = (1.0, 1.0, 1.0),
-                with_images: bool = True) -> Dataset:
-    """The frames of `split` of `data`, or, for a trainer's folder, of the capture its run read
-    and by the run's own split when `data` is left out or names that capture. `views`: a count
-    of evenly spaced frames of the split, or indices into it."""
+                with_images: bool = True, other_capture: bool = False) -> Dataset:
+    """The frames of `split` of `data` (default: the capture the model was trained on), or, for
+    a trainer's folder, of the capture its run read and by the run's own split when `data` is
+    left out or names that capture. `views`: a count of evenly spaced frames of the split, or
+    indices into it. `data` is checked to be the model's capture (`check_capture`)."""
     output = model.output
     if output is not None and output.capture is not None and (data is None or same_capture(data, output.capture)):
         options = dict(downscale=downscale, background=background, with_images=with_images)
@@ -77,13 +97,29 @@ def model_views(model: OpenedModel, data: Path | None, split: str, *, views: int
         dataset = load_dataset(output.capture, "all", views=chosen, **options)
         dataset.split = split
         return dataset
-    if data is None:
-        where = ("its run's capture was not found" if output is not None else
-                 "a model file names no capture (the one it was trained on: the --data given to phd train)")
-        raise InputError("data", f"give --data: {where}")
-    check_frame(model, Path(data))
+    data = capture_of(model, data)
+    check_capture(model, data, other_capture)
     return load_dataset(data, split, views=views, downscale=downscale, background=background,
                         with_images=with_images)
+
+
+def capture_of(model: OpenedModel, data: Path | None) -> Path:
+    """`data`, else the capture the model names (a trainer's folder: its run's); an error saying
+    what to give when it names none or the capture is no longer where it was."""
+    recorded = model.trained_on
+    if data is not None:
+        return Path(data)
+    if model.output is not None:
+        if model.output.capture is not None:
+            return model.output.capture
+        raise InputError("data", "give --data: its run's capture was not found")
+    if recorded is None or recorded.path is None:
+        raise InputError("data", "give --data: the model names no capture (a model file trained by phd train names "
+                                 "the one it was trained on in its sidecar or checkpoint)")
+    if not Path(recorded.path).exists():
+        raise InputError("data", f"give --data: {model.label} was trained on {recorded.path}, which is no longer "
+                                 "there (a capture moved elsewhere is known by its fingerprint)")
+    return Path(recorded.path)
 
 
 def same_capture(data: Path, capture: Path) -> bool:
@@ -96,20 +132,113 @@ def same_capture(data: Path, capture: Path) -> bool:
     return data_format is capture_format and target.resolve().is_relative_to(located.resolve())
 
 
-def check_frame(model: OpenedModel, data: Path) -> None:
-    """Refuse a capture that is not in the model's frame. It is when one of the model's training
-    cameras appears among its cameras (same centre and viewing direction); it is not when it
-    holds images of the run's own capture (same names) at other poses. Otherwise (a capture of
-    other views, a model without training cameras) it cannot be told, and a note says so."""
-    training = list(model.renderer.training_cameras or [])
-    if not training or Path(data).resolve() in model.checked:
+def check_capture(model: OpenedModel, data: Path, other_capture: bool = False) -> None:
+    """Refuse a capture that is not the one the model was trained on: one in another frame
+    (`check_frame`, whatever `other_capture` says), or one `capture_problem` finds; with
+    `other_capture` the latter is a note. Each capture is checked once per model."""
+    if Path(data).resolve() in model.checked:
         return
+    check_frame(model, data)
+    refuse("data", capture_problem(model, data), other_capture, "give the capture it was trained on")
     model.checked.add(Path(data).resolve())
-    capture = _capture(data)
-    if appearing(training, capture.cameras):
+
+
+def check_cameras_see(model: OpenedModel, cameras: list[Camera], other_capture: bool = False) -> None:
+    """Refuse cameras most of which see almost none of the model (another capture's, or in
+    another frame): renders from them are empty, and a calibration on them meaningless."""
+    problem = unseen_problem(model, cameras)
+    refuse("cameras", None if problem is None else f"{problem}: they are not the cameras of its capture",
+           other_capture, "give the cameras it was trained on")
+
+
+def refuse(field: str, problem: str | None, other_capture: bool, instead: str) -> None:
+    """An InputError naming `field` for `problem`, or with `other_capture` a note; nothing without one."""
+    if problem is None:
         return
+    if not other_capture:
+        raise InputError(field, f"{problem}; {instead} (or --other-capture to go on all the same)")
+    warnings.warn(f"{problem} (--other-capture: going on)", ModelNote, stacklevel=3)
+
+
+def unseen_problem(model: OpenedModel, cameras: list[Camera]) -> str | None:
+    """That most of `cameras` see almost none of the model (`provenance.unseen_views`), or None."""
+    unseen = unseen_views(model.renderer, cameras)
+    if not unseen:
+        return None
+    return (f"{len(unseen)} of the {len(cameras)} cameras see almost none of {model.label} (fewer than "
+            f"{UNSEEN_SHARE:.0%} of it in view)")
+
+
+def capture_problem(model: OpenedModel, data: Path) -> str | None:
+    """Why `data` is not the capture the model was trained on, or None when it is or nothing tells.
+
+    It is not when most of its cameras see almost none of the model; when, other than the
+    recorded capture (by its fingerprint; for sidecars written before fingerprints and for
+    trainer folders, by its path), it holds none of the model's training views; or when its
+    photos fit the model more than FIT_MARGIN dB worse than the model's training views did
+    (`provenance`: the fit recorded at training, else measured now on the recorded capture), as
+    photos of another scene at the model's very poses do. Without photos or a fit to compare
+    with, the recorded capture passes silently and any other with a note."""
+    recorded, split = model.trained_on, load_dataset(data, "train", with_images=False)
+    identified = recorded is not None and (recorded.fingerprint == fingerprint(split) if recorded.fingerprint else
+                                           same_capture(data, Path(recorded.path or "")))
+    if identified and recorded is not None:
+        named = (f"{data} has the image names and poses of {recorded.path}, the capture {model.label} was trained "
+                 "on, but other photos")
+    else:
+        named = f"{data} is not the capture {model.label} was trained on" + (
+            "" if recorded is None else f" ({recorded.path})")
+    unseen = unseen_problem(model, split.cameras)
+    if unseen is not None:
+        return f"{named}: {unseen}"
+    reference, unread = training_fit(model, recorded), None
+    try:
+        given = measure_fit(model.renderer, data, split)
+    except InputError as exc:                     # its photos are not there, or not readable
+        given, unread = None, exc
+    fit = ("" if reference is None or given is None else
+           f"{len(given.frames)} of its views render at {given.psnr:.1f} dB PSNR against its photos, "
+           f"{reference.psnr - given.psnr:.1f} dB below the {reference.psnr:.1f} dB the model reached on "
+           f"{len(reference.frames)} of its training views")
+    training = model.renderer.training_cameras or []
+    if not identified and recorded is not None and training and \
+            all(i is None for i in pose_matches(training, split.cameras)):
+        return f"{named}: it holds none of the model's {len(training)} training views" + (
+            f", and {fit}" if fit else "")
+    if reference is not None and given is not None:
+        return f"{named}: {fit} (more than {FIT_MARGIN:g} dB below)" if falls_short(given, reference) else None
+    if not identified:
+        why = (f"the photos of {data} could not be read ({unread})" if unread is not None else
+               f"{model.label} names no capture it was trained on" if recorded is None else
+               f"{model.label} records no fit on {recorded.path}, which is not at hand")
+        warnings.warn(f"{why}: that {data} is its capture was checked by its cameras alone", ModelNote, stacklevel=3)
+    return None
+
+
+def training_fit(model: OpenedModel, recorded: TrainedOn | None) -> Fit | None:
+    """The fit the model reached on its training views: recorded at training, else measured now
+    on the capture it names when that is at hand."""
+    if recorded is None or recorded.fit is not None:
+        return None if recorded is None else recorded.fit
+    if recorded.path is None or not Path(recorded.path).exists():
+        return None
+    try:
+        return measure_fit(model.renderer, recorded.path)
+    except InputError:
+        return None
+
+
+def check_frame(model: OpenedModel, data: Path) -> None:
+    """Refuse a capture that holds images of the run's own capture (same names) at other poses
+    than the model's training cameras: the model's views in another frame."""
+    training = list(model.renderer.training_cameras or [])
     own = model.output.capture if model.output is not None else None
-    names = {Path(name).stem for name in _capture(own).names or []} if own is not None else set()
+    if not training or own is None:
+        return
+    capture = _capture(data)
+    if any(match is not None for match in pose_matches(training, capture.cameras)):
+        return
+    names = {Path(name).stem for name in _capture(own).names or []}
     shared = sorted({Path(name).stem for name in capture.names or []} & names)
     if shared:
         raise InputError("data", f"{data} is not in the frame of {model.label}: it holds {len(shared)} images of the "
@@ -117,8 +246,6 @@ def check_frame(model: OpenedModel, data: Path) -> None:
                                  f"other poses, so renders would show the model from wrong poses (a splatfacto "
                                  f"run's poses are those of the transforms.json it read, not of the COLMAP model it "
                                  f"came from); give {own}, or leave --data out")
-    warnings.warn(f"none of the {len(training)} training cameras of {model.label} is among the {len(capture.cameras)} "
-                  f"of {data}: that they share a frame could not be checked", ModelNote, stacklevel=2)
 
 
 def _capture(data: Path) -> Dataset:
@@ -128,16 +255,3 @@ def _capture(data: Path) -> Dataset:
         return load_dataset(data, "all", with_images=False)
     except InputError:
         return load_dataset(data, "train", with_images=False)
-
-
-def appearing(cameras: list[Camera], capture: list[Camera]) -> int:
-    """How many of `cameras` have a camera of `capture` at the same centre (within SAME_POSE
-    times their spread) looking the same way (within SAME_POSE radians)."""
-    centres = torch.stack([c.center for c in cameras])                                 # [N, 3]
-    spread = float((centres - centres.median(dim=0).values).norm(dim=-1).median()) or 1.0
-    forward = torch.stack([-c.c2w[:3, 2] for c in cameras])                            # [N, 3]
-    other_centres = torch.stack([c.center for c in capture])                           # [M, 3]
-    other_forward = torch.stack([-c.c2w[:3, 2] for c in capture])                      # [M, 3]
-    close = torch.cdist(centres, other_centres) <= SAME_POSE * spread                  # [N, M]
-    aligned = (forward @ other_forward.T).clamp(-1, 1).acos() <= SAME_POSE             # [N, M]
-    return int((close & aligned).any(dim=1).sum())

@@ -1,4 +1,4 @@
-"""Options several commands share: `--background`, and the help of a model argument."""
+"""Options several commands share: `--background`, `--other-capture`, and the help of a model argument."""
 
 from __future__ import annotations
 
@@ -22,6 +22,13 @@ def model_help() -> str:
 def add_background_arg(parser: argparse.ArgumentParser, what: str) -> None:
     parser.add_argument("--background", nargs="+", metavar="COLOUR", default=None,
                         help=f"{what}: a name ({', '.join(NAMED_COLORS)}) or three numbers R G B in [0, 1]")
+
+
+def add_other_capture_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--other-capture", action="store_true",
+                        help="go on with a capture that is not the one the model was trained on (its photos fit the "
+                             "model far worse than its own training views did, or its cameras see almost none of "
+                             "it: docs/formats.md): a note says so instead of the error")
 
 
 def parse_background(values: list[str] | None) -> tuple[float, float, float] | None:

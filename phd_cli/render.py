@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from .models import OpenedModel, model_views, open_model
-from .options import model_help
+from .options import add_other_capture_arg, model_help
 from .report import add_progress_args, progress_bar
 
 
@@ -16,15 +16,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "A trainer's output folder brings its own capture and split: "
                                           "`phd render --model RUN --out DIR` renders the frames its run held out.")
     p.add_argument("--model", required=True, type=Path, help=model_help())
-    p.add_argument("--data", type=Path, default=None, help="a capture in the model's frame (default for a trainer's "
-                   "folder: the capture its run read; a capture holding the run's own images at other poses is "
-                   "refused, and a note says when the frame cannot be checked)")
+    p.add_argument("--data", type=Path, default=None, help="the capture the model was trained on, wherever it lies "
+                   "now (default: the one its sidecar or checkpoint names; for a trainer's folder the capture its run "
+                   "read); another capture is refused (one in another frame, or whose photos fit the model far worse "
+                   "than its training views did)")
     p.add_argument("--split", default="test", help="split to render (default test; a trainer's folder on its own "
                    "capture: the frames its run held out, train the ones it trained on, all every frame)")
     p.add_argument("--views", default=None, help="count or comma-separated indices (default: all)")
     p.add_argument("--downscale", type=float, default=None,
                    help="image downscale (default: the resolution the model was trained at)")
     p.add_argument("--out", required=True, type=Path, help="output directory for PNGs and metrics.json")
+    add_other_capture_arg(p)
     add_progress_args(p)
     p.set_defaults(func=run)
 
@@ -38,9 +40,10 @@ def run(args: argparse.Namespace) -> int:
     model = open_model(args.model)
     downscale = args.downscale
     if downscale is None:
-        downscale = training_downscale(model, args.data, args.split)
+        downscale = training_downscale(model, args.data, args.split, args.other_capture)
     views = parse_views(args.views) if args.views else None
-    data = model_views(model, args.data, args.split, views=views, downscale=downscale)
+    data = model_views(model, args.data, args.split, views=views, downscale=downscale,
+                       other_capture=args.other_capture)
     assert data.images is not None  # loaded with its images (the default)
     args.out.mkdir(parents=True, exist_ok=True)
     per_view = []
@@ -61,10 +64,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def training_downscale(model: OpenedModel, data: Path | None, split: str) -> float:
+def training_downscale(model: OpenedModel, data: Path | None, split: str, other_capture: bool) -> float:
     """The factor that brings the capture to the model's training resolution (1 if unknown)."""
     cams = model.renderer.training_cameras
     if not cams:
         return 1.0
-    full = model_views(model, data, split, views=[0], with_images=False).cameras[0]
+    full = model_views(model, data, split, views=[0], with_images=False, other_capture=other_capture).cameras[0]
     return full.width / cams[0].width

@@ -24,8 +24,8 @@ from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 from phd_core.uq.strategies.captured import CapturedStore
 
-from .models import OpenedModel, check_frame, model_views, open_model
-from .options import add_background_arg, model_help
+from .models import OpenedModel, check_cameras_see, check_capture, model_views, open_model
+from .options import add_background_arg, add_other_capture_arg, model_help
 from .report import TABLE_ROWS, add_progress_args, calibrated, progress_bar, rank_table
 
 
@@ -40,8 +40,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "the training cameras stored with the model.")
     _add_model_args(calibrate)
     source = calibrate.add_mutually_exclusive_group()
-    source.add_argument("--data", type=Path, help="a capture in the model's frame: calibrate on the poses of its "
-                        "--split")
+    source.add_argument("--data", type=Path, help="the capture the model was trained on (another is refused): "
+                        "calibrate on the poses of its --split")
     source.add_argument("--cameras", type=Path, help="training poses: transforms-style JSON (or a list of frames), "
                         "a reference cameras.json, a COLMAP model or poses_bounds.npy")
     calibrate.add_argument("--split", default="train", help="dataset split with --data (default train)")
@@ -50,6 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_calibration_args(calibrate, standalone=True)
     _add_executor_args(calibrate)
     calibrate.add_argument("--out", type=Path, help="also write the result as JSON to this file")
+    add_other_capture_arg(calibrate)
     add_progress_args(calibrate)
     calibrate.set_defaults(func=run_calibrate)
 
@@ -59,8 +60,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "masked copies of every view of the split and write report.json and one heat map per view into "
                     "--out. With the split's images: Spearman, Pearson and AUSE between zeta and the error.")
     _add_model_args(uq)
-    uq.add_argument("--data", type=Path, default=None, help="a capture in the model's frame (default for a "
-                    "trainer's folder: the capture its run read)")
+    uq.add_argument("--data", type=Path, default=None, help="the capture the model was trained on, wherever it lies "
+                    "now (default: the one its sidecar or checkpoint names; for a trainer's folder the capture its "
+                    "run read); another is refused")
     uq.add_argument("--split", default="test", help="split to evaluate (default test; a trainer's folder on its "
                     "own capture: the frames its run held out)")
     uq.add_argument("--views", type=int, default=None, help="evaluate this many evenly spaced frames")
@@ -73,6 +75,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          "sigma_max of the report, shared by every map)")
     uq.add_argument("--no-heatmaps", action="store_true", help="write only report.json")
     uq.add_argument("--out", type=Path, default=Path("phd-uq"), help="output directory (default phd-uq)")
+    add_other_capture_arg(uq)
     add_progress_args(uq)
     uq.set_defaults(func=run_uq)
 
@@ -133,8 +136,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     select.add_argument("--model-b", type=Path, required=True, help="the second model")
     add_background_arg(select, "splat models: the colour both are rendered over (default: each model's own)")
     views = select.add_mutually_exclusive_group()
-    views.add_argument("--data", type=Path, help="a capture in the models' frame: the views of its --split (default "
-                       "for a trainer's folder as --model-a: the capture its run read)")
+    views.add_argument("--data", type=Path, help="the capture both models were trained on (another is refused): the "
+                       "views of its --split (default: the one model a names)")
     views.add_argument("--cameras", type=Path, help="the views: transforms-style JSON, a cameras.json, any capture")
     select.add_argument("--split", default="test", help="split of --data (default test; model a's run's own when "
                         "it is a trainer's folder on its capture)")
@@ -149,6 +152,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     select.add_argument("--ratio-b", type=float, default=None, help="model b's ratio (likewise)")
     _add_executor_args(select)
     select.add_argument("--out", type=Path, help="write the selection JSON here (default: print it)")
+    add_other_capture_arg(select)
     add_progress_args(select)
     select.set_defaults(func=run_select)
 
@@ -219,7 +223,7 @@ def _views(args: argparse.Namespace, model: OpenedModel, warnings: list[str]):
     composited over what the model renders over (so errors compare like with like), or without
     images (and a warning) when the split has none."""
     background = tuple(model.renderer.describe().get("background") or (1.0, 1.0, 1.0))
-    options = dict(views=args.views, downscale=args.downscale, background=background)
+    options = dict(views=args.views, downscale=args.downscale, background=background, other_capture=args.other_capture)
     try:
         return model_views(model, args.data, args.split, **options)
     except InputError as exc:
@@ -299,9 +303,10 @@ def run_calibrate(args: argparse.Namespace) -> int:
     model = open_model(args.model, args.background)
     if args.data is not None:
         cameras = model_views(model, args.data, args.split, views=args.views, downscale=args.downscale,
-                              with_images=False).cameras
+                              with_images=False, other_capture=args.other_capture).cameras
     elif args.cameras is not None:
         cameras = _scaled(load_cameras(args.cameras, width=args.width, height=args.height), args.downscale)
+        check_cameras_see(model, cameras, args.other_capture)
     else:
         cameras = _training_cameras(model, args.downscale)
     try:
@@ -331,7 +336,7 @@ def run_uq(args: argparse.Namespace) -> int:
         warnings.append("the model carries no training cameras: calibrated on every frame of the dataset's "
                         "train split, which may include views the model was not trained on")
         calibration_cameras = model_views(model, args.data, "train", downscale=args.downscale,
-                                          with_images=False).cameras
+                                          with_images=False, other_capture=args.other_capture).cameras
     ratio, calibration = _ratio(args, model, calibration_cameras)
     if calibration is not None:
         warnings.extend(calibration["warnings"])
@@ -440,8 +445,7 @@ def run_select(args: argparse.Namespace) -> int:
         images = None
     else:
         dataset = _views(args, models["a"], warnings)
-        if args.data is not None:
-            check_frame(models["b"], args.data)
+        check_capture(models["b"], args.data if args.data is not None else dataset.root, args.other_capture)
         cameras, images = dataset.cameras, dataset.images
     ratios: dict[str, float] = {}
     calibrations: dict[str, dict[str, Any] | None] = {}
