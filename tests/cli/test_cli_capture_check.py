@@ -3,7 +3,8 @@ kind of cameras around another object) by every command that takes --data, with 
 and the measured fit named, and so is a capture with lego's names and poses but donut's photos;
 the same capture moved elsewhere is known by its fingerprint; --other-capture goes on with a
 note; a command without --data uses the capture the sidecar names; a sidecar written before the
-fingerprint is checked by its path and a fit measured now."""
+fingerprint is checked by its path and a fit measured now. `phd candidates frames` writes a
+capture's own frames, exactly, for `phd rank`."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from phd_cli import main
+from phd_core.data import load_dataset, select_views
 from phd_core.renderers import load_model
 from phd_core.renderers.provenance import FIT_MARGIN, measure_fit
 from support.cli import run
@@ -154,3 +156,33 @@ def test_calibrate_refuses_cameras_that_see_none_of_the_model(model, capsys, tmp
                          "--other-capture")
     assert code == 0 and "r_drop" in out and "--other-capture: going on" in err, err
 
+
+def test_candidates_frames_writes_a_captures_own_frames_that_rank_takes(model, capsys, tmp_path) -> None:
+    code, _, err = run(capsys, "candidates", "frames", "--data", LEGO, "--split", "test", "--out", tmp_path / "t.json")
+    assert code == 0, err
+    written = json.loads((tmp_path / "t.json").read_text())["frames"]
+    loaded = load_dataset(LEGO, "test", with_images=False).cameras
+    assert len(written) == len(loaded) == 200
+    for frame, camera in zip(written, loaded):
+        assert max(abs(a - b) for row, ref in zip(frame["transform_matrix"], camera.c2w.tolist())
+                   for a, b in zip(row, ref)) <= 1e-9
+        assert (frame["fl_x"], frame["fl_y"], frame["cx"], frame["cy"], frame["w"], frame["h"]) == \
+            (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
+
+    # With --model: the capture it was trained on; frames:3 takes three, evenly spaced.
+    code, _, err = run(capsys, "candidates", "frames:3", "--model", model, "--split", "test",
+                       "--out", tmp_path / "three.json")
+    three = json.loads((tmp_path / "three.json").read_text())["frames"]
+    assert code == 0 and three == [written[i] for i in select_views(200, 3)], err
+    code, out, err = run(capsys, "rank", "--model", model, "--candidates", tmp_path / "three.json",
+                         "--dropout-ratio", 0.3, "--samples", 2, "--downscale", 4, "--json")
+    ranked = json.loads(out)
+    assert code == 0 and ranked["candidates"] == 3, err
+    assert sorted(r["index"] for r in ranked["ranking"]) == [0, 1, 2]
+    assert all(r["camera"] == three[r["index"]] for r in ranked["ranking"])
+
+    # A Blender capture has no "all" split: without --split, its train, val and test frames in turn.
+    code, out, _ = run(capsys, "candidates", "frames", "--data", LEGO)
+    assert code == 0 and len(json.loads(out)["frames"]) == 100 + 100 + 200
+    code, _, err = run(capsys, "candidates", "orbit:4", "--data", LEGO, "--split", "test")
+    assert code == 2 and "error: split:" in err
