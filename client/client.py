@@ -275,7 +275,7 @@ class PHDClient:
 
     def upload_model(self, path: str | Path, cameras: Cameras | None = None, name: str | None = None,
                      background: str | Sequence[float] | None = None,
-                     camera_format: str | None = None) -> ModelInfo:
+                     camera_format: str | None = None, other_capture: bool = False) -> ModelInfo:
         """Upload a 3DGS/2DGS PLY or NeRF checkpoint with its training cameras: `cameras`, else
         the trainer's sidecar `<stem>.json` next to a PLY when there is one (NeRF
         checkpoints carry theirs inside). `path` may be a trainer's output folder as is
@@ -286,7 +286,9 @@ class PHDClient:
         models): the colour trained over, else the sidecar's or the folder's (else the
         service's rule, docs/service.md). `camera_format`: the pose convention of the cameras'
         source (ranked poses come back in it), else the folder's, the sidecar's capture's or
-        that of a capture given as `cameras`."""
+        that of a capture given as `cameras`. Cameras most of which see almost none of the model
+        (another capture's) are refused with InvalidInputError naming `cameras`, unless
+        `other_capture`."""
         path = Path(path)
         if path.is_dir():
             from phd_core.renderers.gs3d import write_ply
@@ -302,7 +304,7 @@ class PHDClient:
                 with tempfile.TemporaryDirectory(prefix="phd-upload-") as tmp:
                     ply = Path(tmp) / f"{path.resolve().name}.ply"
                     write_ply(output.model, ply)
-                    return self.upload_model(ply, cameras, name, background, camera_format)
+                    return self.upload_model(ply, cameras, name, background, camera_format, other_capture)
             path = output.ply
         sidecar = path.with_name(path.stem + ".json")
         if path.suffix.lower() == ".ply" and sidecar.is_file():
@@ -321,6 +323,8 @@ class PHDClient:
             data["background"] = json.dumps(background if isinstance(background, str) else list(background))
         if name is not None:
             data["name"] = name
+        if other_capture:
+            data["other_capture"] = "true"
         try:
             f = open(path, "rb")
         except OSError as exc:

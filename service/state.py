@@ -20,10 +20,12 @@ from phd_core.renderers import (
     FAMILIES,
     NO_CAMERAS_NOTE,
     SNIFF_BYTES,
+    Renderer,
     accepts_background,
     load_model_bytes,
     set_background,
 )
+from phd_core.renderers.provenance import UNSEEN_SHARE, unseen_views
 from phd_core.scene import Camera
 
 from .budget import MemoryLedger, Reservation, largest_model_file, load_bytes
@@ -171,6 +173,8 @@ class ServiceState:
         elif accepts_background(renderer):                      # a bare PLY carries no background
             color, background_source = guess_background(camera_format)
             set_background(renderer, color)
+        if cameras is not None and not upload.other_capture:
+            check_cameras_see(renderer, cameras)
         cameras = cameras if cameras is not None else renderer.training_cameras
         frames = None if not cameras else [c.to_frame() for c in cameras]
         name = upload.name or upload.filename or f"model{FAMILIES[kind].extension}"
@@ -192,6 +196,19 @@ class ServiceState:
         parse.keep(record.id, renderer, record.size_bytes)
         self.metrics.uploads.labels(record.kind).inc()
         return record
+
+
+def check_cameras_see(renderer: Renderer, cameras: list[Camera]) -> None:
+    """422 naming `cameras` when most of them see almost none of the model: another capture's
+    cameras, or cameras in another frame, whose renders would be empty (`other_capture` stores
+    the model all the same)."""
+    unseen = unseen_views(renderer, cameras)
+    if unseen:
+        raise ServiceError(422, "cameras_of_another_capture", f"{len(unseen)} of the {len(cameras)} training cameras "
+                           f"see almost none of the model (fewer than {UNSEEN_SHARE:.0%} of its content in view): they "
+                           "are another capture's, or in another frame, so its renders would be empty and its "
+                           "rankings meaningless; send the cameras it was trained on, or set other_capture to store "
+                           "it with these all the same", "cameras")
 
 
 def file_sha256(path: Path) -> str:

@@ -21,6 +21,9 @@ Form fields of `POST /v1/models`:
 - `camera_format` (optional): the pose convention of the cameras' source, one of
   `phd_core.data.POSES` (colmap, 3dgs-output, nerfstudio, blender); default 3dgs-output for a
   cameras.json, nerfstudio for frames. Ranked poses come back in it too.
+- `other_capture` (optional): "true" stores a model whose training cameras see almost none of
+  it (another capture's cameras, or cameras in another frame: refused with 422 otherwise,
+  `service.state`); "false" (the default) refuses them.
 
 The body is parsed as it arrives (python-multipart's streaming parser): the model bytes go
 straight to `tmp/` in the data directory and are hashed on the way, so an upload never sits
@@ -53,7 +56,8 @@ from .folders import CLASHES, SIDECAR_SOURCE, folder_target
 from .store import writing
 
 MAX_NAME_BYTES = 256
-FIELDS = ("file", "files", "archive", "cameras", "name", "background", "camera_format")
+FIELDS = ("file", "files", "archive", "cameras", "name", "background", "camera_format", "other_capture")
+YES, NO = ("true", "1", "yes", "on"), ("false", "0", "no", "off", "")     # `other_capture`, any case
 MODEL_PARTS = ("file", "files", "archive")   # one kind per request
 
 
@@ -65,6 +69,7 @@ class Upload:
     cameras: bytes | None = None
     background: bytes | None = None
     camera_format: str | None = None
+    other_capture: bool = False         # store it even when its cameras see almost none of it
     size: int = 0
     head: bytes = b""
     sha256: str = ""
@@ -211,6 +216,8 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
             upload.background = bytes(part.buffer)
         elif part.name == "camera_format":
             upload.camera_format = part.buffer.decode("utf-8", "replace").strip() or None
+        elif part.name == "other_capture":
+            upload.other_capture = parse_yes(bytes(part.buffer), "other_capture")
         part = _Part()                  # an error between parts is no part's (names the upload: file)
 
     try:
@@ -258,6 +265,14 @@ def sniff_kind(head: bytes) -> str:
                 "and are never opened (a nerfstudio or gsplat run: upload its folder with the Python client, which "
                 "reads checkpoints without running code and sends the splats as a PLY)")
     raise ServiceError(415, "unsupported_model", f"the uploaded file is {what}", "file")
+
+
+def parse_yes(raw: bytes, field: str) -> bool:
+    """A form field that says yes or no: true/1/yes/on or false/0/no/off (empty: no)."""
+    text = raw.decode("utf-8", "replace").strip().lower()
+    if text not in YES + NO:
+        raise invalid(field, f"must be true or false, got {text!r}")
+    return text in YES
 
 
 def parse_background(raw: bytes) -> tuple[float, float, float]:
