@@ -61,6 +61,8 @@ const PLAIN = {
   upload_incomplete: () => "The upload broke off before it was complete: try again.",
   request_timeout: () => "The connection was too slow and the server gave up: try again.",
   calibration_failed: (m) => "Calibration failed: " + plainText(m),
+  cameras_of_another_capture: (m) => "The training cameras do not see this model: " + plainText(m) +
+    " (tick the box above the Upload button only if they are right).",
   executor_failed: () => "The server's compute workers failed: try again, or tell whoever runs the server.",
   internal_error: () => "The server failed unexpectedly: tell whoever runs it (its log has the details).",
 };
@@ -432,6 +434,7 @@ async function uploadForm() {
     form.append("cameras", lacksSize(cameras.frames) ? JSON.stringify(sized(cameras.frames, "upload")) : cameras.text);
   }
   if ($("upload-name").value.trim()) form.append("name", $("upload-name").value.trim());
+  if ($("upload-other-capture").checked) form.append("other_capture", "true");
   return { form, count: picked.length };
 }
 
@@ -444,10 +447,16 @@ async function upload(event) {
   let info;
   try {
     info = (await apiJson("/v1/models", { method: "POST", body: form })).data;
+  } catch (err) {
+    // Cameras that see none of the model: offer the override the message names.
+    if (err instanceof ApiError && err.code === "cameras_of_another_capture") $("upload-other-capture-row").hidden = false;
+    throw err;
   } finally {
     $("upload-run").disabled = false;
   }
   state.dropped = null;
+  $("upload-other-capture").checked = false;          // the override was for these files only
+  $("upload-other-capture-row").hidden = true;
   // The model chosen as A stays A (its ranking too): the new one becomes model B.
   await loadModels(keepA ? keepA.id : info.id, keepA ? info.id : undefined);
   const where = keepA ? "It is model B for selection; choose it under Model to rank it." : "It is the chosen model.";

@@ -460,6 +460,43 @@ def test_page_uploads_calibrates_and_deletes_a_model(browser, svc_model_files, t
         server.stop()
 
 
+def test_page_refuses_another_captures_cameras_and_uploads_them_when_told(browser, svc_model_files, tmp_path):
+    """Training cameras that see none of the model (raised 100 units: another capture's frame): the
+    service's refusal in the page's words, and the box that overrides it; ticked, the same files upload."""
+    from service.runner import BackgroundServer
+    from service.settings import Settings
+
+    frames = [c.to_frame() for c in svc_cameras(3)]
+    for frame in frames:
+        frame["transform_matrix"][2][3] += 100.0
+    cameras = tmp_path / "transforms_train.json"
+    cameras.write_text(json.dumps({"frames": frames}))
+    server = BackgroundServer(Settings(data_dir=tmp_path / "data", api_key=KEY))
+    try:
+        browser.get(server.url + "/ui/")
+        _set(browser, "api-key", KEY)
+        browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
+        _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
+        assert not browser.find_element(By.ID, "upload-other-capture").is_displayed()
+        browser.find_element(By.ID, "upload-file").send_keys(str(svc_model_files["ply"]))
+        browser.find_element(By.ID, "upload-cameras").send_keys(str(cameras))
+        browser.find_element(By.CSS_SELECTOR, "#upload-form button").click()
+        _wait(browser, lambda d: "do not see this model" in d_text(d, "upload-message"), what="the refusal")
+        said = d_text(browser, "upload-message")
+        assert "3 of the 3 training cameras see almost none of the model" in said and "tick the box" in said
+        assert "error" in _classes(browser, "upload-message")
+        browser.find_element(By.ID, "upload-other-capture").click()          # shown now
+        browser.find_element(By.CSS_SELECTOR, "#upload-form button").click()
+        _wait(browser, lambda d: "Uploaded splats.ply: 3dgs, 3 training cameras" in d_text(d, "upload-message"),
+              what="the upload told to go on")
+        assert not browser.find_element(By.ID, "upload-other-capture").is_displayed()   # for those files only
+        with PHDClient(server.url, api_key=KEY) as phd:
+            assert [m.num_training_cameras for m in phd.list_models()] == [3]
+        assert _console_errors(browser, expected=("status of 422",)) == [] and _csp_violations(browser) == []
+    finally:
+        server.stop()
+
+
 # ----------------------------------------------------------------------------- what `phd train` wrote
 
 @pytest.fixture(scope="module")
