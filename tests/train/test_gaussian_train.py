@@ -11,10 +11,12 @@ import torch
 
 from phd_cli import main as phd
 from phd_core.data import load_blender
+from phd_core.data.identity import fingerprint
 from phd_core.errors import InputError
 from phd_core.eval import psnr
 from phd_core.renderers import UnknownModelError, load_model, load_model_bytes
 from phd_core.renderers.gs3d import rasterize, read_ply, read_sidecar
+from phd_core.renderers.provenance import measure_fit
 from phd_core.scene import scene_bounds
 from phd_core.train.gs3d import GAUSSIANS, TrainConfig, fit, train_gaussians
 from phd_core.train.splats import Splats, carve_points, densify, initial_model
@@ -121,6 +123,22 @@ def test_train_writes_ply_and_sidecar_then_loads_with_cameras(tmp_path) -> None:
     (tmp_path / "m.json").write_text("{not json")
     with pytest.raises(InputError, match="sidecar"):
         load_model(out)
+
+
+def test_the_sidecar_records_the_capture_and_the_fit_the_loaded_model_reproduces(tmp_path) -> None:
+    """What identifies lego_200 (its train split's names and centres) and the PSNR on 4 of the
+    training views at 64 px: the same function on the model loaded back gives the same number."""
+    out = tmp_path / "m.ply"
+    train_gaussians(LEGO, views=[0, 10, 20, 30, 40], downscale=8, iterations=20, out=out, progress=False,
+                    init_points=300)
+    recorded = read_sidecar(out)
+    assert (recorded["dataset"], recorded["dataset_format"]) == (str(LEGO.resolve()), "blender")
+    assert recorded["dataset_fingerprint"] == fingerprint(load_blender(LEGO, "train", with_images=False))
+    fit = recorded["training_fit"]
+    assert fit["frames"] == [0, 10, 30, 40] and (fit["width"], fit["height"]) == (64, 64)   # of the 5 views
+    loaded = load_model(out)
+    assert measure_fit(loaded, LEGO).psnr == fit["psnr"]
+    assert loaded.describe()["trained_on"]["training_fit"] == fit
 
 
 def test_loader_refuses_pickles_and_unknown_content(tmp_path) -> None:

@@ -6,9 +6,11 @@ import pytest
 import torch
 
 from phd_core.data import load_blender
+from phd_core.data.identity import fingerprint
 from phd_core.errors import InputError
 from phd_core.eval import psnr
 from phd_core.renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, camera_rays, load_nerf
+from phd_core.renderers.provenance import measure_fit
 from phd_core.scene import frustum_bounds
 from phd_core.train.nerf import TrainSettings, fit, grid_hull, train_nerf
 from phd_core.uq.candidates import hemisphere_cameras
@@ -69,6 +71,20 @@ def test_checkpoint_holds_the_model_and_its_training_cameras(tiny_lego, trained)
     camera = tiny_lego.cameras[2]
     keep = torch.rand(3, loaded.num_units, generator=torch.Generator().manual_seed(1)) >= 0.2
     assert torch.equal(loaded.render(camera, keep), renderer.render(camera, keep))
+
+
+def test_a_checkpoint_trained_from_a_capture_records_it_and_the_fit(tmp_path):
+    """The capture's path, format and fingerprint and the fit on its training views ride in the
+    checkpoint's header; a model trained from a Dataset in memory names no capture."""
+    out = tmp_path / "lego.nerf"
+    trained = train_nerf(LEGO, views=2, downscale=8, iterations=2, seed=0, out=out, progress=False, **TINY)
+    loaded = load_nerf(out)
+    assert loaded.trained_on == trained.trained_on and loaded.trained_on is not None
+    assert (loaded.trained_on.path, loaded.trained_on.format) == (str(LEGO.resolve()), "blender")
+    assert loaded.trained_on.fingerprint == fingerprint(load_blender(LEGO, "train", with_images=False))
+    assert loaded.trained_on.fit == measure_fit(loaded, LEGO)
+    assert train_nerf(load_blender(LEGO, "train", downscale=8, views=1), iterations=1, out=None, progress=False,
+                      **TINY).trained_on is None
 
 
 def test_training_is_seeded(tiny_lego):
