@@ -7,14 +7,14 @@ when the capture it was trained on is found, that capture and the run's own trai
 `phd render --model <run>` renders the frames the run held out, with no --data or --split. A
 model file trained by `phd train` names its capture too: without --data, commands use it.
 
-A capture given with --data must be the one the model was trained on (`check_capture`). One
-in another frame is refused: a capture holding images of the run's own capture at other poses
-(`check_frame`; a splatfacto run, for example, holds its poses in the frame of the
-transforms.json it read, not in that of the COLMAP folder ns-process-data started from), and
-one whose cameras see almost none of the model. One with the recorded fingerprint is the
-model's capture wherever it lies; any other is measured: its photos against the model's renders
-(`phd_core.renderers.provenance`), refused when they fit far worse than the model's own
-training views did, unless the command is told --other-capture.
+A capture given with --data must be the one the model was trained on (`check_capture`).
+Refused are: a capture holding images of the run's own capture at other poses (`check_frame`;
+a splatfacto run, for example, holds its poses in the frame of the transforms.json it read, not
+in that of the COLMAP folder ns-process-data started from); one whose cameras see almost none
+of the model; one other than the recorded capture (known by its fingerprint wherever it lies,
+else by its path) that holds none of the model's training views; and one whose photos fit the
+model far worse than its training views did (`phd_core.renderers.provenance`), as photos of
+another scene at the model's very poses do. --other-capture makes the last three a note.
 """
 
 from __future__ import annotations
@@ -106,9 +106,9 @@ def model_views(model: OpenedModel, data: Path | None, split: str, *, views: int
 def capture_of(model: OpenedModel, data: Path | None) -> Path:
     """`data`, else the capture the model names (a trainer's folder: its run's); an error saying
     what to give when it names none or the capture is no longer where it was."""
-    recorded = model.trained_on
     if data is not None:
         return Path(data)
+    recorded = model.trained_on
     if model.output is not None:
         if model.output.capture is not None:
             return model.output.capture
