@@ -88,6 +88,14 @@ def _open(driver, server) -> None:
           and d_text(d, "message") == "key saved in this browser", what="the model list")
 
 
+def _open_empty(driver, server) -> None:
+    """The page on a server that holds no model yet, with the key given."""
+    driver.get(server.url + "/ui/")
+    _set(driver, "api-key", KEY)
+    driver.find_element(By.CSS_SELECTOR, "#key-form button").click()
+    _wait(driver, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
+
+
 def _in_view(driver, element_id: str) -> bool:
     """Whether the element is shown and lies within the browser window as it is scrolled."""
     return driver.execute_script(
@@ -429,10 +437,7 @@ def test_page_uploads_calibrates_and_deletes_a_model(browser, svc_model_files, t
     cameras.write_text(json.dumps({"frames": [c.to_frame() for c in svc_cameras(3)]}))
     server = BackgroundServer(Settings(data_dir=tmp_path / "data", api_key=KEY))
     try:
-        browser.get(server.url + "/ui/")
-        _set(browser, "api-key", KEY)
-        browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
-        _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
+        _open_empty(browser, server)
         assert browser.find_element(By.ID, "upload-details").get_attribute("open") is not None  # no model: open
         browser.find_element(By.ID, "upload-file").send_keys(str(svc_model_files["ply"]))
         browser.find_element(By.ID, "upload-cameras").send_keys(str(cameras))
@@ -473,10 +478,7 @@ def test_page_refuses_another_captures_cameras_and_uploads_them_when_told(browse
     cameras.write_text(json.dumps({"frames": frames}))
     server = BackgroundServer(Settings(data_dir=tmp_path / "data", api_key=KEY))
     try:
-        browser.get(server.url + "/ui/")
-        _set(browser, "api-key", KEY)
-        browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
-        _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
+        _open_empty(browser, server)
         assert not browser.find_element(By.ID, "upload-other-capture").is_displayed()
         browser.find_element(By.ID, "upload-file").send_keys(str(svc_model_files["ply"]))
         browser.find_element(By.ID, "upload-cameras").send_keys(str(cameras))
