@@ -26,18 +26,10 @@ from pathlib import Path
 from phd_core.data import Dataset, load_dataset, locate, select_views
 from phd_core.data.identity import fingerprint
 from phd_core.errors import InputError, ModelNote
-from phd_core.renderers import Renderer, load_model
+from phd_core.renderers import Renderer, load_model, unseen_views
 from phd_core.renderers.outputs import TrainerOutput, read_output
-from phd_core.renderers.provenance import (
-    FIT_MARGIN,
-    UNSEEN_SHARE,
-    Fit,
-    TrainedOn,
-    falls_short,
-    measure_fit,
-    unseen_views,
-)
-from phd_core.scene import Camera, pose_matches
+from phd_core.renderers.provenance import FIT_MARGIN, Fit, TrainedOn, falls_short, measure_fit
+from phd_core.scene import UNSEEN_SHARE, Camera, pose_matches
 
 from .options import apply_background
 
@@ -161,7 +153,7 @@ def refuse(field: str, problem: str | None, other_capture: bool, instead: str) -
 
 
 def unseen_problem(model: OpenedModel, cameras: list[Camera]) -> str | None:
-    """That most of `cameras` see almost none of the model (`provenance.unseen_views`), or None."""
+    """That most of `cameras` see almost none of the model (`phd_core.renderers.unseen_views`), or None."""
     unseen = unseen_views(model.renderer, cameras)
     if not unseen:
         return None

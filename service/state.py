@@ -24,9 +24,9 @@ from phd_core.renderers import (
     accepts_background,
     load_model_bytes,
     set_background,
+    unseen_views,
 )
-from phd_core.renderers.provenance import UNSEEN_SHARE, unseen_views
-from phd_core.scene import Camera
+from phd_core.scene import UNSEEN_SHARE, Camera
 
 from .budget import MemoryLedger, Reservation, largest_model_file, load_bytes
 from .errors import ServiceError, busy, invalid, not_found

@@ -26,6 +26,7 @@ from .families import (
     model_kind,
     option,
     set_background,
+    unseen_views,
 )
 from .gs2d.family import GS2D
 from .gs3d.family import GS3D
@@ -40,4 +41,5 @@ DEFAULT_FAMILY = GS3D.name      # what `phd train` trains unless told otherwise
 __all__ = ["DEFAULT_FAMILY", "DEFAULT_SIGNAL", "FAMILIES", "NO_CAMERAS_NOTE", "PREMULTIPLIED", "SIGNALS",
            "SNIFF_BYTES", "CameraView", "Family", "RenderMemory", "Renderer", "Signal", "View", "UnknownModelError",
            "accepts_background", "check_keep", "family_of", "family_titles", "load_model", "load_model_bytes",
-           "memory_probe_bytes", "model_kind", "option", "set_background", "signal_channels", "signals_help"]
+           "memory_probe_bytes", "model_kind", "option", "set_background", "signal_channels", "signals_help",
+           "unseen_views"]

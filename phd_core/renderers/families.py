@@ -25,7 +25,7 @@ from typing import Any, Callable, Sequence
 
 from ..errors import InputError, ModelWarning, check_color
 from ..registry import Registry
-from ..scene import Camera
+from ..scene import Camera, unseen_cameras
 from .protocol import Renderer, RenderMemory
 
 SNIFF_BYTES = 4096
@@ -59,7 +59,7 @@ class Family:
     set_background: Callable[[Any, tuple[float, float, float]], None] | None = None
     units: str = "dropout units"                            # what its dropout units are: "splats"
     # Where its content lies: points [P, 3] (splat centres, a NeRF's occupied cells), which
-    # `provenance.unseen_views` projects to tell cameras that see none of it; None: unknown.
+    # `unseen_views` projects to tell cameras that see none of it; None: unknown.
     content_points: Callable[[Any], Any] | None = None
     network: tuple[str, ...] = ()                           # describe() keys the API shows as its network's size
 
@@ -96,6 +96,16 @@ def set_background(renderer: Renderer, color: Sequence[float] | str) -> None:
     setter = FAMILIES[renderer.kind].set_background
     assert setter is not None                  # accepts_background checked it
     setter(renderer, check_color(color, "background"))
+
+
+def unseen_views(renderer: Renderer, cameras: Sequence[Camera]) -> list[int]:
+    """The cameras that see almost none of the model (`scene.unseen_cameras` of its family's
+    `content_points`) when they are most of `cameras`, as another capture's cameras are; [] for a
+    family that does not say where its content lies."""
+    family = FAMILIES.get(renderer.kind)
+    if family is None or family.content_points is None:
+        return []
+    return unseen_cameras(family.content_points(renderer), cameras)
 
 
 def family_titles(conjunction: str) -> str:

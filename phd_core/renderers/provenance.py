@@ -1,5 +1,5 @@
-"""What a model records of the capture it was trained on, how well a capture's photos fit the
-model, and which cameras see none of it: how a capture other than the model's is caught.
+"""What a model records of the capture it was trained on, and how well a capture's photos fit
+the model: how photos other than its capture's are caught.
 
 A trainer records a `TrainedOn` (the `phd train` sidecar's keys, a checkpoint's metadata): the
 capture's path (a hint: captures move), its format, its fingerprint (`phd_core.data.identity`:
@@ -12,9 +12,8 @@ train split), and are not the model's capture's when their fit falls more than F
 below the recorded one (`falls_short`; the measurements that chose the margin are in
 docs/formats.md, "The wrong capture caught").
 
-Without photos, cameras tell only their frame: `unseen_views` are the cameras that see almost
-none of the model (its family's `content_points` in their frustum) when they are most of them,
-as another capture's cameras are when its world frame is not the model's.
+Without photos, cameras tell only their frame: `phd_core.renderers.unseen_views` finds those
+that see almost none of a model.
 """
 
 from __future__ import annotations
@@ -24,21 +23,16 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-import torch
-
 from ..data import Dataset, load_dataset, locate, select_views
 from ..data.identity import fingerprint
 from ..errors import InputError
 from ..scene import Camera, pose_matches
-from .families import FAMILIES
 from .protocol import Renderer
 
 FIT_VIEWS = 4            # views a fit is measured on
 FIT_SIZE = 64            # pixels on their longer side: a few renders of this size cost well under a second
 FIT_MARGIN = 3.0         # dB: photos whose fit falls further below the model's own are not its capture's
                          # (measured: its own photos rewritten lose at most 0.3 dB, another scene's 4.2 or more)
-UNSEEN_SHARE = 0.01      # a view with fewer than 1% of the model's content points in its frustum sees almost none
-CHECKED_POINTS = 20_000  # `unseen_views` projects up to this many content points (every n-th)
 
 
 @dataclass(frozen=True)
@@ -118,30 +112,3 @@ def fit_frames(cameras: Sequence[Camera], training: Sequence[Camera]) -> list[in
 def falls_short(given: Fit, reference: Fit) -> bool:
     """Whether a capture's fit is so far below the model's own that it is another capture."""
     return given.psnr < reference.psnr - FIT_MARGIN
-
-
-def unseen_views(renderer: Renderer, cameras: Sequence[Camera]) -> list[int]:
-    """The cameras that see almost none of the model (fewer than UNSEEN_SHARE of its content
-    points in their frustum) when they are most of `cameras`, as another capture's cameras are,
-    or cameras in another frame; [] otherwise, and for a family that does not say where its
-    content lies."""
-    family = FAMILIES.get(renderer.kind)
-    if family is None or family.content_points is None:
-        return []
-    unseen = empty_frustums(family.content_points(renderer), cameras)
-    return unseen if len(unseen) * 2 > len(cameras) else []
-
-
-def empty_frustums(points: torch.Tensor, cameras: Sequence[Camera]) -> list[int]:
-    """Indices of the cameras whose frustum holds fewer than UNSEEN_SHARE of points [P, 3]."""
-    if not cameras or len(points) == 0:
-        return []
-    checked = points[::max(1, len(points) // CHECKED_POINTS)].double()               # [S, 3]
-    empty = []
-    for i, camera in enumerate(cameras):
-        pixels, depth = camera.project(checked)                                       # [S, 2], [S]
-        inside = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] <= camera.width)
-                  & (pixels[:, 1] >= 0) & (pixels[:, 1] <= camera.height))
-        if inside.double().mean() < UNSEEN_SHARE:
-            empty.append(i)
-    return empty

@@ -1,5 +1,5 @@
 """Pinhole cameras: the `Camera`, its one world-to-pixel projection, pose checks, look-at,
-and which cameras of two lists stand at the same pose.
+which cameras of two lists stand at the same pose, and which cameras see almost none of a scene.
 
 A `Camera` stores a camera-to-world matrix in the OpenGL convention used by Blender and
 nerfstudio frames (+x right, +y up, the camera looks down -z) plus pinhole intrinsics in
@@ -23,6 +23,8 @@ ORTHONORMAL_TOL = 1e-3
 MAX_INTRINSIC = 1e7        # |focal length| and |principal point| in pixels: larger ones overflow projections
 MAX_COORDINATE = 1e6       # |camera position| in scene units: beyond it float32 splat maths loses every digit
 SAME_POSE = 1e-3           # centres this close (x the cameras' spread) and directions this close (radians) coincide
+UNSEEN_SHARE = 0.01        # a camera with fewer than 1% of a scene's points in its frustum sees almost none of it
+CHECKED_POINTS = 20_000    # `unseen_cameras` projects up to this many of the points (every n-th)
 # OpenGL camera axes -> OpenCV camera axes: flip y and z.
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 
@@ -175,3 +177,20 @@ def pose_matches(cameras: Sequence[Camera], others: Sequence[Camera]) -> list[in
     aligned = (forward @ other_forward.T).clamp(-1, 1).acos() <= SAME_POSE             # [N, M]
     same = close & aligned
     return [int(row.nonzero()[0]) if row.any() else None for row in same]
+
+
+def unseen_cameras(points: torch.Tensor, cameras: Sequence[Camera]) -> list[int]:
+    """The cameras that see almost none of points [P, 3] (fewer than UNSEEN_SHARE of them in their
+    frustum) when they are most of `cameras`, as cameras in another world frame than the points
+    are; [] otherwise."""
+    if not cameras or len(points) == 0:
+        return []
+    checked = points[::max(1, len(points) // CHECKED_POINTS)].double()               # [S, 3]
+    unseen = []
+    for i, camera in enumerate(cameras):
+        pixels, depth = camera.project(checked)                                       # [S, 2], [S]
+        inside = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] <= camera.width)
+                  & (pixels[:, 1] >= 0) & (pixels[:, 1] <= camera.height))
+        if inside.double().mean() < UNSEEN_SHARE:
+            unseen.append(i)
+    return unseen if len(unseen) * 2 > len(cameras) else []

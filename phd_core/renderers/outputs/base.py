@@ -1,5 +1,5 @@
 """What every trainer-output reader returns, the registry they join, and the warning when a
-folder's cameras do not see its splats (`provenance.unseen_views`)."""
+folder's cameras do not see its splats (`scene.unseen_cameras`)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,8 @@ import torch
 
 from ...errors import InputError, ModelNote, ModelWarning
 from ...registry import Registry
-from ...scene import Camera, Similarity
+from ...scene import UNSEEN_SHARE, Camera, Similarity, unseen_cameras
 from ..gs3d import GaussianModel, GaussianRenderer
-from ..provenance import UNSEEN_SHARE, unseen_views
 
 
 @dataclass
@@ -66,7 +65,7 @@ def read_output(path: str | Path, within: str | Path | None = None) -> TrainerOu
         if output_format.detect(path):
             output = output_format.read(path, None if within is None else Path(within))
             output.name = output.name or path.resolve().name
-            empty = unseen_views(output.renderer(), output.cameras)
+            empty = unseen_cameras(output.model.means.detach(), output.cameras)
             if empty:
                 output.warnings.append(
                     f"{len(empty)} of the model's {len(output.cameras)} training cameras see almost none of its "
