@@ -1,4 +1,5 @@
-"""Scene geometry: the visual hull against a pixel-by-pixel recount."""
+"""Scene geometry: the visual hull against a pixel-by-pixel recount; which cameras of two lists
+coincide, and which see none of a scene."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import math
 
 import torch
 
-from phd_core.scene import footprint, look_at, visual_hull
+from phd_core.scene import Camera, footprint, look_at, pose_matches, unseen_cameras, visual_hull
 
 
 def test_a_point_is_carved_by_the_one_pixel_it_projects_into() -> None:
@@ -42,3 +43,26 @@ def test_a_ball_covers_the_pixels_its_image_can_touch() -> None:
     alpha[0, int(ball.v0) + 1, int(ball.u1) - 2] = 1.0            # one foreground pixel inside the block
     assert visual_hull(centre, [camera], alpha, radius=0.3).item()
     assert not visual_hull(centre, [camera], torch.zeros(1, 40, 40), radius=0.3).item()
+
+
+def ring(count: int, *, size: int = 20, height: float = 1.0) -> list[Camera]:
+    return [look_at((3 * math.cos(a), 3 * math.sin(a), height), (0, 0, 0), width=size, height=size, fov_x=0.8)
+            for a in torch.arange(count, dtype=torch.float64) * 2 * math.pi / count]
+
+
+def test_pose_matches_pairs_the_same_poses_whatever_their_image_size() -> None:
+    cameras = ring(6)
+    others = [ring(12, size=64)[2 * i] for i in (4, 0, 5)] + ring(5)        # three of them, at another size
+    assert pose_matches(cameras, others) == [1, None, None, None, 0, 2]
+    turned = [look_at((3.0, 0.0, 1.0), (0, 0.01, 0), width=20, height=20, fov_x=0.8)]   # same centre, 3 mrad off
+    assert pose_matches(cameras[:1], turned) == [None] and pose_matches(cameras, []) == [None] * 6
+
+
+def test_unseen_cameras_are_those_that_see_none_of_the_points_when_they_are_most() -> None:
+    points = (torch.rand(500, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.5)
+    seeing = ring(4)                                              # level with the points, looking at them
+    away = [Camera(c.c2w @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64)), c.fx, c.fy,
+                   c.cx, c.cy, c.width, c.height) for c in ring(3)]   # the same turned round, looking outwards
+    assert unseen_cameras(points, seeing[:2] + away) == [2, 3, 4]
+    assert unseen_cameras(points, seeing + away[:2]) == []                   # not most of them: a few stray views
+    assert unseen_cameras(points, seeing) == []
