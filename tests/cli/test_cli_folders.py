@@ -8,6 +8,7 @@ images are renders of the user-frame model, so a right frame scores far above a 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -114,22 +115,45 @@ def test_a_gsplat_run_renders_and_measures_its_held_out_frames(gsplat, capsys, t
     assert len(json.loads(out)["views"]) == 2
 
 
-def test_a_reference_output_folder_renders_its_source_capture(capsys, tmp_path) -> None:
-    """cfg_args' source_path names the COLMAP capture; its own split (every 8th image by name) is the run's."""
+def photographed(capture: Path, seed: int) -> Path:
+    """A COLMAP capture of 10 ring cameras whose photos are renders of `scene_splats(300, seed)`."""
     cameras = scene_cameras(10)
-    model = scene_splats(300, seed=4)
-    capture = tmp_path / "garden"
-    renderer = GaussianRenderer(model, (0.0, 0.0, 0.0))
+    renderer = GaussianRenderer(scene_splats(300, seed=seed), (0.0, 0.0, 0.0))
     write_colmap(capture, cameras, binary=True, images=[renderer.render(c)[0].numpy() for c in cameras])
-    folder = write_output_folder(tmp_path / "output", model, [c for i, c in enumerate(cameras) if i % 8],
-                                 eval_split=False)
+    return capture
+
+
+def reference_run(tmp_path: Path) -> tuple[Path, Path]:
+    """A reference-trainer folder whose cfg_args names its COLMAP capture, trained on all but every 8th view."""
+    capture = photographed(tmp_path / "garden", seed=4)
+    folder = write_output_folder(tmp_path / "output", scene_splats(300, seed=4),
+                                 [c for i, c in enumerate(scene_cameras(10)) if i % 8], eval_split=False)
     cfg = folder / "cfg_args"
     cfg.write_text(cfg.read_text().replace("source_path='/data/x'", f"source_path='{capture}'"))
+    return folder, capture
+
+
+def test_a_reference_output_folder_renders_its_source_capture(capsys, tmp_path) -> None:
+    """cfg_args' source_path names the COLMAP capture; its own split (every 8th image by name) is the run's."""
+    folder, _ = reference_run(tmp_path)
     code, _, err = run(capsys, "render", "--model", folder, "--out", tmp_path / "render")
     assert code == 0, err
     result = metrics(tmp_path / "render")
     # The capture's own test split: its images 0 and 8 by name, numbered within the split.
     assert [v["index"] for v in result["views"]] == [0, 1] and result["split"] == "test" and result["psnr"] > 40
+
+
+def test_a_reference_output_folder_refuses_other_photos_at_its_poses(capsys, tmp_path) -> None:
+    """A trainer's folder records no fit: it is measured on the run's own capture, and a capture at the
+    run's poses with photos of another scene falls far below it; a copy of the run's capture does not."""
+    folder, capture = reference_run(tmp_path)
+    other = photographed(tmp_path / "other", seed=5)
+    code, _, err = run(capsys, "render", "--model", folder, "--data", other, "--out", tmp_path / "other_render")
+    assert code == 2 and f"error: data: {other} is not the capture {folder} was trained on ({capture}): 4 of its " \
+                         "views render at" in err and "dB below the" in err, err
+    copy = shutil.copytree(capture, tmp_path / "copy")
+    code, _, err = run(capsys, "render", "--model", folder, "--data", copy, "--out", tmp_path / "copy_render")
+    assert code == 0 and "note" not in err, err
 
 
 def test_a_split_the_run_does_not_have_names_the_field(splatfacto, capsys, tmp_path) -> None:
