@@ -27,7 +27,7 @@ from phd_core.errors import InputError
 from phd_core.scene import Camera
 from phd_core.uq.candidates import GENERATORS, candidate_cameras, check_option_names, parse_spec
 
-from .options import model_help
+from .options import add_other_capture_arg, model_help
 
 FRAMES = "frames"           # the spec that writes a capture's own frames instead of generating poses
 BLENDER_SPLITS = ("train", "val", "test")   # the split files of a capture without an "all" split
@@ -41,13 +41,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     + f". Or `{FRAMES}[:COUNT]`: the capture's own frames of --split (all, or COUNT evenly spaced), "
                     "from --data or the capture --model was trained on")
     p.add_argument("spec", help=f"e.g. orbit:64, orbit:48,rings=3, spiral:30, jitter:20,angle=10, {FRAMES}")
-    p.add_argument("--model", type=Path, help="its training cameras, else its splats, place the poses: "
-                   + model_help())
-    p.add_argument("--data", type=Path, help="a capture (any format): its train split places the poses")
+    p.add_argument("--model", type=Path, help="its training cameras, else its splats, place the poses (with "
+                   f"{FRAMES}: the capture it was trained on gives them): " + model_help())
+    p.add_argument("--data", type=Path, help="a capture (any format): its train split places the poses (with "
+                   f"{FRAMES}: its frames are the poses; with --model too, checked to be the model's capture)")
     p.add_argument("--cameras", type=Path, help="training cameras: transforms JSON or a reference cameras.json")
     p.add_argument("--split", default=None, help=f"with {FRAMES}: the split whose frames to write (default every "
                    "frame: all, or a Blender capture's train, val and test in turn)")
     p.add_argument("--out", type=Path, help="output JSON (default: print it)")
+    add_other_capture_arg(p)
     p.set_defaults(func=run)
 
 
@@ -87,10 +89,14 @@ def capture_frames(args: argparse.Namespace) -> list[Camera]:
 
         model = open_model(args.model)
         capture = capture_of(model, args.data)
-        load = lambda split: model_views(model, args.data, split, with_images=False).cameras   # noqa: E731
+
+        def load(split: str) -> list[Camera]:
+            return model_views(model, args.data, split, with_images=False, other_capture=args.other_capture).cameras
     elif args.data is not None:
         capture = args.data
-        load = lambda split: load_dataset(capture, split, with_images=False).cameras            # noqa: E731
+
+        def load(split: str) -> list[Camera]:
+            return load_dataset(capture, split, with_images=False).cameras
     else:
         raise InputError("data", f"give --data (a capture) or --model (the capture it was trained on): {FRAMES} "
                                  "writes that capture's frames")
@@ -101,8 +107,12 @@ def capture_frames(args: argparse.Namespace) -> list[Camera]:
         except InputError:
             return False
 
-    splits = [args.split] if args.split is not None else ["all"] if has("all") else [
-        split for split in BLENDER_SPLITS if has(split)] or ["all"]
+    if args.split is not None:
+        splits = [args.split]
+    elif has("all"):
+        splits = ["all"]
+    else:                                       # one file per split (Blender)
+        splits = [split for split in BLENDER_SPLITS if has(split)] or ["all"]
     cameras = [camera for split in splits for camera in load(split)]
     return [cameras[i] for i in select_views(len(cameras), int(count) if count else None)]
 

@@ -26,9 +26,10 @@ def add_background_arg(parser: argparse.ArgumentParser, what: str) -> None:
 
 def add_other_capture_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--other-capture", action="store_true",
-                        help="go on with a capture that is not the one the model was trained on (its photos fit the "
-                             "model far worse than its own training views did, or its cameras see almost none of "
-                             "it: docs/formats.md): a note says so instead of the error")
+                        help="go on with a capture that is not the one the model was trained on (its cameras see "
+                             "almost none of the model, it holds none of the model's training views, or its photos "
+                             "fit the model far worse than the training views did: docs/formats.md): a note says "
+                             "so instead of the error")
 
 
 def parse_background(values: list[str] | None) -> tuple[float, float, float] | None:
