@@ -116,9 +116,10 @@ def capture_of(model: OpenedModel, data: Path | None) -> Path:
 
 def same_capture(data: Path, capture: Path) -> bool:
     """Whether `data` names `capture`: read as the same format, the same file or a folder holding it
-    (a COLMAP scene folder holds its sparse/0 model)."""
+    (a COLMAP scene folder holds its sparse/0 model). Located by their train split, which every
+    format has (a Blender capture has no "all")."""
     try:
-        (data_format, located), (capture_format, target) = locate(data, "all"), locate(capture, "all")
+        (data_format, located), (capture_format, target) = locate(data, "train"), locate(capture, "train")
     except InputError:
         return False
     return data_format is capture_format and target.resolve().is_relative_to(located.resolve())
