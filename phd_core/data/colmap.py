@@ -32,7 +32,7 @@ from ..io import write_bytes_atomic
 from ..scene import Camera
 from ..scene.rotations import quaternion_to_rotation, rotation_to_quaternion
 from .formats import FORMATS, DataFormat
-from .frames import Dataset, build_dataset, holdout_split
+from .frames import Dataset, Photo, build_dataset, holdout_split
 from .poses import POSES, PoseConvention
 
 # model id -> (name, parameter names); the first parameters are the pinhole ones.
@@ -373,12 +373,13 @@ def load_colmap(path: str | Path, split: str = "train", *, downscale: float = 1,
     ext = _model_files(model_dir)
     chosen = [model.images[i] for i in holdout_split(len(model.images), split)]
     cameras = [image_camera(model, image, f"images{ext}") for image in chosen]
-    paths = None
+    photos = None
     if with_images:
         folder = images_dir(model_dir)
-        paths = [folder / image.name for image in chosen]
-        for image, file in zip(chosen, paths):
-            if not file.resolve().is_relative_to(folder.resolve()):
+        photos = [Photo(folder / image.name, (camera.height, camera.width), f"images/{image.name}",
+                        f"the size of its camera {image.camera_id}") for image, camera in zip(chosen, cameras)]
+        for image, photo in zip(chosen, photos):
+            if not photo.path.resolve().is_relative_to(folder.resolve()):
                 raise InputError(f"images{ext}", f"image name {image.name!r} points outside {folder}")
     points = colors = None
     near = far = None
@@ -387,7 +388,7 @@ def load_colmap(path: str | Path, split: str = "train", *, downscale: float = 1,
         assert model.colors is not None  # read_model reads points and colors together
         colors = torch.from_numpy(model.colors.astype(np.float32) / 255)
         near, far = _depth_range(cameras, points)
-    return build_dataset(cameras, paths, path, split,
+    return build_dataset(cameras, photos, path, split,
                          downscale=downscale, views=views, background=background, seed=seed, near=near, far=far,
                          points=points, point_colors=colors, names=[image.name for image in chosen])
 

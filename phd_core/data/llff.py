@@ -24,7 +24,7 @@ import torch
 from ..errors import InputError
 from ..scene import Camera
 from .formats import FORMATS, DataFormat
-from .frames import Dataset, _image_size, build_dataset, holdout_split
+from .frames import Dataset, Photo, build_dataset, holdout_split, image_size
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 FILE = "poses_bounds.npy"
@@ -89,12 +89,16 @@ def load_llff(path: str | Path, split: str = "train", *, downscale: float = 1,
     if with_images and paths is None:
         raise InputError("images", f"no images folder beside {npy}")
     if paths:
-        height, width = _image_size(paths[0], "images")
+        height, width = image_size(paths[0], "images")
         if (height, width) != (cameras[0].height, cameras[0].width):
             cameras = [c.resized(width, height) for c in cameras]
     chosen = holdout_split(len(cameras), split)
-    chosen_paths = [paths[i] for i in chosen] if with_images and paths is not None else None   # raised above
-    return build_dataset([cameras[i] for i in chosen], chosen_paths, root, split, downscale=downscale, views=views,
+    photos = None
+    if with_images and paths is not None:           # with_images and no folder raised above
+        size_from = f"the size of {paths[0].name}, the first image"
+        photos = [Photo(paths[i], (cameras[i].height, cameras[i].width), f"images/{paths[i].name}", size_from)
+                  for i in chosen]
+    return build_dataset([cameras[i] for i in chosen], photos, root, split, downscale=downscale, views=views,
                          background=background, seed=seed,
                          near=float(bounds[:, 0].min()), far=float(bounds[:, 1].max()),
                          names=None if paths is None else [paths[i].name for i in chosen])

@@ -66,7 +66,7 @@ class TrainConfig:
     init_points: int = 6000
     background_splats: int = 0        # a far shell of this many splats for captures without alpha masks
     shell_radius: float = 3.0         # times the largest camera distance from the scene centre
-    splats_per_pixel: float = 4.0     # budget: this many splats per pixel of one view
+    splats_per_pixel: float = 4.0     # budget: this many splats per pixel of one view (the largest)
     densify_from: float = 0.05        # fractions of the run
     densify_until: float = 0.6
     densify_every: int = 100
@@ -245,7 +245,9 @@ def training_background(data: Dataset, given: Sequence[float] | None = None) -> 
         return cast(tuple[float, float, float], tuple(float(v) for v in given))
     if data.alphas is not None or data.images is None:
         return data.background
-    return cast(tuple[float, float, float], tuple(float(v) for v in data.images.mean(dim=(0, 1, 2))))
+    total = torch.stack([image.double().sum(dim=(0, 1)) for image in data.images]).sum(0)     # [3], views of any size
+    pixels = sum(image.shape[0] * image.shape[1] for image in data.images)
+    return cast(tuple[float, float, float], tuple(float(v) / pixels for v in total))
 
 
 def training_extent(data: Dataset, extent: float) -> float:
@@ -396,8 +398,8 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
     extent = training_extent(dataset, extent)
     splats = Splats(model, config, extent)
     background = torch.tensor(training_background(dataset, config.background_rgb))
-    cam0 = dataset.cameras[0]
-    budget = int(config.splats_per_pixel * cam0.width * cam0.height)
+    largest = max(c.width * c.height for c in dataset.cameras)           # views may differ in size
+    budget = int(config.splats_per_pixel * largest)
     n_iter = config.iterations
     densify_from, densify_until = int(config.densify_from * n_iter), int(config.densify_until * n_iter)
     reset_every = int(config.opacity_reset_every * n_iter) if config.opacity_reset_every > 0 else 0

@@ -88,7 +88,7 @@ def test_densify_respects_the_budget() -> None:
 def test_training_reduces_loss_and_is_deterministic(tiny) -> None:
     def train_psnr(model) -> float:
         renders = torch.cat([rasterize(model, c, torch.ones(3)).rgb for c in tiny.cameras])
-        return psnr(renders.clamp(0, 1), tiny.images)
+        return psnr(renders.clamp(0, 1), torch.stack(tiny.images))
 
     trained, _ = fit(tiny, TrainConfig(iterations=100, init_points=800, seed=3), progress=False)
     untrained, _ = fit(tiny, TrainConfig(iterations=1, init_points=800, seed=3), progress=False)
@@ -183,7 +183,7 @@ def test_a_real_capture_starts_from_its_sfm_points_and_a_background_shell() -> N
     scales = model.log_scales[:sfm, 0].exp()
     assert scales.min() < 0.2 * scales.max()
     background = torch.tensor(training_background(data))
-    assert torch.allclose(background, data.images.mean(dim=(0, 1, 2)), atol=1e-6)
+    assert torch.allclose(background, torch.stack(data.images).mean(dim=(0, 1, 2)), atol=1e-6)
     assert training_extent(data, extent) > extent                                   # the cameras' spread
 
 
