@@ -23,8 +23,9 @@ from phd_core.data import frames as frames_module
 from phd_core.data import load_dataset
 from phd_core.data import undistort as undistort_module
 from phd_core.data.colmap import read_model
-from phd_core.errors import InputError, ModelNote
+from phd_core.errors import InputError, ModelNote, ModelWarning
 from phd_core.eval import psnr
+from support.captures import write_llff
 from support.cli import run
 from support.distorted import (
     CAMERA_MODELS,
@@ -268,3 +269,19 @@ def test_real_capture_test_split_loads_undistorted_at_each_views_size() -> None:
     assert len(data.images) == 21 and "SIMPLE_RADIAL" in notes[0]
     assert [tuple(i.shape) for i in data.images] == [(c.height, c.width, 3) for c in data.cameras]
     assert len({tuple(i.shape) for i in data.images}) > 5
+
+
+def test_llff_beside_a_distorted_colmap_model_warns_with_the_fix(capture, tmp_path) -> None:
+    root = tmp_path / "capture"
+    shutil.copytree(capture, root)
+    cameras = load_dataset(root, "all", with_images=False).cameras
+    shutil.rmtree(root / "images")
+    npy = write_llff(root, cameras)
+    with pytest.warns(ModelWarning) as caught:
+        load_dataset(npy, "all", with_images=False)
+    message = str(caught[0].message)
+    assert "OPENCV_FISHEYE" in message and "SIMPLE_RADIAL" in message and f"Give the capture folder {root}" in message
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                # a pinhole model beside it: nothing to say
+        load_dataset(Path(__file__).resolve().parents[3] / "shared" / "data" / "cup_colmap" / "poses_bounds.npy",
+                     "test", with_images=False)
