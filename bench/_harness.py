@@ -224,8 +224,8 @@ def load_test_at_size(data: Path, views: int, size: int):
 def subset(data: Dataset, indices: list[int]) -> Dataset:
     """The views `indices` of `data` (with their images, when it holds any)."""
     return dataclasses.replace(data, cameras=[data.cameras[i] for i in indices],
-                               images=None if data.images is None else data.images[indices],
-                               alphas=None if data.alphas is None else data.alphas[indices],
+                               images=None if data.images is None else [data.images[i] for i in indices],
+                               alphas=None if data.alphas is None else [data.alphas[i] for i in indices],
                                indices=[data.indices[i] for i in indices])
 
 

@@ -55,7 +55,7 @@ def fit_or_reason(renderer: Renderer, capture: Path, split: str = "train") -> di
             "seconds": round(time.perf_counter() - started, 2)}
 
 
-def photos_of(capture: Path, count: int, background: tuple[float, ...]) -> torch.Tensor | None:
+def photos_of(capture: Path, count: int, background: tuple[float, ...]) -> list[torch.Tensor] | None:
     """`count` photos of a capture's train split (evenly spaced) over `background`, or None if refused."""
     try:
         images = load_dataset(capture, "train", views=count, background=background).images

@@ -29,8 +29,8 @@ LEGO = DATA / "lego_200"
 
 def evaluate(model_path: Path, test) -> dict:
     renderer = load_model(model_path)
-    images = torch.cat([renderer.render(c) for c in test.cameras])
-    return {"psnr": round(psnr(images, test.images), 2), "ssim": round(float(ssim(images, test.images).mean()), 4),
+    images, truth = torch.cat([renderer.render(c) for c in test.cameras]), torch.stack(test.images)
+    return {"psnr": round(psnr(images, truth), 2), "ssim": round(float(ssim(images, truth).mean()), 4),
             "splats": renderer.num_units}
 
 

@@ -43,7 +43,7 @@ def run_variant(name: str, args, test) -> dict:
     renderer, train_s = training.result, training.seconds
     preds = [renderer.render(camera)[0] for camera in test.cameras]
     view_psnr = [psnr(p, t) for p, t in zip(preds, test.images)]
-    view_ssim = ssim(torch.stack(preds), test.images).tolist()
+    view_ssim = ssim(torch.stack(preds), torch.stack(test.images)).tolist()
     camera = test.cameras[0]
 
     with_grid = timed(lambda: renderer.render(camera))

@@ -343,7 +343,7 @@ def bench_evidence(renderer, ratio, samples, args, results) -> None:
     summary["spearman_rmse_vs_angle_to_training"] = uqm.spearman(rmse, angles)
     summary["spearman_sigma_max_vs_angle_to_training"] = uqm.spearman([r["sigma_max"] for r in rows], angles)
     if data.alphas is not None:
-        coverage = data.alphas.flatten(1).mean(1).tolist()
+        coverage = [float(alpha.mean()) for alpha in data.alphas]
         summary["spearman_rmse_vs_coverage"] = uqm.spearman(rmse, coverage)
         summary["spearman_sigma_mean_vs_coverage"] = uqm.spearman([r["sigma_mean"] for r in rows], coverage)
     for row, angle in zip(rows, angles):

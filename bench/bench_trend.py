@@ -83,7 +83,7 @@ def measure(path: Path, test, args: argparse.Namespace) -> dict:
         views = phd.uncertainty(renderer, test.cameras, ratio=ratio, samples=args.samples)
         row[key] = phd.sigma_max_bar(views)
     renders = torch.cat([renderer.render(c) for c in test.cameras])
-    row["rmse"] = float(rmse(renders, test.images))
+    row["rmse"] = float(rmse(renders, torch.stack(test.images)))
     print(f"{path}: {row['views']} views, r_drop {row['r_drop']} (fine {row['r_drop_fine']}), "
           f"sigma-max-bar {row['sigma_max_bar']:.4f} (at {args.fixed_ratio}: {row['sigma_max_bar_fixed']:.4f}), "
           f"RMSE {row['rmse']:.4f}", flush=True)

@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from phd_core.errors import InputError
+from phd_core.scene import Camera
+
 from .models import OpenedModel, model_views, open_model
 from .options import add_other_capture_arg, model_help
 from .report import add_progress_args, progress_bar
@@ -59,15 +62,31 @@ def run(args: argparse.Namespace) -> int:
     write_json_atomic(args.out / "metrics.json", {"model": str(args.model), "data": str(data.root),
                                                   "split": args.split, "downscale": downscale, "psnr": mean_psnr,
                                                   "ssim": mean_ssim, "views": per_view})
-    print(f"{len(per_view)} views of {args.split} of {data.root} at {data.cameras[0].width}x{data.cameras[0].height}: "
+    print(f"{len(per_view)} views of {args.split} of {data.root} at {sizes(data.cameras)}: "
           f"PSNR {mean_psnr:.2f} dB, SSIM {mean_ssim:.4f} -> {args.out}")
     return 0
 
 
+def sizes(cameras: list[Camera]) -> str:
+    """The views' size, "240x135", or their range when they differ ("165x220 to 172x229")."""
+    widths, heights = [c.width for c in cameras], [c.height for c in cameras]
+    low, high = f"{min(widths)}x{min(heights)}", f"{max(widths)}x{max(heights)}"
+    return low if low == high else f"{low} to {high}"
+
+
 def training_downscale(model: OpenedModel, data: Path | None, split: str, other_capture: bool) -> float:
-    """The factor that brings the capture to the model's training resolution (1 if unknown)."""
+    """The factor that brings the capture to the model's training resolution (1 if unknown):
+    the width of the capture's camera nearest the model's first training camera over that
+    camera's width. Views may differ in size, so it compares a view with itself: the nearest
+    among the train split's views, else (no train split) among the rendered split's."""
     cams = model.renderer.training_cameras
     if not cams:
         return 1.0
-    full = model_views(model, data, split, views=[0], with_images=False, other_capture=other_capture).cameras[0]
-    return full.width / cams[0].width
+    # the split given first: it refuses a capture in another frame
+    capture = model_views(model, data, split, with_images=False, other_capture=other_capture).cameras
+    try:
+        capture = model_views(model, data, "train", with_images=False, other_capture=other_capture).cameras
+    except InputError:
+        pass
+    nearest = min(capture, key=lambda camera: float((camera.center - cams[0].center).norm()))
+    return nearest.width / cams[0].width

@@ -28,11 +28,13 @@ class InputError(ValueError):
 
 
 class ModelNote(UserWarning):
-    """What a model loader decided that the user should know (the frame it chose, and how well it fits)."""
+    """What a model or capture loader decided that the user should know (the frame it chose,
+    and how well it fits; photos it undistorted, and where it keeps them)."""
 
 
 class ModelWarning(UserWarning):
-    """A loaded model that will probably not give what the user expects (its cameras miss its splats)."""
+    """A loaded model or capture that will probably not give what the user expects (its cameras
+    miss its splats; LLFF poses beside a COLMAP model with lens distortion)."""
 
 
 def _rebuild_error(cls: type[InputError], args: tuple, state: dict) -> InputError:

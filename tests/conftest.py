@@ -20,6 +20,14 @@ from phd_core.renderers.gs3d import write_ply  # noqa: E402
 from support.fixtures import svc_cameras, svc_random_gaussians  # noqa: E402
 
 
+@pytest.fixture(autouse=True, scope="session")
+def phd_cache_dir(tmp_path_factory):
+    """Undistorted photos (phd_core.data.undistort) go to a folder of the test session, never to ~/.cache."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PHD_CACHE_DIR", str(tmp_path_factory.mktemp("phd_cache")))
+        yield
+
+
 @pytest.fixture(scope="session")
 def svc_model_files(tmp_path_factory) -> dict[str, Path]:
     """Two random PLYs and a tiny NeRF checkpoint (with training cameras inside)."""

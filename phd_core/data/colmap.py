@@ -2,15 +2,32 @@
 the images folder beside them: the layout the reference 3DGS trainer reads
 (`scene/images/`, `scene/sparse/0/`).
 
+The files are parsed by the project's own bounded reader (`phd_core.data.colmap_files`), not by
+pycolmap: the service reads COLMAP models inside uploaded folders, and a C++ reader fed hostile
+bytes can take the whole process down. pycolmap does the camera maths
+(`phd_core.data.undistort`) and, in the tests, writes the models.
+
 Convention: images.{txt,bin} store the WORLD-TO-CAMERA rotation as a quaternion (qw, qx, qy,
 qz) and the translation t, camera axes OpenCV (x right, y down, z forward); a world point X
 lands at R X + t. The project's `Camera` is camera-to-world OpenGL, so
 c2w = [R^T | -R^T t] @ diag(1, -1, -1, 1). COLMAP puts the centre of the top-left pixel at
 (0.5, 0.5), as `Camera` does, so cx, cy carry over unchanged.
 
-Camera models: SIMPLE_PINHOLE and PINHOLE; the radial and OPENCV models only when every
-distortion coefficient is exactly 0. Anything else (a distorted or fisheye model) is
-refused with the camera model named: undistort first (`colmap image_undistorter`).
+Camera models: every one COLMAP writes for cameras and phones. SIMPLE_PINHOLE, PINHOLE, and
+the radial and OPENCV models whose distortion coefficients are all exactly 0, are pinholes;
+any other (distorted, fisheye, FOV) becomes the undistorted PINHOLE camera pycolmap gives, and
+its photos are undistorted when loaded (`phd_core.data.undistort`: cached, with a note).
+
+Photo sizes: the intrinsics (and width, height) of a COLMAP camera are those of the photos
+COLMAP saw; the images folder may hold them downscaled (`images_N` folders, photos shrunk
+after reconstruction). Each camera's photo size is measured on the header of its first photo
+(by name), and its intrinsics are scaled by photo size / camera size per axis, as gsplat's and
+nerfstudio's readers do; a photo whose aspect ratio differs from its camera's by more than a
+rounding of one pixel per side is refused, naming it, and so is a photo whose size differs
+from the other photos of its camera. Poses-only loading (`with_images=False`) reads these
+headers too (one per camera: the camera must be the same with or without images) and
+decodes no pixels; without an images folder, the cameras keep the model's size. Views may
+differ in size (portrait and landscape cameras, per-image cameras after undistortion).
 
 Splits, as LLFF-style evaluation does: images sorted by name, every 8th (0, 8, 16, ...) is
 "test", the rest "train"; "all" is every image. points3D gives the SfM points and their
@@ -19,251 +36,38 @@ colours (`Dataset.points`), which the 3DGS trainer starts from.
 
 from __future__ import annotations
 
-import struct
-from dataclasses import dataclass, field
+import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, ModelNote
 from ..io import write_bytes_atomic
 from ..scene import Camera
 from ..scene.rotations import quaternion_to_rotation, rotation_to_quaternion
+from .colmap_files import (
+    MODEL_IDS,
+    MODELS,
+    ColmapCamera,
+    ColmapImage,
+    ColmapModel,
+    model_files,
+    read_cameras_binary,
+    read_cameras_text,
+    read_model,
+)
 from .formats import FORMATS, DataFormat
-from .frames import Dataset, build_dataset, holdout_split
+from .frames import Dataset, Photo, build_dataset, holdout_split, image_size
 from .poses import POSES, PoseConvention
 
-# model id -> (name, parameter names); the first parameters are the pinhole ones.
-MODELS = {
-    0: ("SIMPLE_PINHOLE", ("f", "cx", "cy")),
-    1: ("PINHOLE", ("fx", "fy", "cx", "cy")),
-    2: ("SIMPLE_RADIAL", ("f", "cx", "cy", "k")),
-    3: ("RADIAL", ("f", "cx", "cy", "k1", "k2")),
-    4: ("OPENCV", ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")),
-    5: ("OPENCV_FISHEYE", ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")),
-    6: ("FULL_OPENCV", ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")),
-    7: ("FOV", ("fx", "fy", "cx", "cy", "omega")),
-    8: ("SIMPLE_RADIAL_FISHEYE", ("f", "cx", "cy", "k")),
-    9: ("RADIAL_FISHEYE", ("f", "cx", "cy", "k1", "k2")),
-    10: ("THIN_PRISM_FISHEYE", ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "sx1", "sy1")),
-}
-MODEL_IDS = {name: model_id for model_id, (name, _) in MODELS.items()}
+if TYPE_CHECKING:
+    from .undistort import UndistortionCache
+
 # Models that are a pinhole when their distortion coefficients are all zero (fisheyes never are).
 PINHOLE_WHEN_UNDISTORTED = {"SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}
 _GL_FLIP = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
-_OBSERVATION = np.dtype([("xy", "<f8", 2), ("point3d_id", "<i8")])
-
-
-@dataclass
-class ColmapCamera:
-    model: str
-    width: int
-    height: int
-    params: tuple[float, ...]
-
-
-@dataclass
-class ColmapImage:
-    image_id: int
-    qvec: tuple[float, float, float, float]     # (qw, qx, qy, qz), world-to-camera
-    tvec: tuple[float, float, float]
-    camera_id: int
-    name: str
-    xys: np.ndarray = field(repr=False)          # [K, 2] observed keypoints, pixels
-    point3d_ids: np.ndarray = field(repr=False)  # [K] the SfM point each one is, -1 for none
-
-
-@dataclass
-class ColmapModel:
-    cameras: dict[int, ColmapCamera]
-    images: list[ColmapImage]                     # sorted by name
-    points: np.ndarray | None                     # [P, 3] float64, or None without points3D
-    colors: np.ndarray | None                     # [P, 3] uint8
-    point_ids: np.ndarray | None                  # [P] int64
-
-
-# ----------------------------------------------------------------------------- reading
-
-class _Bytes:
-    """Bounded reads from a binary file: running past the end names the file and the record."""
-
-    def __init__(self, path: Path):
-        self.path, self.data, self.pos = path, _read(path, binary=True), 0
-
-    def take(self, fmt: str, what: str) -> tuple:
-        size = struct.calcsize("<" + fmt)
-        if self.pos + size > len(self.data):
-            raise InputError(self.path.name, f"{self.path} ends early, inside {what}")
-        values = struct.unpack_from("<" + fmt, self.data, self.pos)
-        self.pos += size
-        return values
-
-    def array(self, dtype: np.dtype, count: int, what: str) -> np.ndarray:
-        size = dtype.itemsize * count
-        if count < 0 or self.pos + size > len(self.data):
-            raise InputError(self.path.name, f"{self.path} ends early, inside {what}")
-        out = np.frombuffer(self.data, dtype, count, self.pos)
-        self.pos += size
-        return out
-
-    def name(self, what: str) -> str:
-        end = self.data.find(b"\0", self.pos)
-        if end < 0:
-            raise InputError(self.path.name, f"{self.path} ends early, inside {what}")
-        raw, self.pos = self.data[self.pos:end], end + 1
-        try:
-            return raw.decode("utf-8")
-        except UnicodeDecodeError:
-            raise InputError(self.path.name, f"{what}: the image name is not UTF-8") from None
-
-
-def _read(path: Path, binary: bool = False) -> Any:
-    try:
-        return path.read_bytes() if binary else path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path.name, f"cannot read {path}: {exc}") from None
-
-
-def _text_lines(path: Path) -> list[tuple[int, list[str]]]:
-    """(line number, words) of every non-comment line; blank lines kept (images.txt needs them)."""
-    return [(n, line.split()) for n, line in enumerate(_read(path).splitlines(), 1) if not line.startswith("#")]
-
-
-def _numbers(words: Sequence[str], kind: type, path: Path, line: int, what: str) -> list:
-    try:
-        return [kind(w) for w in words]
-    except ValueError:
-        raise InputError(path.name, f"line {line}: {what} must be numbers, got {' '.join(words)!r}") from None
-
-
-def _camera(model: str, width: int, height: int, params: Sequence[float], where: str) -> ColmapCamera:
-    if model not in MODEL_IDS:
-        raise InputError(where, f"unknown camera model {model!r}")
-    expected = len(MODELS[MODEL_IDS[model]][1])
-    if len(params) != expected:
-        raise InputError(where, f"camera model {model} has {expected} parameters, got {len(params)}")
-    return ColmapCamera(model, int(width), int(height), tuple(float(p) for p in params))
-
-
-def read_cameras_text(path: Path) -> dict[int, ColmapCamera]:
-    cameras = {}
-    for n, words in _text_lines(path):
-        if not words:
-            continue
-        if len(words) < 4:
-            raise InputError(path.name, f"line {n}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
-        camera_id, width, height = _numbers([words[0], *words[2:4]], int, path, n, "CAMERA_ID, WIDTH, HEIGHT")
-        params = _numbers(words[4:], float, path, n, "PARAMS")
-        cameras[camera_id] = _camera(words[1], width, height, params, f"{path.name}: camera {camera_id}")
-    return cameras
-
-
-def read_cameras_binary(path: Path) -> dict[int, ColmapCamera]:
-    f = _Bytes(path)
-    cameras = {}
-    (count,) = f.take("Q", "the camera count")
-    for i in range(count):
-        camera_id, model_id, width, height = f.take("iiQQ", f"camera record {i}")
-        if model_id not in MODELS:
-            raise InputError(path.name, f"camera {camera_id}: unknown camera model id {model_id}")
-        name, params = MODELS[model_id]
-        values = f.take("d" * len(params), f"camera {camera_id}'s parameters")
-        cameras[camera_id] = _camera(name, width, height, values, f"{path.name}: camera {camera_id}")
-    return cameras
-
-
-def read_images_text(path: Path) -> list[ColmapImage]:
-    lines = _text_lines(path)
-    # The first line of a record is never blank; its POINTS2D line may be.
-    while lines and not lines[-1][1]:
-        lines.pop()
-    images = []
-    i = 0
-    while i < len(lines):
-        n, words = lines[i]
-        if not words:
-            i += 1
-            continue
-        if len(words) < 10:
-            raise InputError(path.name, f"line {n}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
-        image_id, camera_id = _numbers([words[0], words[8]], int, path, n, "IMAGE_ID and CAMERA_ID")
-        pose = _numbers(words[1:8], float, path, n, "QW QX QY QZ TX TY TZ")
-        points = lines[i + 1][1] if i + 1 < len(lines) else []
-        if len(points) % 3:
-            raise InputError(path.name, f"line {n + 1}: POINTS2D must be triples X Y POINT3D_ID")
-        values = np.array(_numbers(points, float, path, n + 1, "POINTS2D"), dtype=np.float64).reshape(-1, 3)
-        images.append(ColmapImage(image_id, tuple(pose[:4]), tuple(pose[4:]), camera_id, " ".join(words[9:]),
-                                  values[:, :2], values[:, 2].astype(np.int64)))
-        i += 2
-    return images
-
-
-def read_images_binary(path: Path) -> list[ColmapImage]:
-    f = _Bytes(path)
-    images = []
-    (count,) = f.take("Q", "the image count")
-    for i in range(count):
-        record = f.take("i7di", f"image record {i}")
-        name = f.name(f"image {record[0]}'s name")
-        (num_points,) = f.take("Q", f"image {record[0]}'s keypoint count")
-        obs = f.array(_OBSERVATION, num_points, f"image {record[0]}'s keypoints")
-        images.append(ColmapImage(record[0], record[1:5], record[5:8], record[8], name,
-                                  obs["xy"].copy(), obs["point3d_id"].copy()))
-    return images
-
-
-def read_points_text(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    ids, xyz, rgb = [], [], []
-    for n, words in _text_lines(path):
-        if not words:
-            continue
-        if len(words) < 8 or (len(words) - 8) % 2:
-            raise InputError(path.name, f"line {n}: expected POINT3D_ID X Y Z R G B ERROR TRACK[] (pairs)")
-        ids.append(_numbers(words[:1], int, path, n, "POINT3D_ID")[0])
-        xyz.append(_numbers(words[1:4], float, path, n, "X Y Z"))
-        rgb.append(_numbers(words[4:7], int, path, n, "R G B"))
-    colours = np.clip(np.array(rgb), 0, 255).astype(np.uint8).reshape(-1, 3)
-    return np.array(xyz, dtype=np.float64).reshape(-1, 3), colours, np.array(ids, dtype=np.int64)
-
-
-def read_points_binary(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    f = _Bytes(path)
-    (count,) = f.take("Q", "the point count")
-    ids, xyz, rgb = np.empty(count, np.int64), np.empty((count, 3)), np.empty((count, 3), np.uint8)
-    for i in range(count):
-        record = f.take("Q3d3BdQ", f"point record {i}")
-        ids[i], xyz[i], rgb[i] = record[0], record[1:4], record[4:7]
-        f.array(np.dtype("<i4"), 2 * record[8], f"point {record[0]}'s track")
-    return xyz, rgb, ids
-
-
-def read_model(model_dir: str | Path, *, with_points: bool = True) -> ColmapModel:
-    """Read a COLMAP sparse model folder, binary files preferred over text when both exist."""
-    model_dir = Path(model_dir)
-    found = _model_files(model_dir)
-    if found is None:
-        raise InputError("data", f"{model_dir} holds no COLMAP model (cameras.bin/.txt with images.bin/.txt)")
-    ext = found
-    readers = {".bin": (read_cameras_binary, read_images_binary, read_points_binary),
-               ".txt": (read_cameras_text, read_images_text, read_points_text)}[ext]
-    cameras = readers[0](model_dir / f"cameras{ext}")
-    images = sorted(readers[1](model_dir / f"images{ext}"), key=lambda im: im.name)
-    if not images:
-        raise InputError(f"images{ext}", f"{model_dir / f'images{ext}'} registers no image")
-    points = colors = ids = None
-    if with_points and (model_dir / f"points3D{ext}").is_file():
-        points, colors, ids = readers[2](model_dir / f"points3D{ext}")
-    return ColmapModel(cameras, images, points, colors, ids)
-
-
-def _model_files(model_dir: Path) -> str | None:
-    """'.bin' or '.txt' when `model_dir` holds a COLMAP model in that form, else None."""
-    for ext in (".bin", ".txt"):
-        if (model_dir / f"cameras{ext}").is_file() and (model_dir / f"images{ext}").is_file():
-            return ext
-    return None
 
 
 # ----------------------------------------------------------------------------- conversion
@@ -307,33 +111,84 @@ def write_colmap_text(folder: Path, cameras: Sequence[Camera], names: Sequence[s
         write_bytes_atomic(folder / file, ("\n".join(lines) + "\n").encode())
 
 
-def pinhole(camera: ColmapCamera, where: str) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) of a pinhole-type camera; distortion refused with the model named."""
+Intrinsics = tuple[float, float, float, float, int, int]      # fx, fy, cx, cy, width, height
+
+
+def is_distorted(camera: ColmapCamera) -> bool:
+    """Whether a camera is other than a pinhole: a distorted, fisheye or FOV model (a radial or
+    OPENCV model with every distortion coefficient exactly 0 is a pinhole)."""
     names = MODELS[MODEL_IDS[camera.model]][1]
-    values = dict(zip(names, camera.params))
-    if camera.model not in PINHOLE_WHEN_UNDISTORTED or any(values[k] != 0 for k in names[3 if "f" in values else 4:]):
-        raise InputError(where, f"camera model {camera.model} with lens distortion is not supported: undistort the "
-                         "images first (colmap image_undistorter writes a PINHOLE model)")
+    first_distortion = 3 if names[0] == "f" else 4
+    return camera.model not in PINHOLE_WHEN_UNDISTORTED or any(p != 0 for p in camera.params[first_distortion:])
+
+
+def pinhole(camera: ColmapCamera) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of a camera that is not distorted (`is_distorted`)."""
+    values = dict(zip(MODELS[MODEL_IDS[camera.model]][1], camera.params))
     fx = values.get("fx", values.get("f"))
-    assert fx is not None                  # every pinhole-type model has f or fx
+    assert fx is not None and not is_distorted(camera)   # every pinhole-type model has f or fx
     return fx, values.get("fy", fx), values["cx"], values["cy"]
 
 
-def image_camera(model: ColmapModel, image: ColmapImage, file: str) -> Camera:
-    """The project's Camera of one registered image."""
+def distorted_models(folder: Path) -> list[str]:
+    """The distorted camera models of the COLMAP model in `folder` (as `find_model` finds it);
+    empty without a readable model."""
+    model_dir = find_model(folder)
+    if model_dir is None:
+        return []
+    ext = model_files(model_dir)
+    try:
+        cameras = (read_cameras_binary if ext == ".bin" else read_cameras_text)(model_dir / f"cameras{ext}")
+    except InputError:
+        return []
+    return sorted({c.model for c in cameras.values() if is_distorted(c)})
+
+
+def check_photo_size(camera: ColmapCamera, size: tuple[int, int], where: str) -> None:
+    """Refuse a photo size (height, width) whose aspect ratio is not its camera's up to a
+    rounding of one pixel: some one scale s must give |s W - width| <= 1 and |s H - height| <= 1."""
+    (height, width), (cam_w, cam_h) = size, (camera.width, camera.height)
+    if max((width - 1) / cam_w, (height - 1) / cam_h) > min((width + 1) / cam_w, (height + 1) / cam_h):
+        raise InputError(where, f"the photo is {width}x{height} but its camera is {cam_w}x{cam_h}: their aspect "
+                         f"ratios ({width / height:.4f}, {cam_w / cam_h:.4f}) differ by more than a rounding of "
+                         "one pixel, so the photo is not the camera's picture downscaled")
+
+
+def camera_intrinsics(camera: ColmapCamera, size: tuple[int, int] | None, where: str) -> Intrinsics:
+    """(fx, fy, cx, cy, width, height) of a COLMAP camera for photos of `size` (height, width;
+    None: the camera's own size): a pinhole's intrinsics scaled per axis, or the undistorted
+    pinhole pycolmap gives for a distorted camera at that size."""
+    if size is not None:
+        check_photo_size(camera, size, where)
+    height, width = size or (camera.height, camera.width)
+    if is_distorted(camera):
+        from . import undistort  # pycolmap takes half a second to import: only distorted captures pay it
+
+        distorted = undistort.distorted_camera(camera.model, camera.width, camera.height, camera.params,
+                                               (height, width), where)
+        return undistort.undistorted_pinhole(distorted, where)
+    fx, fy, cx, cy = pinhole(camera)
+    sx, sy = width / camera.width, height / camera.height
+    return fx * sx, fy * sy, cx * sx, cy * sy, width, height
+
+
+def image_camera(model: ColmapModel, image: ColmapImage, file: str, intrinsics: Intrinsics | None = None) -> Camera:
+    """The project's Camera of one registered image; `intrinsics` from `camera_intrinsics`
+    (default: its camera's, at the camera's own size)."""
     where = f"{file}: image {image.name!r}"
     if image.camera_id not in model.cameras:
         raise InputError(where, f"camera_id {image.camera_id} is not in the cameras file")
-    colmap_camera = model.cameras[image.camera_id]
-    fx, fy, cx, cy = pinhole(colmap_camera, f"{file.replace('images', 'cameras')}: camera {image.camera_id}")
     if not np.isfinite(image.qvec).all() or not np.isfinite(image.tvec).all() or not any(image.qvec):
         raise InputError(where, "the pose (quaternion, translation) must be finite, with a non-zero quaternion")
+    if intrinsics is None:
+        intrinsics = camera_intrinsics(model.cameras[image.camera_id], None,
+                                       f"{file.replace('images', 'cameras')}: camera {image.camera_id}")
     rotation = qvec_to_rotation(image.qvec)                              # world -> camera
     c2w = torch.eye(4, dtype=torch.float64)
     c2w[:3, :3] = rotation.T
     c2w[:3, 3] = -rotation.T @ torch.tensor(image.tvec, dtype=torch.float64)
     try:
-        return Camera(c2w @ _GL_FLIP, fx, fy, cx, cy, colmap_camera.width, colmap_camera.height)
+        return Camera(c2w @ _GL_FLIP, *intrinsics)
     except InputError as exc:
         raise InputError(f"{where}.{exc.field}", exc.reason) from None
 
@@ -343,18 +198,41 @@ def image_camera(model: ColmapModel, image: ColmapImage, file: str) -> Camera:
 def find_model(path: Path) -> Path | None:
     """The COLMAP model folder of a scene: `path` itself, `path/sparse/0` or `path/sparse`."""
     for candidate in (path, path / "sparse" / "0", path / "sparse"):
-        if candidate.is_dir() and _model_files(candidate) is not None:
+        if candidate.is_dir() and model_files(candidate) is not None:
             return candidate
     return None
 
 
-def images_dir(model_dir: Path) -> Path:
-    """The images folder beside the model: scene/images for scene/sparse/0 (or scene/sparse)."""
+def images_dir(model_dir: Path) -> Path | None:
+    """The images folder beside the model: scene/images for scene/sparse/0 (or scene/sparse); None without one."""
     for base in (model_dir, model_dir.parent, model_dir.parent.parent):
         if (base / "images").is_dir():
             return base / "images"
-    raise InputError("images", f"no images folder beside the COLMAP model {model_dir} (expected scene/images "
-                     "next to scene/sparse/0)")
+    return None
+
+
+def photo_paths(model: ColmapModel, folder: Path, file: str) -> dict[str, Path]:
+    """Image name -> its file in `folder`; a name that points outside the folder is refused."""
+    paths = {}
+    for image in model.images:
+        path = folder / image.name
+        if not path.resolve().is_relative_to(folder.resolve()):
+            raise InputError(file, f"image name {image.name!r} points outside {folder}")
+        paths[image.name] = path
+    return paths
+
+
+Measured = tuple[str, tuple[int, int]]                         # a photo's name and its (height, width)
+
+
+def photo_sizes(model: ColmapModel, cameras: set[int], paths: dict[str, Path]) -> dict[int, Measured]:
+    """Camera id -> (name, (height, width)) of the camera's first photo (by name) found in the
+    images folder, read from its header: the size of that camera's photos (module docstring)."""
+    sizes: dict[int, Measured] = {}
+    for image in model.images:                                     # sorted by name
+        if image.camera_id in cameras and image.camera_id not in sizes and paths[image.name].is_file():
+            sizes[image.camera_id] = (image.name, image_size(paths[image.name], f"images/{image.name}"))
+    return sizes
 
 
 def load_colmap(path: str | Path, split: str = "train", *, downscale: float = 1,
@@ -362,24 +240,37 @@ def load_colmap(path: str | Path, split: str = "train", *, downscale: float = 1,
                 seed: int | None = None, with_images: bool = True) -> Dataset:
     """Load a COLMAP scene (its folder, its sparse/ or sparse/0 folder): cameras, images and SfM points.
 
-    near/far: the 1st and 99th percentile of the SfM points' depths in front of the cameras
-    (widened by 10%), None without points3D.
+    Cameras at their photos' size, undistorted when the COLMAP camera has distortion (module
+    docstring). near/far: the 1st and 99th percentile of the SfM points' depths in front of
+    the cameras (widened by 10%), None without points3D.
     """
     path = Path(path)
     model_dir = find_model(path)
     if model_dir is None:
         raise InputError("data", f"no COLMAP model in {path} (looked in ., sparse/0 and sparse)")
     model = read_model(model_dir)
-    ext = _model_files(model_dir)
+    file = f"images{model_files(model_dir)}"
     chosen = [model.images[i] for i in holdout_split(len(model.images), split)]
-    cameras = [image_camera(model, image, f"images{ext}") for image in chosen]
-    paths = None
+    used = {image.camera_id for image in chosen} & model.cameras.keys()      # a missing one: image_camera says so
+    folder = images_dir(model_dir)
+    if with_images and folder is None:
+        raise InputError("images", f"no images folder beside the COLMAP model {model_dir} (expected scene/images "
+                         "next to scene/sparse/0)")
+    paths = {} if folder is None else photo_paths(model, folder, file)
+    sizes = {} if folder is None else photo_sizes(model, used, paths)
+    intrinsics = {cid: camera_intrinsics(model.cameras[cid], sizes[cid][1] if cid in sizes else None,
+                                         f"images/{sizes[cid][0]}" if cid in sizes else
+                                         f"{file.replace('images', 'cameras')}: camera {cid}")
+                  for cid in sorted(used)}
+    cameras = [image_camera(model, image, file, intrinsics.get(image.camera_id)) for image in chosen]
+    distorted = sorted({model.cameras[cid].model for cid in used if is_distorted(model.cameras[cid])})
+    photos = cache = None
     if with_images:
-        folder = images_dir(model_dir)
-        paths = [folder / image.name for image in chosen]
-        for image, file in zip(chosen, paths):
-            if not file.resolve().is_relative_to(folder.resolve()):
-                raise InputError(f"images{ext}", f"image name {image.name!r} points outside {folder}")
+        if distorted:
+            from .undistort import UndistortionCache
+
+            cache = UndistortionCache()
+        photos = [_photo(model, image, paths[image.name], sizes.get(image.camera_id), cache) for image in chosen]
     points = colors = None
     near = far = None
     if model.points is not None and len(model.points):
@@ -387,9 +278,32 @@ def load_colmap(path: str | Path, split: str = "train", *, downscale: float = 1,
         assert model.colors is not None  # read_model reads points and colors together
         colors = torch.from_numpy(model.colors.astype(np.float32) / 255)
         near, far = _depth_range(cameras, points)
-    return build_dataset(cameras, paths, path, split,
-                         downscale=downscale, views=views, background=background, seed=seed, near=near, far=far,
-                         points=points, point_colors=colors, names=[image.name for image in chosen])
+    dataset = build_dataset(cameras, photos, path, split,
+                            downscale=downscale, views=views, background=background, seed=seed, near=near, far=far,
+                            points=points, point_colors=colors, names=[image.name for image in chosen])
+    if cache is not None and cache.used:
+        warnings.warn(cache.note(path, distorted), ModelNote, stacklevel=2)
+    return dataset
+
+
+def _photo(model: ColmapModel, image: ColmapImage, path: Path, measured: Measured | None,
+           cache: UndistortionCache | None) -> Photo:
+    """The Photo of one image: the size its camera's photos were measured to have (else the
+    camera's own), undistorted through `cache` when its camera is distorted."""
+    camera = model.cameras[image.camera_id]
+    if measured is None:
+        size, size_from = (camera.height, camera.width), f"the size of its camera {image.camera_id}"
+    else:
+        size, size_from = measured[1], f"the size of camera {image.camera_id}'s photos, measured on {measured[0]}"
+    field = f"images/{image.name}"
+    if not is_distorted(camera):
+        return Photo(path, size, field, size_from)
+    from .undistort import UndistortedPhoto, distorted_camera
+
+    assert cache is not None                 # load_colmap makes one when a camera is distorted
+    return UndistortedPhoto(path, size, field, size_from, cache=cache,
+                            camera=distorted_camera(camera.model, camera.width, camera.height, camera.params, size,
+                                                    field))
 
 
 def _depth_range(cameras: list[Camera], points: torch.Tensor) -> tuple[float | None, float | None]:

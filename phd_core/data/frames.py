@@ -9,9 +9,10 @@ Images become float32 RGB in [0, 1], composited on a solid background. Downscali
 averages PREMULTIPLIED colour (rgb * alpha) and alpha, then composites, so object edges
 blend with the background exactly as a lower-resolution render would, without dark or
 light fringes. An integer factor that divides the image size averages exact pixel blocks;
-any other factor uses antialiased bilinear resampling. All images of a dataset must have
-one size. Pillow reads 16-bit grayscale PNGs at full depth but reduces 16-bit colour PNGs
-to 8 bits; both come out in [0, 1].
+any other factor uses antialiased bilinear resampling. Each view has its own size (its
+camera's): `Dataset.images` is a list of per-view tensors, one size or several (portrait and
+landscape photos, per-image cameras after undistortion). Pillow reads 16-bit grayscale PNGs
+at full depth but reduces 16-bit colour PNGs to 8 bits; both come out in [0, 1].
 """
 
 from __future__ import annotations
@@ -42,14 +43,15 @@ _PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV only with ze
 class Dataset:
     """Cameras and (optionally) images of the selected frames of one split.
 
-    `images` and `alphas` are None when loaded with `with_images=False` (PH-Dropout
-    calibration needs training poses, not training pixels); `alphas` is also None when the
-    image files have no alpha channel.
+    `images` and `alphas` hold one tensor per view, each at its camera's size (views may
+    differ in size); `torch.stack(images)` gives [V, H, W, 3] when they do not. Both are None
+    when loaded with `with_images=False` (PH-Dropout calibration needs training poses, not
+    training pixels); `alphas` is also None when the image files have no alpha channel.
     """
 
-    cameras: list[Camera]          # at the loaded (downscaled) resolution
-    images: torch.Tensor | None    # [V, H, W, 3] float32 in [0, 1], composited on `background`
-    alphas: torch.Tensor | None    # [V, H, W] float32 in [0, 1]
+    cameras: list[Camera]                 # at the loaded (downscaled) resolution
+    images: list[torch.Tensor] | None     # per view [H_v, W_v, 3] float32 in [0, 1], composited on `background`
+    alphas: list[torch.Tensor] | None     # per view [H_v, W_v] float32 in [0, 1]
     indices: list[int]             # which frames of the split these are
     root: Path
     split: str
@@ -125,11 +127,11 @@ def holdout_split(total: int, split: str) -> list[int]:
     return list(chosen)
 
 
-def build_dataset(cameras: list[Camera], paths: list[Path] | None, root: Path, split: str, *, downscale: float,
+def build_dataset(cameras: list[Camera], photos: list[Photo] | None, root: Path, split: str, *, downscale: float,
                   views: int | Sequence[int] | None, background: Sequence[float], seed: int | None,
                   near: float | None, far: float | None, points: torch.Tensor | None = None,
                   point_colors: torch.Tensor | None = None, names: list[str] | None = None) -> Dataset:
-    """A Dataset from full-resolution cameras of a split and their image files (None: no images):
+    """A Dataset from full-resolution cameras of a split and their photos (None: no images):
     select views, downscale, read the images as the transforms layouts do."""
     bg = check_color(background, "background")
     _check_downscale(downscale)
@@ -137,11 +139,11 @@ def build_dataset(cameras: list[Camera], paths: list[Path] | None, root: Path, s
     full_res = [cameras[i] for i in indices]
     scaled = [camera.scaled(downscale) for camera in full_res] if downscale != 1 else full_res
     images = alphas = None
-    if paths is not None:
+    if photos is not None:
         for i in indices:
-            if not paths[i].is_file():
-                raise InputError("images", f"image not found: {paths[i]}")
-        images, alphas = _read_images([paths[i] for i in indices], indices, full_res, scaled[0], bg)
+            if not photos[i].path.is_file():
+                raise InputError(photos[i].file_field, f"image not found: {photos[i].path}")
+        images, alphas = _read_images([photos[i] for i in indices], scaled, bg)
     return Dataset(scaled, images, alphas, indices, root, split, bg, near, far, points, point_colors,
                    None if names is None else [names[i] for i in indices])
 
@@ -171,7 +173,7 @@ def load_frames(json_path: Path, split: str, *, default_near_far: tuple[float | 
     height = width = None
     if with_images or any(not {"w", "h"} <= (defaults.keys() | frames[i].keys()) for i in indices):
         first = paths[0] if paths else _image_path(base, frames[indices[0]], indices[0])
-        height, width = _image_size(first, f"frames[{indices[0]}].file_path")
+        height, width = image_size(first, f"frames[{indices[0]}].file_path")
     full_res = []
     for i in indices:
         try:
@@ -182,39 +184,68 @@ def load_frames(json_path: Path, split: str, *, default_near_far: tuple[float | 
 
     images = alphas = None
     if paths is not None:           # with_images
-        images, alphas = _read_images(paths, indices, full_res, cameras[0], bg)
+        size_from = f"the JSON's w/h, else the size of frame {indices[0]}'s image"
+        photos = [Photo(path, (camera.height, camera.width), f"frames[{i}]", size_from, f"frames[{i}].file_path")
+                  for path, i, camera in zip(paths, indices, full_res)]
+        images, alphas = _read_images(photos, cameras, bg)
     names = [frames[i].get("file_path") for i in indices]
     return Dataset(cameras, images, alphas, indices, base, split, bg, near, far,
                    names=names if all(isinstance(n, str) for n in names) else None)
 
 
-def _read_images(paths: list[Path], indices: list[int], full_res: list[Camera], target: Camera,
-                 background: tuple[float, float, float]) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Read each view, check its size against its camera, resize premultiplied RGBA to the
-    target camera's size and composite on `background`.
+@dataclass(frozen=True)
+class Photo:
+    """One view's image file and the size its camera was made for: what `_read_images` reads.
 
-    Returns images [V, h, w, 3] and alphas [V, h, w] (None when no file has alpha), float32 in [0, 1].
+    A format whose pixels need more than reading and resizing (COLMAP's distorted cameras:
+    `phd_core.data.undistort`) subclasses it and overrides `premultiplied`.
     """
-    size = (full_res[0].height, full_res[0].width)
+
+    path: Path
+    size: tuple[int, int]          # (height, width) the file must have
+    field: str                     # names the view in errors ("frames[3]", "images/a.jpg")
+    size_from: str                 # where `size` came from, for the error when the file differs
+    file_field: str = ""           # names the file in read errors (default: `field`)
+
+    def __post_init__(self) -> None:
+        if not self.file_field:
+            object.__setattr__(self, "file_field", self.field)
+
+    def read(self) -> tuple[np.ndarray, bool]:
+        """[H, W, 4] straight RGBA float32 in [0, 1] and whether the file has alpha; a file of
+        another size than `size` is refused."""
+        rgba, has_alpha = _read_rgba(self.path, self.file_field)
+        if rgba.shape[:2] != self.size:
+            raise InputError(self.field, f"image {self.path} is {rgba.shape[1]}x{rgba.shape[0]}, expected "
+                             f"{self.size[1]}x{self.size[0]} ({self.size_from})")
+        return rgba, has_alpha
+
+    def premultiplied(self, height: int, width: int) -> tuple[torch.Tensor, bool]:
+        """Premultiplied RGBA [height, width, 4] (resized from the file's size) and whether the file has alpha."""
+        rgba, has_alpha = self.read()
+        return resize_image(premultiply(torch.from_numpy(rgba)), height, width), has_alpha
+
+
+def premultiply(rgba: torch.Tensor) -> torch.Tensor:
+    """Straight RGBA [H, W, 4] -> premultiplied RGBA [H, W, 4] (colour times alpha)."""
+    return torch.cat([rgba[..., :3] * rgba[..., 3:], rgba[..., 3:]], dim=-1)
+
+
+def _read_images(photos: list[Photo], targets: list[Camera], background: tuple[float, float, float]
+                 ) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
+    """Each view's photo, resized (premultiplied) to its target camera's size and composited on `background`.
+
+    Returns images, per view [h, w, 3], and alphas, per view [h, w] (None when no file has
+    alpha), float32 in [0, 1].
+    """
     bg = torch.tensor(background, dtype=torch.float32)
-    images = torch.empty(len(paths), target.height, target.width, 3)
-    alphas = torch.empty(len(paths), target.height, target.width)
-    has_alpha = False
-    for v, (path, i, camera) in enumerate(zip(paths, indices, full_res)):  # one view at a time: low peak memory
-        if (camera.height, camera.width) != size:
-            raise InputError(f"frames[{i}]", f"size {camera.width}x{camera.height} differs from frame "
-                             f"{indices[0]}'s {size[1]}x{size[0]}: all images of a dataset must have one size")
-        rgba, file_alpha = _read_rgba(path, f"frames[{i}].file_path")
-        if rgba.shape[:2] != size:
-            raise InputError(f"frames[{i}]", f"image {path} is {rgba.shape[1]}x{rgba.shape[0]}, expected "
-                             f"{size[1]}x{size[0]} (the JSON's w/h, else the size of frame {indices[0]}'s image)")
+    images, alphas, has_alpha = [], [], False
+    for photo, target in zip(photos, targets):          # one view at a time: low peak memory
+        premult, file_alpha = photo.premultiplied(target.height, target.width)              # [h, w, 4]
         has_alpha |= file_alpha
-        rgba_t = torch.from_numpy(rgba)                                                        # [H, W, 4]
-        premult = torch.cat([rgba_t[..., :3] * rgba_t[..., 3:], rgba_t[..., 3:]], dim=-1)      # [H, W, 4]
-        premult = _resize(premult.permute(2, 0, 1)[None], target.height, target.width)[0].permute(1, 2, 0)
         alpha = premult[..., 3:].clamp(0, 1)                                                   # [h, w, 1]
-        images[v] = (premult[..., :3] + bg * (1 - alpha)).clamp(0, 1)
-        alphas[v] = alpha[..., 0]
+        images.append((premult[..., :3] + bg * (1 - alpha)).clamp(0, 1).contiguous())
+        alphas.append(alpha[..., 0].contiguous())
     return images, (alphas if has_alpha else None)
 
 
@@ -284,6 +315,12 @@ def _read_rgba(path: Path, field: str) -> tuple[np.ndarray, bool]:
         pixels = iio.imread(path, plugin="pillow")
     except Exception as exc:  # any decoder failure means this file is not a usable image
         raise InputError(field, f"cannot read image {path} with Pillow: {str(exc).splitlines()[0]}") from None
+    return rgba_from_pixels(pixels, path, field)
+
+
+def rgba_from_pixels(pixels: np.ndarray, path: Path, field: str) -> tuple[np.ndarray, bool]:
+    """A decoded image ([H, W] or [H, W, C], integer or float) -> [H, W, 4] float32 straight
+    RGBA in [0, 1] (alpha 1 when absent), and whether it had alpha."""
     if pixels.ndim == 2:
         pixels = pixels[..., None]
     if pixels.ndim != 3 or pixels.shape[-1] not in (1, 2, 3, 4):
@@ -301,8 +338,8 @@ def _read_rgba(path: Path, field: str) -> tuple[np.ndarray, bool]:
     return np.concatenate([color, alpha], axis=-1), has_alpha
 
 
-def _image_size(path: Path, field: str) -> tuple[int, int]:
-    """(height, width) of an image file."""
+def image_size(path: Path, field: str) -> tuple[int, int]:
+    """(height, width) of an image file, from its header (no pixels decoded)."""
     try:
         shape = iio.improps(path, plugin="pillow").shape
     except Exception as exc:  # any decoder failure means this file is not a usable image
@@ -310,12 +347,15 @@ def _image_size(path: Path, field: str) -> tuple[int, int]:
     return int(shape[0]), int(shape[1])
 
 
-def _resize(x: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """[1, C, H, W] -> [1, C, height, width]: exact block means when the size divides
-    evenly, antialiased bilinear otherwise (both are non-negative weightings, so no overshoot)."""
-    in_h, in_w = x.shape[-2:]
+def resize_image(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """[H, W, C] -> [height, width, C]: exact block means when the size divides evenly,
+    antialiased bilinear otherwise (both are non-negative weightings, so no overshoot)."""
+    in_h, in_w = image.shape[:2]
     if (in_h, in_w) == (height, width):
-        return x
+        return image
+    x = image.permute(2, 0, 1)[None]                                                     # [1, C, H, W]
     if in_h % height == 0 and in_w % width == 0:
-        return F.interpolate(x, size=(height, width), mode="area")
-    return F.interpolate(x, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+        x = F.interpolate(x, size=(height, width), mode="area")
+    else:
+        x = F.interpolate(x, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return x[0].permute(1, 2, 0)

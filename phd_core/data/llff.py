@@ -9,22 +9,29 @@ the poses were made for. The project's `Camera` is OpenGL (right, up, backwards)
 rotation is [R[:, 1], -R[:, 0], R[:, 2]]; the principal point is the image centre. Images
 whose size differs from hwf (a downscaled images folder) get intrinsics scaled to match.
 
+poses_bounds.npy has no lens distortion: LLFF's imgs2poses writes it from a COLMAP model and
+drops the model's distortion, so distorted photos would be trained on as pinhole ones. When
+the COLMAP model that lies beside it (sparse/0) has distortion, loading warns and names the
+fix: give the capture folder itself, read as COLMAP, which undistorts the photos.
+
 near/far of the dataset: the smallest near bound and the largest far bound over all views.
 Splits as COLMAP: every 8th image is "test", the rest "train", "all" is every image.
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, ModelWarning
 from ..scene import Camera
+from .colmap import distorted_models
 from .formats import FORMATS, DataFormat
-from .frames import Dataset, _image_size, build_dataset, holdout_split
+from .frames import Dataset, Photo, build_dataset, holdout_split, image_size
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 FILE = "poses_bounds.npy"
@@ -89,15 +96,30 @@ def load_llff(path: str | Path, split: str = "train", *, downscale: float = 1,
     if with_images and paths is None:
         raise InputError("images", f"no images folder beside {npy}")
     if paths:
-        height, width = _image_size(paths[0], "images")
+        height, width = image_size(paths[0], "images")
         if (height, width) != (cameras[0].height, cameras[0].width):
             cameras = [c.resized(width, height) for c in cameras]
+    warn_if_distorted_beside(npy)
     chosen = holdout_split(len(cameras), split)
-    chosen_paths = [paths[i] for i in chosen] if with_images and paths is not None else None   # raised above
-    return build_dataset([cameras[i] for i in chosen], chosen_paths, root, split, downscale=downscale, views=views,
+    photos = None
+    if with_images and paths is not None:           # with_images and no folder raised above
+        size_from = f"the size of {paths[0].name}, the first image"
+        photos = [Photo(paths[i], (cameras[i].height, cameras[i].width), f"images/{paths[i].name}", size_from)
+                  for i in chosen]
+    return build_dataset([cameras[i] for i in chosen], photos, root, split, downscale=downscale, views=views,
                          background=background, seed=seed,
                          near=float(bounds[:, 0].min()), far=float(bounds[:, 1].max()),
                          names=None if paths is None else [paths[i].name for i in chosen])
+
+
+def warn_if_distorted_beside(npy: Path) -> None:
+    """Warn (ModelWarning) when the COLMAP model beside poses_bounds.npy has lens distortion (module docstring)."""
+    models = distorted_models(npy.parent)
+    if models:
+        warnings.warn(f"{npy}: the COLMAP model beside it has lens distortion ({', '.join(models)}), which "
+                      f"{FILE} cannot describe: its photos would be trained on as if taken by pinhole cameras. "
+                      f"Give the capture folder {npy.parent} instead: read as COLMAP, its photos are undistorted",
+                      ModelWarning, stacklevel=3)
 
 
 def locate(path: Path, split: str) -> Path | None:

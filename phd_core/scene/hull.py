@@ -47,11 +47,11 @@ def footprint(camera: Camera, points: Tensor, radius: float = 0.0) -> Footprint:
                      u1.clamp(0, camera.width).long(), v1.clamp(0, camera.height).long(), inside)
 
 
-def visual_hull(points: Tensor, cameras: Sequence[Camera], alphas: Tensor, *, radius: float = 0.0,
+def visual_hull(points: Tensor, cameras: Sequence[Camera], alphas: Sequence[Tensor], *, radius: float = 0.0,
                 threshold: float = 0.0) -> Tensor:
     """[P] bool: the points [P, 3] (or balls of `radius` around them) that no view carves.
 
-    alphas: [V, H, W], one mask per camera; a pixel is foreground where alpha > threshold.
+    alphas: one mask [H_v, W_v] per camera, at its size; a pixel is foreground where alpha > threshold.
     The foreground count of each block comes from an integral image, so the test is exact.
     """
     inside = torch.ones(points.shape[0], dtype=torch.bool)

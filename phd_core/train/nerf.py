@@ -146,8 +146,8 @@ def fit(model: RadianceField, dataset: Dataset, settings: TrainSettings, *, iter
     origins = torch.cat([r[0] for r in rays])                               # [P, 3]
     dirs = torch.cat([r[1] for r in rays])                                  # [P, 3]
     assert dataset.images is not None, "fit needs a dataset loaded with its images"
-    colors = dataset.images.reshape(-1, 3)                                  # [P, 3]
-    alphas = dataset.alphas.reshape(-1) if dataset.alphas is not None else None
+    colors = torch.cat([image.reshape(-1, 3) for image in dataset.images])                     # [P, 3]
+    alphas = torch.cat([alpha.reshape(-1) for alpha in dataset.alphas]) if dataset.alphas is not None else None
     table = [p for n, p in model.named_parameters() if n.startswith("encoding.")]
     mlp = [p for n, p in model.named_parameters() if not n.startswith("encoding.")]
     groups = [{"params": mlp, "lr": settings.lr, "base": settings.lr}]
@@ -217,7 +217,7 @@ def scene_near_far(dataset: Dataset) -> tuple[float, float]:
     return near, far
 
 
-def grid_hull(model: RadianceField, cameras: list[Camera], alphas: torch.Tensor) -> torch.Tensor:
+def grid_hull(model: RadianceField, cameras: list[Camera], alphas: list[torch.Tensor]) -> torch.Tensor:
     """[res^3] bool: the occupancy-grid cells no view's alpha mask carves (any alpha > 0 is
     foreground): `phd_core.scene.visual_hull` of the cells, each a ball around its centre."""
     grid = model.grid

@@ -14,7 +14,8 @@ What the scene needs is derived from the data, not configured:
   is kept when every training view that sees it sees foreground there), coloured by the
   pixels it projects to; else the SfM points where the format has them (COLMAP), each
   splat as wide as the mean distance to its 3 nearest neighbours, as the reference trainer
-  starts; uniform in the bounds otherwise;
+  starts, in the point's colour (the mean pixel it projects to when the model has none: a
+  model published without colours holds them all black); uniform in the bounds otherwise;
 - real captures (no alpha masks): the background is real and unbounded. The SfM points
   reach into it; the renderer's background colour is the training images' mean colour;
   the extent that scales the position rate and the split size is the cameras' spread, as
@@ -67,7 +68,7 @@ class TrainConfig:
     init_points: int = 6000
     background_splats: int = 0        # a far shell of this many splats for captures without alpha masks
     shell_radius: float = 3.0         # times the largest camera distance from the scene centre
-    splats_per_pixel: float = 4.0     # budget: this many splats per pixel of one view
+    splats_per_pixel: float = 4.0     # budget: this many splats per pixel of one view (the largest)
     densify_from: float = 0.05        # fractions of the run
     densify_until: float = 0.6
     densify_every: int = 100
@@ -140,13 +141,7 @@ def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
     axis = torch.linspace(-extent, extent, res, dtype=torch.float64)
     grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + centre
     inside = visual_hull(grid, data.cameras, data.alphas, threshold=0.5)
-    colour_sum = torch.zeros(len(grid), 3, dtype=torch.float64)
-    seen = torch.zeros(len(grid))
-    assert data.images is not None  # the trainers refuse a dataset loaded without them
-    for cam, image in zip(data.cameras, data.images):
-        pixel = footprint(cam, grid)
-        colour_sum += torch.where(pixel.inside[:, None], image[pixel.v0, pixel.u0].double(), 0.0)
-        seen += pixel.inside.float()
+    colour_sum, seen = pixels_behind(data, grid)
     hull = inside.nonzero().squeeze(1)
     if len(hull) == 0:
         raise InputError("data", "the training alpha masks leave no foreground: nothing to fit")
@@ -155,6 +150,19 @@ def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
     jitter = (torch.rand(count, 3, generator=gen, dtype=torch.float64) - 0.5) * voxel
     colours = colour_sum[pick] / seen[pick].clamp_min(1)[:, None]
     return (grid[pick] + jitter).float(), colours.float()
+
+
+def pixels_behind(data: Dataset, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The summed colour [P, 3] of the training pixels points [P, 3] project to, and in how
+    many views [P] they do (float64; no occlusion test)."""
+    colour_sum = torch.zeros(len(points), 3, dtype=torch.float64)
+    seen = torch.zeros(len(points), dtype=torch.float64)
+    assert data.images is not None  # the trainers refuse a dataset loaded without them
+    for cam, image in zip(data.cameras, data.images):
+        pixel = footprint(cam, points)
+        colour_sum += torch.where(pixel.inside[:, None], image[pixel.v0, pixel.u0].double(), 0.0)
+        seen += pixel.inside.double()
+    return colour_sum, seen
 
 
 def initial_model(points: torch.Tensor, colours: torch.Tensor, sh_degree: int, extent: float,
@@ -204,13 +212,7 @@ def background_shell(data: Dataset, centre: torch.Tensor, radius: float, count: 
     azimuth = math.pi * (3 - math.sqrt(5)) * i
     ring = (1 - z * z).sqrt()
     sphere = centre + radius * torch.stack([ring * azimuth.cos(), ring * azimuth.sin(), z], dim=1)   # [4B, 3]
-    colour_sum = torch.zeros(total, 3, dtype=torch.float64)
-    seen = torch.zeros(total, dtype=torch.float64)
-    assert data.images is not None  # the trainers refuse a dataset loaded without them
-    for cam, image in zip(data.cameras, data.images):
-        pixel = footprint(cam, sphere)
-        colour_sum += torch.where(pixel.inside[:, None], image[pixel.v0, pixel.u0].double(), 0.0)
-        seen += pixel.inside.double()
+    colour_sum, seen = pixels_behind(data, sphere)
     visible = (seen > 0).nonzero().squeeze(1)[:count]
     spacing = torch.full((len(visible),), radius * math.sqrt(4 * math.pi / total) * 2, dtype=torch.float64)
     return sphere[visible], (colour_sum[visible] / seen[visible, None]), spacing
@@ -225,6 +227,9 @@ def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: Train
     else:
         assert data.point_colors is not None  # the readers that give points give their colours
         points, colours = data.points.to(torch.float64), data.point_colors.to(torch.float64)
+        if not colours.any():           # a model published without colours (all black): the pixels behind
+            colour_sum, seen = pixels_behind(data, points)
+            colours = torch.where(seen[:, None] > 0, colour_sum / seen.clamp_min(1)[:, None], 0.5)
         spacing = neighbour_spacing(points)
     if data.alphas is None and config.background_splats > 0:
         eyes = torch.stack([c.center for c in data.cameras])
@@ -246,7 +251,9 @@ def training_background(data: Dataset, given: Sequence[float] | None = None) -> 
         return cast(tuple[float, float, float], tuple(float(v) for v in given))
     if data.alphas is not None or data.images is None:
         return data.background
-    return cast(tuple[float, float, float], tuple(float(v) for v in data.images.mean(dim=(0, 1, 2))))
+    total = torch.stack([image.double().sum(dim=(0, 1)) for image in data.images]).sum(0)     # [3], views of any size
+    pixels = sum(image.shape[0] * image.shape[1] for image in data.images)
+    return cast(tuple[float, float, float], tuple(float(v) / pixels for v in total))
 
 
 def training_extent(data: Dataset, extent: float) -> float:
@@ -398,8 +405,8 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
     extent = training_extent(dataset, extent)
     splats = Splats(model, config, extent)
     background = torch.tensor(training_background(dataset, config.background_rgb))
-    cam0 = dataset.cameras[0]
-    budget = int(config.splats_per_pixel * cam0.width * cam0.height)
+    largest = max(c.width * c.height for c in dataset.cameras)           # views may differ in size
+    budget = int(config.splats_per_pixel * largest)
     n_iter = config.iterations
     densify_from, densify_until = int(config.densify_from * n_iter), int(config.densify_until * n_iter)
     reset_every = int(config.opacity_reset_every * n_iter) if config.opacity_reset_every > 0 else 0

@@ -245,7 +245,7 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
     return result
 
 
-def calibrate_ssim(renderer: Renderer, cameras: Sequence[Camera], images: Tensor, *,
+def calibrate_ssim(renderer: Renderer, cameras: Sequence[Camera], images: Tensor | Sequence[Tensor], *,
                    margin: float = DEFAULT_SSIM_MARGIN, step: float = DEFAULT_STEP,
                    samples: int = DEFAULT_CALIBRATION_SAMPLES, seed: int = 0,
                    progress: Progress | None = None) -> CalibrationResult:
@@ -253,7 +253,7 @@ def calibrate_ssim(renderer: Renderer, cameras: Sequence[Camera], images: Tensor
     the training images drops by less than `margin` relative to the full model's.
 
     Error(r) = (S(0) - S(r)) / S(0), S = mean SSIM over views and masks. Linear scan.
-    images: [V, H, W, 3] float in [0, 1], one per camera.
+    images: one [H, W, 3] float in [0, 1] per camera (a tensor [V, H, W, 3] or a list).
     """
     margin = check_float(margin, "margin")
     if not 0 < margin < 1:

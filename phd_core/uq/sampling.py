@@ -80,19 +80,21 @@ def check_step(step: Any) -> float:
     return step
 
 
-def check_images(images: Tensor, cameras: list[Camera], name: str = "images") -> Tensor:
-    if not isinstance(images, Tensor):
-        raise InputError(name, f"must be a tensor [V, H, W, 3], got {type(images).__name__}")
-    if images.dim() != 4 or images.shape[0] != len(cameras) or images.shape[-1] != 3:
-        raise InputError(name, f"must have shape [{len(cameras)}, H, W, 3] (one per camera), "
-                         f"got {list(images.shape)}")
-    for i, camera in enumerate(cameras):
-        if tuple(images.shape[1:3]) != (camera.height, camera.width):
-            raise InputError(name, f"image {i} is {images.shape[2]}x{images.shape[1]} but its camera "
-                             f"renders {camera.width}x{camera.height}")
-    if not torch.isfinite(images).all():
-        raise InputError(name, "contains NaN or infinite values")
-    return images.to(torch.float32)
+def check_images(images: Tensor | Sequence[Tensor], cameras: list[Camera], name: str = "images") -> list[Tensor]:
+    """One float32 image [H, W, 3] per camera, at its camera's size: `images` is a tensor
+    [V, H, W, 3] or a sequence of per-view tensors (views of several sizes, `Dataset.images`)."""
+    if not isinstance(images, (Tensor, Sequence)) or not all(isinstance(image, Tensor) for image in images):
+        raise InputError(name, f"must be a tensor [V, H, W, 3] or a list of [H, W, 3] tensors, "
+                         f"got {type(images).__name__}")
+    if len(images) != len(cameras):
+        raise InputError(name, f"must hold one image per camera ({len(cameras)}), got {len(images)}")
+    for i, (image, camera) in enumerate(zip(images, cameras)):
+        if tuple(image.shape) != (camera.height, camera.width, 3):
+            raise InputError(name, f"image {i} has shape {list(image.shape)} but its camera renders "
+                             f"[{camera.height}, {camera.width}, 3]")
+        if not torch.isfinite(image).all():
+            raise InputError(name, f"image {i} contains NaN or infinite values")
+    return [image.to(torch.float32) for image in images]
 
 
 def check_signal(signal: Any) -> str:

@@ -119,7 +119,8 @@ def level_views(training: list[Camera]) -> list[Camera]:
 
 
 def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[Camera], *, ratio_a: float,
-                  ratio_b: float, samples: int = DEFAULT_SAMPLES, seed: int = 0, images: Tensor | None = None,
+                  ratio_b: float, samples: int = DEFAULT_SAMPLES, seed: int = 0,
+                  images: Tensor | Sequence[Tensor] | None = None,
                   rule: str = DEFAULT_SELECTION_RULE, training_a: Sequence[Camera] | None = None,
                   training_b: Sequence[Camera] | None = None, keep_images: bool | str = False,
                   progress: Progress | None = None, executor: Executor = LOCAL,
@@ -140,7 +141,7 @@ def select_models(renderer_a: Renderer, renderer_b: Renderer, cameras: Sequence[
     that is worse everywhere (which its relative zeta cannot say) then loses the views it
     would have won.
     training_a / training_b: each model's training cameras (default: the renderer's own).
-    Ties go to model a. With ground-truth `images` [V, H, W, 3], `metrics` holds the
+    Ties go to model a. With ground-truth `images` (one [H, W, 3] per camera), `metrics` holds the
     mean PSNR and SSIM of a, b and the selection, E_ME (mean over views of
     SSIM(selected) / max(SSIM(a), SSIM(b))) and how often the choice was the model
     with the higher SSIM. keep_images: True keeps the chosen model's full render per view,

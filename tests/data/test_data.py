@@ -56,9 +56,10 @@ def write_nerfstudio(root: Path, images: list, **top) -> Path:
 def test_lego_downscaled_by_2_and_4_has_the_right_shapes_and_focal():
     focal_200 = 0.5 * 200 / math.tan(0.5 * lego_frames()["camera_angle_x"])    # 277.78
     ds = load_blender(LEGO, "train", downscale=2)
-    assert ds.images.shape == (100, 100, 100, 3) and ds.images.dtype == torch.float32
-    assert ds.alphas.shape == (100, 100, 100)
-    assert 0 <= ds.images.min() and ds.images.max() <= 1
+    images = torch.stack(ds.images)
+    assert images.shape == (100, 100, 100, 3) and images.dtype == torch.float32
+    assert torch.stack(ds.alphas).shape == (100, 100, 100)
+    assert 0 <= images.min() and images.max() <= 1
     assert ds.indices == list(range(100)) and ds.split == "train"
     assert (ds.near, ds.far) == (2.0, 6.0)
     cam = ds.cameras[0]
@@ -66,7 +67,7 @@ def test_lego_downscaled_by_2_and_4_has_the_right_shapes_and_focal():
     assert cam.fx == pytest.approx(focal_200 / 2) and cam.fy == pytest.approx(focal_200 / 2)
     assert (cam.cx, cam.cy) == (50, 50)
     small = load_blender(LEGO, "train", downscale=4, views=16)
-    assert small.images.shape == (16, 50, 50, 3)
+    assert torch.stack(small.images).shape == (16, 50, 50, 3)
     assert small.cameras[0].fx == pytest.approx(focal_200 / 4)
 
 
@@ -78,8 +79,8 @@ def test_compositing_averages_premultiplied_colour_then_adds_the_background():
     full = load_blender(LEGO, views=[0], background=bg.tolist())
     i, j = np.argwhere((alpha[..., 0] > 0.2) & (alpha[..., 0] < 0.8))[0]        # an edge pixel
     expected = rgb[i, j] * alpha[i, j] + bg * (1 - alpha[i, j])
-    assert np.allclose(full.images[0, i, j].numpy(), expected, atol=1e-6)
-    assert full.alphas[0, i, j].item() == pytest.approx(alpha[i, j, 0], abs=1e-6)
+    assert np.allclose(full.images[0][i, j].numpy(), expected, atol=1e-6)
+    assert full.alphas[0][i, j].item() == pytest.approx(alpha[i, j, 0], abs=1e-6)
 
     half = load_blender(LEGO, views=[0], downscale=2, background=bg.tolist())
     blocks_alpha = alpha[..., 0].reshape(100, 2, 100, 2)
@@ -89,8 +90,8 @@ def test_compositing_averages_premultiplied_colour_then_adds_the_background():
     block_rgb, block_alpha = rgb[block], alpha[block]
     mean_alpha = block_alpha.mean()
     expected = (block_rgb * block_alpha).mean(axis=(0, 1)) + bg * (1 - mean_alpha)
-    assert np.allclose(half.images[0, bi, bj].numpy(), expected, atol=1e-6)
-    assert half.alphas[0, bi, bj].item() == pytest.approx(mean_alpha, abs=1e-6)
+    assert np.allclose(half.images[0][bi, bj].numpy(), expected, atol=1e-6)
+    assert half.alphas[0][bi, bj].item() == pytest.approx(mean_alpha, abs=1e-6)
     # Averaging straight (not premultiplied) colour would give a visibly different pixel here.
     straight = block_rgb.mean(axis=(0, 1)) * mean_alpha + bg * (1 - mean_alpha)
     assert np.abs(straight - expected).max() > 0.01
@@ -118,7 +119,7 @@ def test_seeded_selection_is_deterministic_and_depends_on_the_seed():
 def test_split_size_and_dispatch_read_the_json_only():
     assert split_size(LEGO, "train") == 100 and split_size(LEGO, "test") == 200
     ds = load_dataset(LEGO, "val", views=[3], downscale=4)
-    assert ds.split == "val" and ds.images.shape == (1, 50, 50, 3)
+    assert ds.split == "val" and torch.stack(ds.images).shape == (1, 50, 50, 3)
     assert torch.equal(ds.cameras[0].c2w, torch.tensor(lego_frames("val")["frames"][3]["transform_matrix"],
                                                        dtype=torch.float64))
 
@@ -141,15 +142,15 @@ def test_nerfstudio_scene_loads_with_its_intrinsics(tmp_path):
 
     for ds in (load_nerfstudio(json_path), load_nerfstudio(tmp_path), load_dataset(tmp_path)):
         assert ds.alphas is None and (ds.near, ds.far) == (None, None) and ds.split == "all"
-        assert torch.allclose(ds.images, torch.tensor(np.stack(pictures) / 255, dtype=torch.float32))
+        assert torch.allclose(torch.stack(ds.images), torch.tensor(np.stack(pictures) / 255, dtype=torch.float32))
         first, second = ds.cameras
         assert (first.fx, first.fy, first.cx, first.cy, first.width, first.height) == (10, 11, 4.5, 2.5, 8, 6)
         assert (second.fx, second.fy, second.cx) == (12, 11, 3.5)
 
     half = load_nerfstudio(json_path, downscale=2)
-    assert half.images.shape == (2, 3, 4, 3)
+    assert torch.stack(half.images).shape == (2, 3, 4, 3)
     blocks = np.stack(pictures).astype(np.float64).reshape(2, 3, 2, 4, 2, 3).mean(axis=(2, 4)) / 255
-    assert np.allclose(half.images.numpy(), blocks, atol=1e-6)
+    assert np.allclose(torch.stack(half.images).numpy(), blocks, atol=1e-6)
     assert (half.cameras[0].fx, half.cameras[0].cx, half.cameras[0].width) == (5, 2.25, 4)
 
 
@@ -174,7 +175,7 @@ def test_non_integer_downscale_matches_the_camera_and_keeps_flat_colour(tmp_path
     write_blender(tmp_path, [flat])
     ds = load_blender(tmp_path, downscale=3, background=(0, 1, 0))
     cam = ds.cameras[0]
-    assert (cam.width, cam.height) == (3, 3) and ds.images.shape == (1, 3, 3, 3)
+    assert (cam.width, cam.height) == (3, 3) and torch.stack(ds.images).shape == (1, 3, 3, 3)
     a = 128 / 255
     expected = torch.tensor([a, 1 - a, 0.2 * a], dtype=torch.float32)
     assert torch.allclose(ds.images[0], expected.expand(3, 3, 3), atol=1e-6)

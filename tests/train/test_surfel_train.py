@@ -94,7 +94,7 @@ def test_surfel_splats_densify_in_their_plane() -> None:
 def test_training_fits_and_regularisers_run(tiny) -> None:
     def train_psnr(model) -> float:
         renders = torch.cat([rasterize_surfels(model, c, torch.ones(3)).rgb for c in tiny.cameras])
-        return psnr(renders.clamp(0, 1), tiny.images)
+        return psnr(renders.clamp(0, 1), torch.stack(tiny.images))
 
     config = TrainConfig(iterations=100, init_points=800, seed=3)
     plain = gs2d.recipe(depth_distortion=0.0, normal_consistency=0.0)
