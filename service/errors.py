@@ -2,14 +2,15 @@
 
 Every error answer has the body `{"error": {"code", "message", "field"}}`
 (`service.schemas.ErrorResponse`). Library errors map onto it in one place,
-`from_exception`: `InputError` -> 422 naming its field, unknown model content -> 415.
+`from_exception`: `InputError` -> 422 naming its field (413 for `TooLarge`), unknown model
+content -> 415.
 """
 
 from __future__ import annotations
 
 import json
 
-from phd_core.errors import InputError
+from phd_core.errors import InputError, TooLarge
 from phd_core.executors import ExecutorError
 from phd_core.uq import CalibrationError
 
@@ -84,6 +85,8 @@ def from_exception(exc: BaseException) -> ServiceError | None:
 
         if isinstance(exc, UnknownModelError):
             return ServiceError(415, "unsupported_model", exc.reason, exc.field)
+        if isinstance(exc, TooLarge):
+            return ServiceError(413, "payload_too_large", exc.reason, exc.field)
         code = "calibration_failed" if isinstance(exc, CalibrationError) else "invalid_input"
         return ServiceError(422, code, exc.reason, exc.field)
     if isinstance(exc, ExecutorError):     # the compute cluster failed, not the request
