@@ -21,10 +21,10 @@ import torch
 
 from phd_core.data import load_colmap
 from phd_core.errors import InputError, ModelNote, ModelWarning
+from phd_core.io.configs import SPLATFACTO_BACKGROUNDS as BACKGROUNDS
 from phd_core.renderers import NO_CAMERAS_NOTE, load_model, load_model_bytes
 from phd_core.renderers.gs3d import GaussianRenderer, write_ply
 from phd_core.renderers.outputs import gsplat, read_output
-from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.renderers.splats import eval_sh, sh_rotation
 from phd_core.renderers.splats.ply import SIDECAR_FORMAT
 from phd_core.scene import Camera

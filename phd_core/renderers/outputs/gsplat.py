@@ -50,7 +50,8 @@ import torch
 from ...data.colmap import find_model, load_colmap
 from ...errors import InputError
 from ...eval.image import psnr
-from ...io.foreign import read_checkpoint, read_yaml, yaml_path
+from ...io.configs import GsplatConfig, parse_config
+from ...io.foreign import read_checkpoint, read_yaml
 from ...scene import IDENTITY, Camera, Similarity
 from ..gs3d import GaussianModel, GaussianRenderer
 from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates, nearest_distances, sh_from_parts
@@ -83,28 +84,22 @@ def read(folder: Path, within: Path | None = None) -> TrainerOutput:
     checkpoints = {(int(m.group(1)), -int(m.group(2))): p for p in (folder / "ckpts").glob("ckpt_*.pt")
                    if (m := CHECKPOINT.fullmatch(p.name))}
     source = checkpoints[max(checkpoints)]                       # the latest step, rank 0 first
+    config = parse_config(GsplatConfig, read_yaml(folder / "cfg.yml") if (folder / "cfg.yml").is_file() else {},
+                          "cfg.yml")
     model = checkpoint_model(source)
-    config = read_yaml(folder / "cfg.yml") if (folder / "cfg.yml").is_file() else {}
-    if not isinstance(config, dict):
-        raise InputError("cfg.yml", "must be a mapping (the trainer's Config)")
-    if config.get("data_type", "colmap") != "colmap":
-        raise InputError("cfg.yml.data_type", f"only COLMAP captures are read, got {config['data_type']!r}")
-    capture = _find_capture(folder, yaml_path(config.get("data_dir")), within)
+    capture = _find_capture(folder, config.data_dir, within)
     background = (0.0, 0.0, 0.0)
     if capture is None:
         return TrainerOutput(model, [], background, source, warnings=[
-            f"the COLMAP capture of this run was not found (cfg.yml data_dir: {config.get('data_dir')!r}, looked from "
-            f"the working directory and every folder above {folder}): no training cameras, and poses are in gsplat's "
+            f"the COLMAP capture of this run was not found (cfg.yml data_dir: {config.data_dir}, looked from the "
+            f"working directory and every folder above {folder}): no training cameras, and poses are in gsplat's "
             "normalised frame"], name=f"{folder.resolve().name}/gsplat")
     dataset = load_colmap(capture, "all", with_images=False)
     cameras = dataset.cameras                                                          # sorted by name
     points = None if dataset.points is None else dataset.points.numpy()               # [P, 3] float64
-    test_every = config.get("test_every", 8)
-    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
-        raise InputError("cfg.yml.test_every", f"must be a positive integer, got {test_every!r}")
-    trained = [i for i in range(len(cameras)) if i % test_every] or list(range(len(cameras)))
+    trained = [i for i in range(len(cameras)) if i % config.test_every] or list(range(len(cameras)))
     training = [cameras[i] for i in trained]
-    if config.get("normalize_world_space", True) is False:
+    if not config.normalize_world_space:
         candidates = {"none (normalize_world_space is off)": IDENTITY}
     else:
         candidates = normalisations(cameras, points)
