@@ -10,7 +10,7 @@ from typing import Callable
 
 import torch
 
-from ...errors import InputError, ModelNote, ModelWarning
+from ...errors import InputError, ModelNote, ModelWarning, bounded_notes
 from ...registry import Registry
 from ...scene import Camera, Similarity
 from ..gs3d import GaussianModel, GaussianRenderer
@@ -57,12 +57,14 @@ class OutputFormat:
 OUTPUTS: Registry[OutputFormat] = Registry("trainer output folder")
 
 
-def read_output(path: str | Path, within: str | Path | None = None) -> TrainerOutput:
+def read_output(path: str | Path, within: str | Path | None = None, *, warn: bool = True) -> TrainerOutput:
     """The first trainer output, by `order`, that recognises the folder, read; its notes and
-    warnings are also issued as Python warnings (ModelNote, ModelWarning). The built-in
-    ones look for different files (cameras.json + point_cloud/, config.yml, ckpts/); the
-    order decides for a folder holding more than one. `within`: the capture a run names is
-    only looked for inside that folder (the service passes the upload's own folder)."""
+    warnings (at most MAX_NOTES each, cut to NOTE_CHARS: they quote the folder's files) are
+    also issued as Python warnings (ModelNote, ModelWarning) unless `warn` is False (the
+    service keeps them with the model instead). The built-in ones look for different files
+    (cameras.json + point_cloud/, config.yml, ckpts/); the order decides for a folder holding
+    more than one. `within`: the capture a run names is only looked for inside that folder (the
+    service passes the upload's own folder)."""
     path = Path(path)
     for output_format in OUTPUTS.in_order():
         if output_format.detect(path):
@@ -74,9 +76,10 @@ def read_output(path: str | Path, within: str | Path | None = None) -> TrainerOu
                     f"{len(empty)} of the model's {len(output.cameras)} training cameras see almost none of its "
                     f"splats (fewer than {EMPTY_VIEW_SHARE:.0%} of the centres in view): the cameras and the splats "
                     "are probably in different frames, so renders will be empty and rankings meaningless")
-            for note in output.notes:
+            output.notes, output.warnings = bounded_notes(output.notes), bounded_notes(output.warnings)
+            for note in output.notes if warn else ():
                 warnings.warn(note, ModelNote, stacklevel=2)
-            for warning in output.warnings:
+            for warning in output.warnings if warn else ():
                 warnings.warn(warning, ModelWarning, stacklevel=2)
             return output
     known = "; ".join(f.title for f in OUTPUTS.in_order())
