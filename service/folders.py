@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import re
 import shutil
+import zipfile
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
+from typing import Iterator
 
 from phd_core.data import POSES
 from phd_core.errors import InputError, TooLarge, shown
@@ -104,23 +106,33 @@ def unpack_zip(archive: Path, folder: Path, max_bytes: int, room: int, name: str
         for member, target in zip(members, targets):
             try:
                 target.parent.mkdir(parents=True, exist_ok=True)
-                with zipped.open(member) as source, open(target, "xb") as out:
-                    while chunk := source.read(1 << 20):
-                        written += len(chunk)
-                        if written > room:
-                            raise insufficient_storage(f"the zip's files (more than {room} bytes)", "archive",
-                                                       "the service's disk has no more room outside the space "
-                                                       "it keeps free (PHD_KEEP_FREE_BYTES)")
-                        if written > max_bytes:
-                            raise TooLarge(name, f"its files inflate past {max_bytes} bytes, the most this "
-                                                 "service's memory budget can read (leave out the images: the model "
-                                                 "and its cameras are enough)")
-                        out.write(chunk)
-            except DAMAGED as exc:
-                raise InputError(name, f"cannot unpack {shown(member.filename)}: its data is damaged ({exc})") from None
+                out = open(target, "xb")
             except CLASHES:
                 raise InputError(name, f"{shown(member.filename)} comes twice or clashes with a folder") from None
+            with out:
+                for chunk in _inflated(zipped, member, name):
+                    written += len(chunk)
+                    if written > room:
+                        raise insufficient_storage(f"the zip's files (more than {room} bytes)", "archive",
+                                                   "the service's disk has no more room outside the space it keeps "
+                                                   "free (PHD_KEEP_FREE_BYTES)")
+                    if written > max_bytes:
+                        raise TooLarge(name, f"its files inflate past {max_bytes} bytes, the most this service's "
+                                             "memory budget can read (leave out the images: the model and its "
+                                             "cameras are enough)")
+                    out.write(chunk)
     return written
+
+
+def _inflated(zipped: zipfile.ZipFile, member: zipfile.ZipInfo, name: str) -> Iterator[bytes]:
+    """The member's bytes as they inflate, 1 MiB at a time; a damaged member is an InputError
+    naming it (a failed write of these bytes is the caller's: the disk's, 507)."""
+    try:
+        with zipped.open(member) as source:
+            while chunk := source.read(1 << 20):
+                yield chunk
+    except DAMAGED as exc:
+        raise InputError(name, f"cannot unpack {shown(member.filename)}: its data is damaged ({exc})") from None
 
 
 def folder_bytes(folder: Path) -> int:

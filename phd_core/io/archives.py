@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
-from ..errors import InputError, TooLarge
+from ..errors import InputError, TooLarge, shown
 
 MAX_ZIP_RATIO = 500             # inflated / deflated bytes of a member: above, a zip bomb
 # The records zipfile reads the directory by (APPNOTE.TXT 4.3.12-4.3.16), as zipfile's own structs.
@@ -34,9 +34,10 @@ ENTRY = struct.Struct("<4s4B4HL2L5H2L")   # a directory entry's fixed part, then
 ENTRY_SIGNATURE = b"PK\x01\x02"
 NAME_LENGTH = 12                          # ENTRY's field index of the name's length (extra's, comment's follow)
 UNPACKED = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED)
-# What reading a member raises when its bytes are damaged (a bad local header or CRC, a corrupt
-# deflate stream, data that ends early).
-DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError)
+UNREAD_FLAGS = 0x1 | 0x20 | 0x40          # general purpose flags: encrypted, patched data, strong encryption
+# What reading a member raises when its bytes are damaged: a bad local header or CRC, a corrupt
+# deflate stream, data that ends early, an offset before the file's start (the seek's EINVAL).
+DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError, OSError)
 
 
 @dataclass(frozen=True)
@@ -113,13 +114,13 @@ def _check_members(members: list[zipfile.ZipInfo], rules: ZipRules, name: str) -
     """Each member stored or deflated, unencrypted, inflating at most `rules.max_ratio` times;
     all of them together at most `rules.max_bytes`."""
     for member in members:
-        if member.flag_bits & 0x1:
-            raise InputError(name, f"'{member.filename}' is encrypted: zip it without a password")
+        if member.flag_bits & UNREAD_FLAGS:
+            raise InputError(name, f"{shown(member.filename)} is encrypted or patched: zip it without a password")
         if member.compress_type not in UNPACKED:
-            raise InputError(name, f"'{member.filename}' is compressed with method {member.compress_type}: only "
+            raise InputError(name, f"{shown(member.filename)} is compressed with method {member.compress_type}: only "
                                    "stored and deflated members are read")
         if member.file_size > rules.max_ratio * max(member.compress_size, 1):
-            raise InputError(name, f"'{member.filename}' inflates {member.file_size} bytes from "
+            raise InputError(name, f"{shown(member.filename)} inflates {member.file_size} bytes from "
                                    f"{member.compress_size}, more than {rules.max_ratio} times: refused as a zip bomb")
     total = sum(member.file_size for member in members)
     if rules.max_bytes is not None and total > rules.max_bytes:
