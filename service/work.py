@@ -29,7 +29,7 @@ from phd_core.renderers import (
     Renderer,
     RenderMemory,
     accepts_background,
-    load_model,
+    load_model_bytes,
     memory_probe_bytes,
     set_background,
     signal_channels,
@@ -81,12 +81,15 @@ from .store import ModelRecord, ModelStore, utc_now
 # ----------------------------------------------------------------------------- loaded models
 
 def model_loader(store: ModelStore) -> Callable[[str], Renderer]:
-    """How the memory ledger loads a stored model by id (404 if it was deleted meanwhile)."""
+    """How the memory ledger loads a stored model by id (404 if it was deleted meanwhile): the
+    file alone, as stored; its training cameras are the record's, and what loading noted was
+    noted at its upload (no warning is issued: a warning's write to a full disk must not fail
+    the request, and "no training cameras" was wrong for a model whose cameras the record holds)."""
     def load(model_id: str) -> Renderer:
         record = store.get(model_id)
-        if record is None:
+        if record is None or not store.path(record).is_file():
             raise not_found("model", model_id)
-        renderer = load_model(store.path(record))
+        renderer = load_model_bytes(store.path(record).read_bytes(), record.name)
         if accepts_background(renderer) and record.describe.get("background") is not None:
             set_background(renderer, record.describe["background"])
         return renderer
