@@ -20,7 +20,7 @@ from typing import Any, Callable
 from phd_core import uq
 from phd_core.data import POSES, candidate_name, export_cameras, source_pose
 from phd_core.data.inria import cameras_from_entries, is_inria_cameras
-from phd_core.errors import InputError
+from phd_core.errors import InputError, check_int
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import (
@@ -535,7 +535,9 @@ def export_poses(record: ModelRecord, body: PosesRequest, settings: Settings) ->
     calls, with the same image names: in the convention asked for, else the model's own. A
     folder (a COLMAP text model) comes back as a zip of its files."""
     cameras = read_cameras(body.cameras, RenderSize(), settings, field="cameras", cap=settings.max_candidates)
-    indices = body.indices if body.indices is not None else list(range(len(cameras)))
+    # A candidate's index names its image file: one of a rank request's at most max_candidates.
+    indices = list(range(len(cameras))) if body.indices is None else [
+        check_int(index, f"indices[{k}]", 0, settings.max_candidates - 1) for k, index in enumerate(body.indices)]
     convention = POSES[body.format or record.describe.get("camera_format") or "nerfstudio"]
     folder = convention.suffix == ""
     target = "colmap" if folder else convention.file_name or "transforms.json"
