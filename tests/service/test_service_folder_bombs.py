@@ -17,17 +17,7 @@ import pytest
 
 from client import PHDClient
 from phd_core.errors import NOTE_CHARS, ModelWarning
-from support.archives import (
-    Member,
-    allocating_checkpoint,
-    folder_files,
-    listing_zip,
-    raw_zip,
-    stored,
-    view_checkpoint,
-    zero_checkpoint,
-    zip_of,
-)
+from support.archives import BOMBS, Member, folder_files, gsplat_zip, raw_zip, stored, zero_checkpoint, zip_of
 from support.captures import write_output_folder
 from support.fixtures import SvcProcess, expect_error, proc_bytes, svc_cameras, svc_random_gaussians
 from support.fuzz import alias_bomb
@@ -50,12 +40,6 @@ def _upload(url: str, archive: bytes) -> httpx.Response:
     return httpx.post(f"{url}/v1/models", files={"archive": ("run.zip", archive)}, timeout=300)
 
 
-def _gsplat_zip(checkpoint: bytes, method: int | None = None) -> bytes:
-    """A gsplat result folder as a user zips it, holding `checkpoint` as its latest step."""
-    files = {"garden/cfg.yml": b"data_dir: data/garden\n", "garden/ckpts/ckpt_29999_rank0.pt": checkpoint}
-    return zip_of(files) if method is None else zip_of(files, method)
-
-
 def _scene_zip(root: Path, change: Callable[[Path], None]) -> bytes:
     """The files under `root` (a run and the capture beside it) zipped after `change(root)`,
     stored (brackets nested 100,000 deep deflate like a zip bomb)."""
@@ -65,22 +49,19 @@ def _scene_zip(root: Path, change: Callable[[Path], None]) -> bytes:
 
 # ----------------------------------------------------------------------------- what inflated
 
-BOMBS = {   # name: (the zip, the file the answer names, the rule it names)
-    "20 M zero splats deflated in a checkpoint deflated again in the zip (4 KB)":
-        (lambda: _gsplat_zip(zero_checkpoint(20_000_000)), "ckpt_29999_rank0.pt", "zip bomb"),
-    "20 M splats each a view of one stored zero":
-        (lambda: _gsplat_zip(view_checkpoint(20_000_000)), "ckpt_29999_rank0.pt", "more than the"),
-    "a checkpoint's pickle calling bytearray(1 GiB)":
-        (lambda: _gsplat_zip(allocating_checkpoint(1 << 30)), "ckpt_29999_rank0.pt", "builtins.bytearray"),
-    "1 M directory entries (47 MB)": (lambda: listing_zip(1_000_000), "run.zip", "1000000 entries"),
+REFUSED = {   # a bomb (tests/support/archives.py): the file the answer names, the rule it names
+    "20 M zero splats deflated in a checkpoint deflated again in the zip (4 KB)": ("ckpt_29999_rank0.pt", "zip bomb"),
+    "20 M splats each a view of one stored zero": ("ckpt_29999_rank0.pt", "more than the"),
+    "a checkpoint's pickle calling bytearray(1 GiB)": ("ckpt_29999_rank0.pt", "builtins.bytearray"),
+    "1 M directory entries (47 MB)": ("run.zip", "1000000 entries"),
 }
 
 
 @pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc peak-RSS reset")
 @pytest.mark.parametrize("bomb", BOMBS)
 def test_an_upload_that_inflates_is_refused_before_it_takes_memory(full_log_server, bomb):
-    make, file, rule = BOMBS[bomb]
-    archive = make()
+    archive = BOMBS[bomb]()
+    file, rule = REFUSED[bomb]
     pid = full_log_server.proc.pid
     Path(f"/proc/{pid}/clear_refs").write_text("5")                # VmHWM starts again from VmRSS
     before = proc_bytes(pid, "VmRSS")
@@ -96,7 +77,7 @@ def test_a_checkpoint_past_the_model_cap_is_413_before_it_is_loaded(svc_start):
     # the zip: no member of either zip inflates like a bomb, but the model is past the 16 MiB a
     # 64 MiB budget can load.
     server = svc_start(memory_budget_bytes=64 << 20)
-    archive = _gsplat_zip(zero_checkpoint(400_000, chunk=8192), zipfile.ZIP_STORED)
+    archive = gsplat_zip(zero_checkpoint(400_000, chunk=8192), zipfile.ZIP_STORED)
     error = expect_error(_upload(server.url, archive), 413, "payload_too_large", "archive")
     assert "inflates to 22400" in error["message"] and "memory budget" in error["message"]
     assert server.app.state.service.ledger.used == 0

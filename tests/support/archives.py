@@ -14,6 +14,7 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -140,6 +141,21 @@ def allocating_checkpoint(size: int) -> bytes:
     allows: a few bytes that allocate `size`."""
     pickled = b"\x80\x02cbuiltins\nbytearray\nJ" + struct.pack("<l", size) + b"\x85R."   # GLOBAL BININT TUPLE1 REDUCE
     return raw_zip([stored("archive/data.pkl", pickled), stored("archive/version", b"3\n")])
+
+
+def gsplat_zip(checkpoint: bytes, method: int = zipfile.ZIP_DEFLATED) -> bytes:
+    """A gsplat result folder as a user zips it, holding `checkpoint` as its latest step."""
+    files = {"garden/cfg.yml": b"data_dir: data/garden\n", "garden/ckpts/ckpt_29999_rank0.pt": checkpoint}
+    return zip_of(files, method)
+
+
+BOMBS: dict[str, Callable[[], bytes]] = {   # the uploads issue 46's probe inflated, each a zip
+    "20 M zero splats deflated in a checkpoint deflated again in the zip (4 KB)":
+        lambda: gsplat_zip(zero_checkpoint(20_000_000)),
+    "20 M splats each a view of one stored zero": lambda: gsplat_zip(view_checkpoint(20_000_000)),
+    "a checkpoint's pickle calling bytearray(1 GiB)": lambda: gsplat_zip(allocating_checkpoint(1 << 30)),
+    "1 M directory entries (47 MB)": lambda: listing_zip(1_000_000),
+}
 
 
 def folder_files(root: Path, under: Path) -> dict[str, bytes]:
