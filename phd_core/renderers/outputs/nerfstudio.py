@@ -25,8 +25,9 @@ loading (`GaussianModel.transformed`), so cameras given and returned are the use
 Training cameras: transforms.json from config.yml's data path (absolute, or relative to the
 working directory or to any folder above the output folder), split as the dataparser splits it
 (`eval_mode` fraction (default, train_split_fraction 0.9), interval, filename, all; or the
-file's own `train_filenames`). Background: `background_color` white or black; "random"
-(splatfacto's default) renders over (0.149, 0.1647, 0.2157), what splatfacto evaluates over.
+file's own `train_filenames`). Background: `background_color` white, black or three numbers in
+[0, 1]; "random" (splatfacto's default) renders over (0.149, 0.1647, 0.2157), what splatfacto
+evaluates over. config.yml's fields are checked by `phd_core.io.configs.SplatfactoConfig`.
 Without transforms.json the model loads in the frame dataparser_transforms.json maps from, and
 `frame_without_data` tells from the stored rotation whether that is the COLMAP model's (an
 applied_transform is folded in) or transforms.json's, which the pose format then names.
