@@ -315,9 +315,9 @@ def write_ply(model: GaussianModel, path: str | Path) -> None:
         model.opacity_logits.detach().cpu()[:, None], model.log_scales.detach().cpu(),
         model.quats.detach().cpu(),
     ], dim=1)  # [G, 14 + axes + 3(K-1)]
-    body = packed.numpy().astype("<f4").tobytes()
+    body = packed.numpy().astype("<f4", copy=False)    # written as it is: the model held once more, not thrice
 
-    write_bytes_atomic(path, _ply_header(model) + body)
+    write_bytes_atomic(path, _ply_header(model), body.reshape(-1).view(np.uint8).data)
 
 
 def ply_bytes(model: GaussianModel) -> int:
