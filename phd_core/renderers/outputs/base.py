@@ -17,6 +17,7 @@ from ..gs3d import GaussianModel, GaussianRenderer
 
 EMPTY_VIEW_SHARE = 0.01      # a view whose frustum holds fewer than 1% of the splat centres renders (nearly) empty
 CHECKED_SPLATS = 20_000      # the check looks at up to this many splats (every n-th)
+DISTANCE_CHUNK = 1 << 20     # point-to-target distances computed at once (8 MB of float64)
 
 
 @dataclass
@@ -127,10 +128,12 @@ def data_candidates(folder: Path, data: Path, within: Path | None = None) -> lis
     return places if within is None else [p for p in places if p.resolve().is_relative_to(within.resolve())]
 
 
-def nearest_distances(points: torch.Tensor, targets: torch.Tensor, chunk: int = 128, k: int = 1) -> torch.Tensor:
+def nearest_distances(points: torch.Tensor, targets: torch.Tensor, k: int = 1) -> torch.Tensor:
     """For each of points [P, 3], the distance to the k-th nearest of targets [T, 3]: [P] float64
-    (k = 2 skips the point itself when the points are among the targets)."""
+    (k = 2 skips the point itself when the points are among the targets), DISTANCE_CHUNK
+    distances at a time (a capture's SfM points may be millions)."""
     out = torch.empty(points.shape[0], dtype=torch.float64)
+    chunk = max(1, DISTANCE_CHUNK // max(1, targets.shape[0]))
     for start in range(0, points.shape[0], chunk):
         distances = torch.cdist(points[start:start + chunk].double(), targets.double())
         out[start:start + chunk] = distances.topk(k, dim=1, largest=False).values[:, -1]
