@@ -26,7 +26,7 @@ from phd_core.renderers import (
 )
 from phd_core.scene import Camera
 
-from .budget import MemoryLedger, Reservation, largest_model_file, load_bytes
+from .budget import READ_BYTES_PER_MODEL_BYTE, MemoryLedger, Reservation, largest_model_file, load_bytes, read_bytes
 from .errors import ServiceError, busy, from_exception, not_found
 from .folders import folder_bytes, read_folder, unpack_zip, upload_relative
 from .jobs import JobManager, JobRecord, QueueFull, Work
@@ -136,7 +136,8 @@ class ServiceState:
         else 422."""
         assert upload.folder is not None          # receive_upload set it for `files` and `archive` parts
         field = "archive" if upload.archive is not None else "files"
-        cap = largest_model_file(self.settings.memory_budget_bytes)
+        budget = self.settings.memory_budget_bytes
+        cap, read_cap = largest_model_file(budget), largest_model_file(budget, READ_BYTES_PER_MODEL_BYTE)
         named = cut(Path(upload.filename).stem, MAX_NAME_BYTES) if upload.filename else "folder"
         with writing("the uploaded folder", field):        # a full disk: 507 (service.store.writing)
             try:
@@ -144,10 +145,10 @@ class ServiceState:
                     unpack_zip(upload.archive, upload.folder, cap,
                                self.store.free_bytes() - self.settings.keep_free_bytes, f"{named}.zip")
                 inflated = folder_bytes(upload.folder)
-                if inflated > cap:
-                    raise TooLarge(field, f"its model inflates to {inflated} bytes in memory, more than the {cap} "
+                if inflated > read_cap:
+                    raise TooLarge(field, f"its model inflates to {inflated} bytes in memory, more than the {read_cap} "
                                           "this service's memory budget can read")
-                with self.ledger.reserve(load_bytes(inflated), timeout=self.settings.upload_wait):
+                with self.ledger.reserve(read_bytes(inflated), timeout=self.settings.upload_wait):
                     found = read_folder(upload.folder, named, upload.path.with_suffix(".ply"), cap)
             except TimeoutError:
                 raise busy(field, self.settings.retry_after) from None
