@@ -1,16 +1,21 @@
-"""Reliability figures of the service (issue 17, docs/reliability.md), against `phd serve` run
-as a separate process, as users run it:
+"""Reliability figures of the service (issues 17 and 46, docs/reliability.md), against `phd serve`
+run as a separate process, as users run it:
 
 - fuzz: `--requests` mutated requests (tests/support/fuzz.py) over one keep-alive
   connection: how many got a 5xx, how many connections were dropped (a transport error or
   `Connection: close`), and whether any accepted job failed with internal_error;
+- folders: the uploads issue 46's probe inflated (tests/support/archives.BOMBS), each with the
+  server's peak RSS over its RSS before it, then `--folders` mutated trainer folders
+  (`mutated_folder`) over one connection, counted as the fuzz is, with the server's peak RSS
+  over the whole run against its memory budget (`--folder-budget`);
 - ASCII PLY: peak RSS of parsing a `--splats`-splat ASCII PLY held in memory, over the
   RSS once the file is read, next to the file size.
 
-    nice -n 10 .venv/bin/python -m bench.bench_reliability [--requests 10000]
+    nice -n 10 .venv/bin/python -m bench.bench_reliability [--requests 10000] [--folders 3000]
 
-Writes bench/results/reliability.json. Memory under every kind of request (the attack's
-800x800, samples=256 rank included) is bench/bench_memory.py's sweep.
+Writes bench/results/reliability.json (reliability_folders_<budget>mib.json with
+`--skip fuzz ascii`). Memory under every kind of request (the attack's 800x800, samples=256 rank
+included) is bench/bench_memory.py's sweep.
 """
 
 from __future__ import annotations
@@ -23,15 +28,20 @@ import subprocess
 import sys
 import tempfile
 import time
+import zipfile
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Iterable, Iterator
 
 import httpx
 
 from bench._harness import RESULTS, machine, write_result
 from client import PHDClient
 from phd_core.renderers.gs3d import write_ply
-from tests.support.fixtures import SvcProcess, svc_cameras, svc_random_gaussians
-from tests.support.fuzz import mutated_request, send
+from tests.support.archives import BOMBS, zero_checkpoint, zip_of
+from tests.support.fixtures import SvcProcess, proc_bytes, svc_cameras, svc_random_gaussians
+from tests.support.fuzz import FuzzRequest, mutated_folder, mutated_request, send, trainer_folders
 
 
 def fuzz(requests: int, root: Path, ply: Path, ply_b: Path) -> dict:
@@ -48,33 +58,94 @@ def fuzz(requests: int, root: Path, ply: Path, ply_b: Path) -> dict:
         ids = {"model": a.id, "model_b": b.id, "job": job.id}
         data = ply.read_bytes()
         rng = random.Random(17)
-        statuses: dict[int, int] = {}
-        server_errors, dropped, failures = 0, 0, []
-        client = httpx.Client(base_url=server.url, timeout=60)
-        start = time.perf_counter()
-        for i in range(requests):
-            request = mutated_request(rng, ids, data)
-            try:
-                response = send(client, request)
-            except httpx.TransportError as exc:
-                dropped += 1
-                failures.append(f"{request.method} {request.path}: {type(exc).__name__}")
-                continue
-            statuses[response.status_code] = statuses.get(response.status_code, 0) + 1
-            if response.status_code >= 500:
-                server_errors += 1
-                failures.append(f"{request.method} {request.path}: {response.status_code} {response.text[:200]}")
-            if response.headers.get("connection") == "close":
-                dropped += 1
-        seconds = time.perf_counter() - start
-        connections = len(client._transport._pool.connections)
-        client.close()
-        alive = server.proc.poll() is None
+        counted = send_all(server, (mutated_request(rng, ids, data) for _ in range(requests)))
     finally:
         server.kill()
-    return {"requests": requests, "seconds": round(seconds, 1), "server_errors": server_errors,
-            "dropped_connections": dropped, "connections_used": connections, "server_alive_after": alive,
+    return {"requests": requests, **counted}
+
+
+def send_all(server: SvcProcess, requests: Iterable[FuzzRequest],
+             answered: Callable[[httpx.Client, httpx.Response], None] = lambda client, response: None) -> dict:
+    """Send `requests` to `server` over one keep-alive connection (`answered` sees each answer):
+    the statuses, the 5xx and the dropped connections (a transport error or `Connection: close`)."""
+    statuses: dict[int, int] = {}
+    server_errors, dropped, failures = 0, 0, []
+    client = httpx.Client(base_url=server.url, timeout=300)
+    start = time.perf_counter()
+    for request in requests:
+        try:
+            response = send(client, request)
+        except httpx.TransportError as exc:
+            dropped += 1
+            failures.append(f"{request.method} {request.path}: {type(exc).__name__}")
+            continue
+        statuses[response.status_code] = statuses.get(response.status_code, 0) + 1
+        if response.status_code >= 500:
+            server_errors += 1
+            failures.append(f"{request.method} {request.path}: {response.status_code} {response.text[:200]}")
+        if response.headers.get("connection") == "close":
+            dropped += 1
+        answered(client, response)
+    seconds = time.perf_counter() - start
+    connections = len(client._transport._pool.connections)
+    client.close()
+    return {"seconds": round(seconds, 1), "server_errors": server_errors, "dropped_connections": dropped,
+            "connections_used": connections, "server_alive_after": server.proc.poll() is None,
             "statuses": dict(sorted(statuses.items())), "failures": failures[:20]}
+
+
+def folders(count: int, budget: int, root: Path) -> dict:
+    """The probe's bombs one by one, then `count` mutated trainer folders, against `phd serve`
+    under `budget`: each bomb's answer and peak, the fuzz's counts and its peak over the run."""
+    runs = trainer_folders(root / "runs")
+    server = SvcProcess(root / "folders", PHD_MEMORY_BUDGET_BYTES=str(budget), OMP_NUM_THREADS="1")
+    try:
+        with httpx.Client(base_url=server.url, timeout=300) as client:   # every reader warmed up once
+            for files in runs.values():
+                answer = client.post("/v1/models", files={"archive": ("run.zip", zip_of(files))})
+                assert answer.status_code == 201, answer.text
+        # Within the ratio rule: the model (56 MB of 1 M zero splats at one point, whose frame-choice
+        # renders would hold 7.9 GiB) is read, and refused before its 68 MB PLY is written.
+        within = {**runs["gsplat"], "results/garden/ckpts/ckpt_6999_rank0.pt": zero_checkpoint(1_000_000, chunk=8192)}
+        bombs = {}
+        for name, make in {**BOMBS, "1 M zero splats deflated 280 times, with their capture":
+                           lambda: zip_of(within, zipfile.ZIP_STORED)}.items():
+            archive = make()
+            with peak_rss(server.proc.pid) as peak:
+                answer = httpx.post(f"{server.url}/v1/models", files={"archive": ("run.zip", archive)}, timeout=300)
+            bombs[name] = {"zip_bytes": len(archive), "status": answer.status_code,
+                           "answer": answer.text[:300], "peak_over_before_mib": peak.mib}
+            print(json.dumps({name: bombs[name]}), flush=True)
+        rng = random.Random(46)
+
+        def forget(client: httpx.Client, response: httpx.Response) -> None:
+            if response.status_code == 201:                  # the store stays small: delete what was stored
+                client.delete(f"/v1/models/{response.json()['id']}")
+
+        with peak_rss(server.proc.pid) as peak:
+            counted = send_all(server, (mutated_folder(rng, runs) for _ in range(count)), forget)
+        idle = proc_bytes(server.proc.pid, "VmRSS")
+    finally:
+        server.kill()
+    return {"budget_mib": budget >> 20, "bombs": bombs, "folders": count, **counted,
+            "peak_over_before_mib": peak.mib, "peak_mib": peak.total_mib, "rss_after_mib": idle >> 20}
+
+
+@dataclass
+class Peak:
+    mib: int = 0        # once the block is done: the peak resident memory over the RSS before it
+    total_mib: int = 0  # and the peak itself
+
+
+@contextmanager
+def peak_rss(pid: int) -> Iterator[Peak]:
+    """The peak resident memory of process `pid` during the block, over its RSS before it
+    (/proc/<pid>/clear_refs restarts VmHWM from VmRSS)."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
+    before, peak = proc_bytes(pid, "VmRSS"), Peak()
+    yield peak
+    highest = proc_bytes(pid, "VmHWM")
+    peak.mib, peak.total_mib = max(0, highest - before) >> 20, highest >> 20
 
 
 def ascii_ply(root: Path, splats: int) -> dict:
@@ -107,7 +178,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--requests", type=int, default=10_000)
     parser.add_argument("--splats", type=int, default=200_000)
-    parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "ascii"])
+    parser.add_argument("--folders", type=int, default=3000)
+    parser.add_argument("--folder-budget", type=int, default=1 << 30, help="the folder fuzz's server's memory budget")
+    parser.add_argument("--skip", nargs="*", default=[], choices=["fuzz", "ascii", "folders"])
     args = parser.parse_args()
     results = {"machine": machine()}
     with tempfile.TemporaryDirectory() as tmp:
@@ -121,7 +194,11 @@ def main() -> None:
         if "fuzz" not in args.skip:
             results["fuzz"] = fuzz(args.requests, root, ply, ply_b)
             print(json.dumps(results["fuzz"]), flush=True)
-    out = RESULTS / "reliability.json"
+        if "folders" not in args.skip:
+            results["folders"] = folders(args.folders, args.folder_budget, root)
+            print(json.dumps(results["folders"]), flush=True)
+    only_folders = {"fuzz", "ascii"} <= set(args.skip)
+    out = RESULTS / (f"reliability_folders_{args.folder_budget >> 20}mib.json" if only_folders else "reliability.json")
     write_result(out, results)
     print(f"wrote {out}; peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss} KiB")
 

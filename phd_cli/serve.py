@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 
@@ -50,6 +51,10 @@ def run(args: argparse.Namespace) -> int:
         name = str(error["loc"][0]) if error["loc"] else "settings"
         raise InputError(name, f"{error['msg']} (the flag or PHD_{name.upper()}), got {error.get('input')!r}") from None
     app = create_app(settings)
+    # Python warnings (a library's, issued inside a request) go to the log like everything else
+    # the server says, not to the `phd` command's printer: a log write that fails (a full disk)
+    # is dropped by logging, never raised into the request.
+    logging.captureWarnings(True)
     app.state.service.executor.connect()    # a cluster that cannot be reached: a start-up error naming it
     where = settings.executor + (f" at {settings.executor_address}" if settings.executor_address else "")
     base = f"http://{page_host(args.host)}:{args.port}"

@@ -9,7 +9,12 @@ from __future__ import annotations
 
 import math
 import operator
-from typing import Any
+import reprlib
+from typing import Any, Iterable
+
+SHOWN_CHARS = 120       # a value a message quotes: its repr, abbreviated (reprlib), cut to this many characters
+MAX_NOTES = 16          # notes a model carries at most (they quote what its files said, which may be anything)
+NOTE_CHARS = 1000       # ... each cut to this many characters
 
 
 class InputError(ValueError):
@@ -27,6 +32,11 @@ class InputError(ValueError):
         return _rebuild_error, (type(self), self.args, self.__dict__)
 
 
+class TooLarge(InputError):
+    """Input past a size limit (an archive that inflates past what may be read, a model past the
+    memory budget): the service answers 413, not 422."""
+
+
 class ModelNote(UserWarning):
     """What a model or capture loader decided that the user should know (the frame it chose,
     and how well it fits; photos it undistorted, and where it keeps them)."""
@@ -35,6 +45,26 @@ class ModelNote(UserWarning):
 class ModelWarning(UserWarning):
     """A loaded model or capture that will probably not give what the user expects (its cameras
     miss its splats; LLFF poses beside a COLMAP model with lens distortion)."""
+
+
+def cut(text: str, limit: int) -> str:
+    """`text`, or its first `limit` - 1 characters and an ellipsis when it is longer."""
+    return text if len(text) <= limit else text[:limit - 1] + "\u2026"
+
+
+_SHOWN = reprlib.Repr()
+_SHOWN.maxstring = _SHOWN.maxother = SHOWN_CHARS
+
+
+def shown(value: Any) -> str:
+    """`value` as a message quotes it: its repr with long strings, lists and deep nesting
+    abbreviated, at most SHOWN_CHARS characters (a file's value may be anything)."""
+    return cut(_SHOWN.repr(value), SHOWN_CHARS)
+
+
+def bounded_notes(notes: Iterable[str]) -> list[str]:
+    """The first MAX_NOTES of `notes`, each cut to NOTE_CHARS characters."""
+    return [cut(note, NOTE_CHARS) for _, note in zip(range(MAX_NOTES), notes)]
 
 
 def _rebuild_error(cls: type[InputError], args: tuple, state: dict) -> InputError:
@@ -47,11 +77,11 @@ def _rebuild_error(cls: type[InputError], args: tuple, state: dict) -> InputErro
 def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | None = None) -> int:
     """`value` as an int (bools refused) within [minimum, maximum], else an InputError naming `name`."""
     if isinstance(value, bool):
-        raise InputError(name, f"must be an integer, got {value!r}")
+        raise InputError(name, f"must be an integer, got {shown(value)}")
     try:
         value = operator.index(value)
     except TypeError:
-        raise InputError(name, f"must be an integer, got {value!r}") from None
+        raise InputError(name, f"must be an integer, got {shown(value)}") from None
     _check_range(value, name, minimum, maximum)
     return value
 
@@ -61,7 +91,7 @@ def check_float(value: Any, name: str, minimum: float | None = None, maximum: fl
     """`value` as a finite float (bools refused) within [minimum, maximum], else an InputError;
     open_min / open_max exclude the bound itself ((0, 1]: minimum=0, maximum=1, open_min=True)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(name, f"must be a number, got {value!r}")
+        raise InputError(name, f"must be a number, got {shown(value)}")
     value = float(value)
     if not math.isfinite(value):
         raise InputError(name, f"must be finite, got {value}")
@@ -72,7 +102,7 @@ def check_float(value: Any, name: str, minimum: float | None = None, maximum: fl
 def check_bool(value: Any, name: str) -> bool:
     """`value` when it is True or False, else an InputError naming `name`."""
     if not isinstance(value, bool):
-        raise InputError(name, f"must be true or false, got {value!r}")
+        raise InputError(name, f"must be true or false, got {shown(value)}")
     return value
 
 
@@ -83,14 +113,14 @@ def check_color(value: Any, name: str) -> tuple[float, float, float]:
     """'white', 'black', 'grey' (or 'gray', 0.5) or three numbers in [0, 1] -> (r, g, b)."""
     if isinstance(value, str):
         if value.strip().lower() not in NAMED_COLORS:
-            raise InputError(name, f"must be 'white', 'black', 'grey' or three numbers in [0, 1], got {value!r}")
+            raise InputError(name, f"must be 'white', 'black', 'grey' or three numbers in [0, 1], got {shown(value)}")
         return NAMED_COLORS[value.strip().lower()]
     try:
         color = [float(c) for c in value]
     except (TypeError, ValueError):
-        raise InputError(name, f"must be three numbers in [0, 1], got {value!r}") from None
+        raise InputError(name, f"must be three numbers in [0, 1], got {shown(value)}") from None
     if len(color) != 3 or not all(0.0 <= c <= 1.0 for c in color):
-        raise InputError(name, f"must be three numbers in [0, 1], got {value!r}")
+        raise InputError(name, f"must be three numbers in [0, 1], got {shown(value)}")
     return color[0], color[1], color[2]
 
 

@@ -3,7 +3,9 @@ one `MemoryLedger`: the models in memory, the running jobs and the upload parses
 
 A model in memory holds MODEL_BYTES_PER_FILE_BYTE x its file size (the loaded tensors are at
 most the file for every built-in family, tests/service/test_budget.py) from its load until it is
-evicted, and LOAD_BYTES_PER_FILE_BYTE x the file while it is parsed. The ledger keeps idle models
+evicted, and LOAD_BYTES_PER_FILE_BYTE x the file while it is parsed; reading an uploaded
+trainer's folder takes READ_BYTES_PER_MODEL_BYTE x what its model inflates to (a checkpoint's
+records, not its bytes on disk: service.folders.folder_bytes). The ledger keeps idle models
 (at most PHD_CACHE_SIZE, least recently used out first) while nothing else needs their room, and
 evicts them when something does; a model a job is using is never evicted. A job takes its models
 and its own estimate together or waits for both, so no job holds memory while it waits.
@@ -58,6 +60,9 @@ from .errors import ServiceError
 MODEL_BYTES_PER_FILE_BYTE = 1       # a loaded model over its file (tensors <= the file: 0.88 PLY, 1.00 NeRF)
 MODEL_BYTES_OVERHEAD = 1 << 20      # and the objects around them
 LOAD_BYTES_PER_FILE_BYTE = 4        # loading: the file read and its parse (ASCII PLY measured 2.5x)
+READ_BYTES_PER_MODEL_BYTE = 5       # reading a trainer's folder, over what its model inflates to: the checkpoint's
+                                    # tensors, the model moved into the user's frame (float64 temporaries), the PLY
+                                    # written from it (1 M splats from a checkpoint: 4.6x through the server)
 MASK_SAMPLE_UNIT_BYTES = 5          # a float32 uniform and a keep flag per sample and unit
 ACCUMULATOR_CHANNEL_BYTES = 64      # RunningStd's float64 shift, mean, M2 [H, W, C] (24 a channel) and at
                                     # most five [H, W, C] float64 merge terms at once (40); then zeta, the
@@ -85,9 +90,15 @@ def taking(amount: int, sizes: Iterable[int]) -> int:
     return sum(model_bytes(size) for size in sizes) + max(amount, extra)
 
 
-def largest_model_file(budget: int) -> int:
-    """The largest model file whose load fits `budget` (an upload past it is cut off)."""
-    return max(0, budget - MODEL_BYTES_OVERHEAD) // LOAD_BYTES_PER_FILE_BYTE
+def read_bytes(size: int) -> int:
+    """What reading a trainer's folder whose model inflates to `size` bytes takes at its peak."""
+    return READ_BYTES_PER_MODEL_BYTE * size + MODEL_BYTES_OVERHEAD
+
+
+def largest_model_file(budget: int, per_byte: int = LOAD_BYTES_PER_FILE_BYTE) -> int:
+    """The largest model file whose load fits `budget` (an upload past it is cut off); with
+    per_byte READ_BYTES_PER_MODEL_BYTE, the largest model a folder's read fits it with."""
+    return max(0, budget - MODEL_BYTES_OVERHEAD) // per_byte
 
 
 @dataclass(frozen=True)

@@ -2,14 +2,15 @@
 
 Every error answer has the body `{"error": {"code", "message", "field"}}`
 (`service.schemas.ErrorResponse`). Library errors map onto it in one place,
-`from_exception`: `InputError` -> 422 naming its field, unknown model content -> 415.
+`from_exception`: `InputError` -> 422 naming its field (413 for `TooLarge`), unknown model
+content -> 415.
 """
 
 from __future__ import annotations
 
 import json
 
-from phd_core.errors import InputError
+from phd_core.errors import InputError, TooLarge, cut
 from phd_core.executors import ExecutorError
 from phd_core.uq import CalibrationError
 
@@ -18,11 +19,15 @@ from .schemas import ErrorDetail
 # What json.loads raises on text that is not JSON it can decode: bad syntax, bytes that are not
 # UTF-8/16/32, and arrays or objects nested past the interpreter's recursion limit (about 1,000).
 JSON_ERRORS = (json.JSONDecodeError, UnicodeDecodeError, RecursionError)
+MESSAGE_CHARS = 2000        # an error answer's message at most
+FIELD_CHARS = 200           # ... and the field it names
 
 
 def error_detail(code: str, message: str, field: str | None = None) -> ErrorDetail:
-    """The `error` of every error answer and of every failed job."""
-    return ErrorDetail(code=code, message=message, field=field)
+    """The `error` of every error answer and of every failed job; the message and the field cut to
+    MESSAGE_CHARS and FIELD_CHARS (they may quote a user's file or request)."""
+    return ErrorDetail(code=code, message=cut(message, MESSAGE_CHARS), field=None if field is None else
+                       cut(field, FIELD_CHARS))
 
 
 def error_body(code: str, message: str, field: str | None = None) -> bytes:
@@ -84,6 +89,8 @@ def from_exception(exc: BaseException) -> ServiceError | None:
 
         if isinstance(exc, UnknownModelError):
             return ServiceError(415, "unsupported_model", exc.reason, exc.field)
+        if isinstance(exc, TooLarge):
+            return ServiceError(413, "payload_too_large", exc.reason, exc.field)
         code = "calibration_failed" if isinstance(exc, CalibrationError) else "invalid_input"
         return ServiceError(422, code, exc.reason, exc.field)
     if isinstance(exc, ExecutorError):     # the compute cluster failed, not the request

@@ -4,37 +4,46 @@ reference 3DGS trainer's, nerfstudio splatfacto's, gsplat's), sent as one part p
 (`files`, each named by its path inside the folder) or as one zip (`archive`).
 
 The folder is unpacked under the data directory's tmp/ and nowhere else: every path is
-checked part by part (no absolute paths, no '..', no drive letters), a zip's members are
-written as plain files (never links), and the bytes actually written are counted against
-the model-file cap whatever a zip's headers declare, so a zip bomb stops at the cap. The
-folder is then read with the library's own rules, the ones the CLI and the Python client
-use: `read_output` for a trainer's folder, the family's `beside` (a PLY's sidecar) for a
-single model file. What comes out is an ordinary upload: one model file with the cameras,
-background and pose convention that form fields would carry, checked and stored by the same
-code as any other.
+checked part by part (no absolute paths, no '..', no drive letters, at most MAX_PATH_BYTES),
+a zip is opened only once its directory and every member's declared sizes keep the archive
+rules (`phd_core.io.archives`: entries, inflation ratio, total), its members are written as
+plain files (never links), and the bytes actually written are counted against the model-file
+cap whatever its headers declare. Before anything is read, the folder's torch checkpoints
+(zips themselves) are checked by the same rules and counted by what they inflate to
+(`folder_bytes`): that, not the bytes on disk, is what the memory budget reserves for the
+read, and past the model cap it is 413. The folder is then read with the library's own rules,
+the ones the CLI and the Python client use: `read_output` for a trainer's folder, the
+family's `beside` (a PLY's sidecar) for a single model file; a model from a checkpoint is
+refused (413) before it is written out when its PLY would be past the cap. What comes out is
+an ordinary upload: one model file with the cameras, background and pose convention that form
+fields would carry, checked and stored by the same code as any other. Every failure is a 4xx
+naming the file and the rule.
 """
 
 from __future__ import annotations
 
 import re
 import shutil
-import warnings
 import zipfile
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
+from typing import Iterator
 
 from phd_core.data import POSES
+from phd_core.errors import InputError, TooLarge, shown
+from phd_core.io.archives import DAMAGED, ZipRules, open_zip
+from phd_core.io.foreign import CHECKPOINT_SUFFIXES, checkpoint_bytes
 from phd_core.renderers import SNIFF_BYTES, accepts_background, family_of, family_titles
 from phd_core.renderers.outputs import OUTPUTS, read_output
-from phd_core.renderers.splats import write_ply  # trainers' folders hold splats
+from phd_core.renderers.splats import ply_bytes, write_ply  # trainers' folders hold splats
 
-from .errors import ServiceError, insufficient_storage, invalid
+from .errors import insufficient_storage, invalid
 
-MAX_FOLDER_FILES = 10_000       # files in one uploaded folder or zip
+MAX_FOLDER_FILES = 10_000       # files in one uploaded folder, entries in one zip
 MAX_PATH_PARTS = 32             # folders deep
-MAX_ZIP_RATIO = 500             # a member that inflates more than this is refused (a zip bomb's mark;
-                                # real PLYs, checkpoints and JSON inflate well below)
+MAX_PATH_BYTES = 1024           # a path inside the folder (each name at most 255, the file systems' limit): with
+                                # the server's data directory before it, within the system's 4,096
 SEARCH_DIRS = 2_000             # folders looked at for a trainer's output
 SKIPPED = ("__MACOSX", ".DS_Store")   # what archivers add beside a folder
 CLASHES = (FileExistsError, NotADirectoryError, IsADirectoryError)   # a path twice, or a file where a folder is
@@ -61,9 +70,13 @@ def relative_path(name: str | None, where: str) -> PurePosixPath:
         raise invalid(where, "a folder's file came without its name: name each part by its path inside the folder")
     text = name.replace("\\", "/")
     parts = [part for part in text.split("/") if part not in ("", ".")]
-    if (text.startswith("/") or re.match(r"^[A-Za-z]:", text) or "\x00" in text or not parts or ".." in parts
-            or len(parts) > MAX_PATH_PARTS or any(len(part.encode()) > 255 for part in parts)):
-        raise invalid(where, f"'{name}' is not a path inside the folder")
+    if len(text.encode()) > MAX_PATH_BYTES or any(len(part.encode()) > 255 for part in parts):
+        raise invalid(where, f"{shown(name)} is longer than a path inside the folder may be ({MAX_PATH_BYTES} bytes, "
+                             "255 for each folder or file name)")
+    if len(parts) > MAX_PATH_PARTS:
+        raise invalid(where, f"{shown(name)} lies more than {MAX_PATH_PARTS} folders deep")
+    if text.startswith("/") or re.match(r"^[A-Za-z]:", text) or "\x00" in text or not parts or ".." in parts:
+        raise invalid(where, f"{shown(name)} is not a path inside the folder")
     return PurePosixPath(*parts)
 
 
@@ -77,46 +90,56 @@ def folder_target(folder: Path, part: str, filename: str | None, count: int) -> 
     return folder / relative_path(filename, "files")
 
 
-def unpack_zip(archive: Path, folder: Path, max_bytes: int, room: int) -> int:
-    """Write the zip's files under `folder`; the bytes written (at most `max_bytes`, else 413,
-    and at most `room`, the disk's free bytes less what is kept free, else 507)."""
-    try:
-        zipped = zipfile.ZipFile(archive)
-    except (zipfile.BadZipFile, OSError):
-        raise invalid("archive", "the archive is not a zip file") from None
-    written = 0
-    with zipped:
+def unpack_zip(archive: Path, folder: Path, max_bytes: int, room: int, name: str = "the zip") -> int:
+    """Write the files of the zip (called `name`) under `folder`; the bytes written. Refused
+    before anything is written: a zip past the archive rules (InputError; TooLarge when it
+    declares more than `max_bytes`), one that holds no files, a path not inside the folder.
+    While writing: past `max_bytes` really inflated (TooLarge), past `room` (the disk's free
+    bytes less what is kept free: 507), a damaged member (InputError naming it)."""
+    with open_zip(archive, ZipRules(max_entries=MAX_FOLDER_FILES, max_bytes=max_bytes), name) as zipped:
         members = [m for m in zipped.infolist() if not m.is_dir() and not any(
             part in SKIPPED for part in m.filename.replace("\\", "/").split("/"))]
-        if len(members) > MAX_FOLDER_FILES:
-            raise invalid("archive", f"the zip holds {len(members)} files, more than {MAX_FOLDER_FILES}: zip the "
-                          "model with its cameras only")
-        for member in members:
-            target = folder / relative_path(member.filename, "archive")
-            if member.flag_bits & 0x1:
-                raise invalid("archive", f"'{member.filename}' is encrypted: zip the folder without a password")
-            ratio = member.file_size // max(member.compress_size, 1)
-            if ratio > MAX_ZIP_RATIO and member.file_size > 1 << 20:
-                raise invalid("archive", f"'{member.filename}' inflates {ratio} times: refused as a zip bomb")
+        if not members:
+            raise InputError(name, "holds no files: zip the trainer's output folder")
+        targets = [folder / relative_path(member.filename, "archive") for member in members]
+        written = 0
+        for member, target in zip(members, targets):
             try:
                 target.parent.mkdir(parents=True, exist_ok=True)
-                with zipped.open(member) as source, open(target, "xb") as out:
-                    while chunk := source.read(1 << 20):
-                        written += len(chunk)
-                        if written > room:
-                            raise insufficient_storage(f"the zip's files (more than {room} bytes)", "archive",
-                                                       "the service's disk has no more room outside the space "
-                                                       "it keeps free (PHD_KEEP_FREE_BYTES)")
-                        if written > max_bytes:
-                            raise ServiceError(413, "payload_too_large", f"the zip's files exceed {max_bytes} bytes, "
-                                               "the largest this service's memory budget can read (leave out the "
-                                               "images: the model and its cameras are enough)", "archive")
-                        out.write(chunk)
-            except (zipfile.BadZipFile, EOFError, NotImplementedError) as exc:
-                raise invalid("archive", f"cannot unpack '{member.filename}': {exc}") from None
+                out = open(target, "xb")
             except CLASHES:
-                raise invalid("archive", f"'{member.filename}' comes twice or clashes with a folder") from None
+                raise InputError(name, f"{shown(member.filename)} comes twice or clashes with a folder") from None
+            with out:
+                for chunk in _inflated(zipped, member, name):
+                    written += len(chunk)
+                    if written > room:
+                        raise insufficient_storage(f"the zip's files (more than {room} bytes)", "archive",
+                                                   "the service's disk has no more room outside the space it keeps "
+                                                   "free (PHD_KEEP_FREE_BYTES)")
+                    if written > max_bytes:
+                        raise TooLarge(name, f"its files inflate past {max_bytes} bytes, the most this service's "
+                                             "memory budget can read (leave out the images: the model and its "
+                                             "cameras are enough)")
+                    out.write(chunk)
     return written
+
+
+def _inflated(zipped: zipfile.ZipFile, member: zipfile.ZipInfo, name: str) -> Iterator[bytes]:
+    """The member's bytes as they inflate, 1 MiB at a time; a damaged member is an InputError
+    naming it (a failed write of these bytes is the caller's: the disk's, 507)."""
+    try:
+        with zipped.open(member) as source:
+            while chunk := source.read(1 << 20):
+                yield chunk
+    except DAMAGED as exc:
+        raise InputError(name, f"cannot unpack {shown(member.filename)}: its data is damaged ({exc})") from None
+
+
+def folder_bytes(folder: Path) -> int:
+    """What reading the model in `folder` may hold in memory at most: its files' bytes, a torch
+    checkpoint counted by what its records inflate to (checked by the archive rules first)."""
+    return sum(checkpoint_bytes(path) if path.suffix in CHECKPOINT_SUFFIXES else path.stat().st_size
+               for path in folder.rglob("*") if path.is_file())
 
 
 def find_output(folder: Path) -> Path | None:
@@ -150,15 +173,21 @@ def upload_relative(text: str, folder: Path) -> str:
     return text
 
 
-def read_folder(folder: Path, name: str, ply: Path) -> FolderModel:
+def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderModel:
     """The model in an unpacked folder (named `name` when its files sit at the top); splats
-    a trainer stored in its own frame are written, moved into the user's, to `ply`."""
+    a trainer stored in its own frame are written, moved into the user's, to `ply`, unless
+    that file would be past `max_bytes` (TooLarge)."""
     output_folder = find_output(folder)
     if output_folder is not None:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")       # the same notes come back in the output, shown with the model
-            output = read_output(output_folder, within=folder)   # a capture it names is read only from the upload
+        # A capture the run names is read only from the upload; its notes come back in the output
+        # (shown with the model), never issued as Python warnings.
+        output = read_output(output_folder, within=folder, warn=False)
         if output.ply is None:
+            size = ply_bytes(output.model)
+            if size > max_bytes:
+                raise TooLarge(str(output.source.relative_to(folder)), f"its model of {output.model.num_splats} splats "
+                               f"takes {size} bytes as a PLY, more than the {max_bytes} this service's memory "
+                               "budget can load")
             write_ply(output.model, ply)
         title = next(o.title for o in OUTPUTS.in_order() if o.detect(output_folder))
         # The run's name as the reader gives it ("<experiment>/<method>", "<folder>/gsplat", ...), as

@@ -14,7 +14,7 @@ from typing import Any
 
 from fastapi.responses import JSONResponse
 
-from phd_core.errors import InputError
+from phd_core.errors import InputError, TooLarge, bounded_notes, cut
 from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import (
     FAMILIES,
@@ -28,9 +28,9 @@ from phd_core.renderers import (
 )
 from phd_core.scene import UNSEEN_SHARE, Camera
 
-from .budget import MemoryLedger, Reservation, largest_model_file, load_bytes
-from .errors import ServiceError, busy, invalid, not_found
-from .folders import read_folder, unpack_zip, upload_relative
+from .budget import READ_BYTES_PER_MODEL_BYTE, MemoryLedger, Reservation, largest_model_file, load_bytes, read_bytes
+from .errors import ServiceError, busy, from_exception, not_found
+from .folders import folder_bytes, read_folder, unpack_zip, upload_relative
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
 from .keys import Principal
@@ -39,6 +39,7 @@ from .schemas import Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore, writing
 from .upload import (
+    MAX_NAME_BYTES,
     Upload,
     guess_background,
     parse_background,
@@ -130,24 +131,34 @@ class ServiceState:
             raise busy("file", self.settings.retry_after) from None
 
     def ingest_folder(self, upload: Upload, who: Principal) -> ModelRecord:
-        """A folder upload (`service.folders`): unpacked and read within the memory budget, then
-        ingested as the model file it holds, with what its trainer wrote beside it as the
-        fields the request left out."""
+        """A folder upload (`service.folders`): unpacked, and read within the memory budget for
+        what its model inflates to (a checkpoint's records, not its bytes on disk), then ingested
+        as the model file it holds, with what its trainer wrote beside it as the fields the
+        request left out. Every refusal names the file and the rule: 413 past the model cap,
+        else 422."""
         assert upload.folder is not None          # receive_upload set it for `files` and `archive` parts
         field = "archive" if upload.archive is not None else "files"
-        size = upload.size
+        budget = self.settings.memory_budget_bytes
+        cap, read_cap = largest_model_file(budget), largest_model_file(budget, READ_BYTES_PER_MODEL_BYTE)
+        named = cut(Path(upload.filename).stem, MAX_NAME_BYTES) if upload.filename else "folder"
         with writing("the uploaded folder", field):        # a full disk: 507 (service.store.writing)
-            if upload.archive is not None:
-                size = unpack_zip(upload.archive, upload.folder, largest_model_file(self.settings.memory_budget_bytes),
-                                  self.store.free_bytes() - self.settings.keep_free_bytes)
-            named = Path(upload.filename).stem if upload.filename else "folder"
             try:
-                with self.ledger.reserve(load_bytes(size), timeout=self.settings.upload_wait):
-                    found = read_folder(upload.folder, named, upload.path.with_suffix(".ply"))
+                if upload.archive is not None:
+                    unpack_zip(upload.archive, upload.folder, cap,
+                               self.store.free_bytes() - self.settings.keep_free_bytes, f"{named}.zip")
+                inflated = folder_bytes(upload.folder)
+                if inflated > read_cap:
+                    raise TooLarge(field, f"its model inflates to {inflated} bytes in memory, more than the {read_cap} "
+                                          "this service's memory budget can read")
+                with self.ledger.reserve(read_bytes(inflated), timeout=self.settings.upload_wait):
+                    found = read_folder(upload.folder, named, upload.path.with_suffix(".ply"), cap)
             except TimeoutError:
                 raise busy(field, self.settings.retry_after) from None
             except InputError as exc:       # the readers name files by their paths: the upload's, not the server's
-                raise invalid(field, upload_relative(f"{exc.field}: {exc.reason}", upload.folder)) from None
+                known = from_exception(exc)
+                assert known is not None   # from_exception answers every InputError
+                raise ServiceError(known.status, known.code, upload_relative(f"{exc.field}: {exc.reason}",
+                                                                             upload.folder), field) from None
         os.replace(found.model, upload.path)
         with open(upload.path, "rb") as f:
             upload.head = f.read(SNIFF_BYTES)
@@ -177,7 +188,7 @@ class ServiceState:
             check_cameras_see(renderer, cameras)
         cameras = cameras if cameras is not None else renderer.training_cameras
         frames = None if not cameras else [c.to_frame() for c in cameras]
-        name = upload.name or upload.filename or f"model{FAMILIES[kind].extension}"
+        name = cut(upload.name or upload.filename or f"model{FAMILIES[kind].extension}", MAX_NAME_BYTES)
         # The stored cameras are the truth about training cameras, not what the file carried.
         facts = {k: v for k, v in renderer.describe().items() if k != "has_training_cameras"}
         facts["camera_format"] = camera_format or facts.get("camera_format")
@@ -189,7 +200,7 @@ class ServiceState:
         if not frames and NO_CAMERAS_NOTE not in notes:
             notes.append(NO_CAMERAS_NOTE)
         if notes:
-            facts["notes"] = notes
+            facts["notes"] = bounded_notes(notes)
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)

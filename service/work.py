@@ -20,7 +20,7 @@ from typing import Any, Callable
 from phd_core import uq
 from phd_core.data import POSES, candidate_name, export_cameras, source_pose
 from phd_core.data.inria import cameras_from_entries, is_inria_cameras
-from phd_core.errors import InputError
+from phd_core.errors import InputError, check_int
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import (
@@ -29,7 +29,7 @@ from phd_core.renderers import (
     Renderer,
     RenderMemory,
     accepts_background,
-    load_model,
+    load_model_bytes,
     memory_probe_bytes,
     set_background,
     signal_channels,
@@ -81,12 +81,15 @@ from .store import ModelRecord, ModelStore, utc_now
 # ----------------------------------------------------------------------------- loaded models
 
 def model_loader(store: ModelStore) -> Callable[[str], Renderer]:
-    """How the memory ledger loads a stored model by id (404 if it was deleted meanwhile)."""
+    """How the memory ledger loads a stored model by id (404 if it was deleted meanwhile): the
+    file alone, as stored; its training cameras are the record's, and what loading noted was
+    noted at its upload (no warning is issued: a warning's write to a full disk must not fail
+    the request, and "no training cameras" was wrong for a model whose cameras the record holds)."""
     def load(model_id: str) -> Renderer:
         record = store.get(model_id)
-        if record is None:
+        if record is None or not store.path(record).is_file():
             raise not_found("model", model_id)
-        renderer = load_model(store.path(record))
+        renderer = load_model_bytes(store.path(record).read_bytes(), record.name)
         if accepts_background(renderer) and record.describe.get("background") is not None:
             set_background(renderer, record.describe["background"])
         return renderer
@@ -532,7 +535,9 @@ def export_poses(record: ModelRecord, body: PosesRequest, settings: Settings) ->
     calls, with the same image names: in the convention asked for, else the model's own. A
     folder (a COLMAP text model) comes back as a zip of its files."""
     cameras = read_cameras(body.cameras, RenderSize(), settings, field="cameras", cap=settings.max_candidates)
-    indices = body.indices if body.indices is not None else list(range(len(cameras)))
+    # A candidate's index names its image file: one of a rank request's at most max_candidates.
+    indices = list(range(len(cameras))) if body.indices is None else [
+        check_int(index, f"indices[{k}]", 0, settings.max_candidates - 1) for k, index in enumerate(body.indices)]
     convention = POSES[body.format or record.describe.get("camera_format") or "nerfstudio"]
     folder = convention.suffix == ""
     target = "colmap" if folder else convention.file_name or "transforms.json"

@@ -5,11 +5,11 @@ axis convention."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, cast
 
 from ..errors import InputError
+from ..io.foreign import read_json
 from ..scene import DEFAULT_MAX_SIZE, Camera, cameras_from_json
 from .blender import BLENDER_FAR, BLENDER_NEAR, load_blender
 from .formats import FORMATS, DataFormat
@@ -64,9 +64,9 @@ def load_cameras(source: str | Path | dict | list, *, split: str = "train", widt
         path = Path(source)
         if path.is_file() and path.suffix.lower() == ".json":
             try:
-                source = json.loads(path.read_text())
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise InputError("cameras", f"cannot read camera JSON {path}: {exc}") from None
+                source = read_json(path)
+            except InputError as exc:
+                raise InputError("cameras", exc.reason) from None
             if isinstance(source, dict) and isinstance(source.get("training_cameras"), list):
                 source = source["training_cameras"]          # a `phd train` sidecar
         else:

@@ -18,6 +18,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..errors import InputError
+from ..scene.camera import MAX_COORDINATE
 
 # model id -> (name, parameter names); the first parameters are the pinhole ones.
 MODELS = {
@@ -36,6 +37,7 @@ MODELS = {
 MODEL_IDS = {name: model_id for model_id, (name, _) in MODELS.items()}
 MAX_SIZE = 100_000         # pixels a side of a COLMAP camera: above any sensor's
 _OBSERVATION = np.dtype([("xy", "<f8", 2), ("point3d_id", "<i8")])
+_POINT = "q3d3BdQ"     # points3D.bin's record up to its track: id (signed, as observed ids), xyz, rgb, error, length
 
 
 @dataclass
@@ -209,18 +211,22 @@ def read_points_text(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if len(words) < 8 or (len(words) - 8) % 2:
             raise InputError(path.name, f"line {n}: expected POINT3D_ID X Y Z R G B ERROR TRACK[] (pairs)")
         ids.append(_numbers(words[:1], int, path, n, "POINT3D_ID")[0])
+        if not -2**63 <= ids[-1] < 2**63:
+            raise InputError(path.name, f"line {n}: POINT3D_ID must be a 64-bit integer, got {words[0]}")
         xyz.append(_numbers(words[1:4], float, path, n, "X Y Z"))
-        rgb.append(_numbers(words[4:7], int, path, n, "R G B"))
-    colours = np.clip(np.array(rgb), 0, 255).astype(np.uint8).reshape(-1, 3)
+        rgb.append([min(max(c, 0), 255) for c in _numbers(words[4:7], int, path, n, "R G B")])
+    colours = np.array(rgb, dtype=np.uint8).reshape(-1, 3)
     return np.array(xyz, dtype=np.float64).reshape(-1, 3), colours, np.array(ids, dtype=np.int64)
 
 
 def read_points_binary(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     f = _Bytes(path)
     (count,) = f.take("Q", "the point count")
+    if count * struct.calcsize("<" + _POINT) > len(f.data) - f.pos:       # before allocating what it declares
+        raise InputError(path.name, f"{path} ends early: it declares {count} points, more than its size holds")
     ids, xyz, rgb = np.empty(count, np.int64), np.empty((count, 3)), np.empty((count, 3), np.uint8)
     for i in range(count):
-        record = f.take("Q3d3BdQ", f"point record {i}")
+        record = f.take(_POINT, f"point record {i}")
         ids[i], xyz[i], rgb[i] = record[0], record[1:4], record[4:7]
         f.array(np.dtype("<i4"), 2 * record[8], f"point {record[0]}'s track")
     return xyz, rgb, ids
@@ -242,6 +248,9 @@ def read_model(model_dir: str | Path, *, with_points: bool = True) -> ColmapMode
     points = colors = ids = None
     if with_points and (model_dir / f"points3D{ext}").is_file():
         points, colors, ids = readers[2](model_dir / f"points3D{ext}")
+        if not (np.abs(points) <= MAX_COORDINATE).all():                  # NaN fails it too
+            raise InputError(f"points3D{ext}", f"{model_dir / f'points3D{ext}'} holds a point whose position is not "
+                                               f"three numbers within +-{MAX_COORDINATE:g}, as cameras' are")
     return ColmapModel(cameras, images, points, colors, ids)
 
 

@@ -17,7 +17,6 @@ at full depth but reduces 16-bit colour PNGs to 8 bits; both come out in [0, 1].
 
 from __future__ import annotations
 
-import json
 import math
 import operator
 import os
@@ -32,7 +31,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..errors import InputError, check_color
+from ..errors import InputError, check_color, shown
+from ..io.foreign import read_json
 from ..scene import Camera, camera_from_frame
 
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -251,10 +251,7 @@ def _read_images(photos: list[Photo], targets: list[Camera], background: tuple[f
 
 def read_transforms(json_path: Path) -> tuple[list, dict]:
     """(frames, top-level defaults) of a transforms JSON."""
-    try:
-        data = json.loads(json_path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(json_path.name, f"cannot parse {json_path}: {exc}") from None
+    data = read_json(json_path)
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
         raise InputError(json_path.name, "must be an object with a non-empty 'frames' list")
     return data["frames"], {k: v for k, v in data.items() if k != "frames"}
@@ -270,7 +267,7 @@ def _near_far(defaults: dict, fallback: tuple[float | None, float | None]) -> tu
     for name, value in (("near", near), ("far", far)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
                                   or not math.isfinite(value) or value < 0):
-            raise InputError(name, f"must be a non-negative finite number, got {value!r}")
+            raise InputError(name, f"must be a non-negative finite number, got {shown(value)}")
     if near is not None and far is not None and not near < far:
         raise InputError("far", f"must exceed near ({near}), got {far}")
     return (None if near is None else float(near)), (None if far is None else float(far))
@@ -281,7 +278,7 @@ def _check_pinhole(frame: dict, defaults: dict, field: str) -> None:
     merged = {**defaults, **frame}
     model = merged.get("camera_model", "PINHOLE")
     if model not in _PINHOLE_MODELS:
-        raise InputError(f"{field}.camera_model", f"only pinhole cameras are supported, got {model!r}")
+        raise InputError(f"{field}.camera_model", f"only pinhole cameras are supported, got {shown(model)}")
     for key in _DISTORTION_KEYS:
         if merged.get(key, 0) != 0:
             raise InputError(f"{field}.{key}", "lens distortion is not supported: undistort the images first")

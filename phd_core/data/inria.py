@@ -20,7 +20,6 @@ cameras. Its background is black unless cfg_args has `white_background=True`.
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from dataclasses import dataclass
@@ -30,8 +29,10 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, shown
 from ..io import write_json_atomic
+from ..io.configs import InriaArgs, parse_config
+from ..io.foreign import MAX_CONFIG_BYTES, read_json, read_text
 from ..scene import DEFAULT_MAX_SIZE, Camera
 from .formats import FORMATS, DataFormat
 from .frames import HOLDOUT, Dataset, build_dataset
@@ -67,7 +68,7 @@ def camera_from_entry(entry: Any, max_size: int = DEFAULT_MAX_SIZE) -> Camera:
     for key in ("width", "height", "fx", "fy"):
         value = entry[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise InputError(key, f"must be a finite number, got {value!r}")
+            raise InputError(key, f"must be a finite number, got {shown(value)}")
         values[key] = value
     c2w = torch.eye(4, dtype=torch.float64)
     c2w[:3, :3] = torch.from_numpy(rotation)
@@ -137,14 +138,12 @@ def is_output_folder(path: Path) -> bool:
     return path.is_dir() and (path / "cameras.json").is_file() and bool(iterations(path))
 
 
-def read_cfg_args(folder: Path) -> dict[str, str]:
-    """The key=value pairs of cfg_args (a Namespace repr), as text; {} when absent."""
+def read_cfg_args(folder: Path) -> InriaArgs:
+    """The arguments of cfg_args (a Namespace repr) that the readers use, checked; the
+    trainer's defaults when it is absent."""
     path = folder / "cfg_args"
-    try:
-        text = path.read_text(errors="replace") if path.is_file() else ""
-    except OSError:
-        return {}
-    return dict(re.findall(r"(\w+)=('[^']*'|\"[^\"]*\"|[^,()]+)", text))
+    text = read_text(path, MAX_CONFIG_BYTES) if path.is_file() else ""
+    return parse_config(InriaArgs, dict(re.findall(r"(\w+)=('[^']*'|\"[^\"]*\"|[^,()]+)", text)), "cfg_args")
 
 
 def read_output_folder(folder: str | Path, iteration: int | None = None,
@@ -159,20 +158,16 @@ def read_output_folder(folder: str | Path, iteration: int | None = None,
         iteration = max(found)
     elif iteration not in found:
         raise InputError("iteration", f"{folder} has iterations {sorted(found)}, not {iteration}")
-    path = folder / "cameras.json"
-    try:
-        entries = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError("cameras.json", f"cannot parse {path}: {exc}") from None
+    entries = read_json(folder / "cameras.json")
     cameras = cameras_from_entries(entries, max_size)
     names = [str(e.get("img_name", i)) for i, e in enumerate(entries)]
     cfg = read_cfg_args(folder)
-    if cfg.get("eval") == "True":     # the trainer held out every HOLDOUT-th image by name
+    if cfg.eval:                      # the trainer held out every HOLDOUT-th image by name
         order = sorted(range(len(names)), key=lambda i: names[i])
         test = {order[k] for k in range(0, len(order), HOLDOUT)}
         keep = [i for i in range(len(names)) if i not in test] or list(range(len(names)))
         cameras, names = [cameras[i] for i in keep], [names[i] for i in keep]
-    background = (1.0, 1.0, 1.0) if cfg.get("white_background") == "True" else (0.0, 0.0, 0.0)
+    background = (1.0, 1.0, 1.0) if cfg.white_background else (0.0, 0.0, 0.0)
     return OutputFolder(found[iteration], iteration, cameras, names, background)
 
 
@@ -187,7 +182,7 @@ def load_inria(path: str | Path, split: str = "train", *, downscale: float = 1,
     folder = read_output_folder(path)
     cameras, names = folder.cameras, folder.names
     if split == "all":
-        entries = json.loads((Path(path) / "cameras.json").read_text())
+        entries = read_json(Path(path) / "cameras.json")
         cameras, names = cameras_from_entries(entries), [str(e.get("img_name", i)) for i, e in enumerate(entries)]
     elif split != "train":
         raise InputError("split", f"a 3DGS output folder has the splits train and all, not {split!r}")

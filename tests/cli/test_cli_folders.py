@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from phd_cli import main
+from phd_core.io.configs import SPLATFACTO_BACKGROUNDS as BACKGROUNDS
 from phd_core.renderers.gs3d import GaussianRenderer
-from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from support.captures import write_colmap, write_images, write_output_folder
 from support.cli import run
 from support.trainers import (

@@ -21,10 +21,10 @@ import torch
 
 from phd_core.data import load_colmap
 from phd_core.errors import InputError, ModelNote, ModelWarning
+from phd_core.io.configs import SPLATFACTO_BACKGROUNDS as BACKGROUNDS
 from phd_core.renderers import NO_CAMERAS_NOTE, load_model, load_model_bytes
-from phd_core.renderers.gs3d import GaussianRenderer, write_ply
+from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer, write_ply
 from phd_core.renderers.outputs import gsplat, read_output
-from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.renderers.splats import eval_sh, sh_rotation
 from phd_core.renderers.splats.ply import SIDECAR_FORMAT
 from phd_core.scene import Camera
@@ -41,6 +41,7 @@ from support.trainers import (
     scene_splats,
     splatfacto_scene,
     write_capture,
+    write_gsplat,
     write_splatfacto,
 )
 
@@ -257,6 +258,20 @@ def test_gsplat_frames_judged_without_the_photos_are_warned_about(tmp_path, monk
     _, notes, warned = loaded(scene["folder"])
     assert "judged by alpha coverage" in notes[0]
     assert any("chosen by how much of 2 views its splats cover" in w for w in warned), warned
+
+
+def test_gsplat_frames_too_costly_to_render_are_told_by_their_residual(tmp_path) -> None:
+    # 20,000 splats of scale 1 at one point: every candidate frame is as near as the others, and
+    # a 64-pixel view of them lists every splat in every tile (about 300 MB against 1 MB of splats).
+    count = 20_000
+    gsplat_scene(tmp_path)
+    write_gsplat(tmp_path, "garden", GaussianModel(torch.zeros(count, 3), torch.zeros(count, 3),
+                                                   torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(count, 1),
+                                                   torch.zeros(count), torch.zeros(count, 1, 3)),
+                 data_dir="data/garden")
+    _, notes, warned = loaded(tmp_path / "results" / "garden")
+    assert "views were rendered" not in notes[0]
+    assert any("were not rendered to tell them apart" in w and "the lowest residual was taken" in w for w in warned)
 
 
 def test_gsplat_run_read_against_the_wrong_capture_is_warned_about(tmp_path) -> None:

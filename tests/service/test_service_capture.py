@@ -16,9 +16,9 @@ from client import InvalidInputError, PHDClient
 from phd_core import uq as phd
 from phd_core.data.inria import camera_from_entry
 from phd_core.errors import ModelNote
+from phd_core.io.configs import SPLATFACTO_BACKGROUNDS as BACKGROUNDS
 from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import GaussianRenderer
-from phd_core.renderers.outputs.nerfstudio import BACKGROUNDS
 from phd_core.scene import Camera
 from phd_core.uq.candidates import candidate_cameras
 from support.captures import colmap_pose as written_colmap_pose

@@ -1,7 +1,7 @@
-"""Property tests (hypothesis) against the real server: a mutated request for any route, and a
-damaged raw multipart upload, never gets a 5xx, and never costs the client its keep-alive
-connection. bench/bench_reliability.py runs the same generator for 10,000 requests
-(docs/reliability.md)."""
+"""Property tests (hypothesis) against the real server: a mutated request for any route, a
+damaged raw multipart upload and a damaged trainer's folder never get a 5xx, and never cost
+the client its keep-alive connection. bench/bench_reliability.py runs the same generators for
+10,000 requests and 3,000 folders (docs/reliability.md)."""
 
 from __future__ import annotations
 
@@ -14,10 +14,11 @@ from hypothesis import strategies as st
 
 from client import PHDClient
 from support.fixtures import svc_cameras
-from support.fuzz import FuzzRequest, mutated_request, mutated_upload, send
+from support.fuzz import FuzzRequest, mutated_folder, mutated_request, mutated_upload, send, trainer_folders
 
 EXAMPLES = 300
 UPLOAD_EXAMPLES = 200
+FOLDER_EXAMPLES = 40
 
 
 def test_mutated_requests_never_give_5xx_nor_drop_the_connection(svc_start, svc_model_files):
@@ -40,6 +41,14 @@ def test_damaged_multipart_uploads_never_give_5xx_nor_drop_the_connection(svc_st
     ply = svc_model_files["ply"].read_bytes()
     seen = _statuses(server.url, lambda rng: mutated_upload(rng, ply), UPLOAD_EXAMPLES)
     assert {201, 400, 415, 422} <= seen       # stored, refused as multipart, as content, and as a field
+    assert not list((server.settings.data_dir / "tmp").iterdir())
+
+
+def test_damaged_folder_uploads_never_give_5xx_nor_drop_the_connection(svc_start, tmp_path):
+    server = svc_start(memory_budget_bytes=256 << 20)
+    folders = trainer_folders(tmp_path / "runs")
+    seen = _statuses(server.url, lambda rng: mutated_folder(rng, folders), FOLDER_EXAMPLES)
+    assert {201, 422} <= seen                 # some damage leaves a readable folder, most is refused
     assert not list((server.settings.data_dir / "tmp").iterdir())
 
 

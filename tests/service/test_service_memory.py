@@ -18,7 +18,7 @@ from service.schemas import RankRequest
 from service.settings import Settings
 from service.store import ModelStore
 from service.work import model_loader, rank_job
-from support.fixtures import SvcProcess, expect_error, svc_cameras
+from support.fixtures import SvcProcess, expect_error, proc_bytes, svc_cameras
 
 
 def rank(server, model_id: str, **body) -> httpx.Response:
@@ -94,12 +94,6 @@ def test_a_finished_job_keeps_its_result_and_images_on_disk_not_in_memory(svc_st
         assert phd.download(served.result.views[0].heatmap_url).startswith(b"\x89PNG")
 
 
-def _vm(pid: int, key: str) -> int:
-    """A /proc/<pid>/status figure in bytes (VmRSS, VmHWM)."""
-    line = next(line for line in Path(f"/proc/{pid}/status").read_text().splitlines() if line.startswith(key + ":"))
-    return int(line.split()[1]) * 1024
-
-
 @pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc peak-RSS reset")
 def test_the_same_request_peaks_the_same_each_time_within_its_plan(svc_model_files, tmp_path):
     # A separate `phd serve`, so its peak RSS (VmHWM, restarted before each run) is the service's
@@ -113,13 +107,13 @@ def test_the_same_request_peaks_the_same_each_time_within_its_plan(svc_model_fil
             model = phd.upload_model(svc_model_files["ply"])
         assert rank(server, model.id).status_code == 200                    # every code path warmed up
         body = {"cameras": [svc_cameras(1, size=200)[0].to_frame()], "samples": 64, "strategy": "sigma_max"}
-        idle = _vm(server.proc.pid, "VmRSS")
+        idle = proc_bytes(server.proc.pid, "VmRSS")
         peaks = []
         for _ in range(5):
             Path(f"/proc/{server.proc.pid}/clear_refs").write_text("5")      # VmHWM starts again from VmRSS
             response = rank(server, model.id, **body)
             assert response.status_code == 200, response.text
-            peaks.append(_vm(server.proc.pid, "VmHWM") - idle)
+            peaks.append(proc_bytes(server.proc.pid, "VmHWM") - idle)
     finally:
         server.kill()
     store = ModelStore(tmp_path / "data")

@@ -53,18 +53,16 @@ def svc_free_port() -> int:
 
 
 class SvcProcess:
-    """`phd serve` as a separate process (for tests that kill it)."""
+    """`phd serve` as a separate process (for tests that kill it or measure its memory), run
+    as users run it (`phd_cli.main`); its log (stderr) goes to a temporary file, or to `log`."""
 
-    def __init__(self, data_dir: Path, start_timeout: float = 60, **env: str):
+    def __init__(self, data_dir: Path, start_timeout: float = 60, log: Path | None = None, **env: str):
         self.port = svc_free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        # `phd serve` through its own CLI module (independent of the other commands' modules).
-        code = ("import argparse, sys; from phd_cli import serve; parser = argparse.ArgumentParser(prog='phd'); "
-                "serve.register(parser.add_subparsers()); args = parser.parse_args(sys.argv[1:]); "
-                "sys.exit(args.func(args))")
+        code = "import sys; from phd_cli import main; sys.exit(main(sys.argv[1:]))"
         argv = ["serve", "--host", "127.0.0.1", "--port", str(self.port), "--data-dir", str(data_dir),
                 "--log-level", "warning"]
-        self.log = tempfile.TemporaryFile()
+        self.log = tempfile.TemporaryFile() if log is None else open(log, "wb")
         self.proc = subprocess.Popen([sys.executable, "-c", code, *argv],
                                      env={**{k: v for k, v in os.environ.items() if not k.startswith("PHD_")}, **env},
                                      stdout=subprocess.DEVNULL, stderr=self.log)
@@ -77,6 +75,8 @@ class SvcProcess:
                 pass
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 self.kill()
+                if log is not None:
+                    raise RuntimeError(f"phd serve did not start (its log went to {log})")
                 self.log.seek(0)
                 raise RuntimeError(f"phd serve did not start: {self.log.read().decode()[-2000:]}")
             time.sleep(0.1)
@@ -85,6 +85,12 @@ class SvcProcess:
         if self.proc.poll() is None:
             self.proc.kill()
         self.proc.wait(timeout=30)
+
+
+def proc_bytes(pid: int, key: str) -> int:
+    """A /proc/<pid>/status figure in bytes (VmRSS, VmHWM)."""
+    line = next(line for line in Path(f"/proc/{pid}/status").read_text().splitlines() if line.startswith(key + ":"))
+    return int(line.split()[1]) * 1024
 
 
 def expect_error(response: httpx.Response, status: int, code: str | None = None, field: str | None = None) -> dict:

@@ -6,18 +6,30 @@ the issue-17 attack did: a value anywhere in the JSON tree replaced by NaN / +-I
 subnormals, wrong types, server paths, a deleted or an unknown key. Uploads are also sent as
 raw multipart bodies damaged at every level (`mutated_upload`): the boundary, the part
 headers, the parts' contents (cameras nested 10^5 deep, bytes that are not UTF-8) and the
-body's framing. The server must answer every one with a status below 500, on a connection it
-keeps open.
+body's framing. Folder uploads (`mutated_folder`, issue 46) start from the folders the
+trainers' builders write (`trainer_folders`), damage their files (config values, whole
+files replaced by bombs, nesting or noise, odd paths) and then the zip itself (its bytes,
+its headers' sizes, methods and counts). The server must answer every one with a status below
+500, on a connection it keeps open.
 """
 
 from __future__ import annotations
 
 import json
 import random
+import re
+import struct
+import zipfile
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import Any, Callable
 
-from .fixtures import svc_cameras
+import torch
+
+from .archives import allocating_checkpoint, folder_files, listing_zip, view_checkpoint, zero_checkpoint, zip_of
+from .captures import write_output_folder
+from .fixtures import svc_cameras, svc_random_gaussians
+from .trainers import gsplat_scene, splatfacto_scene
 
 TOKENS = ["NaN", "Infinity", "-Infinity", "1e309", "-1e309", "5e-324", "1e-320", "1e308", "-0.0",
           "123456789012345678901234567890", "-1", "0", "1", "2.5", "true", "null", '""', '"/etc/passwd"',
@@ -30,7 +42,7 @@ class FuzzRequest:
     method: str
     path: str
     body: bytes | None = None            # JSON (may hold raw NaN tokens), or a raw multipart body
-    files: dict | None = None            # multipart upload built by httpx
+    files: dict | list | None = None     # multipart upload built by httpx
     content_type: bytes = b"application/json"
 
 
@@ -187,3 +199,144 @@ def send(client, request: FuzzRequest):
         return client.request(request.method, request.path, files=request.files)
     headers = {"content-type": request.content_type} if request.body is not None else {}
     return client.request(request.method, request.path, content=request.body, headers=headers)
+
+
+# ----------------------------------------------------------------------------- folder uploads (issue 46)
+
+Files = dict[str, bytes]          # a folder: path inside the zip -> content
+
+
+def trainer_folders(root: Path) -> dict[str, Files]:
+    """A run of each trainer the service reads, with the capture its config names beside it, as
+    a user zips it: splatfacto (its checkpoint, and its exported PLY), gsplat, the reference 3DGS."""
+    splatfacto_scene(root / "splatfacto", export_ply=False)
+    splatfacto_scene(root / "export", export_ply=True)
+    gsplat_scene(root / "gsplat")
+    write_output_folder(root / "3dgs" / "output" / "lego", svc_random_gaussians(200), svc_cameras(3))
+    return {name: folder_files(root / name, root / name) for name in ("splatfacto", "export", "gsplat", "3dgs")}
+
+
+YAML_TOKENS = ["abc", ".inf", "-.inf", ".nan", "-1", "0", "1e309", "[1, 2]", "[1, 2, 3]", "null", "{}", "true", "''",
+               "'" + "x" * 5000 + "'", "[" * 300 + "]" * 300, "*nowhere", "&a [*a]", "!!python/name:os.system ''",
+               "!!python/object/apply:os.system ['touch /tmp/phd-fuzz']", "- " + "/d" * 3000, "\"\\0\"", "0x7fffffff"]
+CFG_TOKENS = ["True", "False", "1", "'" + "/x" * 3000 + "'", "'\\x00'", "None", "''", "abc"]
+PATHS = ["../outside.ply", "/etc/outside.ply", "run/..\\..\\outside", "C:/x", "x" * 300, "d/" * 40 + "f",
+         ("d" * 200 + "/") * 25 + "f", "nul\0byte", "__MACOSX/._cfg.yml", ".", "a//b/./c", "\u00fc/\u00df.json"]
+
+
+def alias_bomb(levels: int = 7) -> bytes:
+    """A YAML alias tree of 10^levels leaves in a few hundred bytes, as data_dir."""
+    lines, previous = ['a: &a ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]'], "a"
+    for k in range(levels - 1):
+        lines.append(f"l{k}: &l{k} [" + ", ".join([f"*{previous}"] * 10) + "]")
+        previous = f"l{k}"
+    return ("\n".join(lines) + f"\ndata_dir: *{previous}\n").encode()
+
+
+def _legacy_checkpoint() -> bytes:
+    import io
+    buffer = io.BytesIO()
+    torch.save({"splats": {"means": torch.zeros(3, 3)}}, buffer, _use_new_zipfile_serialization=False)
+    return buffer.getvalue()
+
+
+CONTENTS: list[Callable[[random.Random, bytes], bytes]] = [   # a whole file replaced (rng, old content)
+    lambda rng, data: b"", lambda rng, data: data[:rng.randint(0, len(data))], lambda rng, data: data * 2,
+    lambda rng, data: bytes(rng.randrange(256) for _ in range(rng.randint(1, 3000))),
+    lambda rng, data: _deep(rng), lambda rng, data: b"a: " + b"[" * 100_000 + b"]" * 100_000,
+    lambda rng, data: alias_bomb(rng.choice([4, 7])), lambda rng, data: zero_checkpoint(rng.choice([1000, 2_000_000])),
+    lambda rng, data: zero_checkpoint(400_000, chunk=8192), lambda rng, data: view_checkpoint(20_000_000),
+    lambda rng, data: allocating_checkpoint(10**9), lambda rng, data: _legacy_checkpoint(),
+    lambda rng, data: data.replace(b"element vertex ", b"element vertex 9" + b"9" * rng.randint(0, 30)),
+    lambda rng, data: data.replace(b"format binary_little_endian", b"format ascii"),
+]
+
+
+def _config_value(rng: random.Random, files: Files) -> None:
+    """One value of a config or camera file replaced: a JSON value by `_mutate`'s raw tokens, a
+    YAML or cfg_args value by a wrong kind, a bomb, a long path or a Python tag."""
+    names = [n for n in files if n.endswith((".json", ".yml", "cfg_args"))]
+    if not names:
+        return
+    name = rng.choice(names)
+    text = files[name].decode("utf-8", "replace")
+    if name.endswith(".json"):
+        try:
+            files[name] = _mutate(rng, json.loads(text))
+        except (ValueError, RecursionError):       # damaged already: not JSON, or nested past the decoder
+            pass
+        return
+    if name.endswith("cfg_args"):
+        values = list(re.finditer(r"=('[^']*'|[^,()]+)", text))
+        token = rng.choice(CFG_TOKENS)
+    else:
+        values = list(re.finditer(r"(?m)^\s*[\w-]+: (.*)$", text))
+        token = rng.choice(YAML_TOKENS)
+    if values:
+        value = rng.choice(values)
+        files[name] = (text[:value.start(1)] + token + text[value.end(1):]).encode()
+
+
+def _replace_file(rng: random.Random, files: Files) -> None:
+    name = rng.choice(list(files))
+    files[name] = rng.choice(CONTENTS)(rng, files[name])
+
+
+def _flip_bytes(rng: random.Random, files: Files) -> None:
+    name = rng.choice(list(files))
+    data = bytearray(files[name])
+    for _ in range(rng.randint(1, 20) if data else 0):
+        data[rng.randrange(len(data))] = rng.randrange(256)
+    files[name] = bytes(data)
+
+
+def _odd_file(rng: random.Random, files: Files) -> None:
+    """A file dropped, or one added under an odd path."""
+    if rng.random() < 0.5 and len(files) > 1:
+        del files[rng.choice(list(files))]
+    else:
+        files[rng.choice(PATHS)] = rng.choice([b"", b"ply\n", b"{}", json.dumps({"frames": []}).encode()])
+
+
+FILE_DAMAGE = [_config_value, _config_value, _replace_file, _flip_bytes, _odd_file]
+
+
+def _entries(data: bytes) -> list[int]:
+    """Where the central directory entries of a zip start."""
+    return [m.start() for m in re.finditer(re.escape(b"PK\x01\x02"), data)]
+
+
+def _lie(rng: random.Random, data: bytes) -> bytes:
+    """A central directory entry's declared field changed: method, flags, CRC, sizes, name length."""
+    entries = _entries(data)
+    if not entries:
+        return data
+    at = rng.choice(entries)
+    field, size = rng.choice([(8, "H"), (10, "H"), (16, "L"), (20, "L"), (24, "L"), (28, "H"), (30, "H")])
+    value = rng.choice([0, 1, 8, 12, 99, 0xFFFF, 0xFFFFFFFF, rng.randrange(1 << 16)])
+    value &= 0xFFFF if size == "H" else 0xFFFFFFFF
+    return data[:at + field] + struct.pack("<" + size, value) + data[at + field + struct.calcsize(size):]
+
+
+ZIP_DAMAGE: list[Callable[[random.Random, bytes], bytes]] = [   # (rng, zip bytes) -> damaged zip bytes
+    lambda rng, data: bytes(b ^ (rng.random() < 0.001) * rng.randrange(1, 256) for b in data),
+    lambda rng, data: data[:rng.randint(0, len(data))], lambda rng, data: data + bytes(rng.randint(1, 100)),
+    lambda rng, data: b"junk" * rng.randint(1, 100) + data, _lie, _lie,
+    lambda rng, data: data[:-22] + struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, *[rng.randrange(1 << 16)] * 2,
+                                               *struct.unpack("<2L", data[-10:-2]), 0) if len(data) > 22 else data,
+    lambda rng, data: listing_zip(rng.choice([10_001, 200_000])), lambda rng, data: zip_of({}),
+]
+
+
+def mutated_folder(rng: random.Random, folders: dict[str, Files]) -> FuzzRequest:
+    """A trainer's folder, its files damaged in one to three places, sent as a zip (itself damaged
+    half of the time) or, as a browser's folder pick sends it, one `files` part per file."""
+    files = dict(rng.choice(list(folders.values())))
+    for _ in range(rng.randint(1, 3)):
+        rng.choice(FILE_DAMAGE)(rng, files)
+    if rng.random() < 0.15:
+        return FuzzRequest("POST", "/v1/models", files=[("files", (name, data)) for name, data in files.items()])
+    data = zip_of(files, rng.choice([zipfile.ZIP_DEFLATED, zipfile.ZIP_STORED]))
+    if rng.random() < 0.5:
+        data = rng.choice(ZIP_DAMAGE)(rng, data)
+    return FuzzRequest("POST", "/v1/models", files={"archive": ("run.zip", data)})

@@ -67,7 +67,7 @@ def _header(data: bytes) -> dict | None:
         return None
     try:
         header = json.loads(data[8:8 + size])
-    except (UnicodeDecodeError, json.JSONDecodeError):
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):   # not JSON, or nested past the decoder
         return None
     return header if isinstance(header, dict) else None
 
@@ -125,6 +125,8 @@ def load_nerf_bytes(data: bytes, name: str = "model", **renderer_options: Any) -
         values = json.loads(meta.get("config", ""))
     except json.JSONDecodeError as exc:
         raise bad(f"config is not valid JSON ({exc.msg})") from None
+    except RecursionError:
+        raise bad("config nests deeper than the JSON decoder reads") from None
     try:
         config = NeRFConfig.from_dict(values)
     except (InputError, TypeError) as exc:
@@ -157,7 +159,7 @@ def load_nerf_bytes(data: bytes, name: str = "model", **renderer_options: Any) -
         try:
             frames = json.loads(bytes(raw.numpy().tobytes()).decode())
             cameras = cameras_from_json(frames)
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
             raise bad(f"training cameras are not valid JSON ({exc})") from None
         except InputError as exc:
             raise bad(f"training cameras: {exc}") from None

@@ -10,10 +10,12 @@ from typing import Callable
 
 import torch
 
-from ...errors import InputError, ModelNote, ModelWarning
+from ...errors import InputError, ModelNote, ModelWarning, bounded_notes
 from ...registry import Registry
 from ...scene import UNSEEN_SHARE, Camera, Similarity, unseen_cameras
 from ..gs3d import GaussianModel, GaussianRenderer
+
+DISTANCE_CHUNK = 1 << 20     # point-to-target distances computed at once (8 MB of float64)
 
 
 @dataclass
@@ -54,12 +56,14 @@ class OutputFormat:
 OUTPUTS: Registry[OutputFormat] = Registry("trainer output folder")
 
 
-def read_output(path: str | Path, within: str | Path | None = None) -> TrainerOutput:
+def read_output(path: str | Path, within: str | Path | None = None, *, warn: bool = True) -> TrainerOutput:
     """The first trainer output, by `order`, that recognises the folder, read; its notes and
-    warnings are also issued as Python warnings (ModelNote, ModelWarning). The built-in
-    ones look for different files (cameras.json + point_cloud/, config.yml, ckpts/); the
-    order decides for a folder holding more than one. `within`: the capture a run names is
-    only looked for inside that folder (the service passes the upload's own folder)."""
+    warnings (at most MAX_NOTES each, cut to NOTE_CHARS: they quote the folder's files) are
+    also issued as Python warnings (ModelNote, ModelWarning) unless `warn` is False (the
+    service keeps them with the model instead). The built-in ones look for different files
+    (cameras.json + point_cloud/, config.yml, ckpts/); the order decides for a folder holding
+    more than one. `within`: the capture a run names is only looked for inside that folder (the
+    service passes the upload's own folder)."""
     path = Path(path)
     for output_format in OUTPUTS.in_order():
         if output_format.detect(path):
@@ -71,9 +75,10 @@ def read_output(path: str | Path, within: str | Path | None = None) -> TrainerOu
                     f"{len(empty)} of the model's {len(output.cameras)} training cameras see almost none of its "
                     f"splats (fewer than {UNSEEN_SHARE:.0%} of the centres in view): the cameras and the splats "
                     "are probably in different frames, so renders will be empty and rankings meaningless")
-            for note in output.notes:
+            output.notes, output.warnings = bounded_notes(output.notes), bounded_notes(output.warnings)
+            for note in output.notes if warn else ():
                 warnings.warn(note, ModelNote, stacklevel=2)
-            for warning in output.warnings:
+            for warning in output.warnings if warn else ():
                 warnings.warn(warning, ModelWarning, stacklevel=2)
             return output
     known = "; ".join(f.title for f in OUTPUTS.in_order())
@@ -105,10 +110,12 @@ def data_candidates(folder: Path, data: Path, within: Path | None = None) -> lis
     return places if within is None else [p for p in places if p.resolve().is_relative_to(within.resolve())]
 
 
-def nearest_distances(points: torch.Tensor, targets: torch.Tensor, chunk: int = 128, k: int = 1) -> torch.Tensor:
+def nearest_distances(points: torch.Tensor, targets: torch.Tensor, k: int = 1) -> torch.Tensor:
     """For each of points [P, 3], the distance to the k-th nearest of targets [T, 3]: [P] float64
-    (k = 2 skips the point itself when the points are among the targets)."""
+    (k = 2 skips the point itself when the points are among the targets), DISTANCE_CHUNK
+    distances at a time (a capture's SfM points may be millions)."""
     out = torch.empty(points.shape[0], dtype=torch.float64)
+    chunk = max(1, DISTANCE_CHUNK // max(1, targets.shape[0]))
     for start in range(0, points.shape[0], chunk):
         distances = torch.cdist(points[start:start + chunk].double(), targets.double())
         out[start:start + chunk] = distances.topk(k, dim=1, largest=False).values[:, -1]

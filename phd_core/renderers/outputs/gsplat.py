@@ -50,9 +50,11 @@ import torch
 from ...data.colmap import find_model, load_colmap
 from ...errors import InputError
 from ...eval.image import psnr
-from ...io.foreign import read_checkpoint, read_yaml, yaml_path
+from ...io.configs import GsplatConfig, parse_config
+from ...io.foreign import read_checkpoint, read_yaml
 from ...scene import IDENTITY, Camera, Similarity
 from ..gs3d import GaussianModel, GaussianRenderer
+from ..gs3d.render import view_memory
 from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates, nearest_distances, sh_from_parts
 
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
@@ -68,6 +70,9 @@ RESIDUAL_POINTS = 2000     # SfM points the residual is measured on (every n-th)
 RESIDUAL_SPLATS = 50_000   # splat centres they are compared with (every n-th)
 RENDERED_VIEWS = 2         # views rendered per candidate when the residuals are too close
 RENDERED_SIZE = 64         # at most this many pixels a side
+RENDER_SHARE = 2           # those renders may hold this many times the model's bytes (or RENDER_FLOOR): a reader
+RENDER_FLOOR = 64 << 20    # takes memory in proportion to its model, as the service reserves it (20 M splats of
+                           # scale 1 at one point asked for 29.8 GiB here)
 # The principal axes' sign patterns that are rotations (eigh picks each eigenvector's sign,
 # the determinant check flips the first when they form a mirror): the same axes, or them
 # turned half about one axis. gsplat >= 1.5.2's upside-down fix is the half turn about x.
@@ -83,28 +88,22 @@ def read(folder: Path, within: Path | None = None) -> TrainerOutput:
     checkpoints = {(int(m.group(1)), -int(m.group(2))): p for p in (folder / "ckpts").glob("ckpt_*.pt")
                    if (m := CHECKPOINT.fullmatch(p.name))}
     source = checkpoints[max(checkpoints)]                       # the latest step, rank 0 first
+    config = parse_config(GsplatConfig, read_yaml(folder / "cfg.yml") if (folder / "cfg.yml").is_file() else {},
+                          "cfg.yml")
     model = checkpoint_model(source)
-    config = read_yaml(folder / "cfg.yml") if (folder / "cfg.yml").is_file() else {}
-    if not isinstance(config, dict):
-        raise InputError("cfg.yml", "must be a mapping (the trainer's Config)")
-    if config.get("data_type", "colmap") != "colmap":
-        raise InputError("cfg.yml.data_type", f"only COLMAP captures are read, got {config['data_type']!r}")
-    capture = _find_capture(folder, yaml_path(config.get("data_dir")), within)
+    capture = _find_capture(folder, config.data_dir, within)
     background = (0.0, 0.0, 0.0)
     if capture is None:
         return TrainerOutput(model, [], background, source, warnings=[
-            f"the COLMAP capture of this run was not found (cfg.yml data_dir: {config.get('data_dir')!r}, looked from "
-            f"the working directory and every folder above {folder}): no training cameras, and poses are in gsplat's "
+            f"the COLMAP capture of this run was not found (cfg.yml data_dir: {config.data_dir}, looked from the "
+            f"working directory and every folder above {folder}): no training cameras, and poses are in gsplat's "
             "normalised frame"], name=f"{folder.resolve().name}/gsplat")
     dataset = load_colmap(capture, "all", with_images=False)
     cameras = dataset.cameras                                                          # sorted by name
     points = None if dataset.points is None else dataset.points.numpy()               # [P, 3] float64
-    test_every = config.get("test_every", 8)
-    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
-        raise InputError("cfg.yml.test_every", f"must be a positive integer, got {test_every!r}")
-    trained = [i for i in range(len(cameras)) if i % test_every] or list(range(len(cameras)))
+    trained = [i for i in range(len(cameras)) if i % config.test_every] or list(range(len(cameras)))
     training = [cameras[i] for i in trained]
-    if config.get("normalize_world_space", True) is False:
+    if not config.normalize_world_space:
         candidates = {"none (normalize_world_space is off)": IDENTITY}
     else:
         candidates = normalisations(cameras, points)
@@ -119,6 +118,11 @@ def read(folder: Path, within: Path | None = None) -> TrainerOutput:
                         f"{choice.residual:.3g} camera distances from the nearest splat"
                         + (f", {choice.residual / spacing:.1f} times their own spacing" if spacing else "")
                         + " (wrong capture, or another trainer version)")
+    if choice.unrendered is not None:
+        warnings.append(f"the closest frames of this gsplat checkpoint were not rendered to tell them apart: their "
+                        f"renders would hold {choice.unrendered[0] >> 20} MiB, more than the "
+                        f"{choice.unrendered[1] >> 20} MiB allowed beside a model of its size, so the frame with the "
+                        "lowest residual was taken; render a training view to check")
     if choice.renders is not None and choice.judged_by == "alpha coverage":
         warnings.append(f"the frame of this gsplat checkpoint was chosen by how much of {RENDERED_VIEWS} views its "
                         f"splats cover ({capture}'s photos could not be read), which tells frames apart poorly (a "
@@ -220,6 +224,7 @@ class FrameChoice:
     runner_up: tuple[str, float] | None   # the second-best candidate and its residual
     renders: dict[str, float] | None      # when the residuals were too close: each close frame's render score
     judged_by: str = ""                   # what the render score is ("PSNR against the photos", "alpha coverage")
+    unrendered: tuple[int, int] | None = None   # (bytes the renders would hold, bytes allowed) when too many
 
 
 def best_frame(model: GaussianModel, candidates: dict[str, Similarity], cameras: list[Camera],
@@ -228,7 +233,8 @@ def best_frame(model: GaussianModel, candidates: dict[str, Similarity], cameras:
     the capture's camera distance; when another candidate is not clearly worse (under
     RESIDUAL_MARGIN times the best, or within RESIDUAL_GAP of it), RENDERED_VIEWS of the
     capture's views are rendered under each close candidate and the one that looks most like
-    the photos wins (without the photos: the one whose alpha covers more of the views)."""
+    the photos wins (without the photos: the one whose alpha covers more of the views), unless
+    the renders would hold more than RENDER_SHARE times the model (the best residual wins then)."""
     if points is None or len(points) == 0 or len(candidates) == 1:
         name = next(iter(candidates))
         return FrameChoice(name, candidates[name], residual(model, candidates[name], cameras, points), None, None)
@@ -237,6 +243,10 @@ def best_frame(model: GaussianModel, candidates: dict[str, Similarity], cameras:
     close = [n for r, n in scored if r < max(RESIDUAL_MARGIN * best, best + RESIDUAL_GAP)]
     if len(close) == 1:
         return FrameChoice(name, candidates[name], best, (second_name, second), None)
+    need = render_bytes(model, {n: candidates[n] for n in close}, cameras)
+    allowed = max(RENDER_SHARE * sum(t.numel() * t.element_size() for t in model.tensors()), RENDER_FLOOR)
+    if need > allowed:
+        return FrameChoice(name, candidates[name], best, (second_name, second), None, unrendered=(need, allowed))
     judged_by, renders = render_scores(model, {n: candidates[n] for n in close}, cameras, capture)
     chosen, runner_up = sorted(close, key=lambda n: -renders[n])[:2]
     by_residual = {n: r for r, n in scored}
@@ -244,14 +254,28 @@ def best_frame(model: GaussianModel, candidates: dict[str, Similarity], cameras:
                        judged_by)
 
 
+def rendered_views(cameras: list[Camera]) -> tuple[list[int], float]:
+    """(the RENDERED_VIEWS views spread over the capture, the downscale to RENDERED_SIZE)."""
+    views = np.linspace(0, len(cameras) - 1, RENDERED_VIEWS + 2, dtype=int)[1:-1].tolist()
+    return views, max(1.0, max(cameras[0].width, cameras[0].height) / RENDERED_SIZE)
+
+
+def render_bytes(model: GaussianModel, frames: dict[str, Similarity], cameras: list[Camera]) -> int:
+    """The most any of `render_scores`' renders holds: the family's bound (`view_memory`, which
+    projects the splats a chunk at a time), before anything renders."""
+    renderer, (views, factor) = GaussianRenderer(model, (0.0, 0.0, 0.0)), rendered_views(cameras)
+    bounds = [view_memory(renderer, frame.camera(cameras[i].scaled(factor)))
+              for frame in frames.values() for i in views]
+    return max(bound.fixed + bound.per_mask for bound in bounds)
+
+
 def render_scores(model: GaussianModel, frames: dict[str, Similarity], cameras: list[Camera],
                   capture: Path | None) -> tuple[str, dict[str, float]]:
-    """(what was measured, a score per frame, higher is better): RENDERED_VIEWS views spread
-    over the capture (at most RENDERED_SIZE pixels a side) rendered with the cameras moved into
-    gsplat's frame, scored by their PSNR against the capture's photos, or, when the photos
-    cannot be read, by the mean alpha (how much of the views the splats cover)."""
-    views = np.linspace(0, len(cameras) - 1, RENDERED_VIEWS + 2, dtype=int)[1:-1].tolist()
-    factor = max(1.0, max(cameras[0].width, cameras[0].height) / RENDERED_SIZE)
+    """(what was measured, a score per frame, higher is better): `rendered_views` rendered with
+    the cameras moved into gsplat's frame, scored by their PSNR against the capture's photos,
+    or, when the photos cannot be read, by the mean alpha (how much of the views the splats
+    cover)."""
+    views, factor = rendered_views(cameras)
     photos = None
     if capture is not None:
         try:

@@ -14,8 +14,8 @@ from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates
 def read(folder: Path, within: Path | None = None) -> TrainerOutput:
     found = read_output_folder(folder)
     # cfg_args' source_path: the capture it trained on; its own splits are the run's (--eval holds out every 8th)
-    source = read_cfg_args(folder).get("source_path", "").strip("'\"")
-    capture = next((p for p in data_candidates(folder, Path(source), within) if p.is_dir()), None) if source else None
+    source = read_cfg_args(folder).source_path
+    capture = next((p for p in data_candidates(folder, source, within) if p.is_dir()), None) if source else None
     return TrainerOutput(read_ply(found.ply), found.cameras, found.background, found.ply, ply=found.ply,
                          camera_format="3dgs-output", capture=capture, name=f"{folder.resolve().name}/3dgs")
 

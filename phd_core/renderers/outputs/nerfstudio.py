@@ -25,8 +25,9 @@ loading (`GaussianModel.transformed`), so cameras given and returned are the use
 Training cameras: transforms.json from config.yml's data path (absolute, or relative to the
 working directory or to any folder above the output folder), split as the dataparser splits it
 (`eval_mode` fraction (default, train_split_fraction 0.9), interval, filename, all; or the
-file's own `train_filenames`). Background: `background_color` white or black; "random"
-(splatfacto's default) renders over (0.149, 0.1647, 0.2157), what splatfacto evaluates over.
+file's own `train_filenames`). Background: `background_color` white, black or three numbers in
+[0, 1]; "random" (splatfacto's default) renders over (0.149, 0.1647, 0.2157), what splatfacto
+evaluates over. config.yml's fields are checked by `phd_core.io.configs.SplatfactoConfig`.
 Without transforms.json the model loads in the frame dataparser_transforms.json maps from, and
 `frame_without_data` tells from the stored rotation whether that is the COLMAP model's (an
 applied_transform is folded in) or transforms.json's, which the pose format then names.
@@ -34,19 +35,18 @@ applied_transform is folded in) or transforms.json's, which the pose format then
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
 from ...data.frames import read_transforms
 from ...data.nerfstudio import load_nerfstudio
-from ...errors import InputError
-from ...io.foreign import read_checkpoint, read_yaml, yaml_path
+from ...errors import InputError, check_float
+from ...io.configs import Dataparser, SplatfactoConfig, parse_config
+from ...io.foreign import read_checkpoint, read_json, read_yaml
 from ...scene import Camera, Similarity
 from ..gs3d import GaussianModel, read_ply
 from ..splats.maths import SH_C0
@@ -54,7 +54,6 @@ from .base import OUTPUTS, OutputFormat, TrainerOutput, data_candidates, sh_from
 
 FRAME_FILE = "dataparser_transforms.json"
 GAUSS_PARAMS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
-BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "random": (0.1490, 0.1647, 0.2157)}
 # The applied_transform the dataparser assumes for data with colmap/sparse/0 and no such key.
 COLMAP_APPLIED_TRANSFORM = [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]
 # The one ns-process-data writes for COLMAP data (1.1.5: y and z swapped, then the new z negated).
@@ -67,54 +66,36 @@ def detect(path: Path) -> bool:
 
 
 def read(folder: Path, within: Path | None = None) -> TrainerOutput:
-    config = read_yaml(folder / "config.yml")
-    if not isinstance(config, dict):
-        raise InputError("config.yml", "must be a mapping (nerfstudio's TrainerConfig)")
-    method = config.get("method_name")
-    if not (isinstance(method, str) and method.startswith("splatfacto")):
-        raise InputError("config.yml.method_name", f"{method!r} is not splatfacto: only nerfstudio's Gaussian "
-                         "splatting outputs are read (a NeRF such as nerfacto is not)")
-    model_config = _section(config, "pipeline", "model")
+    config = parse_config(SplatfactoConfig, read_yaml(folder / "config.yml"), "config.yml")
     stored = read_frame(folder / FRAME_FILE)                      # nerfstudio's original data frame -> model frame
-    model, source = read_splats(folder, model_config.get("sh_degree", 3))
+    model, source = read_splats(folder, config.pipeline.model.sh_degree)
     cameras, frame, camera_format, notes, capture, splits = training_cameras(folder, config, stored, within)
-    background = model_config.get("background_color", "random")
-    if background not in BACKGROUNDS:
-        raise InputError("config.yml.background_color", f"must be one of {', '.join(BACKGROUNDS)}, got {background!r}")
-    notes.insert(0, f"nerfstudio {method}: splats from {source.relative_to(folder)}, moved from the dataparser's "
-                    f"frame (the user's scaled by {frame.scale:.6g}, turned and centred) into the user's")
-    return TrainerOutput(model.transformed(frame.inverse()), cameras, BACKGROUNDS[background], source,
+    notes.insert(0, f"nerfstudio {config.method_name}: splats from {source.relative_to(folder)}, moved from the "
+                    f"dataparser's frame (the user's scaled by {frame.scale:.6g}, turned and centred) into the user's")
+    return TrainerOutput(model.transformed(frame.inverse()), cameras, config.pipeline.model.background_color, source,
                          frame=frame, notes=notes, camera_format=camera_format, capture=capture, splits=splits,
-                         name=run_name(folder, config, method))
+                         name=run_name(folder, config))
 
 
-def run_name(folder: Path, config: dict, method: str) -> str:
+def run_name(folder: Path, config: SplatfactoConfig) -> str:
     """"<experiment>/<method>" from config.yml (the folder is only the run's timestamp); without an
     experiment_name, the folder two levels up (outputs/<experiment>/<method>/<timestamp>)."""
-    experiment = config.get("experiment_name")
-    if not isinstance(experiment, str) or not experiment:
-        experiment = folder.resolve().parent.parent.name
-    return f"{experiment}/{method}"
+    return f"{config.experiment_name or folder.resolve().parent.parent.name}/{config.method_name}"
 
 
 def read_frame(path: Path) -> Similarity:
     """dataparser_transforms.json as the similarity p -> scale * (transform @ [p; 1])."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(path.name, f"cannot parse {path}: {exc}") from None
+    data = read_json(path)
     if not isinstance(data, dict) or "transform" not in data or "scale" not in data:
         raise InputError(path.name, "must be an object with 'transform' (3x4) and 'scale'")
-    scale = data["scale"]
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
-        raise InputError(f"{path.name}.scale", f"must be a positive finite number, got {scale!r}")
+    scale = check_float(data["scale"], f"{path.name}.scale", 0, open_min=True)
     transform = Similarity.from_matrix(data["transform"], f"{path.name}.transform")
     return transform.then(Similarity.make(scale, torch.eye(3), torch.zeros(3)))
 
 
 # ----------------------------------------------------------------------------- splats
 
-def read_splats(folder: Path, sh_degree: Any) -> tuple[GaussianModel, Path]:
+def read_splats(folder: Path, sh_degree: int) -> tuple[GaussianModel, Path]:
     """(model in the trainer's frame, the file it came from)."""
     plys = [p for p in folder.rglob("*.ply") if p.is_file()]
     if plys:
@@ -129,7 +110,7 @@ def read_splats(folder: Path, sh_degree: Any) -> tuple[GaussianModel, Path]:
     return checkpoint_model(path, sh_degree), path
 
 
-def checkpoint_model(path: Path, sh_degree: Any) -> GaussianModel:
+def checkpoint_model(path: Path, sh_degree: int) -> GaussianModel:
     """The splats of a splatfacto checkpoint's pipeline state."""
     data = read_checkpoint(path)
     state = data.get("pipeline") if isinstance(data, dict) else None
@@ -162,13 +143,13 @@ def checkpoint_model(path: Path, sh_degree: Any) -> GaussianModel:
 
 # ----------------------------------------------------------------------------- cameras and frame
 
-def training_cameras(folder: Path, config: dict, stored: Similarity, within: Path | None = None
+def training_cameras(folder: Path, config: SplatfactoConfig, stored: Similarity, within: Path | None = None
                      ) -> tuple[list[Camera], Similarity, str | None, list[str], Path | None, dict[str, list[int]]]:
     """(training cameras in transforms.json's frame, user frame -> model frame, the pose
     convention of that frame, notes, transforms.json when found, the run's train/test frames as
     indices into it)."""
-    parser = _section(config, "pipeline", "datamanager", "dataparser")
-    data = yaml_path(parser.get("data")) or yaml_path(config.get("data"))
+    parser = config.pipeline.datamanager.dataparser
+    data = parser.data or config.data
     json_path = _find_transforms(folder, data, within)
     if json_path is None:
         camera_format, frame_name = frame_without_data(stored, parser)
@@ -183,9 +164,7 @@ def training_cameras(folder: Path, config: dict, stored: Similarity, within: Pat
     frame = stored
     if applied is not None:
         frame = Similarity.from_matrix(applied, f"{json_path.name}.applied_transform").inverse().then(frame)
-    applied_scale = meta.get("applied_scale", 1.0)
-    if isinstance(applied_scale, bool) or not isinstance(applied_scale, (int, float)) or not applied_scale > 0:
-        raise InputError(f"{json_path.name}.applied_scale", f"must be a positive number, got {applied_scale!r}")
+    applied_scale = check_float(meta.get("applied_scale", 1.0), f"{json_path.name}.applied_scale", 0, open_min=True)
     frame = frame.then(Similarity.make(1.0 / applied_scale, torch.eye(3), torch.zeros(3)))
     views = train_frames(frames, meta, parser)
     cameras = load_nerfstudio(json_path, views=views, with_images=False).cameras
@@ -194,7 +173,7 @@ def training_cameras(folder: Path, config: dict, stored: Similarity, within: Pat
     return cameras, frame, "nerfstudio", notes, json_path, {"train": views, "test": held_out}
 
 
-def frame_without_data(stored: Similarity, parser: dict) -> tuple[str | None, str]:
+def frame_without_data(stored: Similarity, parser: Dataparser) -> tuple[str | None, str]:
     """(pose convention, description) of the frame dataparser_transforms.json maps from, told
     without transforms.json. The stored rotation is nerfstudio's orientation times the data's
     applied_transform (if any). Orientation "up" (the default) is the shortest turn of the
@@ -213,7 +192,7 @@ def frame_without_data(stored: Similarity, parser: dict) -> tuple[str | None, st
             readings[name] = math.acos(max(-1.0, min(1.0, (float(torch.trace(rotation)) - 1) / 2)))
     ranked = sorted(readings, key=readings.__getitem__)
     unclear = ("transforms.json's, or the COLMAP model's when the data came from ns-process-data (" + "{}" + ")")
-    if parser.get("orientation_method", "up") != "up":
+    if parser.orientation_method != "up":
         return None, unclear.format("orientation_method is not 'up', so which cannot be told")
     if not ranked or (len(ranked) > 1 and readings[ranked[1]] - readings[ranked[0]] < ORIENTATION_MARGIN):
         return None, unclear.format("the stored transform fits both")
@@ -223,7 +202,7 @@ def frame_without_data(stored: Similarity, parser: dict) -> tuple[str | None, st
                       "applied_transform); poses are given back in COLMAP's convention")
 
 
-def train_frames(frames: list, meta: dict, parser: dict) -> list[int]:
+def train_frames(frames: list, meta: dict, parser: Dataparser) -> list[int]:
     """Indices (into `frames`) of the training frames, as the nerfstudio dataparser splits them:
     frames sorted by file name, then `train_filenames` or the config's eval_mode."""
     for i, frame in enumerate(frames):
@@ -235,20 +214,14 @@ def train_frames(frames: list, meta: dict, parser: dict) -> list[int]:
     if isinstance(meta.get("train_filenames"), list):
         wanted = {Path(name) for name in meta["train_filenames"] if isinstance(name, str)}
         chosen = [k for k, name in enumerate(names) if name in wanted]
-    else:
-        mode = parser.get("eval_mode", "fraction")
-        if mode == "fraction":
-            fraction = parser.get("train_split_fraction", 0.9)
-            chosen = np.linspace(0, count - 1, math.ceil(count * fraction), dtype=int).tolist()
-        elif mode == "interval":
-            interval = parser.get("eval_interval", 8)
-            chosen = [k for k in range(count) if k % interval]
-        elif mode == "filename":
-            chosen = [k for k, name in enumerate(names) if "train" in name.name]
-        elif mode == "all":
-            chosen = list(range(count))
-        else:
-            raise InputError("config.yml.eval_mode", f"must be fraction, interval, filename or all, got {mode!r}")
+    elif parser.eval_mode == "fraction":
+        chosen = np.linspace(0, count - 1, math.ceil(count * parser.train_split_fraction), dtype=int).tolist()
+    elif parser.eval_mode == "interval":
+        chosen = [k for k in range(count) if k % parser.eval_interval]
+    elif parser.eval_mode == "filename":
+        chosen = [k for k, name in enumerate(names) if "train" in name.name]
+    else:                                                                   # "all"
+        chosen = list(range(count))
     if not chosen:
         raise InputError("transforms.json", "the dataparser's split leaves no training frame")
     return [order[k] for k in chosen]
@@ -260,14 +233,6 @@ def _find_transforms(folder: Path, data: Path | None, within: Path | None) -> Pa
         if json_path.is_file():
             return json_path
     return None
-
-
-def _section(config: dict, *keys: str) -> dict:
-    """config[k1][k2]... as a dict ({} when any level is missing)."""
-    section: Any = config
-    for key in keys:
-        section = section.get(key) if isinstance(section, dict) else None
-    return section if isinstance(section, dict) else {}
 
 
 OUTPUTS.register(OutputFormat("nerfstudio", f"a nerfstudio splatfacto output folder (config.yml + {FRAME_FILE})",

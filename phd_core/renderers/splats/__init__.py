@@ -42,6 +42,7 @@ from .ply import (
     SIDECAR_FORMAT,
     is_ply,
     parse_ply,
+    ply_bytes,
     property_names,
     read_ply,
     read_sidecar,
@@ -53,5 +54,5 @@ from .ply import (
 __all__ = ["ALPHA_MAX", "ALPHA_MIN", "BOX_MARGIN", "CHUNK_ELEMENTS", "DEFAULT_TILE", "LAUNCH_LOCK", "LOG_T_MIN",
            "SH_C0", "SH_C1", "SH_C2", "SH_C3", "SH_COEFFS", "SIDECAR_FORMAT", "T_MIN", "Fragments", "GaussianModel",
            "Pairs", "box_counts", "composite_images", "eval_sh", "fragments", "intersect", "is_ply", "parse_ply",
-           "property_names", "read_ply", "read_sidecar", "scale_axes", "sh_basis", "sh_rotation", "sidecar_path",
-           "tile_boxes", "tile_layout", "untile", "write_ply"]
+           "ply_bytes", "property_names", "read_ply", "read_sidecar", "scale_axes", "sh_basis", "sh_rotation",
+           "sidecar_path", "tile_boxes", "tile_layout", "untile", "write_ply"]

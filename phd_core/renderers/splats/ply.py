@@ -17,7 +17,6 @@ writer take the model class (`GaussianModel` or a subclass with `scale_axes = 2`
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -27,6 +26,7 @@ import torch
 
 from ...errors import InputError
 from ...io import write_bytes_atomic
+from ...io.foreign import read_json
 from .model import SH_COEFFS, GaussianModel
 
 _REST_COUNTS = {3 * (k - 1): k for k in SH_COEFFS}  # f_rest count -> K: 0, 9, 24, 45
@@ -315,11 +315,20 @@ def write_ply(model: GaussianModel, path: str | Path) -> None:
         model.opacity_logits.detach().cpu()[:, None], model.log_scales.detach().cpu(),
         model.quats.detach().cpu(),
     ], dim=1)  # [G, 14 + axes + 3(K-1)]
-    header = "".join(["ply\n", "format binary_little_endian 1.0\n", f"element vertex {count}\n",
-                      *(f"property float {n}\n" for n in property_names(k, model.scale_axes)), "end_header\n"])
-    body = packed.numpy().astype("<f4").tobytes()
+    body = packed.numpy().astype("<f4", copy=False)    # written as it is: the model held once more, not thrice
 
-    write_bytes_atomic(path, header.encode("ascii") + body)
+    write_bytes_atomic(path, _ply_header(model), body.reshape(-1).view(np.uint8).data)
+
+
+def ply_bytes(model: GaussianModel) -> int:
+    """The size of the file `write_ply` writes for `model`, known before it allocates anything."""
+    return len(_ply_header(model)) + model.num_splats * 4 * len(property_names(model.sh.shape[1], model.scale_axes))
+
+
+def _ply_header(model: GaussianModel) -> bytes:
+    return "".join(["ply\n", "format binary_little_endian 1.0\n", f"element vertex {model.num_splats}\n",
+                    *(f"property float {n}\n" for n in property_names(model.sh.shape[1], model.scale_axes)),
+                    "end_header\n"]).encode("ascii")
 
 
 # ----------------------------------------------------------------------------- sidecar
@@ -338,9 +347,9 @@ def read_sidecar(ply: str | Path) -> dict[str, Any] | None:
     if not path.exists():
         return None
     try:
-        sidecar = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError("sidecar", f"cannot read {path}: {exc}") from None
+        sidecar = read_json(path)
+    except InputError as exc:
+        raise InputError("sidecar", exc.reason) from None
     if not isinstance(sidecar, dict) or sidecar.get("format") != SIDECAR_FORMAT:
         raise InputError("sidecar", f"{path} is not a phd training sidecar")
     return sidecar
