@@ -1,9 +1,10 @@
 """What the long commands say while they work, and what they keep for the next one.
 
 Progress: a tqdm bar on stderr per long step (calibration, the masked renders of uq, rank and
-select, the renders of `phd render`), driven by the `progress(fraction)` callback the
-`phd_core.uq` functions call as views finish. Bars show when stderr is a terminal, never with
-`--quiet`, always with `--progress` (a log file). stdout keeps only the results.
+select, the renders of `phd render`, each stage of `phd capture`), driven by the
+`progress(fraction)` callback the `phd_core.uq` functions call as views finish (and
+`progress(stage, fraction)` for `phd_core.process`). Bars show when stderr is a terminal,
+never with `--quiet`, always with `--progress` (a log file). stdout keeps only the results.
 
 Calibration: `phd calibrate`, and any command that had to calibrate, stores the result beside
 the model (`phd_core.io.cache.ModelCache`, keyed by the model's content and every setting that
@@ -20,7 +21,7 @@ import json
 import sys
 from contextlib import contextmanager
 from datetime import datetime, timezone
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 from phd_core import uq as phd
 from phd_core.io.cache import ModelCache
@@ -53,18 +54,46 @@ def progress_bar(args: argparse.Namespace, label: str) -> Iterator[phd.Progress 
     if not bars_on(args):
         yield None
         return
-    from tqdm import tqdm
+    bar = _bar(label)
+    try:
+        yield lambda fraction: _advance(bar, fraction)
+    finally:
+        bar.close()
 
-    bar = tqdm(total=PERCENT, desc=label, file=sys.stderr, dynamic_ncols=True,
-               bar_format="{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]")
 
-    def show(fraction: float) -> None:
-        bar.update(max(0, round(fraction * PERCENT) - bar.n))
+@contextmanager
+def stage_bars(args: argparse.Namespace) -> Iterator[Callable[[str, float], None] | None]:
+    """A `progress(stage, fraction)` callback drawing one bar per stage on stderr, each closed
+    when the next stage begins (None when bars are off)."""
+    if not bars_on(args):
+        yield None
+        return
+    bars: dict[str, Any] = {}
+
+    def show(stage: str, fraction: float) -> None:
+        if stage not in bars:
+            for bar in bars.values():
+                bar.close()
+            bars[stage] = _bar(stage)
+        _advance(bars[stage], fraction)
 
     try:
         yield show
     finally:
-        bar.close()
+        for bar in bars.values():
+            bar.close()
+
+
+def _bar(label: str) -> Any:
+    """A tqdm bar on stderr counting PERCENT of a step."""
+    from tqdm import tqdm
+
+    return tqdm(total=PERCENT, desc=label, file=sys.stderr, dynamic_ncols=True,
+                bar_format="{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]")
+
+
+def _advance(bar: Any, fraction: float) -> None:
+    bar.update(max(0, round(fraction * PERCENT) - bar.n))
 
 
 def say(args: argparse.Namespace, message: str) -> None:

@@ -49,7 +49,7 @@ def test_importing_all_of_phd_core_loads_no_web_code() -> None:
 
 
 # docs/architecture.md draws these layers top to bottom; a layer imports only layers below it.
-LAYERS = ["train", "uq", "executors", "renderers", "data", "scene", "eval", "io"]
+LAYERS = ["train", "uq", "executors", "renderers", "process", "data", "scene", "eval", "io"]
 FOUNDATIONS = {"errors", "registry", "allocator"}   # modules every layer may use
 
 
