@@ -1,7 +1,7 @@
-"""The capture's up (`phd_core.scene.capture_up`) on generated captures whose up is known: a
-path that looks down at an object from one side, portrait photos stored sideways, a few rolled
-photos, and the captures whose cameras cannot tell (the fallbacks). Every capture is turned by
-TILT first, so the true up is no coordinate axis."""
+"""The capture's up (`phd_core.scene.capture_up`) on generated captures whose up is known
+(support/upright.py: turned so that it is no coordinate axis): a path that looks down at an
+object from one side, portrait photos stored sideways, a few rolled photos, and the captures
+whose cameras cannot tell (the fallbacks)."""
 
 from __future__ import annotations
 
@@ -10,53 +10,8 @@ import math
 import pytest
 import torch
 
-from phd_core.scene import Camera, capture_up, look_at
-
-
-def turn(axis: tuple[float, float, float], degrees: float) -> torch.Tensor:
-    """Rodrigues' rotation [3, 3] float64 about `axis` by `degrees`."""
-    k = torch.tensor(axis, dtype=torch.float64)
-    x, y, z = (k / k.norm()).tolist()
-    cross = torch.tensor([[0, -z, y], [z, 0, -x], [-y, x, 0]], dtype=torch.float64)
-    angle = math.radians(degrees)
-    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
-
-
-TILT = turn((1.0, 2.0, 0.5), 35.0)                  # the world the captures are taken in
-UP = TILT @ torch.tensor([0, 0, 1.0], dtype=torch.float64)
-
-
-def photo(eye, target, roll: float = 0.0, up=(0.0, 0.0, 1.0)) -> Camera:
-    """A look-at camera (level: right axis horizontal) rolled by `roll` degrees about its
-    viewing axis, then turned into the TILT world."""
-    camera = look_at(eye, target, up, width=48, height=36, fov_x=0.8)
-    c2w = camera.c2w.clone()
-    c2w[:3, :3] = TILT @ turn(tuple(c2w[:3, 2].tolist()), roll) @ c2w[:3, :3]
-    c2w[:3, 3] = TILT @ c2w[:3, 3]
-    return Camera(c2w, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
-
-
-def one_side(count: int = 30, *, rolls: list[float] | None = None, seed: int = 0) -> list[Camera]:
-    """Hand-held photos of an object at the origin from one side: headings within +-50 degrees,
-    looking down 25 to 55 degrees from 3 units away, rolled by `rolls` (default: 2 degrees rms
-    of hand shake)."""
-    gen = torch.Generator().manual_seed(seed)
-    heading = (torch.rand(count, generator=gen, dtype=torch.float64) - 0.5) * math.radians(100)
-    elevation = math.radians(25) + torch.rand(count, generator=gen, dtype=torch.float64) * math.radians(30)
-    shake = (torch.randn(count, generator=gen, dtype=torch.float64) * 2.0).tolist()
-    return [photo((3 * math.cos(e) * math.cos(h), 3 * math.cos(e) * math.sin(h), 3 * math.sin(e)), (0, 0, 0),
-                  shake[i] + (rolls[i] if rolls else 0.0))
-            for i, (h, e) in enumerate(zip(heading.tolist(), elevation.tolist()))]
-
-
-def degrees_from_up(vector: torch.Tensor) -> float:
-    cosine = float((vector / vector.norm()) @ UP)
-    return math.degrees(math.acos(max(-1.0, min(1.0, cosine))))
-
-
-def mean_up(cameras: list[Camera]) -> torch.Tensor:
-    """The rule before: the mean of the cameras' up axes."""
-    return torch.stack([c.c2w[:3, 1] for c in cameras]).mean(0)
+from phd_core.scene import Camera, capture_up
+from support.upright import degrees_from_up, mean_up, one_side, photo
 
 
 def test_a_path_looking_down_from_one_side_gives_the_true_up() -> None:
