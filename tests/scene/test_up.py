@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from phd_core.scene import Camera, capture_up
+from phd_core.scene.rotations import quaternion_to_rotation
 from support.upright import degrees_from_up, mean_up, one_side, photo
 
 
@@ -78,3 +79,8 @@ def test_without_a_trusted_fit_the_fallbacks_say_what_they_used() -> None:
     for headings in ([0.0, 40.0, 95.0, 160.0, 210.0, 300.0], [0.0, 180.0]):
         found = capture_up(survey(headings, roll=1.0))
         assert found.rule == "mean view" and degrees_from_up(found.vector) < 1e-6
+    # Cameras in random orientations: their axes scatter off every plane, and agree on nothing.
+    turns = quaternion_to_rotation(torch.randn(300, 4, generator=torch.Generator().manual_seed(2), dtype=torch.float64))
+    poses = torch.eye(4, dtype=torch.float64).repeat(300, 1, 1)
+    poses[:, :3, :3] = turns
+    assert capture_up([Camera(c2w, 20.0, 20.0, 24.0, 18.0, 48, 36) for c2w in poses]).rule == "default"
