@@ -135,14 +135,17 @@ class Viewer:
         return 0.03 * float(np.linalg.norm(positions.max(0) - positions.min(0))) or 0.3
 
     def _place_view(self) -> None:
-        """Up = the cameras' mean up vector; the browser's first view from beyond the cameras,
-        looking at the point they surround."""
-        cams = list(self.renderer.training_cameras or []) + list(self.candidates)
+        """Up = the capture's (`phd_core.scene.capture_up` of the training cameras, else of the
+        candidates); the browser's first view from beyond the cameras, looking at the point they
+        surround."""
+        from phd_core.scene import capture_up
+
+        training = list(self.renderer.training_cameras or [])
+        cams = training + list(self.candidates)
         if not cams:
             return
         c2w = np.stack([c.c2w.double().numpy() for c in cams])            # [C, 4, 4]
-        up = c2w[:, :3, 1].mean(0)
-        up = up / (np.linalg.norm(up) or 1.0)
+        up = capture_up(training or cams).vector.numpy()
         centre = c2w[:, :3, 3].mean(0)
         radius = float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).max()) or 1.0
         self.server.scene.set_up_direction(tuple(up))

@@ -8,7 +8,8 @@ The scene binary, little-endian:
     positions float32 [P, 3], sigma float32 [P], colours uint8 [P, 4] (RGB and opacity).
 
 The JSON also says the model's splat count (`total`), the points sent (`count`) and the cap,
-the capture's up direction and the points' bounds. The explain job's values are one byte per
+the capture's up direction (`phd_core.scene.capture_up`, as GET /cameras says it) and the
+points' bounds. The explain job's values are one byte per
 point of the same draw (same model, same cap), in the same order.
 """
 
@@ -25,8 +26,9 @@ import torch
 from phd_core import uq
 from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import Renderer
-from phd_core.renderers.points import ScenePoints, capture_up, importance, point_subset, scene_points, splat_model
+from phd_core.renderers.points import ScenePoints, importance, point_subset, scene_points, splat_model
 from phd_core.renderers.visibility import visibility_bytes
+from phd_core.scene import capture_up
 from phd_core.uq import Progress
 from phd_core.uq.explain import EXPLAIN_UNIT_BYTES, Explanation, explain
 
@@ -68,7 +70,7 @@ def scene_reserve(record: ModelRecord, cap: int) -> int:
 def scene_bytes(record: ModelRecord, renderer: Renderer, cap: int) -> bytes:
     """The scene binary of a loaded model (module docstring)."""
     points = scene_points(renderer, cap)
-    up = capture_up(stored_cameras(record))
+    up = capture_up(stored_cameras(record)).vector.tolist()
     arrays = [("positions", "float32", points.positions.numpy()), ("sigma", "float32", points.sigma.numpy()),
               ("colours", "uint8", points.colours.numpy())]
     layout: list[dict[str, object]] = []

@@ -149,6 +149,12 @@ class TrainingCameras(_Response):
     """A model's stored training cameras as transforms-style frames (empty when it has none)."""
 
     frames: list[dict[str, Any]]
+    up: list[float] = Field(description="The capture's up direction, unit, world coordinates "
+                            "(phd_core.scene.capture_up: orthogonal to the cameras' horizontal image axes; "
+                            "+z without cameras): the generated poses stand on it and the page's 3D view "
+                            "starts upright on it.")
+    up_rule: str = Field(description="How the up was found: 'horizontal axes' (the cameras' own), or the "
+                         "fallback when they cannot tell: 'mean up', 'mean view' or 'default'.")
 
 
 # ----------------------------------------------------------------------------- work requests

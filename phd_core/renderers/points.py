@@ -1,4 +1,4 @@
-"""A splat model as the points a viewer draws, and the up direction of its capture.
+"""A splat model as the points a viewer draws.
 
 Millions of splats do not belong in a browser: `scene_points` keeps at most `cap` of them,
 drawn without replacement with probability proportional to each splat's importance
@@ -15,12 +15,10 @@ import torch
 from torch import Tensor
 
 from ..errors import InputError
-from ..scene import Camera
 from .protocol import Renderer
 from .splats.model import GaussianModel
 
 DEFAULT_POINT_CAP = 200_000
-DEFAULT_UP = (0.0, 0.0, 1.0)        # without cameras: Blender's (and the bundled data's) up
 
 
 @dataclass
@@ -71,16 +69,3 @@ def scene_points(renderer: Renderer, cap: int = DEFAULT_POINT_CAP, seed: int = 0
     sigma = model.log_scales.double()[ids].mean(dim=1).clamp(-60.0, 60.0).exp().float()
     return ScenePoints(total=model.num_splats, ids=ids, positions=model.means.detach()[ids].float().contiguous(),
                        colours=colours.contiguous(), sigma=sigma.contiguous())
-
-
-def capture_up(cameras: list[Camera]) -> tuple[float, float, float]:
-    """The capture's up: the cameras' mean up vector (OpenGL +y), unit; DEFAULT_UP without
-    cameras or when their ups cancel out."""
-    if not cameras:
-        return DEFAULT_UP
-    up = torch.stack([c.c2w[:3, 1] for c in cameras]).double().mean(dim=0)
-    length = float(up.norm())
-    if length < 1e-6:
-        return DEFAULT_UP
-    x, y, z = (up / length).tolist()
-    return (x, y, z)

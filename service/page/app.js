@@ -11,6 +11,7 @@ const state = {
   modelId: null,       // the model the page last set itself up for (downscale, 3D view)
   viewReady: false,    // the 3D view has drawn that model
   training: [],        // frames of the chosen model's training cameras
+  up: [0, 0, 1],       // their capture's up, as the service works it out (GET /cameras)
   candidates: [],      // the user's own frames (file mode), sent as the rank request's cameras
   candidatesSized: true, // false: the file's frames lack w/h, taken from the width/height fields
   spec: null,          // generate mode: the rank request's candidates {generator, count, options}
@@ -322,6 +323,7 @@ async function modelChosen() {
   state.modelId = model ? model.id : null;
   if (changed) state.viewReady = false;       // until the 3D view has drawn this model
   state.training = [];
+  state.up = [0, 0, 1];
   $("model-warning").hidden = true;
   if (!model) {
     $("model-info").textContent = "No model yet: upload one below.";
@@ -333,7 +335,9 @@ async function modelChosen() {
       (model.camera_format ? " (" + model.camera_format + ")" : "") + ", " +
       (cal ? "calibrated: r_drop = " + cal.r_drop : "not calibrated yet: press Calibrate before ranking");
     if (model.has_training_cameras) {
-      state.training = (await apiJson("/v1/models/" + model.id + "/cameras")).data.frames;
+      const cameras = (await apiJson("/v1/models/" + model.id + "/cameras")).data;
+      state.training = cameras.frames;
+      state.up = cameras.up;
     } else {
       $("model-warning").textContent = "This model has no training cameras. " + NO_CAMERAS_ADVICE;
       $("model-warning").hidden = false;
@@ -503,22 +507,20 @@ function captureFrame() {
     const b = model && model.bounds;
     const center = b ? mul(add(b.min, b.max), 0.5) : [0, 0, 0];
     const radius = b ? Math.max(norm(sub(b.max, b.min)), 1e-3) * 1.5 : 4;
-    return { center, up: [0, 0, 1], radius };
+    return { center, up: state.up, radius };
   }
   const A = [[0, 0, 0], [0, 0, 0], [0, 0, 0]];
   let rhs = [0, 0, 0];
-  let up = [0, 0, 0];
   for (const f of frames) {
     const p = position(f);
     const d = unit(mul(column(f, 2), -1));  // OpenGL: the camera looks along -z
     for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) A[i][j] += (i === j ? 1 : 0) - d[i] * d[j];
     rhs = add(rhs, sub(p, mul(d, dot(d, p))));
-    up = add(up, column(f, 1));
   }
   let center = solve3(A, rhs);
   if (!center) center = mul(frames.map(position).reduce(add, [0, 0, 0]), 1 / frames.length);
   const distances = frames.map((f) => norm(sub(position(f), center))).sort((a, b) => a - b);
-  return { center, up: unit(up), radius: distances[Math.floor(distances.length / 2)] };
+  return { center, up: state.up, radius: distances[Math.floor(distances.length / 2)] };
 }
 
 function solve3(A, b) {  // Cramer's rule; null when (nearly) singular, e.g. parallel axes

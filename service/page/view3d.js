@@ -1,8 +1,9 @@
 // The page's 3D view (docs/service.md): a model's splats, its training cameras and the ranked
 // candidates as frusta, drawn with WebGL through the vendored three.js (service/page/vendor/).
 // It is a client of the REST API like app.js: GET /v1/models/{id}/scene (the splats as a
-// compact binary), /cameras, and the explain job (POST /v1/models/{id}/explain) that colours
-// the splats by coverage, fragility and what the first pick would newly see.
+// compact binary), /cameras (the training cameras, and the capture's up that the view stands
+// on), and the explain job (POST /v1/models/{id}/explain) that colours the splats by coverage,
+// fragility and what the first pick would newly see.
 //
 // Splats are point sprites: a gaussian falloff over +-2 sigma of each splat's size, alpha
 // blended back to front. The points are sorted by depth (a counting sort on 16-bit keys, a few
@@ -152,7 +153,7 @@ function frameCamera(frame) {
 
 const view = {
   root: null, renderer: null, scene: null, camera: null, controls: null,
-  headers: {}, modelId: null, header: null, points: null, positions: null,
+  headers: {}, modelId: null, header: null, points: null, positions: null, up: [0, 0, 1],
   training: [], ranking: null, frusta: [], selected: null, pickCallbacks: [], targets: [], targetFrusta: [],
   mode: "colour", explained: null, explaining: null, radius: 1, centre: new THREE.Vector3(),
   sortPending: true, sortMs: null, touched: false, blobs: [],
@@ -410,7 +411,7 @@ function drawNow() {
 // Look at the scene's centre from 40 degrees above the mean training camera's side, from the
 // nearest distance at which every camera drawn and the splats' box are in the picture.
 function fit() {
-  const up = new THREE.Vector3(...(view.header ? view.header.up : [0, 0, 1])).normalize();
+  const up = new THREE.Vector3(...view.up).normalize();
   const frames = view.training.concat(view.ranking ? view.ranking.views.map((v) => v.camera) : [])
     .concat(view.allCandidates || [], view.targets);
   const b = view.header ? view.header.bounds : { min: [-1, -1, -1], max: [1, 1, 1] };
@@ -615,6 +616,7 @@ async function mount(element, { modelId, headers = {} }) {
   ]);
   if (modelId !== view.modelId) return false;      // another model was mounted meanwhile
   view.training = cameras.frames || [];
+  view.up = cameras.up || [0, 0, 1];
   if (scene instanceof Error) {
     view.header = null;
     say("no splats to draw (" + scene.message + "); the cameras are shown", true);
@@ -695,7 +697,7 @@ function debug() {
     explained: view.explained ? Object.keys(view.explained.values) : [], selected: view.selected,
     frusta: view.frusta.map((f) => ({ index: f.index, rank: f.rank, rgb: f.rgb, centre: f.centre.toArray() })),
     targets: view.targetFrusta.map((f) => ({ rgb: TARGET.rgb, fill: TARGET.fill, centre: f.centre.toArray() })),
-    centre: view.centre.toArray(), sortMs: view.sortMs,
+    centre: view.centre.toArray(), up: view.up.slice(), sortMs: view.sortMs,
   };
 }
 

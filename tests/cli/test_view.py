@@ -113,3 +113,21 @@ def test_a_2dgs_model_is_drawn_as_flat_splats(tmp_path):
                                            "/training/0", "/training/1"]
     finally:
         server.stop()
+
+
+def test_the_first_view_stands_on_the_captures_up(tmp_path):
+    """Training photos from one side, looking down (support/upright.py): the viewer's up is the
+    capture's, not the cameras' mean up (38 degrees off)."""
+    viser = pytest.importorskip("viser", reason="viser is not installed (pip install -e '.[viewer]')")
+    from phd_cli.view import Viewer
+    from support.upright import degrees_from_up, mean_up, one_side
+
+    training = one_side()
+    server = viser.ViserServer(host="127.0.0.1", port=svc_free_port(), verbose=False)
+    try:
+        Viewer(server, GaussianRenderer(svc_random_gaussians(20), training_cameras=training), [], None, ratio=None,
+               samples=4, max_splats=20)
+        assert degrees_from_up(torch.tensor(server.initial_camera.up, dtype=torch.float64)) < 2.0
+        assert degrees_from_up(mean_up(training)) > 25.0
+    finally:
+        server.stop()

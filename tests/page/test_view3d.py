@@ -12,6 +12,7 @@ import re
 import httpx
 import numpy as np
 import pytest
+import torch
 
 from client import PHDClient
 from support.browser import chromium, have_browser, hold_worker
@@ -293,6 +294,38 @@ def test_the_view_files_are_local_and_open(ranked):
     assert "from './three.module.min.js'" in httpx.get(server.url + "/ui/vendor/OrbitControls.js").text
     missing = httpx.get(server.url + "/ui/vendor/three.js", headers=AUTH)   # a fixed list of files
     assert missing.status_code == 404 and missing.json()["error"]["field"] == "name"
+
+
+def test_the_view_starts_upright_on_the_captures_up(browser, ranked, tmp_path):
+    """A column standing on the true up, red on top, photographed from one side looking down
+    (support/upright.py): the view stands on the up the service works out, not on the cameras'
+    mean up (38 degrees off here), so the column's top is drawn straight above its foot."""
+    from phd_core.renderers.gs3d import write_ply
+    from support.upright import UP, column, degrees_from_up, mean_up, one_side
+
+    server, _, _, _ = ranked
+    write_ply(column(), tmp_path / "column.ply")
+    training = one_side()
+    with PHDClient(server.url, api_key=KEY) as phd:
+        model = phd.upload_model(tmp_path / "column.ply", cameras=training, name="upright column")
+    served = httpx.get(f"{server.url}/v1/models/{model.id}/cameras", headers=AUTH).json()
+    assert served["up_rule"] == "horizontal axes"
+    assert degrees_from_up(torch.tensor(served["up"], dtype=torch.float64)) < 2.0
+    assert degrees_from_up(mean_up(training)) > 25.0
+    state = _open(browser, server, model)
+    assert state["up"] == pytest.approx(served["up"]) and browser.execute_script("return state.up") == served["up"]
+    # The true up through the view's camera: a vertical line on the canvas, pointing up.
+    (x0, y0, _), (x1, y1, _) = (_project(state, sign * 0.6 * UP.numpy()) for sign in (-1, 1))
+    assert abs(np.degrees(np.arctan2(x1 - x0, y0 - y1))) < 2.0
+    # And in the pixels: the red splats' centroid straight above the blue ones'.
+    image = _pixels(browser).astype(int)
+    rows, cols = np.indices(image.shape[:2])
+    red = (image[..., 0] > 150) & (image[..., 1] < 90) & (image[..., 2] < 90)
+    blue = (image[..., 2] > 150) & (image[..., 0] < 90) & (image[..., 1] < 90)
+    assert red.sum() > 20 and blue.sum() > 20
+    dx, dy = cols[red].mean() - cols[blue].mean(), rows[blue].mean() - rows[red].mean()
+    assert dy > 0 and abs(np.degrees(np.arctan2(dx, dy))) < 3.0
+    assert _console_errors(browser) == []
 
 
 def test_a_model_mounted_while_another_is_explained_gets_its_own_explanation(browser, ranked, svc_model_files):

@@ -7,9 +7,8 @@ import torch
 
 from phd_core.errors import InputError
 from phd_core.renderers.gs3d import GaussianRenderer
-from phd_core.renderers.points import capture_up, importance, point_subset, scene_points
-from phd_core.scene import look_at
-from support.fixtures import svc_cameras, svc_random_gaussians
+from phd_core.renderers.points import importance, point_subset, scene_points
+from support.fixtures import svc_random_gaussians
 from support.toy_renderers import ConstantRenderer
 
 
@@ -42,11 +41,3 @@ def test_points_carry_the_models_colour_opacity_and_size() -> None:
     with pytest.raises(InputError) as err:
         scene_points(ConstantRenderer())
     assert err.value.field == "model"
-
-
-def test_the_capture_up_is_the_cameras_mean_up() -> None:
-    assert capture_up([]) == (0.0, 0.0, 1.0)
-    up = capture_up(svc_cameras(5))                          # a ring around z, looking at the origin
-    assert up[2] > 0.9 and abs(up[0]) < 0.1 and abs(up[1]) < 0.1
-    down = [look_at((3, 0, 0), (0, 0, 0), (0, -1, 0), width=8, height=8, fov_x=0.7)]
-    assert capture_up(down) == pytest.approx((0.0, -1.0, 0.0), abs=1e-9)

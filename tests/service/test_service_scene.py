@@ -15,9 +15,11 @@ import torch
 
 from client import PHDClient
 from phd_core.renderers.gs3d import GaussianRenderer, read_ply
-from phd_core.renderers.points import capture_up, importance, point_subset, scene_points
+from phd_core.renderers.points import importance, point_subset, scene_points
+from phd_core.scene import capture_up
 from phd_core.uq.explain import explain
 from support.fixtures import svc_cameras
+from support.upright import degrees_from_up, one_side
 
 KEY = "scene-key"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -37,7 +39,7 @@ def read_scene(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
 
 def test_the_scene_binary_is_the_stored_models_points(svc_start, svc_model_files):
     server = svc_start(api_key=KEY)
-    train = svc_cameras(3)
+    train = one_side()                    # photos from one side, looking down: their mean up leans 38 degrees
     with PHDClient(server.url, api_key=KEY) as phd:
         info = phd.upload_model(svc_model_files["ply"], cameras=train)
     answer = httpx.get(f"{server.url}/v1/models/{info.id}/scene", params={"cap": 120}, headers=AUTH)
@@ -45,7 +47,11 @@ def test_the_scene_binary_is_the_stored_models_points(svc_start, svc_model_files
     header, arrays = read_scene(answer.content)
     expected = scene_points(GaussianRenderer(read_ply(svc_model_files["ply"])), cap=120)
     assert (header["total"], header["count"], header["cap"], header["kind"]) == (300, 120, 120, info.kind)
-    assert header["up"] == pytest.approx(list(capture_up(train)))
+    # The capture's up, as GET /cameras says it: the true up of the generated capture.
+    assert header["up"] == pytest.approx(capture_up(train).vector.tolist(), abs=1e-12)
+    cameras = httpx.get(f"{server.url}/v1/models/{info.id}/cameras", headers=AUTH).json()
+    assert cameras["up"] == header["up"] and cameras["up_rule"] == "horizontal axes"
+    assert degrees_from_up(torch.tensor(header["up"], dtype=torch.float64)) < 2.0
     assert np.array_equal(arrays["positions"].reshape(-1, 3), expected.positions.numpy())
     assert np.array_equal(arrays["sigma"], expected.sigma.numpy())
     assert np.array_equal(arrays["colours"].reshape(-1, 4), expected.colours.numpy())

@@ -2,11 +2,12 @@
 training cameras when there are any, else from the model's splats, robust to floaters.
 
 With cameras: the centre is the point the optical axes pass closest to
-(`phd_core.scene.scene_bounds`), the radius the median camera distance to it, up the mean of
-the cameras' up vectors, and the intrinsics those of the first camera. With splats only: the
-centre is the per-axis median of the opaque splats, the object radius the 90th percentile of
-their distances to it (a few far floaters move neither), and the camera radius the distance
-at which a sphere of that radius fills 80% of the default field of view; up is +z.
+(`phd_core.scene.scene_bounds`), the radius the median camera distance to it, up the capture's
+(`phd_core.scene.capture_up`: orthogonal to the cameras' horizontal image axes), and the
+intrinsics those of the first camera. With splats only: the centre is the per-axis median of
+the opaque splats, the object radius the 90th percentile of their distances to it (a few far
+floaters move neither), and the camera radius the distance at which a sphere of that radius
+fills 80% of the default field of view; up is +z.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from typing import Sequence
 import torch
 
 from ...errors import InputError
-from ...scene import Camera, scene_bounds
+from ...scene import Camera, capture_up, scene_bounds
 
 DEFAULT_FOV_X = 0.6911112070083618     # the NeRF-synthetic field of view
 DEFAULT_SIZE = 100
@@ -54,8 +55,7 @@ def scene_frame(cameras: Sequence[Camera] | None = None, points: torch.Tensor | 
     if cameras:
         center, _ = scene_bounds(cameras)
         eyes = torch.stack([c.center for c in cameras])                            # [V, 3]
-        up = torch.stack([c.c2w[:3, 1] for c in cameras]).mean(0)
-        up = up / up.norm() if up.norm() > 1e-6 else torch.tensor([0, 0, 1.0], dtype=torch.float64)
+        up = capture_up(cameras).vector
         offsets = eyes - center
         radius = float(offsets.norm(dim=1).median())
         sines = (offsets @ up) / offsets.norm(dim=1).clamp_min(1e-12)

@@ -9,31 +9,34 @@ from typing import Sequence
 import torch
 
 from ...errors import InputError, check_float, check_int
-from ...scene import Camera
+from ...scene import Camera, capture_up
+from .frame import horizontal_axes
 
 
 def spiral_cameras(count: int, *, cameras: Sequence[Camera], focus: float | None = None,
-                   points: torch.Tensor | None = None, rotations: float = 2.0, scale: float = 1.0) -> list[Camera]:
+                   points: torch.Tensor | None = None, rotations: float = 2.0, scale: float = 1.0,
+                   up: Sequence[float] | None = None) -> list[Camera]:
     """`count` poses on a spiral in front of the training cameras, with their intrinsics.
 
-    The spiral is centred on the mean camera pose; its radii along the mean camera's right,
-    up and forward axes are the 90th percentile of the cameras' offsets from that pose
-    (times `scale`), so it sweeps the region the capture covered. Every pose looks at the
-    focus point `focus` in front of the mean pose: by default the median depth of `points`
-    (the SfM points or splats) in front of it, else the distance to where the optical
-    axes meet.
+    The spiral is centred on the mean camera pose, made level: its viewing axis is the
+    cameras' mean, its right axis horizontal (orthogonal to `up`, by default the capture's:
+    `phd_core.scene.capture_up`). Its radii along that pose's right, up and forward axes are
+    the 90th percentile of the cameras' offsets from it (times `scale`), so it sweeps the
+    region the capture covered. Every pose looks at the focus point `focus` in front of the
+    mean pose, with a horizontal right axis: by default the median depth of `points` (the
+    SfM points or splats) in front of it, else the distance to where the optical axes meet.
     """
     count = check_int(count, "count", 1)
     rotations = check_float(rotations, "rotations", 0)
     scale = check_float(scale, "scale", 0)
     if not cameras:
         raise InputError("cameras", "the spiral generator needs the training cameras")
+    vertical = horizontal_axes(capture_up(cameras).vector if up is None else up)[0]    # [3] unit
     eyes = torch.stack([c.center for c in cameras])                               # [V, 3]
     mean_eye = eyes.mean(0)
     back = _unit(torch.stack([c.c2w[:3, 2] for c in cameras]).mean(0), "cameras")     # OpenGL +z: backwards
-    right = _unit(torch.linalg.cross(torch.stack([c.c2w[:3, 1] for c in cameras]).mean(0), back), "cameras")
-    up = torch.linalg.cross(back, right)
-    basis = torch.stack([right, up, back], dim=1)                                 # [3, 3] columns
+    right = _unit(torch.linalg.cross(vertical, back), "cameras")
+    basis = torch.stack([right, torch.linalg.cross(back, right), back], dim=1)    # [3, 3] columns
     local = (eyes - mean_eye) @ basis                                             # [V, 3]
     radii = torch.quantile(local.abs(), 0.9, dim=0) * scale                       # [3]
     if focus is None:
@@ -47,7 +50,7 @@ def spiral_cameras(count: int, *, cameras: Sequence[Camera], focus: float | None
         offset = torch.tensor([math.cos(t), -math.sin(t), -math.sin(0.5 * t)], dtype=torch.float64) * radii
         eye = mean_eye + basis @ offset
         z = _unit(eye - target, "focus")                                          # backwards, as OpenGL
-        x = _unit(torch.linalg.cross(up, z), "focus")
+        x = _unit(torch.linalg.cross(vertical, z), "focus")
         c2w = torch.eye(4, dtype=torch.float64)
         c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, torch.linalg.cross(z, x), z, eye
         out.append(Camera(c2w, template.fx, template.fy, template.cx, template.cy, template.width, template.height,

@@ -1,0 +1,154 @@
+"""The capture's up direction, from its cameras alone (docs/formats.md, "The upright frame").
+
+Hand-held, tripod and rig photos share one thing: the camera is not rolled, so a horizontal
+line in the world is horizontal in the photo and the camera's right axis is horizontal. Up is
+then the direction most nearly orthogonal to every right axis: the eigenvector of the smallest
+eigenvalue of sum_i w_i h_i h_i^T over the cameras' horizontal axes h_i (float64). The rule
+before, the mean of the cameras' up axes, leans toward the side the cameras look down from
+(22 degrees on flask_desk, a camera arcing round the front of a flask on a desk).
+
+Sideways photos: a portrait photo whose rotation flag was dropped (COLMAP reads pixels as they
+are stored) has its right axis along up and its up axis horizontal. So a camera's horizontal
+axis h_i is its up axis when that lies nearer the plane than its right axis and the right axis
+is tilted at least SIDEWAYS_TILT (20 degrees) out of it; else its right axis. (A camera looking
+nearly along up has both axes in the plane, and its choice would be no evidence: it keeps its
+right axis.)
+
+The fit: the start is the best of GRID_SIZE directions spread over the hemisphere (the least
+mean |h_i . up|), so a majority of sideways photos or a narrow arc cannot trap it; from there an
+L1 plane fit by iteratively reweighted least squares (weights 1 / max(|h_i . up|, sin 1 degree))
+re-choosing each h_i, so a few rolled photos pull little. The fit is trusted when there are at
+least MIN_CAMERAS cameras and
+  - the axes span a plane: the middle eigenvalue of the weighted mean (trace 1) is at least
+    MIN_SPREAD = sin^2 10 degrees, i.e. the headings vary by about 10 degrees rms or more (a
+    straight dolly, a forward-facing capture or a fixed-heading survey span less: roll noise
+    would decide the normal);
+  - they lie close to it: the smallest eigenvalue is at most RATIO_MAX = 0.05 of the middle one
+    (simulated hand-held captures with 10 degrees rms of roll reach 0.048; random orientations
+    of 100 cameras sit around 0.05);
+  - the cameras do not look along it (their mean viewing direction within 30 degrees of it): a
+    top-down survey is left to the fallback below, which says which way is up.
+
+The sign follows the upright photos' up axes when they agree (mean of up_i . n over all
+cameras, sideways photos counting 0, at least SIGN_VOTE in size); else the cameras look down
+more than up (photos that are all sideways or all top-down).
+
+Without a trusted fit: the cameras' mean up when their up axes agree (|mean| >= AGREE), else
+minus their mean viewing direction when that agrees (a top-down survey, whose up axes turn with
+its headings), else +z.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+
+from .camera import Camera
+
+MIN_CAMERAS = 3                                   # two axes always span a plane: three can disagree
+MIN_SPREAD = math.sin(math.radians(10)) ** 2      # the axes span a plane
+RATIO_MAX = 0.05                                  # and lie close to it
+ALONG_VIEW = math.cos(math.radians(30))           # a fit whose up is the viewing direction is not trusted
+SIDEWAYS_TILT = math.sin(math.radians(20))        # a sideways photo's right axis leaves the plane this much
+ROLL_FLOOR = math.sin(math.radians(1))            # IRLS weights stop growing at 1 degree of roll
+SIGN_VOTE = 0.2                                   # the upright photos' vote that sets the sign
+AGREE = 0.5                                       # a mean of unit axes this long: the cameras agree on it
+GRID_SIZE = 1000                                  # start directions: about 4.5 degrees apart
+GRID_CAMERAS = 512                                # cameras the start search looks at, at most (evenly spaced)
+ROUNDS = 100                                      # IRLS rounds at most (it settles in tens)
+SETTLED = 1e-7                                    # radians: the normal has stopped turning
+DEFAULT_UP = (0.0, 0.0, 1.0)                      # Blender's (and the bundled data's) up
+
+
+@dataclass(frozen=True)
+class CaptureUp:
+    """The capture's up and how it was found."""
+
+    vector: torch.Tensor      # [3] float64, unit
+    rule: str                 # "horizontal axes", "mean up", "mean view" or "default"
+    spread: float             # the fit's middle eigenvalue (NaN without a trusted fit)
+    ratio: float              # its smallest over middle eigenvalue (NaN without a trusted fit)
+    sideways: int             # photos whose up axis was taken as the horizontal one
+
+
+@dataclass(frozen=True)
+class _Fit:
+    normal: torch.Tensor      # [3] unit, sign not yet chosen
+    values: torch.Tensor      # [3] ascending eigenvalues of the weighted mean of h h^T
+    sideways: torch.Tensor    # [V] bool: the camera's up axis is its horizontal one
+
+
+def capture_up(cameras: Sequence[Camera]) -> CaptureUp:
+    """The capture's up direction (module docstring); +z without cameras."""
+    if not cameras:
+        return _without_fit(torch.tensor(DEFAULT_UP, dtype=torch.float64), "default")
+    axes = torch.stack([c.c2w[:3, :3] for c in cameras]).to(torch.float64)     # [V, 3, 3] columns: right, up, back
+    right, up, view = axes[:, :, 0], axes[:, :, 1], -axes[:, :, 2]            # [V, 3] each
+    if len(cameras) >= MIN_CAMERAS:
+        fit = _plane_fit(right, up)
+        small, middle = float(fit.values[0]), float(fit.values[1])
+        if middle >= MIN_SPREAD and small <= RATIO_MAX * middle and abs(float(view.mean(0) @ fit.normal)) < ALONG_VIEW:
+            return CaptureUp(_signed(fit, up, view), "horizontal axes", middle, small / middle,
+                             int(fit.sideways.sum()))
+    mean_up, mean_view = up.mean(0), view.mean(0)
+    if mean_up.norm() >= AGREE:
+        return _without_fit(mean_up / mean_up.norm(), "mean up")
+    if mean_view.norm() >= AGREE:
+        return _without_fit(-mean_view / mean_view.norm(), "mean view")
+    return _without_fit(torch.tensor(DEFAULT_UP, dtype=torch.float64), "default")
+
+
+def _horizontal(right: torch.Tensor, up: torch.Tensor, normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For cameras' right and up axes [V, 3] and candidate normals [N, 3]: which cameras are
+    sideways [V, N] bool, and the sine of their horizontal axis' tilt out of each plane [V, N]."""
+    tilt_right, tilt_up = (right @ normals.T).abs(), (up @ normals.T).abs()
+    sideways = (tilt_right >= SIDEWAYS_TILT) & (tilt_up < tilt_right)
+    return sideways, torch.where(sideways, tilt_up, tilt_right)
+
+
+def _plane_fit(right: torch.Tensor, up: torch.Tensor) -> _Fit:
+    """The L1 plane through the origin of the cameras' horizontal axes (module docstring)."""
+    every = torch.linspace(0, len(right) - 1, min(len(right), GRID_CAMERAS)).round().long()
+    _, tilts = _horizontal(right[every], up[every], _GRID)                           # [V', G]
+    normal = _GRID[tilts.mean(0).argmin()]
+    sideways, tilt = (t[:, 0] for t in _horizontal(right, up, normal[None]))
+    for _ in range(ROUNDS):
+        h = torch.where(sideways[:, None], up, right)                                # [V, 3]
+        weights = 1 / tilt.clamp_min(ROLL_FLOOR)                                      # [V]
+        values, vectors = torch.linalg.eigh((weights[:, None] * h).T @ h / weights.sum())
+        moved = float(torch.linalg.cross(vectors[:, 0], normal).norm())               # sine of the turn
+        normal = vectors[:, 0]
+        turned, tilt = (t[:, 0] for t in _horizontal(right, up, normal[None]))
+        if torch.equal(turned, sideways) and moved < SETTLED:
+            break
+        sideways = turned
+    return _Fit(normal, values, sideways)
+
+
+def _signed(fit: _Fit, up: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+    """The fit's normal, pointing the way the upright photos' up axes agree on, else against the
+    cameras' mean viewing direction."""
+    vote = float(((up @ fit.normal) * ~fit.sideways).mean())
+    if abs(vote) < SIGN_VOTE:
+        vote = -float((view @ fit.normal).mean())
+    return fit.normal if vote >= 0 else -fit.normal
+
+
+def _without_fit(vector: torch.Tensor, rule: str) -> CaptureUp:
+    return CaptureUp(vector, rule, math.nan, math.nan, 0)
+
+
+def _fibonacci_hemisphere(count: int) -> torch.Tensor:
+    """[count, 3] unit directions spread evenly over the upper hemisphere (a normal and its
+    negative are one plane)."""
+    k = torch.arange(count, dtype=torch.float64) + 0.5
+    z = k / count
+    azimuth = k * math.pi * (3 - math.sqrt(5))
+    ring = (1 - z * z).sqrt()
+    return torch.stack([ring * azimuth.cos(), ring * azimuth.sin(), z], dim=1)
+
+
+_GRID = _fibonacci_hemisphere(GRID_SIZE)                                              # [G, 3]
