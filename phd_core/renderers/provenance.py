@@ -21,12 +21,14 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Annotated, Any, Sequence
+
+from pydantic import BaseModel, ConfigDict, Field
 
 from ..data import Dataset, load_dataset, locate, select_views
 from ..data.identity import fingerprint
-from ..errors import InputError
-from ..scene import Camera, pose_matches
+from ..io.configs import MAX_PATH_BYTES, parse_config
+from ..scene import DEFAULT_MAX_SIZE, Camera, pose_matches
 from .protocol import Renderer
 
 FIT_VIEWS = 4            # views a fit is measured on
@@ -60,19 +62,33 @@ class TrainedOn:
                 "training_fit": None if self.fit is None else asdict(self.fit)}
 
     @classmethod
-    def from_fields(cls, fields: Mapping[str, Any]) -> "TrainedOn | None":
-        """What `fields` wrote, read back; None when no capture is named."""
-        path, fit = fields.get("dataset"), fields.get("training_fit")
-        if not isinstance(path, str):
+    def from_fields(cls, fields: Any) -> "TrainedOn | None":
+        """What `fields` wrote, read back (checked as `_Record`: a model file is a user's file);
+        None when no capture is named."""
+        record = parse_config(_Record, fields, "trained_on")
+        if record.dataset is None:
             return None
-        if fit is not None:
-            try:
-                fit = Fit(float(fit["psnr"]), [int(i) for i in fit["frames"]], int(fit["width"]), int(fit["height"]))
-            except (KeyError, TypeError, ValueError):
-                raise InputError("training_fit", f"expected psnr, frames, width and height, got {fit!r}") from None
-        data_format, identity = fields.get("dataset_format"), fields.get("dataset_fingerprint")
-        return cls(path, data_format if isinstance(data_format, str) else None,
-                   identity if isinstance(identity, str) else None, fit)
+        fit = record.training_fit
+        return cls(record.dataset, record.dataset_format, record.dataset_fingerprint,
+                   None if fit is None else Fit(fit.psnr, fit.frames, fit.width, fit.height))
+
+
+class _FitRecord(BaseModel):
+    psnr: Annotated[float, Field(allow_inf_nan=False)]
+    frames: Annotated[list[Annotated[int, Field(ge=0)]], Field(max_length=FIT_VIEWS)]
+    width: Annotated[int, Field(ge=1, le=DEFAULT_MAX_SIZE)]
+    height: Annotated[int, Field(ge=1, le=DEFAULT_MAX_SIZE)]
+
+
+class _Record(BaseModel):
+    """`TrainedOn.fields()` as a sidecar or checkpoint holds it, bounded: its text reaches the
+    model's facts and messages. Sidecars written before the fingerprint hold the first two."""
+
+    model_config = ConfigDict(extra="ignore")
+    dataset: Annotated[str, Field(max_length=MAX_PATH_BYTES)] | None = None
+    dataset_format: Annotated[str, Field(max_length=64)] | None = None
+    dataset_fingerprint: Annotated[str, Field(max_length=128)] | None = None
+    training_fit: _FitRecord | None = None
 
 
 def record_training(renderer: Renderer, capture: str | Path) -> TrainedOn:

@@ -258,3 +258,22 @@ def test_a_folder_left_by_a_crash_is_swept_at_start(svc_start, tmp_path) -> None
     (left.parent.with_name("upload-0123.folder.zip")).write_bytes(b"PK")
     server = svc_start()
     assert _leftovers(server) == []
+
+
+@pytest.mark.parametrize("fit, field", [(float("nan"), "training_fit.psnr"), ("x" * 5000, "training_fit.psnr")])
+def test_a_sidecars_record_of_its_capture_is_checked_before_it_is_stored(svc_start, svc_trained, tmp_path, fit,
+                                                                          field) -> None:
+    """The capture record a sidecar carries reaches the model's facts, which every answer about
+    the model shows: a NaN there made each of them a 500 (JSON has no NaN), a long text a long
+    answer. Uploaded with its PLY, the folder is refused with 422 naming the field."""
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "model.ply").write_bytes(svc_trained.read_bytes())
+    sidecar = json.loads(svc_trained.with_name("model.json").read_text())
+    sidecar["training_fit"]["psnr"] = fit
+    (folder / "model.json").write_text(json.dumps(sidecar))
+    server = svc_start()
+    answer = httpx.post(f"{server.url}/v1/models", files=_files(folder), timeout=60)
+    assert answer.status_code == 422, answer.text
+    assert field in answer.text
+    assert httpx.get(f"{server.url}/v1/models", timeout=30).status_code == 200

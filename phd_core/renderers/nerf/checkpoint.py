@@ -165,6 +165,6 @@ def load_nerf_bytes(data: bytes, name: str = "model", **renderer_options: Any) -
             raise bad(f"training cameras: {exc}") from None
     try:
         trained_on = TrainedOn.from_fields(json.loads(meta.get("trained_on", "{}")))
-    except (json.JSONDecodeError, AttributeError, InputError) as exc:
+    except (json.JSONDecodeError, RecursionError, InputError) as exc:
         raise bad(f"the record of its training capture is unreadable ({exc})") from None
     return NeRFRenderer(model, cameras, trained_on=trained_on, **renderer_options)
