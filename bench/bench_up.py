@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from PIL import Image, ImageDraw
 
 from bench import _harness
 from bench.vanishing import (
@@ -187,7 +188,7 @@ def measure(capture: Capture, candidates: list[Plane], lines: Lines) -> tuple[di
            "spread": alone.spread, "ratio": alone.ratio, "sideways": alone.sideways,
            "support_share": found.share if found else math.nan, "support_sheet": found.sheet if found else math.nan,
            "support_to_cameras_deg": degrees(found.normal.numpy(), alone.vector.numpy()) if found else math.nan,
-           **{f"{name}": vector.tolist() for name, vector in estimates.items()},
+           **{name: vector.tolist() for name, vector in estimates.items()},
            **{f"{name}_vs_plane_deg": degrees(vector, plane.normal) for name, vector in estimates.items()},
            **{f"{name}_vs_lines_deg": degrees(vector, fit.direction) for name, vector in estimates.items()},
            "plane_reference": plane.normal.tolist(), "plane": SEEN[capture.name][1], "candidate": rank,
@@ -243,12 +244,12 @@ def table(rows: list[dict]) -> str:
               "sheet, angle to their up | cameras' fit: spread, ratio, sideways photos |",
               "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        pair = " / ".join
-        lines.append(f"| {r['capture']} | {r['rule']} | " + " | ".join(
-            pair([f"{r[f'{k}_vs_plane_deg']:.1f}°", f"**{r[f'{k}_vs_lines_deg']:.1f}°**" if k == "estimate" else
-                  f"{r[f'{k}_vs_lines_deg']:.1f}°"]) for k in ("estimate", "cameras", "mean_up", "plain"))
-            + f" | {r['support_share']:.2f}, {r['support_sheet']:.2f}, {r['support_to_cameras_deg']:.1f}° | "
-              f"{r['camera_rule']}: {r['spread']:.3f}, {r['ratio']:.4f}, {r['sideways']} |")
+        cells = [f"{r[f'{k}_vs_plane_deg']:.1f}° / {r[f'{k}_vs_lines_deg']:.1f}°"
+                 for k in ("estimate", "cameras", "mean_up", "plain")]
+        cells[0] = f"{r['estimate_vs_plane_deg']:.1f}° / **{r['estimate_vs_lines_deg']:.1f}°**"
+        lines.append(f"| {r['capture']} | {r['rule']} | {' | '.join(cells)} | {r['support_share']:.2f}, "
+                     f"{r['support_sheet']:.2f}, {r['support_to_cameras_deg']:.1f}° | "
+                     f"{r['camera_rule']}: {r['spread']:.3f}, {r['ratio']:.4f}, {r['sideways']} |")
     lines += ["", "| capture | cameras' roll against the lines: mean, std | heading std | roll-heading correlation | "
               "cameras' error toward the mean right axis | toward the mean heading |", "|---|---|---|---|---|---|"]
     for r in rows:
@@ -260,10 +261,8 @@ def table(rows: list[dict]) -> str:
 
 # ----------------------------------------------------------------------------- the check images
 
-def enlarged(capture: Capture, k: int) -> tuple[object, float]:
+def enlarged(capture: Capture, k: int) -> tuple[Image.Image, int]:
     """Photo k as a PIL image about 720 pixels across its longer side, and the scale."""
-    from PIL import Image
-
     assert capture.data.images is not None
     camera = capture.data.cameras[k]
     scale = max(1, round(720 / max(camera.width, camera.height)))
@@ -274,8 +273,6 @@ def enlarged(capture: Capture, k: int) -> tuple[object, float]:
 def plane_image(capture: Capture, plane: Plane, estimate: np.ndarray, path: Path) -> None:
     """The photo with most of the plane's points in view: those points red, the other points
     cyan, posts on twelve of the plane's points along its normal (green) and the estimate (magenta)."""
-    from PIL import ImageDraw
-
     cameras = capture.data.cameras
     projected = [camera.project(capture.points) for camera in cameras]          # per photo ([P, 2], [P])
     seen = [((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] < c.width) & (pixels[:, 1] >= 0)
@@ -301,8 +298,6 @@ def plane_image(capture: Capture, plane: Plane, estimate: np.ndarray, path: Path
 def lines_image(capture: Capture, lines: Lines, fit: Vanishing, plane: np.ndarray, path: Path) -> None:
     """The photo with most inlier segments: them green, its other segments red, and a grid of
     ticks along the lines' vertical (magenta) and the plane reference's (cyan, shorter)."""
-    from PIL import ImageDraw
-
     k = int(np.argmax(np.bincount(lines.photo[fit.inliers], minlength=len(capture.data.cameras))))
     camera = capture.data.cameras[k]
     photo, scale = enlarged(capture, k)
@@ -322,9 +317,9 @@ def lines_image(capture: Capture, lines: Lines, fit: Vanishing, plane: np.ndarra
     save(photo, path)
 
 
-def save(photo: object, path: Path) -> None:
+def save(photo: Image.Image, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    photo.save(path)  # type: ignore[attr-defined]
+    photo.save(path)
 
 
 def main() -> None:

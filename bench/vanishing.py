@@ -45,7 +45,7 @@ def photo_segments(image: np.ndarray) -> np.ndarray:
     """The straight segments of a photo [H, W, 3] (float in [0, 1]) at least MIN_LENGTH of its
     longer side long: [S, 4] float64 pixel coordinates x1, y1, x2, y2, the project's convention
     (a pixel's centre at +0.5)."""
-    import cv2
+    import cv2  # here: the bench extra; tests of the maths below need no OpenCV
 
     grey = cv2.cvtColor((np.clip(image, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY)
     found = cv2.createLineSegmentDetector().detect(grey)[0]
