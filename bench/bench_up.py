@@ -100,13 +100,13 @@ def read_lines(capture: Capture) -> Lines:
 # ----------------------------------------------------------------------------- the plane reference
 
 @dataclass
-class Plane:
+class Candidate:
     normal: np.ndarray       # [3] unit, toward the cameras
     point: np.ndarray        # [3] on the plane
     inliers: np.ndarray      # [P] bool: within half the band of it (of the points left when it was found)
 
 
-def candidate_planes(capture: Capture, seed: int) -> list[Plane]:
+def candidate_planes(capture: Capture, seed: int) -> list[Candidate]:
     """CANDIDATES planes, largest first (module docstring)."""
     points = capture.points
     band = PLANE_BAND * point_extent(points)
@@ -116,12 +116,12 @@ def candidate_planes(capture: Capture, seed: int) -> list[Plane]:
         found = find_plane(points[left], capture.centres, band, trials=REFERENCE_TRIALS, seed=seed)
         assert found is not None, f"{capture.name}: no plane has the cameras on one side"
         inliers = left & (((points - found.point) @ found.normal).abs() < band / 2)
-        planes.append(Plane(found.normal.numpy(), found.point.numpy(), inliers.numpy()))
+        planes.append(Candidate(found.normal.numpy(), found.point.numpy(), inliers.numpy()))
         left &= ~inliers
     return planes
 
 
-def thirds_angle(capture: Capture, plane: Plane) -> float:
+def thirds_angle(capture: Capture, plane: Candidate) -> float:
     """Degrees: the largest angle between the plane's normal and that of a third of its inliers,
     split along the inliers' longest in-plane axis."""
     inliers = capture.points.numpy()[plane.inliers]
@@ -168,7 +168,7 @@ def line_checks(lines: Lines, guess: np.ndarray, fit: Vanishing) -> dict:
 
 # ----------------------------------------------------------------------------- the tables
 
-def measure(capture: Capture, candidates: list[Plane], lines: Lines) -> tuple[dict, Vanishing]:
+def measure(capture: Capture, candidates: list[Candidate], lines: Lines) -> tuple[dict, Vanishing]:
     """Every estimate against both references (candidates: seed 0's planes), the references'
     checks, and what explains the cameras' estimate's error (`rolls`)."""
     cameras = capture.data.cameras
@@ -270,7 +270,7 @@ def enlarged(capture: Capture, k: int) -> tuple[Image.Image, int]:
     return Image.fromarray(pixels).resize((camera.width * scale, camera.height * scale), Image.LANCZOS), scale
 
 
-def plane_image(capture: Capture, plane: Plane, estimate: np.ndarray, path: Path) -> None:
+def plane_image(capture: Capture, plane: Candidate, estimate: np.ndarray, path: Path) -> None:
     """The photo with most of the plane's points in view: those points red, the other points
     cyan, posts on twelve of the plane's points along its normal (green) and the estimate (magenta)."""
     cameras = capture.data.cameras
