@@ -136,16 +136,17 @@ class Viewer:
 
     def _place_view(self) -> None:
         """Up = the capture's (`phd_core.scene.capture_up` of the training cameras, else of the
-        candidates); the browser's first view from beyond the cameras, looking at the point they
-        surround."""
+        candidates, on the model's opaque splats as `phd candidates --model` places its poses);
+        the browser's first view from beyond the cameras, looking at the point they surround."""
         from phd_core.scene import capture_up
+        from phd_core.uq.candidates import scene_points
 
         training = list(self.renderer.training_cameras or [])
         cams = training + list(self.candidates)
         if not cams:
             return
         c2w = np.stack([c.c2w.double().numpy() for c in cams])            # [C, 4, 4]
-        up = capture_up(training or cams).vector.numpy()
+        up = capture_up(training or cams, scene_points(self.renderer)).vector.numpy()
         centre = c2w[:, :3, 3].mean(0)
         radius = float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).max()) or 1.0
         self.server.scene.set_up_direction(tuple(up))

@@ -1,4 +1,5 @@
-"""The capture's up direction, from its cameras alone (docs/formats.md, "The upright frame").
+"""The capture's up direction: from its cameras, refined on the plane the capture stands on
+when its points show one (docs/formats.md, "The upright frame").
 
 Hand-held, tripod and rig photos share one thing: the camera is not rolled, so a horizontal
 line in the world is horizontal in the photo and the camera's right axis is horizontal. Up is
@@ -36,12 +37,31 @@ more than up (photos that are all sideways or all top-down).
 Without a trusted fit: the cameras' mean up when their up axes agree (|mean| >= AGREE), else
 minus their mean viewing direction when that agrees (a top-down survey, whose up axes turn with
 its headings), else +z.
+
+The support plane. A roll every photo shares (a phone held a little rolled throughout) tilts the
+cameras' estimate by about that roll, 5 to 10 degrees for hand-held captures, and nothing in the
+poses tells. A floor or a table top the capture stands on does, when its points are at hand (the
+SfM points of a capture, or a model's opaque splat centres): of PLANE_POINTS of them at most
+(evenly spaced), RANSAC over PLANE_TRIALS seeded point triples (`find_plane`) finds the plane with
+the most points within PLANE_BAND of the points' extent (the diagonal of their 5th-95th
+percentile box) among the planes that have CAMERAS_ON_ONE_SIDE of the camera centres on one side
+and whose normal, pointing to that side, is within 15 degrees of the cameras' up (PLANE_GATE:
+above the roll noise, far below a wall's 90 degrees; a ceiling's normal points down, 180
+degrees), refitted to the points within half the band. Its normal is up ("support plane") when
+  - it holds PLANE_SHARE (10%) of the points: a large plane (RANSAC's triples miss one that
+    large with probability (1 - 0.1^3)^10000 < 1e-4);
+  - it is a thin sheet, not a slab cut through clutter: of its points, PLANE_SHEET (0.75) lie
+    within half the band, halfway between a slab through points of even density (0.5) and a
+    perfectly flat sheet (1; Gaussian scatter of 0.45 bands rms gives 0.75);
+  - its refitted normal is still within PLANE_GATE.
+Else the cameras' estimate stands (`CaptureUp.plane` says what was found). The same points give
+the same plane: the search is seeded, and costs at most PLANE_TRIALS x PLANE_POINTS distances.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import torch
@@ -61,6 +81,26 @@ GRID_CAMERAS = 512                                # cameras the start search loo
 ROUNDS = 100                                      # IRLS rounds at most (it settles in tens)
 SETTLED = 1e-7                                    # radians: the normal has stopped turning
 DEFAULT_UP = (0.0, 0.0, 1.0)                      # Blender's (and the bundled data's) up
+# The support plane:
+PLANE_GATE = math.cos(math.radians(15))           # its normal within 15 degrees of the cameras' up
+PLANE_SHARE = 0.10                                # it holds 10% of the points or more
+PLANE_SHEET = 0.75                                # and is a thin sheet: this share of them within half the band
+CAMERAS_ON_ONE_SIDE = 0.9                         # the cameras (this share of them) stand on one side of it
+PLANE_BAND = 0.01                                 # a point this near it (x the points' extent) is on it
+PLANE_POINTS = 5_000                              # points the search looks at, at most (evenly spaced)
+MIN_PLANE_POINTS = 50                             # fewer points (finite ones): no plane is sought
+PLANE_TRIALS = 10_000                             # seeded point triples: the same points give the same plane
+REFITS = 10                                       # least-squares refits of the plane (it settles in a few)
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A plane found in a point cloud (`find_plane`)."""
+
+    normal: torch.Tensor      # [3] float64 unit, toward the cameras
+    point: torch.Tensor       # [3] float64, on the plane
+    share: float              # of the points within the search's band of it
+    sheet: float              # of those, the share within half the band (0.5 for a slab through even density)
 
 
 @dataclass(frozen=True)
@@ -68,10 +108,11 @@ class CaptureUp:
     """The capture's up and how it was found."""
 
     vector: torch.Tensor      # [3] float64, unit
-    rule: str                 # "horizontal axes", "mean up", "mean view" or "default"
-    spread: float             # the fit's middle eigenvalue (NaN without a trusted fit)
+    rule: str                 # "support plane", "horizontal axes", "mean up", "mean view" or "default"
+    spread: float             # the cameras' fit's middle eigenvalue (NaN without a trusted fit)
     ratio: float              # its smallest over middle eigenvalue (NaN without a trusted fit)
     sideways: int             # photos whose up axis was taken as the horizontal one
+    plane: Plane | None = None  # the largest plane near the cameras' up; the up when rule is "support plane"
 
 
 @dataclass(frozen=True)
@@ -81,10 +122,77 @@ class _Fit:
     sideways: torch.Tensor    # [V] bool: the camera's up axis is its horizontal one
 
 
-def capture_up(cameras: Sequence[Camera]) -> CaptureUp:
-    """The capture's up direction (module docstring); +z without cameras."""
+def capture_up(cameras: Sequence[Camera], points: torch.Tensor | None = None) -> CaptureUp:
+    """The capture's up direction (module docstring): from the cameras, refined on the plane the
+    capture stands on when `points` ([P, 3]: SfM points or opaque splat centres) show one; +z
+    without cameras."""
     if not cameras:
         return _without_fit(torch.tensor(DEFAULT_UP, dtype=torch.float64), "default")
+    found = _camera_up(cameras)
+    if points is None:
+        return found
+    points = points.detach().to(torch.float64).reshape(-1, 3)
+    points = points[torch.isfinite(points).all(dim=1)]                              # [P, 3]
+    if len(points) < MIN_PLANE_POINTS:
+        return found
+    points = points[torch.linspace(0, len(points) - 1, min(len(points), PLANE_POINTS)).round().long()]
+    centres = torch.stack([c.center for c in cameras])                              # [V, 3]
+    plane = find_plane(points, centres, PLANE_BAND * point_extent(points), near=found.vector)
+    if plane is None:
+        return found
+    if plane.share < PLANE_SHARE or plane.sheet < PLANE_SHEET or float(plane.normal @ found.vector) < PLANE_GATE:
+        return replace(found, plane=plane)
+    return replace(found, vector=plane.normal, rule="support plane", plane=plane)
+
+
+def point_extent(points: torch.Tensor) -> float:
+    """The size of a point cloud [P, 3]: the diagonal of its 5th-95th percentile box (a few far
+    points move it little)."""
+    low, high = torch.quantile(points, torch.tensor([0.05, 0.95], dtype=points.dtype), dim=0)
+    return float((high - low).norm())
+
+
+def find_plane(points: torch.Tensor, centres: torch.Tensor, band: float, *, near: torch.Tensor | None = None,
+               trials: int = PLANE_TRIALS, seed: int = 0) -> Plane | None:
+    """RANSAC: of the planes through `trials` seeded triples of `points` [P, 3] (float64) that
+    have at least CAMERAS_ON_ONE_SIDE of the camera centres [V, 3] on one side (and, given `near`
+    [3], whose normal toward the cameras is within PLANE_GATE of it), the one with the most
+    points within `band`; refitted REFITS times to the points within band / 2 of it: the normal
+    by least squares, the offset by their median distance (so what stands on a floor does not
+    lift it). None when no triple qualifies. Cost: at most `trials` x P point-plane distances."""
+    generator = torch.Generator().manual_seed(seed)
+    triples = points[torch.randint(len(points), (trials, 3), generator=generator)]    # [T, 3, 3]
+    normals = torch.linalg.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])   # [T, 3]
+    lengths = normals.norm(dim=1)
+    normals, anchors = normals[lengths > 0] / lengths[lengths > 0, None], triples[lengths > 0, 0]
+    above = (((centres[None] - anchors[:, None]) * normals[:, None]).sum(-1) > 0).double().mean(1)   # [T]
+    normals = torch.where((above >= 0.5)[:, None], normals, -normals)                   # toward the cameras
+    keep = above.maximum(1 - above) >= CAMERAS_ON_ONE_SIDE
+    if near is not None:
+        keep &= normals @ near >= PLANE_GATE
+    normals, anchors = normals[keep], anchors[keep]
+    if len(normals) == 0:
+        return None
+    offsets = (normals * anchors).sum(1)                                                 # [T']
+    counts = torch.cat([(points @ n.T - o).abs().lt(band).sum(0)                            # [256] at a time
+                        for n, o in zip(normals.split(256), offsets.split(256))])         # [T']
+    best = int(counts.argmax())
+    normal, point = normals[best], anchors[best]
+    for _ in range(REFITS):
+        on = ((points - point) @ normal).abs() < band / 2
+        if int(on.sum()) < 3:
+            break
+        centre = points[on].mean(0)
+        fitted = torch.linalg.svd(points[on] - centre, full_matrices=False).Vh[-1]
+        normal = fitted if float(fitted @ normal) >= 0 else -fitted
+        point = centre + ((points[on] - centre) @ normal).median() * normal
+    distances = ((points - point) @ normal).abs()                                       # [P]
+    within = int((distances < band).sum())
+    return Plane(normal, point, within / len(points), int((distances < band / 2).sum()) / max(within, 1))
+
+
+def _camera_up(cameras: Sequence[Camera]) -> CaptureUp:
+    """The up the cameras' axes alone give (module docstring)."""
     axes = torch.stack([c.c2w[:3, :3] for c in cameras]).to(torch.float64)     # [V, 3, 3] columns: right, up, back
     right, up, view = axes[:, :, 0], axes[:, :, 1], -axes[:, :, 2]            # [V, 3] each
     if len(cameras) >= MIN_CAMERAS:

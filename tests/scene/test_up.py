@@ -12,7 +12,7 @@ import torch
 
 from phd_core.scene import Camera, capture_up
 from phd_core.scene.rotations import quaternion_to_rotation
-from support.upright import degrees_from_up, mean_up, one_side, photo
+from support.upright import degrees_from_up, mean_up, one_side, photo, scene_points
 
 
 def test_a_path_looking_down_from_one_side_gives_the_true_up() -> None:
@@ -84,3 +84,43 @@ def test_without_a_trusted_fit_the_fallbacks_say_what_they_used() -> None:
     poses = torch.eye(4, dtype=torch.float64).repeat(300, 1, 1)
     poses[:, :3, :3] = turns
     assert capture_up([Camera(c2w, 20.0, 20.0, 24.0, 18.0, 48, 36) for c2w in poses]).rule == "default"
+
+
+# ----------------------------------------------------------------------------- the support plane
+
+def test_a_floor_corrects_a_roll_every_photo_shares() -> None:
+    cameras = one_side(rolls=[6.0] * 30)                 # the phone held 6 degrees rolled throughout
+    alone = capture_up(cameras)
+    found = capture_up(cameras, scene_points({"floor": 3000, "object": 2000}))
+    assert alone.rule == "horizontal axes" and degrees_from_up(alone.vector) > 4.0
+    assert found.rule == "support plane" and degrees_from_up(found.vector) < 1.0
+    assert found.plane is not None and found.plane.share > 0.5 and found.plane.sheet > 0.9
+    # The same points give the same plane, whatever was asked before.
+    again = capture_up(cameras, scene_points({"floor": 3000, "object": 2000}))
+    assert torch.equal(again.vector, found.vector) and again.plane is not None
+    assert torch.equal(again.plane.point, found.plane.point) and again.plane.share == found.plane.share
+
+
+def test_a_wall_or_a_ceiling_is_never_stood_on() -> None:
+    cameras = one_side(rolls=[6.0] * 30)
+    alone = capture_up(cameras).vector
+    # A wall with most of the points, and a floor with a fifth: the floor.
+    found = capture_up(cameras, scene_points({"wall": 3500, "floor": 1000, "object": 500}))
+    assert found.rule == "support plane" and degrees_from_up(found.vector) < 1.0
+    # A wall and a ceiling (its normal toward the cameras points down), no floor: the cameras' up.
+    found = capture_up(cameras, scene_points({"wall": 3000, "ceiling": 1500, "object": 500}))
+    assert found.rule == "horizontal axes" and torch.equal(found.vector, alone)
+
+
+def test_points_without_a_plane_leave_the_cameras_up() -> None:
+    cameras = one_side(rolls=[6.0] * 30)
+    alone = capture_up(cameras).vector
+    # A flat room of clutter: a slab through it holds many points (share) but is no sheet.
+    found = capture_up(cameras, scene_points({"clutter": 5000}))
+    assert found.plane is not None and found.plane.share > 0.1 and found.plane.sheet < 0.65
+    assert found.rule == "horizontal axes" and torch.equal(found.vector, alone)
+    # An object alone, too few points, and points that are no numbers.
+    for points in (scene_points({"object": 3000}), scene_points({"floor": 40}),
+                   torch.full((500, 3), float("nan"), dtype=torch.float64)):
+        found = capture_up(cameras, points)
+        assert found.rule == "horizontal axes" and torch.equal(found.vector, alone)

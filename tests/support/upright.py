@@ -77,3 +77,25 @@ def column(splats: int = 40, height: float = 1.2) -> GaussianModel:
         opacity_logits=torch.full((splats,), 5.0),
         sh=((colours - 0.5) / SH_C0).float()[:, None, :],
     )
+
+
+def scene_points(parts: dict[str, int], seed: int = 0) -> torch.Tensor:
+    """Points [P, 3] float64 of a scene around the `one_side` capture, turned into the TILT world:
+    `parts` says how many points each part gets, of
+      floor:   the ground (z = 0) within 4 units of the object, 2 mm of scatter;
+      object:  a box 1 x 1 x 1.2 standing on it at the origin (points filling it);
+      wall:    a wall (y = -3) behind the object, 8 wide and 4 high;
+      ceiling: a ceiling (z = 4) above the cameras;
+      clutter: a flat box 8 x 8 x 1.5 filled evenly (a room of low furniture, no floor)."""
+    gen = torch.Generator().manual_seed(seed)
+
+    def uniform(count: int, low: list[float], high: list[float]) -> torch.Tensor:
+        box = torch.rand(count, 3, generator=gen, dtype=torch.float64)
+        return torch.tensor(low, dtype=torch.float64) + box * (torch.tensor(high) - torch.tensor(low))
+
+    boxes = {"floor": ([-4, -4, 0], [4, 4, 0]), "object": ([-0.5, -0.5, 0], [0.5, 0.5, 1.2]),
+             "wall": ([-4, -3, 0], [4, -3, 4]), "ceiling": ([-4, -4, 4], [4, 4, 4]),
+             "clutter": ([-4, -4, 0], [4, 4, 1.5])}
+    points = torch.cat([uniform(count, *boxes[name]) for name, count in parts.items()])
+    points += torch.randn(points.shape, generator=gen, dtype=torch.float64) * 0.002
+    return points @ TILT.T

@@ -3,8 +3,9 @@ training cameras when there are any, else from the model's splats, robust to flo
 
 With cameras: the centre is the point the optical axes pass closest to
 (`phd_core.scene.scene_bounds`), the radius the median camera distance to it, up the capture's
-(`phd_core.scene.capture_up`: orthogonal to the cameras' horizontal image axes), and the
-intrinsics those of the first camera. With splats only: the centre is the per-axis median of
+(`phd_core.scene.capture_up`: orthogonal to the cameras' horizontal image axes, refined on the
+plane the capture stands on when the points, SfM points or opaque splat centres, show one), and
+the intrinsics those of the first camera. With splats only: the centre is the per-axis median of
 the opaque splats, the object radius the 90th percentile of their distances to it (a few far
 floaters move neither), and the camera radius the distance at which a sphere of that radius
 fills 80% of the default field of view; up is +z.
@@ -55,7 +56,7 @@ def scene_frame(cameras: Sequence[Camera] | None = None, points: torch.Tensor | 
     if cameras:
         center, _ = scene_bounds(cameras)
         eyes = torch.stack([c.center for c in cameras])                            # [V, 3]
-        up = capture_up(cameras).vector
+        up = capture_up(cameras, points).vector
         offsets = eyes - center
         radius = float(offsets.norm(dim=1).median())
         sines = (offsets @ up) / offsets.norm(dim=1).clamp_min(1e-12)
