@@ -28,7 +28,6 @@ from phd_core.executors import LOCAL, Executor
 from phd_core.renderers import Renderer
 from phd_core.renderers.points import ScenePoints, importance, point_subset, scene_points, splat_model
 from phd_core.renderers.visibility import visibility_bytes
-from phd_core.scene import capture_up
 from phd_core.uq import Progress
 from phd_core.uq.explain import EXPLAIN_UNIT_BYTES, Explanation, explain
 
@@ -48,6 +47,7 @@ from .work import (
     render_size,
     stored_cameras,
     stored_ratio,
+    stored_up,
 )
 
 MAGIC = b"PHD3"
@@ -70,7 +70,7 @@ def scene_reserve(record: ModelRecord, cap: int) -> int:
 def scene_bytes(record: ModelRecord, renderer: Renderer, cap: int) -> bytes:
     """The scene binary of a loaded model (module docstring)."""
     points = scene_points(renderer, cap)
-    up = capture_up(stored_cameras(record)).vector.tolist()
+    up, _ = stored_up(record)
     arrays = [("positions", "float32", points.positions.numpy()), ("sigma", "float32", points.sigma.numpy()),
               ("colours", "uint8", points.colours.numpy())]
     layout: list[dict[str, object]] = []

@@ -150,11 +150,13 @@ class TrainingCameras(_Response):
 
     frames: list[dict[str, Any]]
     up: list[float] = Field(description="The capture's up direction, unit, world coordinates "
-                            "(phd_core.scene.capture_up: orthogonal to the cameras' horizontal image axes; "
-                            "+z without cameras): the generated poses stand on it and the page's 3D view "
+                            "(phd_core.scene.capture_up, found at upload: orthogonal to the cameras' horizontal "
+                            "image axes, or the normal of the floor the model's splats show near that; +z "
+                            "without cameras): the generated poses stand on it and the page's 3D view "
                             "starts upright on it.")
-    up_rule: str = Field(description="How the up was found: 'horizontal axes' (the cameras' own), or the "
-                         "fallback when they cannot tell: 'mean up', 'mean view' or 'default'.")
+    up_rule: str = Field(description="How the up was found: 'support plane' (the floor or table the splats "
+                         "show), 'horizontal axes' (the cameras' own), or the fallback when they cannot tell: "
+                         "'mean up', 'mean view' or 'default'.")
 
 
 # ----------------------------------------------------------------------------- work requests

@@ -26,7 +26,8 @@ from phd_core.renderers import (
     set_background,
     unseen_views,
 )
-from phd_core.scene import UNSEEN_SHARE, Camera
+from phd_core.scene import UNSEEN_SHARE, Camera, capture_up
+from phd_core.uq.candidates import scene_points
 
 from .budget import READ_BYTES_PER_MODEL_BYTE, MemoryLedger, Reservation, largest_model_file, load_bytes, read_bytes
 from .errors import ServiceError, busy, from_exception, not_found
@@ -192,6 +193,10 @@ class ServiceState:
         # The stored cameras are the truth about training cameras, not what the file carried.
         facts = {k: v for k, v in renderer.describe().items() if k != "has_training_cameras"}
         facts["camera_format"] = camera_format or facts.get("camera_format")
+        # The capture's up, found once while the model is loaded: its splats show the floor the
+        # cameras' estimate may lean from; /cameras, the 3D view and generated poses use it.
+        up = capture_up(cameras or [], scene_points(renderer))
+        facts["up"], facts["up_rule"] = up.vector.tolist(), up.rule
         if background_source is not None:
             facts["background_source"] = background_source
         # What loading the file noted, then what reading its trainer's folder noted; and a model

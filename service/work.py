@@ -41,7 +41,7 @@ from phd_core.renderers.visibility import (
     seen_bytes,
     visibility_bytes,
 )
-from phd_core.scene import Camera, cameras_from_json
+from phd_core.scene import Camera, cameras_from_json, capture_up
 from phd_core.uq import Progress
 from phd_core.uq.candidates import candidate_cameras, check_option_names
 from phd_core.uq.rank import check_target_strategy
@@ -152,6 +152,16 @@ def parse_cameras(source: Any, size: RenderSize, settings: Settings, *, field: s
 def stored_cameras(record: ModelRecord) -> list[Camera]:
     """The training cameras stored with a model (validated at upload), [] when there are none."""
     return cameras_from_json(record.training_frames) if record.training_frames else []
+
+
+def stored_up(record: ModelRecord) -> tuple[list[float], str]:
+    """The model's up and how it was found: as found at upload (`capture_up` on its training
+    cameras and opaque splats); for a model stored before that, from its cameras alone."""
+    up, rule = record.describe.get("up"), record.describe.get("up_rule")
+    if isinstance(up, list) and isinstance(rule, str):
+        return up, rule
+    found = capture_up(stored_cameras(record))
+    return found.vector.tolist(), found.rule
 
 
 def check_samples(samples: int | None, settings: Settings, default: int) -> int:
@@ -333,8 +343,9 @@ def generated_candidates(record: ModelRecord, body: RankRequest, settings: Setti
     try:
         check_option_names(spec.generator, spec.options)
         if training:
+            options = {"up": stored_up(record)[0], **spec.options}      # the stored up, unless given
             poses = candidate_cameras(spec.generator, spec.count, cameras=training,
-                                      **spec.options)  # type: ignore[arg-type]
+                                      **options)  # type: ignore[arg-type]
         else:
             # The points taken from the splats are a fraction of the model's own bytes.
             with ledger.models({record.id: record.size_bytes}, model_bytes(record.size_bytes),

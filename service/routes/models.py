@@ -8,7 +8,6 @@ from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
 from phd_core.renderers import FAMILIES, family_titles
-from phd_core.scene import capture_up
 
 from ..budget import largest_model_file
 from ..deps import ERRORS, Caller, Service
@@ -17,7 +16,7 @@ from ..folders import remove_folder
 from ..schemas import Calibration, ModelInfo, ModelList, PosesRequest, TrainingCameras
 from ..store import ModelRecord
 from ..upload import receive_upload, sniff_kind
-from ..work import export_poses, stored_cameras
+from ..work import export_poses, stored_up
 
 router = APIRouter(prefix="/v1", responses=ERRORS, tags=["models"])
 UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
@@ -92,8 +91,8 @@ async def get_training_cameras(model_id: str, svc: Service, who: Caller) -> Trai
     """The stored training cameras as frames and the capture's up (the page plots them, places
     candidates around them and stands its 3D view on that up)."""
     record = svc.model(model_id, who)                    # 404 for another key's model
-    up = await asyncio.to_thread(capture_up, stored_cameras(record))
-    return TrainingCameras(frames=record.training_frames or [], up=up.vector.tolist(), up_rule=up.rule)
+    up, rule = await asyncio.to_thread(stored_up, record)
+    return TrainingCameras(frames=record.training_frames or [], up=up, up_rule=rule)
 
 
 @router.post("/models/{model_id}/poses", response_class=Response, responses={200: {

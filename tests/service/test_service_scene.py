@@ -127,3 +127,36 @@ def test_explain_is_planned_within_the_memory_budget(svc_start, svc_model_files)
     assert fits.status_code == 200, fits.text
     big = httpx.post(f"{server.url}/v1/models/{info.id}/explain", json={**body, "width": 800, "height": 800})
     assert big.status_code == 413 and big.json()["error"]["field"] == "downscale"
+
+
+def test_the_up_is_found_once_at_upload_on_the_floor_the_splats_show(svc_start, tmp_path):
+    """A phone held 6 degrees rolled throughout tilts the cameras' own up by about that; the
+    model's splats show the floor it stands on. The service finds the up when the model is
+    uploaded (loaded then), and /cameras, the scene binary and the poses it generates all stand
+    on the floor's normal, not on the cameras' lean."""
+    from phd_core.renderers.gs3d import GaussianModel, write_ply
+    from phd_core.renderers.splats import SH_C0
+    from support.upright import scene_points as floor_scene
+
+    cameras = one_side(rolls=[6.0] * 30)
+    means = floor_scene({"floor": 3000, "object": 2000}).float()                  # [G, 3]
+    count = len(means)
+    model = GaussianModel(means=means, log_scales=torch.full((count, 3), -4.0),
+                          quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(count, 1),
+                          opacity_logits=torch.full((count,), 4.0),
+                          sh=torch.full((count, 1, 3), 0.2 / SH_C0))
+    write_ply(model, tmp_path / "floor.ply")
+    server = svc_start(api_key=KEY)
+    with PHDClient(server.url, api_key=KEY) as phd:
+        info = phd.upload_model(tmp_path / "floor.ply", cameras=cameras)
+        ranking = phd.rank(info.id, candidates="orbit:6", strategy="random", dropout_ratio=0.2)
+    served = httpx.get(f"{server.url}/v1/models/{info.id}/cameras", headers=AUTH).json()
+    assert served["up_rule"] == "support plane"
+    assert degrees_from_up(torch.tensor(served["up"], dtype=torch.float64)) < 1.0
+    assert degrees_from_up(capture_up(cameras).vector) > 4.0                          # the cameras' own lean
+    header, _ = read_scene(httpx.get(f"{server.url}/v1/models/{info.id}/scene", headers=AUTH).content)
+    assert header["up"] == served["up"]
+    up = torch.tensor(served["up"], dtype=torch.float64)
+    for view in ranking.views:                      # each generated pose is level: its right axis is horizontal
+        right = torch.tensor(view.camera["transform_matrix"], dtype=torch.float64)[:3, 0]
+        assert abs(float(right @ up)) < 1e-6

@@ -107,7 +107,7 @@ def candidate_cameras(generator: str, count: int, *, cameras: Sequence[Camera] |
         if key not in accepted and not takes_any:        # OWN_PARAMETERS never get here: they bind above
             takes = sorted(k for k in accepted if k not in OWN_PARAMETERS)
             raise InputError(f"options.{key}", f"generator {generator!r} takes {', '.join(takes) or 'no options'}")
-    frame = scene_frame(cameras, points) if cameras or points is not None else None
+    frame = scene_frame(cameras, points, options.get("up")) if cameras or points is not None else None
     kwargs = dict(options)
     if frame is not None:
         for key, value in _derived(frame, points).items():

@@ -50,13 +50,15 @@ def horizontal_axes(up: Sequence[float] | torch.Tensor) -> tuple[torch.Tensor, t
     return up_t, ax, torch.linalg.cross(up_t, ax)
 
 
-def scene_frame(cameras: Sequence[Camera] | None = None, points: torch.Tensor | None = None) -> SceneFrame:
-    """The frame candidate poses are placed in (see the module docstring)."""
+def scene_frame(cameras: Sequence[Camera] | None = None, points: torch.Tensor | None = None,
+                up: Sequence[float] | torch.Tensor | None = None) -> SceneFrame:
+    """The frame candidate poses are placed in (see the module docstring); `up` given (the
+    caller's, or one found earlier and stored) stands for `capture_up`'s."""
     cameras = list(cameras or [])
     if cameras:
         center, _ = scene_bounds(cameras)
         eyes = torch.stack([c.center for c in cameras])                            # [V, 3]
-        up = capture_up(cameras, points).vector
+        up = capture_up(cameras, points).vector if up is None else horizontal_axes(up)[0]
         offsets = eyes - center
         radius = float(offsets.norm(dim=1).median())
         sines = (offsets @ up) / offsets.norm(dim=1).clamp_min(1e-12)
