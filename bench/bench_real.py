@@ -120,6 +120,8 @@ def check(row: dict, name: str) -> None:
     problems = [f"{what}: {said}" for what, said in result["agreement"].items() if said.startswith("order")]
     if result["r_drop"] != cli["frames"]["dropout_ratio"]:
         problems.append(f"r_drop {result['r_drop']} against the CLI's {cli['frames']['dropout_ratio']}")
+    if name == "client" and result["training_cameras"] != row["train_views"]:
+        problems.append(f"{result['training_cameras']} training cameras uploaded of {row['train_views']}")
     if name == "client" and result["heatmap_size"] != result["frame_size"]:
         problems.append(f"heat map {result['heatmap_size']} for a {result['frame_size']} frame")
     if name == "page":

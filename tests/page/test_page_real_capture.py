@@ -67,7 +67,7 @@ def test_a_distorted_capture_ranks_alike_through_the_cli_the_client_and_the_page
     for door in (client["frames"], page["frames"]):
         assert (door["order"], door["scores"]) == (order, scores)
     assert client["orbit"]["order"] == cli["orbit"]["order"] and len(cli["orbit"]["order"]) == TOP_K
-    assert client["heatmap_size"] == client["frame_size"] == sizes[order[0]]
+    assert client["training_cameras"] == 12 and client["heatmap_size"] == client["frame_size"] == sizes[order[0]]
 
     shown = page["frames"]
     assert shown["view"] == {"training": 12, "splats": sidecar["num_splats"], "frusta": 9}

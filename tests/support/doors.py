@@ -1,8 +1,8 @@
 """A model `phd train` wrote, through the service's two other doors as a user takes each: the
 Python client (`through_client`) and the web page (`through_page`). Each uploads the PLY with
 its sidecar, calibrates, ranks generated orbit candidates (the first `top_k`) and every frame
-of a poses file (`phd candidates frames` writes one), with the settings `phd rank` defaults to,
-and returns what it was shown. bench/bench_real.py compares that with `phd rank` on every real
+of a poses file (`phd candidates frames` writes one) at `phd rank`'s defaults (but `samples`,
+when given), and returns what it was shown. bench/bench_real.py compares that with `phd rank` on every real
 capture, tests/page/test_page_real_capture.py on one."""
 
 from __future__ import annotations
