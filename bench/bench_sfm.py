@@ -12,9 +12,9 @@ Then the trained model's test PSNR through each capture. Both captures are cut t
 both register and named as the photo files are, so that the test split (every 8th name,
 sorted) holds the same photos in both; each is trained with `phd train --views V --downscale
 (its width / --train-width) --iterations I --seed S` and scored with `phd render --split test`
-against its own images (ours undistorted, the published ones as they are). The published
-models in real/ have distorted cameras, or cameras larger than their photos, which this
-branch's COLMAP reader refuses (issue 45, parts 1 and 2): there only our capture is scored.
+against its own images: ours undistorted by COLMAP's image_undistorter in `phd capture`, the
+published ones as the project's reader loads them (real/'s distorted cameras undistorted by
+pycolmap, flask_desk's cameras scaled to its smaller photos).
 
 Last, the user's path on cup_colmap at the first size, each step a `phd` command timed by the
 wall clock: capture -> train -> `phd rank --candidates orbit:64 --top-k 5` (which calibrates
@@ -118,22 +118,18 @@ def train_and_score(data: Path, run: Path, args: argparse.Namespace, seed: int) 
             "ssim": round(metrics["ssim"], 4), "test_views": len(metrics["views"])}
 
 
-def compare(row: dict, ours: Path, published: Path | None, work: Path, args: argparse.Namespace) -> None:
-    """Train and score our capture and, when it loads here, the published one, both cut to
-    the photos both register (row["scores"], by seed)."""
-    theirs = set(published_centres(published)) if published is not None else None
+def compare(row: dict, ours: Path, published: Path, work: Path, args: argparse.Namespace) -> None:
+    """Train and score our capture and the published one, both cut to the photos both
+    register (row["scores"], by seed)."""
+    theirs = set(published_centres(published))
     registered = set(json.loads((ours / REPORT).read_text())["registered"])
-    names = {name: photo for name, photo in row["photo_of"].items()
-             if name in registered and (theirs is None or photo in theirs)}
+    names = {name: photo for name, photo in row["photo_of"].items() if name in registered and photo in theirs}
     row["common"] = len(names)
     ours_cut = cut(ours, names, work / "ours")
-    theirs_cut = cut(published, {photo: photo for photo in names.values()}, work / "theirs") if published else None
-    row["scores"] = {}
-    for seed in args.seeds:
-        scores = {"ours": train_and_score(ours_cut, work / f"ours_run{seed}", args, seed)}
-        if theirs_cut is not None:
-            scores["theirs"] = train_and_score(theirs_cut, work / f"theirs_run{seed}", args, seed)
-        row["scores"][seed] = scores
+    theirs_cut = cut(published, {photo: photo for photo in names.values()}, work / "theirs")
+    row["scores"] = {seed: {"ours": train_and_score(ours_cut, work / f"ours_run{seed}", args, seed),
+                            "theirs": train_and_score(theirs_cut, work / f"theirs_run{seed}", args, seed)}
+                     for seed in args.seeds}
 
 
 def user_path(out: Path, work: Path, args: argparse.Namespace) -> dict:
@@ -199,19 +195,18 @@ def main() -> None:
         return
     args.seeds = [int(s) for s in args.seeds.split(",")]
     work = Path(tempfile.mkdtemp(prefix="bench_sfm."))
-    # (label, photos, the published capture of them, whether this branch loads it, --max-size)
-    inputs = [(f"cup_colmap, {size} px", CUP / "images", CUP, True, int(size))
-              for size in args.sizes.split(",") if size]
-    inputs += [(f"real/{name}, 240 px", REAL / name / "images", REAL / name, False, 1600)
+    # (label, photos, the published capture of them, --max-size)
+    inputs = [(f"cup_colmap, {size} px", CUP / "images", CUP, int(size)) for size in args.sizes.split(",") if size]
+    inputs += [(f"real/{name}, 240 px", REAL / name / "images", REAL / name, 1600)
                for name in args.real.split(",") if name]
     result: dict[str, Any] = {"command": _harness.command(), "machine": _harness.machine(), "settings": {
         "views": args.views, "iterations": args.iterations, "train_width": args.train_width, "seeds": args.seeds},
         "captures": []}
-    for i, (label, photos, published, loads, size) in enumerate(inputs):
+    for i, (label, photos, published, size) in enumerate(inputs):
         out = work / f"capture{i}"
         row = {"input": label, **capture(photos, out, published, size)}
         if "registered" in row:
-            compare(row, out, published if loads else None, work / f"compare{i}", args)
+            compare(row, out, published, work / f"compare{i}", args)
             if i == 0:
                 result["path"] = {"capture": row["run"], **user_path(out, work, args)}
         row.pop("photo_of", None)

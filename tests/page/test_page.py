@@ -27,9 +27,10 @@ pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip
 if not have_browser():
     pytest.skip("no browser: install Debian's chromium and chromium-driver (scripts/test.sh does, as root)",
                 allow_module_level=True)
-from selenium.common.exceptions import TimeoutException  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
-from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
+from selenium.webdriver.support.ui import Select  # noqa: E402
+
+from support.page import choose_files, console_errors, grid_loaded, run_on_candidates, set_field, text_of, wait  # noqa: E402
 
 KEY = "page-test-key"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -58,42 +59,23 @@ def models(tmp_path_factory, svc_model_files):
         server.stop()
 
 
-def _wait(driver, condition, timeout: float = 40.0, what: str = "the page"):
-    try:
-        return WebDriverWait(driver, timeout, poll_frequency=0.1).until(condition)
-    except TimeoutException:
-        said = driver.execute_script("return [...document.querySelectorAll('.message')].filter(p => p.textContent)"
-                                     ".map(p => p.id + ': ' + p.textContent)")
-        pytest.fail(f"timed out waiting for {what}; the page says: {said!r}")
-
-
-def d_text(driver, element_id: str) -> str:
-    return driver.find_element(By.ID, element_id).text
-
-
-def _set(driver, element_id: str, value) -> None:
-    field = driver.find_element(By.ID, element_id)
-    field.clear()
-    field.send_keys(str(value))
-
-
 def _open(driver, server) -> None:
     driver.get(server.url + "/")   # redirects to /ui/
     assert driver.current_url.endswith("/ui/")
     policy = httpx.get(server.url + "/ui/").headers["content-security-policy"]
     assert "script-src 'self';" in policy and "style-src 'self';" in policy and "unsafe-inline" not in policy
-    _set(driver, "api-key", KEY)
+    set_field(driver, "api-key", KEY)
     driver.find_element(By.CSS_SELECTOR, "#key-form button").click()
-    _wait(driver, lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2
-          and d_text(d, "message") == "key saved in this browser", what="the model list")
+    wait(driver, lambda d: len(Select(d.find_element(By.ID, "model-select")).options) == 2
+         and text_of(d, "message") == "key saved in this browser", what="the model list")
 
 
 def _open_empty(driver, server) -> None:
     """The page on a server that holds no model yet, with the key given."""
     driver.get(server.url + "/ui/")
-    _set(driver, "api-key", KEY)
+    set_field(driver, "api-key", KEY)
     driver.find_element(By.CSS_SELECTOR, "#key-form button").click()
-    _wait(driver, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
+    wait(driver, lambda d: "No model yet" in text_of(d, "model-info"), what="the empty model list")
 
 
 def _in_view(driver, element_id: str) -> bool:
@@ -105,13 +87,6 @@ def _in_view(driver, element_id: str) -> bool:
 
 def _classes(driver, element_id: str) -> list[str]:
     return driver.find_element(By.ID, element_id).get_attribute("class").split()
-
-
-def _console_errors(driver, expected: tuple[str, ...] = ()) -> list[str]:
-    """The browser's error messages since the last call, but for failed requests the test made
-    on purpose (`expected`: parts of their messages, e.g. a status code)."""
-    return [entry["message"] for entry in driver.get_log("browser") if entry["level"] == "SEVERE"
-            and not any(part in entry["message"] for part in expected)]
 
 
 def _assert_select_labels_match_rank_labels(driver) -> None:
@@ -132,32 +107,18 @@ def _csp_violations(driver) -> list[str]:
             if "Content Security Policy" in entry["message"] or "Refused to" in entry["message"]]
 
 
-def _run_on_candidates(browser, count: int, job: str, fields: dict[str, int]) -> None:
-    """Ask for `count` generated candidates, fill `fields`, press the job's button ("rank" or
-    "select") and wait until its grid shows `count` cards with every image loaded."""
-    _set(browser, "gen-count", count)
-    browser.find_element(By.ID, "gen-elevation").click()          # the change event takes the new count
-    for field, value in fields.items():
-        _set(browser, field, value)
-    _wait(browser, lambda d: (d.execute_script("return state.spec") or {}).get("count") == count,
-          what=f"a spec of {count} candidates")
-    browser.find_element(By.ID, f"{job}-run").click()
-    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, f"#{job}-grid li.card")) == count
-          and d.execute_script(f"return [...document.querySelectorAll('#{job}-grid img')].every(i => i.complete "
-                               "&& i.naturalWidth > 0)"), what=f"the {job} grid and its images")
-
 def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_path):
     server, model_a, _ = models
     _open(browser, server)
     Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
-    _wait(browser, lambda d: "r_drop" in d.find_element(By.ID, "model-info").text, what="the model's facts")
+    wait(browser, lambda d: "r_drop" in d.find_element(By.ID, "model-info").text, what="the model's facts")
     # The strategy field starts at the service's default and offers the registry's names.
     assert browser.find_element(By.ID, "rank-strategy").get_attribute("value") == uq.DEFAULT_STRATEGY
     offered = browser.execute_script("return [...document.querySelectorAll('#strategies option')].map(o => o.value)")
     assert offered == list(uq.STRATEGIES)
     # The page makes no poses itself: it asks the service's generator and draws what comes back.
     assert browser.execute_script("return typeof generateCandidates") == "undefined"
-    _run_on_candidates(browser, 7, "rank", {"rank-samples": 4, "rank-downscale": 1, "rank-seed": 3})
+    run_on_candidates(browser, 7, "rank", {"rank-samples": 4, "rank-downscale": 1, "rank-seed": 3})
 
     # The same request through the Python client gives the order the grid shows, and the poses.
     spec = browser.execute_script("return state.spec")
@@ -209,25 +170,25 @@ def test_page_drops_a_ranking_that_finishes_after_the_model_changed(browser, mod
     server, model_a, model_b = models
     _open(browser, server)
     Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
-    _wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model_a.id),
-          what="model A's 3D view")
-    _set(browser, "gen-count", 3)
+    wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model_a.id),
+         what="model A's 3D view")
+    set_field(browser, "gen-count", 3)
     browser.find_element(By.ID, "gen-elevation").click()
-    _wait(browser, lambda d: (d.execute_script("return state.spec") or {}).get("count") == 3, what="3 candidates")
-    _set(browser, "rank-samples", 3)
+    wait(browser, lambda d: (d.execute_script("return state.spec") or {}).get("count") == 3, what="3 candidates")
+    set_field(browser, "rank-samples", 3)
     held = hold_worker(server.url, AUTH, model_b.id)
     try:
         browser.find_element(By.ID, "rank-run").click()
         # The rank job waits in the queue behind the held one.
-        _wait(browser, lambda d: d.execute_script("return state.job"), what="the rank job")
+        wait(browser, lambda d: d.execute_script("return state.job"), what="the rank job")
         Select(browser.find_element(By.ID, "model-select")).select_by_value(model_b.id)
-        _wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady",
-                                                  model_b.id), what="model B's 3D view")
+        wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady",
+                                                 model_b.id), what="model B's 3D view")
         assert browser.execute_script("return state.job") is not None          # model A's job still waits
     finally:
         httpx.delete(f"{server.url}/v1/jobs/{held}", headers=AUTH)
-    _wait(browser, lambda d: "another model" in d_text(d, "rank-message"), what="the dropped ranking")
-    assert "Rank" in d_text(browser, "rank-message") and "warning" in _classes(browser, "rank-message")
+    wait(browser, lambda d: "another model" in text_of(d, "rank-message"), what="the dropped ranking")
+    assert "Rank" in text_of(browser, "rank-message") and "warning" in _classes(browser, "rank-message")
     assert browser.execute_script(
         "return [state.ranking, state.job, document.querySelectorAll('#rank-grid li').length, "
         "phdView3d.debug().frusta.length, document.getElementById('poses-row').hidden]") == [None, None, 0, 0, True]
@@ -238,16 +199,16 @@ def test_page_clears_the_ranked_frusta_when_the_candidates_change(browser, model
     server, model_a, _ = models
     _open(browser, server)
     Select(browser.find_element(By.ID, "model-select")).select_by_value(model_a.id)
-    _wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model_a.id),
-          what="model A's 3D view")
-    _run_on_candidates(browser, 3, "rank", {"rank-samples": 3, "rank-downscale": 2})
+    wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model_a.id),
+         what="model A's 3D view")
+    run_on_candidates(browser, 3, "rank", {"rank-samples": 3, "rank-downscale": 2})
     browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")[0].click()     # its frustum picked, detail shown
     assert len(browser.execute_script("return phdView3d.debug().frusta")) == 3
-    _wait(browser, lambda d: d.execute_script("return !document.querySelector('#view3d .v3d-detail').hidden"),
-          what="the picked candidate's detail")
-    _set(browser, "gen-count", 2)
+    wait(browser, lambda d: d.execute_script("return !document.querySelector('#view3d .v3d-detail').hidden"),
+         what="the picked candidate's detail")
+    set_field(browser, "gen-count", 2)
     browser.find_element(By.ID, "gen-elevation").click()                         # other candidates: no ranking yet
-    _wait(browser, lambda d: (d.execute_script("return state.spec") or {}).get("count") == 2, what="2 candidates")
+    wait(browser, lambda d: (d.execute_script("return state.spec") or {}).get("count") == 2, what="2 candidates")
     view = browser.execute_script("return phdView3d.debug()")
     assert (view["frusta"], view["selected"]) == ([], None)
     assert browser.execute_script("return [document.querySelector('#view3d .v3d-detail').hidden, "
@@ -264,16 +225,14 @@ def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_p
     assert [o.get_attribute("value") for o in rules.options] == list(uq.SELECTION_RULES)
     assert rules.first_selected_option.get_attribute("value") == uq.DEFAULT_SELECTION_RULE
     # Generated poses exist once the service made them: selecting before a ranking says so.
-    _set(browser, "gen-count", 4)
+    set_field(browser, "gen-count", 4)
     browser.find_element(By.ID, "gen-elevation").click()
     browser.find_element(By.ID, "select-run").click()
-    _wait(browser, lambda d: "Rank first" in d_text(d, "select-message"), what="the rank-first message")
+    wait(browser, lambda d: "Rank first" in text_of(d, "select-message"), what="the rank-first message")
     assert _in_view(browser, "select-message") and "error" in _classes(browser, "select-message")
-    _run_on_candidates(browser, 4, "rank", {"rank-samples": 3, "rank-downscale": 2})
+    run_on_candidates(browser, 4, "rank", {"rank-samples": 3, "rank-downscale": 2})
     browser.find_element(By.ID, "select-run").click()             # over the 4 poses the ranking returned
-    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#select-grid li.card")) == 4
-          and d.execute_script("return [...document.querySelectorAll('#select-grid img')].every(i => i.complete "
-                               "&& i.naturalWidth > 0)"), what="the select grid and its images")
+    wait(browser, grid_loaded("select", 4), what="the select grid and its images")
     candidates = [v["camera"] for v in browser.execute_script("return state.ranking.views")]
     assert len(candidates) == 4
     with PHDClient(server.url, api_key=KEY) as phd:
@@ -302,11 +261,11 @@ def test_page_takes_the_users_own_candidate_list(browser, models, tmp_path):
     browser.find_element(By.CSS_SELECTOR, "input[name=cand-mode][value=file]").click()
     assert browser.find_element(By.ID, "generate-options").get_attribute("hidden") is not None
     browser.find_element(By.ID, "cand-file").send_keys(str(path))
-    _wait(browser, lambda d: d.execute_script("return state.candidates.length") == 5, what="the file's 5 poses")
+    wait(browser, lambda d: d.execute_script("return state.candidates.length") == 5, what="the file's 5 poses")
     sent = browser.execute_script("return state.candidates")
     assert [f["transform_matrix"] for f in sent] == [f["transform_matrix"] for f in frames]
     assert all((f["w"], f["h"]) == (24, 24) for f in sent)       # the defaults reached every frame
-    assert "5 poses from candidates.json" in d_text(browser, "cand-info")
+    assert "5 poses from candidates.json" in text_of(browser, "cand-info")
     assert len(browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand.none")) == 5   # not ranked yet
 
 
@@ -330,21 +289,21 @@ def _choose_targets(browser, server, model, tmp_path) -> list[dict]:
         {"transform_matrix": f["transform_matrix"]} for f in targets]}))
     _open(browser, server)
     Select(browser.find_element(By.ID, "model-select")).select_by_value(model.id)
-    _wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model.id),
-          what="the model's 3D view")
+    wait(browser, lambda d: d.execute_script("return state.modelId === arguments[0] && state.viewReady", model.id),
+         what="the model's 3D view")
     browser.find_element(By.CSS_SELECTOR, "input[name=cand-mode][value=file]").click()
-    _choose_files(browser, "cand-file", candidates)
-    _wait(browser, lambda d: d.execute_script("return state.candidates.length") == 5, what="the 5 candidates")
-    _choose_files(browser, "targets-file", walkthrough)
-    _wait(browser, lambda d: d_text(d, "targets-info").startswith("2 target poses from walkthrough.json"),
-          what="the target views' line")
+    choose_files(browser, "cand-file", candidates)
+    wait(browser, lambda d: d.execute_script("return state.candidates.length") == 5, what="the 5 candidates")
+    choose_files(browser, "targets-file", walkthrough)
+    wait(browser, lambda d: text_of(d, "targets-info").startswith("2 target poses from walkthrough.json"),
+         what="the target views' line")
     # No size in the file: the fields beside it, filled with the training images' size.
     assert browser.find_element(By.ID, "targets-size").is_displayed()
     assert [browser.find_element(By.ID, f).get_attribute("value") for f in ("targets-width", "targets-height")] \
         == ["24", "24"]
     assert browser.find_element(By.ID, "targets-clear").is_displayed()
     for field, value in (("rank-samples", 3), ("rank-downscale", 1), ("rank-seed", 0)):
-        _set(browser, field, value)
+        set_field(browser, field, value)
     return [{"camera_angle_x": 0.7, "transform_matrix": f["transform_matrix"], "w": 24, "h": 24} for f in targets]
 
 
@@ -357,7 +316,7 @@ def test_page_ranks_for_target_views_from_a_file(browser, models, tmp_path):
     assert len(browser.execute_script("return phdView3d.debug().targets")) == 2     # drawn before ranking
     _record_requests(browser)
     browser.find_element(By.ID, "rank-run").click()
-    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")) == 5, what="the rank grid")
+    wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")) == 5, what="the rank grid")
     (url, body), = [(u, b) for u, b in browser.execute_script("return window.sent") if u.endswith("/rank")]
     assert body["targets"] == targets and body["strategy"] == uq.DEFAULT_STRATEGY
     # The REST API's answer to the same request, and without the targets (another order on this model).
@@ -368,16 +327,16 @@ def test_page_ranks_for_target_views_from_a_file(browser, models, tmp_path):
     order, untargeted = ([v["index"] for v in answer.json()["views"]] for answer in (aimed, plain))
     cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
     assert [int(c.get_attribute("data-index")) for c in cards] == order != untargeted
-    assert "in the order to capture them for the 2 target views;" in d_text(browser, "rank-summary")
-    assert d_text(browser, "targets-message") == ""
+    assert "in the order to capture them for the 2 target views;" in text_of(browser, "rank-summary")
+    assert text_of(browser, "targets-message") == ""
     assert len(browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand[fill]")) == 5
     browser.find_element(By.ID, "targets-clear").click()
-    _wait(browser, lambda d: d.execute_script("return phdView3d.debug().targets.length") == 0, what="cleared targets")
-    assert d_text(browser, "targets-info") == "" and not browser.find_element(By.ID, "targets-clear").is_displayed()
+    wait(browser, lambda d: d.execute_script("return phdView3d.debug().targets.length") == 0, what="cleared targets")
+    assert text_of(browser, "targets-info") == "" and not browser.find_element(By.ID, "targets-clear").is_displayed()
     assert browser.execute_script("return [state.targets.length, state.ranking]") == [0, None]   # it was for them
     assert browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand[fill]") == []           # its dots too
     assert "target view" not in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
-    assert _console_errors(browser) == []
+    assert console_errors(browser) == []
 
 
 def test_page_says_beside_the_target_views_when_the_strategy_ignores_them(browser, models, tmp_path):
@@ -388,24 +347,24 @@ def test_page_says_beside_the_target_views_when_the_strategy_ignores_them(browse
     server, model_a, _ = models
     _choose_targets(browser, server, model_a, tmp_path)
     for strategy in ("sigma_max", "fvs"):
-        _set(browser, "rank-strategy", strategy)
+        set_field(browser, "rank-strategy", strategy)
         browser.find_element(By.ID, "rank-run").click()
-        _wait(browser, lambda d: "error" in _classes(d, "targets-message"), what=f"{strategy}'s refusal")
-        said = d_text(browser, "targets-message")
+        wait(browser, lambda d: "error" in _classes(d, "targets-message"), what=f"{strategy}'s refusal")
+        said = text_of(browser, "targets-message")
         assert said.startswith(f"The target views: strategy '{strategy}' ignores target views; choose one that "
                                "weighs the model's coverage by them (visibility, ")
-        assert _in_view(browser, "targets-message") and d_text(browser, "rank-message") == ""   # no "ranking..." left
+        assert _in_view(browser, "targets-message") and text_of(browser, "rank-message") == ""   # no "ranking..." left
         assert not any(word in said for word in ("422", "field", "/v1"))
         assert browser.find_element(By.ID, "rank-progress").get_attribute("hidden") is not None
-    _set(browser, "rank-strategy", uq.DEFAULT_STRATEGY)
+    set_field(browser, "rank-strategy", uq.DEFAULT_STRATEGY)
     broken = tmp_path / "broken.json"
     broken.write_text('{"frames": [{"transform_matrix": 1}')
-    _choose_files(browser, "targets-file", broken)
-    _wait(browser, lambda d: "broken.json is not valid JSON" in d_text(d, "targets-message"), what="the bad file")
+    choose_files(browser, "targets-file", broken)
+    wait(browser, lambda d: "broken.json is not valid JSON" in text_of(d, "targets-message"), what="the bad file")
     browser.find_element(By.ID, "rank-run").click()
-    _wait(browser, lambda d: "could not be read" in d_text(d, "targets-message"), what="the refused rank")
+    wait(browser, lambda d: "could not be read" in text_of(d, "targets-message"), what="the refused rank")
     assert browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card") == []
-    assert _console_errors(browser, expected=("status of 422",)) == []
+    assert console_errors(browser, expected=("status of 422",)) == []
 
 
 def test_page_fits_a_phone_and_names_a_wrong_key(browser, models, tmp_path):
@@ -413,10 +372,10 @@ def test_page_fits_a_phone_and_names_a_wrong_key(browser, models, tmp_path):
     browser.set_window_size(390, 844)
     try:
         browser.get(server.url + "/ui/")
-        _set(browser, "api-key", "wrong")
+        set_field(browser, "api-key", "wrong")
         browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
-        _wait(browser, lambda d: "refused this API key" in d_text(d, "message"), what="the 401 message")
-        said = d_text(browser, "message")                             # in words: no status, code or header
+        wait(browser, lambda d: "refused this API key" in text_of(d, "message"), what="the 401 message")
+        said = text_of(browser, "message")                             # in words: no status, code or header
         assert "401" not in said and "unauthorized" not in said and "Authorization" not in said
         _open(browser, server)
         browser.execute_script("document.getElementById('upload-details').open = true; "
@@ -441,24 +400,24 @@ def test_page_uploads_calibrates_and_deletes_a_model(browser, svc_model_files, t
         assert browser.find_element(By.ID, "upload-details").get_attribute("open") is not None  # no model: open
         browser.find_element(By.ID, "upload-file").send_keys(str(svc_model_files["ply"]))
         browser.find_element(By.ID, "upload-cameras").send_keys(str(cameras))
-        _set(browser, "upload-name", "uploaded")
+        set_field(browser, "upload-name", "uploaded")
         browser.find_element(By.CSS_SELECTOR, "#upload-form button").click()
-        _wait(browser, lambda d: "not calibrated" in d_text(d, "model-info"), what="the uploaded model")
-        assert "3 training cameras" in d_text(browser, "model-info")
+        wait(browser, lambda d: "not calibrated" in text_of(d, "model-info"), what="the uploaded model")
+        assert "3 training cameras" in text_of(browser, "model-info")
         assert Select(browser.find_element(By.ID, "model-select")).first_selected_option.text == \
             "uploaded (3dgs, 300 units)"
-        _set(browser, "cal-samples", 3)
-        _set(browser, "cal-downscale", 1)
+        set_field(browser, "cal-samples", 3)
+        set_field(browser, "cal-downscale", 1)
         browser.find_element(By.ID, "calibrate").click()
-        _wait(browser, lambda d: "calibrated: r_drop" in d_text(d, "model-info"), what="the calibration")
+        wait(browser, lambda d: "calibrated: r_drop" in text_of(d, "model-info"), what="the calibration")
         with PHDClient(server.url, api_key=KEY) as phd:
             (model,) = phd.list_models()
             assert (model.name, model.num_training_cameras) == ("uploaded", 3)
             assert (model.calibration.samples, model.calibration.num_cameras) == (3, 3)
-            assert f"r_drop = {model.calibration.r_drop}" in d_text(browser, "model-info")
+            assert f"r_drop = {model.calibration.r_drop}" in text_of(browser, "model-info")
             browser.find_element(By.ID, "delete-model").click()
             browser.switch_to.alert.accept()
-            _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the deletion")
+            wait(browser, lambda d: "No model yet" in text_of(d, "model-info"), what="the deletion")
             assert phd.list_models() == []
         assert _csp_violations(browser) == []
     finally:
@@ -483,18 +442,18 @@ def test_page_refuses_another_captures_cameras_and_uploads_them_when_told(browse
         browser.find_element(By.ID, "upload-file").send_keys(str(svc_model_files["ply"]))
         browser.find_element(By.ID, "upload-cameras").send_keys(str(cameras))
         browser.find_element(By.CSS_SELECTOR, "#upload-form button").click()
-        _wait(browser, lambda d: "do not see this model" in d_text(d, "upload-message"), what="the refusal")
-        said = d_text(browser, "upload-message")
+        wait(browser, lambda d: "do not see this model" in text_of(d, "upload-message"), what="the refusal")
+        said = text_of(browser, "upload-message")
         assert "3 of the 3 training cameras see almost none of the model" in said and "tick the box" in said
         assert "error" in _classes(browser, "upload-message")
         browser.find_element(By.ID, "upload-other-capture").click()          # shown now
         browser.find_element(By.CSS_SELECTOR, "#upload-form button").click()
-        _wait(browser, lambda d: "Uploaded splats.ply: 3dgs, 3 training cameras" in d_text(d, "upload-message"),
-              what="the upload told to go on")
+        wait(browser, lambda d: "Uploaded splats.ply: 3dgs, 3 training cameras" in text_of(d, "upload-message"),
+             what="the upload told to go on")
         assert not browser.find_element(By.ID, "upload-other-capture").is_displayed()   # for those files only
         with PHDClient(server.url, api_key=KEY) as phd:
             assert [m.num_training_cameras for m in phd.list_models()] == [3]
-        assert _console_errors(browser, expected=("status of 422",)) == [] and _csp_violations(browser) == []
+        assert console_errors(browser, expected=("status of 422",)) == [] and _csp_violations(browser) == []
     finally:
         server.stop()
 
@@ -513,17 +472,12 @@ def trained_server(tmp_path_factory):
     server.stop()
 
 
-def _choose_files(driver, element_id: str, *paths: Path) -> None:
-    driver.execute_script("document.getElementById(arguments[0]).value = ''", element_id)
-    driver.find_element(By.ID, element_id).send_keys("\n".join(str(p) for p in paths))
-
-
 def _download(driver, folder: Path, before: set[str]) -> Path:
     """The file the page's last download saved in `folder` (the browser writes a .crdownload first)."""
     def done(_):
         new = [p for p in folder.iterdir() if p.name not in before and not p.name.endswith(".crdownload")]
         return new[0] if new else False
-    return _wait(driver, done, what="the download")
+    return wait(driver, done, what="the download")
 
 
 def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, trained_server, svc_trained, tmp_path):
@@ -538,20 +492,20 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     browser.execute_script("localStorage.clear()")
     browser.get(server.url + "/ui/")
     # The server needs a key (its /health says so): the page asks for it before calling anything else.
-    _wait(browser, lambda d: "asks for an API key" in d_text(d, "message"), what="the request for a key")
-    _set(browser, "api-key", KEY)
+    wait(browser, lambda d: "asks for an API key" in text_of(d, "message"), what="the request for a key")
+    set_field(browser, "api-key", KEY)
     browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
-    _wait(browser, lambda d: "No model yet" in d_text(d, "model-info"), what="the empty model list")
+    wait(browser, lambda d: "No model yet" in text_of(d, "model-info"), what="the empty model list")
     assert browser.find_element(By.ID, "upload-details").get_attribute("open") is not None   # opened for a newcomer
 
-    _choose_files(browser, "upload-file", svc_trained, sidecar)          # picked together, as trained
-    assert d_text(browser, "upload-picked").startswith("2 files")
+    choose_files(browser, "upload-file", svc_trained, sidecar)          # picked together, as trained
+    assert text_of(browser, "upload-picked").startswith("2 files")
     browser.find_element(By.ID, "upload-run").click()
-    _wait(browser, lambda d: "Uploaded model.ply: 3dgs, 4 training cameras (blender)" in d_text(d, "upload-message"),
-          what="the uploaded model")
-    assert "4 training cameras (blender)" in d_text(browser, "model-info")
+    wait(browser, lambda d: "Uploaded model.ply: 3dgs, 4 training cameras (blender)" in text_of(d, "upload-message"),
+         what="the uploaded model")
+    assert "4 training cameras (blender)" in text_of(browser, "model-info")
     # The 3D view (view3d.js) is mounted on the uploaded model by the page: its splats and 4 cameras.
-    _wait(browser, lambda d: d.execute_script("return state.viewReady"), what="the 3D view")
+    wait(browser, lambda d: d.execute_script("return state.viewReady"), what="the 3D view")
     drawn = browser.execute_script("return phdView3d.debug()")
     assert drawn["training"] == 4 and drawn["total"] == json.loads(sidecar.read_text())["num_splats"]
     # The model's images are 25 px (lego_200 at downscale 8): the page starts at downscale 1, the largest
@@ -564,11 +518,11 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
         assert model_a.details["background"] == json.loads(sidecar.read_text())["background"]
 
     # The bare PLY: said at once that it has no cameras and what to add; model A stays chosen.
-    _choose_files(browser, "upload-file", svc_trained)
-    _set(browser, "upload-name", "no cameras")
+    choose_files(browser, "upload-file", svc_trained)
+    set_field(browser, "upload-name", "no cameras")
     browser.find_element(By.ID, "upload-run").click()
-    _wait(browser, lambda d: "no training cameras" in d_text(d, "upload-message"), what="the no-cameras warning")
-    assert "warning" in _classes(browser, "upload-message") and "sidecar" in d_text(browser, "upload-message")
+    wait(browser, lambda d: "no training cameras" in text_of(d, "upload-message"), what="the no-cameras warning")
+    assert "warning" in _classes(browser, "upload-message") and "sidecar" in text_of(browser, "upload-message")
     assert Select(browser.find_element(By.ID, "model-select")).first_selected_option.get_attribute("value") == \
         model_a.id
     model_b = next(m for m in PHDClient(server.url, api_key=KEY).list_models() if m.name == "no cameras")
@@ -580,35 +534,35 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     with zipfile.ZipFile(zipped, "w") as archive:
         for path in (svc_trained, sidecar):
             archive.write(path, f"run/{path.name}")
-    _choose_files(browser, "upload-file", zipped)       # then dropped on the box instead (the drop's path)
+    choose_files(browser, "upload-file", zipped)       # then dropped on the box instead (the drop's path)
     browser.execute_script(
         "const input = document.getElementById('upload-file'), dt = new DataTransfer(); "
         "for (const f of input.files) dt.items.add(f); input.value = ''; "
         "document.getElementById('drop-zone').dispatchEvent(new DragEvent('drop', {dataTransfer: dt, bubbles: true, "
         "cancelable: true}))")
-    _wait(browser, lambda d: d_text(d, "upload-picked") == "1 file: run.zip", what="the dropped zip")
-    _set(browser, "upload-name", "from the zip")
+    wait(browser, lambda d: text_of(d, "upload-picked") == "1 file: run.zip", what="the dropped zip")
+    set_field(browser, "upload-name", "from the zip")
     browser.find_element(By.ID, "upload-run").click()
-    _wait(browser, lambda d: "Uploaded from the zip: 3dgs, 4 training cameras (blender). It is model B"
-          in d_text(d, "upload-message"), what="the zip's model")
+    wait(browser, lambda d: "Uploaded from the zip: 3dgs, 4 training cameras (blender). It is model B"
+         in text_of(d, "upload-message"), what="the zip's model")
     with PHDClient(server.url, api_key=KEY) as phd:
         model_c = next(m for m in phd.list_models() if m.name == "from the zip")
         assert model_c.sha256 == model_a.sha256
         phd.calibrate(model_c.id, samples=2, downscale=2)
 
-    _set(browser, "cal-samples", 2)
-    _set(browser, "cal-downscale", 2)
+    set_field(browser, "cal-samples", 2)
+    set_field(browser, "cal-downscale", 2)
     browser.find_element(By.ID, "calibrate").click()
-    _wait(browser, lambda d: "calibrated: r_drop" in d_text(d, "model-info"), timeout=120, what="the calibration")
+    wait(browser, lambda d: "calibrated: r_drop" in text_of(d, "model-info"), timeout=120, what="the calibration")
 
     # Rank with the page's default N = 8: this server caps samples at 6, said beside Rank in words.
     browser.find_element(By.ID, "rank-run").click()
-    _wait(browser, lambda d: "error" in _classes(d, "rank-message"), what="the cap's error")
-    said = d_text(browser, "rank-message")
+    wait(browser, lambda d: "error" in _classes(d, "rank-message"), what="the cap's error")
+    said = text_of(browser, "rank-message")
     assert said == "Samples: 8 samples exceed the cap of 6" and _in_view(browser, "rank-message")
     assert browser.find_element(By.ID, "rank-progress").get_attribute("hidden") is not None   # the bar ended
 
-    _run_on_candidates(browser, 5, "rank", {"rank-samples": 3, "rank-downscale": 2, "rank-seed": 1})
+    run_on_candidates(browser, 5, "rank", {"rank-samples": 3, "rank-downscale": 2, "rank-seed": 1})
     spec = browser.execute_script("return state.spec")
     with PHDClient(server.url, api_key=KEY) as phd:
         expected = phd.rank(model_a.id, candidates=spec, samples=3, seed=1, downscale=2)
@@ -625,14 +579,14 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     # Download poses: the model's own convention (its capture was a Blender scene), the first 3.
     assert Select(browser.find_element(By.ID, "poses-format")).first_selected_option.get_attribute("value") == \
         "blender"
-    _set(browser, "poses-topk", 3)
+    set_field(browser, "poses-topk", 3)
     first = [v for v in expected.views[:3]]
     for convention, name in (("blender", "transforms.json"), ("colmap", "colmap.zip")):
         Select(browser.find_element(By.ID, "poses-format")).select_by_value(convention)
         before = {p.name for p in downloads.iterdir()}
         browser.find_element(By.ID, "poses-download").click()
         saved = _download(browser, downloads, before)
-        assert saved.name == name and f"Saved the first 3 poses as {name}" in d_text(browser, "rank-message")
+        assert saved.name == name and f"Saved the first 3 poses as {name}" in text_of(browser, "rank-message")
         # What `phd rank --export` writes for the REST answer's poses, with the same image names.
         written = tmp_path / convention / ("transforms.json" if convention == "blender" else "colmap")
         export_cameras(written, [camera_from_frame(v.camera) for v in first],
@@ -649,21 +603,19 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     # Selection against the model without cameras (so never calibrated): said beside Select, in words.
     Select(browser.find_element(By.ID, "model-b-select")).select_by_value(model_b.id)
     browser.find_element(By.ID, "select-run").click()
-    _wait(browser, lambda d: "error" in _classes(d, "select-message"), what="the calibration's error")
-    said = d_text(browser, "select-message")
+    wait(browser, lambda d: "error" in _classes(d, "select-message"), what="the calibration's error")
+    said = text_of(browser, "select-message")
     assert said.startswith("Model B is not calibrated yet: choose it under Model")
     assert _in_view(browser, "select-message")
     assert not any(word in said for word in ("/v1", "409", "field", "ratio_b", model_b.id))
     assert browser.find_element(By.ID, "select-progress").get_attribute("hidden") is not None
     Select(browser.find_element(By.ID, "model-b-select")).select_by_value(model_c.id)
     browser.find_element(By.ID, "select-run").click()
-    _wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#select-grid li.card")) == 5
-          and d.execute_script("return [...document.querySelectorAll('#select-grid img')].every(i => i.complete "
-                               "&& i.naturalWidth > 0)"), what="the select grid")
+    wait(browser, grid_loaded("select", 5), what="the select grid")
     _assert_select_labels_match_rank_labels(browser)
     browser.save_screenshot(str(tmp_path / "page_trained.png"))
     # No console errors but the two refusals the test asked for.
-    assert _console_errors(browser, expected=("status of 422", "status of 409")) == []
+    assert console_errors(browser, expected=("status of 422", "status of 409")) == []
 
 
 def test_page_checks_a_candidates_file_and_asks_for_its_image_size(browser, trained_server, svc_trained, tmp_path):
@@ -673,11 +625,11 @@ def test_page_checks_a_candidates_file_and_asks_for_its_image_size(browser, trai
             phd.upload_model(svc_trained)
         model = next(m for m in phd.list_models() if m.name == "model.ply")
     browser.get(server.url + "/ui/")
-    _set(browser, "api-key", KEY)
+    set_field(browser, "api-key", KEY)
     browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
-    _wait(browser, lambda d: d.execute_script("return state.training.length") == 4, what="the model's cameras")
+    wait(browser, lambda d: d.execute_script("return state.training.length") == 4, what="the model's cameras")
     Select(browser.find_element(By.ID, "model-select")).select_by_value(model.id)
-    _wait(browser, lambda d: d.execute_script("return state.modelId") == model.id, what="model A")
+    wait(browser, lambda d: d.execute_script("return state.modelId") == model.id, what="model A")
     browser.find_element(By.CSS_SELECTOR, "input[name=cand-mode][value=file]").click()
     broken = tmp_path / "broken.json"
     broken.write_text('{"frames": [{transform_matrix: 1}]}')
@@ -685,26 +637,26 @@ def test_page_checks_a_candidates_file_and_asks_for_its_image_size(browser, trai
     typo.write_text(json.dumps({"camera_angle_x": 0.7, "frame": [{"transform_matrix": np.eye(4).tolist()}]}))
     for path, words in ((broken, "broken.json is not valid JSON"), (typo, 'typo.json has no "frames" list '
                                                                            '(its keys: "camera_angle_x", "frame")')):
-        _choose_files(browser, "cand-file", path)
-        _wait(browser, lambda d: words in d_text(d, "cand-message"), what=f"the error of {path.name}")
+        choose_files(browser, "cand-file", path)
+        wait(browser, lambda d: words in text_of(d, "cand-message"), what=f"the error of {path.name}")
         assert "error" in _classes(browser, "cand-message") and _in_view(browser, "cand-message")
-        assert "poses" not in d_text(browser, "cand-info")          # not "0 poses"
+        assert "poses" not in text_of(browser, "cand-info")          # not "0 poses"
         assert browser.execute_script("return state.candidates.length") == 0
     # The README's candidates: Blender's transforms_val.json, without an image size: width and
     # height fields appear, filled with the model's training images' size.
-    _choose_files(browser, "cand-file", LEGO / "transforms_val.json")
-    _wait(browser, lambda d: "100 poses from transforms_val.json" in d_text(d, "cand-info"), what="the val poses")
-    assert d_text(browser, "cand-message") == ""
+    choose_files(browser, "cand-file", LEGO / "transforms_val.json")
+    wait(browser, lambda d: "100 poses from transforms_val.json" in text_of(d, "cand-info"), what="the val poses")
+    assert text_of(browser, "cand-message") == ""
     assert browser.find_element(By.ID, "cand-size").is_displayed()
     sizes = [browser.find_element(By.ID, f).get_attribute("value") for f in ("cand-width", "cand-height")]
     training = PHDClient(server.url, api_key=KEY).training_cameras(model.id)
     assert sizes == [str(training[0]["w"]), str(training[0]["h"])] == ["25", "25"]
     sent = browser.execute_script("return candidateBody().cameras")
     assert len(sent) == 100 and all((f["w"], f["h"]) == (25, 25) for f in sent)
-    _set(browser, "cand-width", "")
+    set_field(browser, "cand-width", "")
     browser.find_element(By.ID, "rank-run").click()
-    _wait(browser, lambda d: "fill in width and height" in d_text(d, "rank-message"), what="the missing size")
-    assert _console_errors(browser) == []
+    wait(browser, lambda d: "fill in width and height" in text_of(d, "rank-message"), what="the missing size")
+    assert console_errors(browser) == []
 
 
 def test_api_docs_render_offline(browser, trained_server):
@@ -714,15 +666,15 @@ def test_api_docs_render_offline(browser, trained_server):
     for path, ready in (("/docs", "document.querySelectorAll('.swagger-ui .opblock').length"),
                         ("/redoc", "document.querySelectorAll('.api-content h2').length")):
         browser.get(server.url + path)
-        _wait(browser, lambda d: d.execute_script("return " + ready) > 5, what=f"{path} to render")
+        wait(browser, lambda d: d.execute_script("return " + ready) > 5, what=f"{path} to render")
         loaded = browser.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
         scripts = browser.execute_script("return [...document.scripts].map(s => s.src).filter(s => s)")
         assert scripts and all(url.startswith(server.url + "/docs-assets/") for url in scripts), scripts
         assert all(url.startswith(server.url) for url in loaded), loaded
-        assert _console_errors(browser) == []
+        assert console_errors(browser) == []
     browser.get(server.url + "/docs")
-    _wait(browser, lambda d: "POST/v1/models/{model_id}/poses" in d.find_element(By.CSS_SELECTOR, ".swagger-ui")
-          .text.replace("\n", "").replace(" ", ""), what="the poses route in Swagger UI")
+    wait(browser, lambda d: "POST/v1/models/{model_id}/poses" in d.find_element(By.CSS_SELECTOR, ".swagger-ui")
+         .text.replace("\n", "").replace(" ", ""), what="the poses route in Swagger UI")
     icon = httpx.get(server.url + "/favicon.ico")
     assert icon.status_code == 200 and icon.headers["content-type"] == "image/svg+xml"
 
@@ -736,18 +688,18 @@ def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, traine
     folder = write_output_folder(tmp_path / "lego_out", svc_random_gaussians(200), svc_cameras(3))
     (folder / "input.png").write_bytes(b"\x89PNG not needed")
     browser.get(server.url + "/ui/")
-    _set(browser, "api-key", KEY)
+    set_field(browser, "api-key", KEY)
     browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
-    _wait(browser, lambda d: d_text(d, "message") == "key saved in this browser", what="the key")
+    wait(browser, lambda d: text_of(d, "message") == "key saved in this browser", what="the key")
     browser.execute_script("document.getElementById('upload-details').open = true")
     browser.find_element(By.ID, "upload-folder").send_keys(str(folder))
-    _wait(browser, lambda d: "(1 images left out" in d_text(d, "upload-picked"), what="the picked folder")
+    wait(browser, lambda d: "(1 images left out" in text_of(d, "upload-picked"), what="the picked folder")
     browser.find_element(By.ID, "upload-run").click()
-    _wait(browser, lambda d: "3dgs, 3 training cameras (3dgs-output)" in d_text(d, "upload-message"),
-          what="the folder's model")
+    wait(browser, lambda d: "3dgs, 3 training cameras (3dgs-output)" in text_of(d, "upload-message"),
+         what="the folder's model")
     with PHDClient(server.url, api_key=KEY) as phd:
         expected = phd.upload_model(folder)                 # named after the run, as the page's upload is
-        assert d_text(browser, "upload-message").startswith(f"Uploaded {expected.name}: ")
+        assert text_of(browser, "upload-message").startswith(f"Uploaded {expected.name}: ")
         uploaded = next(m for m in phd.list_models() if m.name == expected.name and m.id != expected.id)
         assert uploaded.sha256 == expected.sha256
         assert phd.training_cameras(uploaded.id) == phd.training_cameras(expected.id)
@@ -757,21 +709,21 @@ def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, traine
     cameras.write_text(json.dumps({"camera_angle_x": 0.7, "frames": [
         {"transform_matrix": c.c2w.tolist()} for c in svc_cameras(3)]}))
     browser.execute_script("document.getElementById('upload-folder').value = ''")
-    _choose_files(browser, "upload-file", folder / "point_cloud" / "iteration_30000" / "point_cloud.ply", cameras)
-    _set(browser, "upload-name", "with its transforms")
+    choose_files(browser, "upload-file", folder / "point_cloud" / "iteration_30000" / "point_cloud.ply", cameras)
+    set_field(browser, "upload-name", "with its transforms")
     browser.find_element(By.ID, "upload-run").click()
-    _wait(browser, lambda d: "fill in width and height" in d_text(d, "upload-message"), what="the missing size")
+    wait(browser, lambda d: "fill in width and height" in text_of(d, "upload-message"), what="the missing size")
     assert browser.find_element(By.ID, "upload-size").is_displayed() and _in_view(browser, "upload-message")
-    _set(browser, "upload-width", 24)
-    _set(browser, "upload-height", 24)
+    set_field(browser, "upload-width", 24)
+    set_field(browser, "upload-height", 24)
     browser.find_element(By.ID, "upload-run").click()
-    _wait(browser, lambda d: "Uploaded with its transforms: 3dgs, 3 training cameras" in d_text(d, "upload-message"),
-          what="the model with its transforms")
+    wait(browser, lambda d: "Uploaded with its transforms: 3dgs, 3 training cameras" in text_of(d, "upload-message"),
+         what="the model with its transforms")
     with PHDClient(server.url, api_key=KEY) as phd:
         stored = next(m for m in phd.list_models() if m.name == "with its transforms")
         assert [(f["w"], f["h"]) for f in phd.training_cameras(stored.id)] == [(24, 24)] * 3
         assert stored.camera_format == "nerfstudio"
-    assert _console_errors(browser) == []
+    assert console_errors(browser) == []
 
 
 def test_without_webgl_the_view_says_why_and_the_rest_of_the_page_works(models, tmp_path):
@@ -784,15 +736,15 @@ def test_without_webgl_the_view_says_why_and_the_rest_of_the_page_works(models, 
         _open(driver, server)
         Select(driver.find_element(By.ID, "model-select")).select_by_value(model_a.id)
         status = lambda d: d.find_element(By.CSS_SELECTOR, "#view3d .v3d-status").text   # noqa: E731
-        _wait(driver, lambda d: "WebGL" in status(d), what="the view's word on WebGL")
+        wait(driver, lambda d: "WebGL" in status(d), what="the view's word on WebGL")
         assert "cannot draw the 3D view" in status(driver)
         assert not driver.find_elements(By.CSS_SELECTOR, "#view3d .v3d-stage, #view3d .v3d-modes")   # only the why
-        _wait(driver, lambda d: "r_drop" in d_text(d, "model-info"), what="the model's facts")
-        assert "error" not in _classes(driver, "message") and "WebGL" not in d_text(driver, "message")
-        _run_on_candidates(driver, 3, "rank", {"rank-samples": 3, "rank-downscale": 1, "rank-seed": 0})
+        wait(driver, lambda d: "r_drop" in text_of(d, "model-info"), what="the model's facts")
+        assert "error" not in _classes(driver, "message") and "WebGL" not in text_of(driver, "message")
+        run_on_candidates(driver, 3, "rank", {"rank-samples": 3, "rank-downscale": 1, "rank-seed": 0})
         driver.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")[1].click()      # picks it: the view ignores it
         assert _classes(driver, "rank-message") == ["message"] and "error" not in _classes(driver, "message")
         driver.save_screenshot(str(tmp_path / "page_no_webgl.png"))
-        assert _console_errors(driver, expected=("WebGL",)) == []
+        assert console_errors(driver, expected=("WebGL",)) == []
     finally:
         driver.quit()
