@@ -230,13 +230,13 @@ def _capture_format(cameras: Cameras | None) -> str | None:
         return None
 
 
-def _with_convention(name: str | None) -> str | None:
-    """A capture format found on disk, when poses can be handed back in its convention."""
+def _known_format(name: str | None) -> str | None:
+    """A capture format's name (phd_core.data.FORMATS, as `phd rank` reports it), else None."""
     if name is None:
         return None
-    from phd_core.data import POSES
+    from phd_core.data import FORMATS
 
-    return name if name in POSES else None
+    return name if name in FORMATS else None
 
 
 class PHDClient:
@@ -310,10 +310,10 @@ class PHDClient:
         if path.suffix.lower() == ".ply" and sidecar.is_file():
             sidecar_background, sidecar_format = _sidecar(sidecar)
             if cameras is None:
-                cameras, camera_format = sidecar, camera_format or _with_convention(sidecar_format)
+                cameras, camera_format = sidecar, camera_format or _known_format(sidecar_format)
             if background is None:
                 background = sidecar_background
-        camera_format = camera_format or _with_convention(_capture_format(cameras))
+        camera_format = camera_format or _capture_format(cameras)
         data = {}
         if cameras is not None:
             data["cameras"] = json.dumps(camera_frames(cameras))

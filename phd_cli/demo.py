@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
     lap("ground_truth")
 
     by_view = {v.index: v for v in ranking.views}
-    rmse_rank = {i: r for r, i in enumerate(sorted(range(len(rmse_a)), key=lambda i: -rmse_a[i]))}
+    rmse_rank = {i: r for r, i in enumerate(sorted(range(len(rmse_a)), key=lambda i: -rmse_a[i]), 1)}
     rho = spearman([by_view[i].sigma_max for i in range(len(rmse_a))], rmse_a)
     rho_score = spearman([by_view[i].score for i in range(len(rmse_a))], rmse_a)
     text = lambda value: "undefined" if value is None else f"{value:.3f}"  # noqa: E731

@@ -71,7 +71,7 @@ def read_ranking(path: Path) -> dict:
         raise InputError("ranking", f"{path} holds no ranking: expected 'ranking' (phd rank) or 'views' (the service) "
                                     "with an index and a score per candidate")
     return {"scores": {int(v["index"]): float(v["score"]) for v in views},
-            "ranks": {int(v["index"]): int(v.get("rank", k)) for k, v in enumerate(views)},
+            "ranks": {int(v["index"]): int(v.get("rank", k)) for k, v in enumerate(views, 1)},
             "ratio": data.get("dropout_ratio")}
 
 

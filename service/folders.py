@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Iterator
 
-from phd_core.data import POSES
+from phd_core.data import FORMATS
 from phd_core.errors import InputError, TooLarge, shown
 from phd_core.io.archives import DAMAGED, ZipRules, open_zip
 from phd_core.io.foreign import CHECKPOINT_SUFFIXES, checkpoint_bytes
@@ -218,7 +218,7 @@ def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderMod
     cameras = extra.training_cameras or []
     fmt = facts.get("camera_format")
     result.cameras = [c.to_frame() for c in cameras] or None
-    result.camera_format = fmt if fmt in POSES else None
+    result.camera_format = fmt if fmt in FORMATS else None
     if accepts_background(extra) and isinstance(facts.get("background"), list):
         result.background, result.background_source = facts["background"], SIDECAR_SOURCE
     return result

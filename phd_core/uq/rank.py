@@ -26,7 +26,7 @@ class RankedView:
     sigma_max: float
     sigma_mean: float
     score: float        # the strategy's score when the candidate was ranked
-    rank: int           # 0 = capture first; ranks 0..k-1 are a batch to capture together
+    rank: int           # 1 = capture first; ranks 1..k are a batch to capture together (as every table says)
     refined: bool = True  # False: scored only at the coarse resolution (rank_views' coarse pass)
     peak: torch.Tensor | None = field(default=None, repr=False)  # [H, W] zeta max over channels (keep_peak=True)
 
@@ -194,7 +194,7 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]
     return [RankedView(index=i, sigma_max=float(evidence.sigma_max[i]), sigma_mean=float(evidence.sigma_mean[i]),
-                       score=selection.scores[i], rank=rank, peak=views[i].peak) for rank, i in enumerate(order)]
+                       score=selection.scores[i], rank=rank, peak=views[i].peak) for rank, i in enumerate(order, 1)]
 
 
 def coarse_to_fine(renderer: Renderer, cameras: Sequence[Camera], coarse: float, refine: int | None, *,
@@ -211,5 +211,5 @@ def coarse_to_fine(renderer: Renderer, cameras: Sequence[Camera], coarse: float,
     best = [v.index for v in first[:refine]]
     fine = rank_views(renderer, [cameras[i] for i in best], keep_peak=keep_peak, progress=half(0.5), **rank_args)
     ranked = [replace(v, index=best[v.index]) for v in fine]
-    ranked += [replace(v, rank=len(ranked) + j, refined=False) for j, v in enumerate(first[refine:])]
+    ranked += [replace(v, rank=len(ranked) + j, refined=False) for j, v in enumerate(first[refine:], 1)]
     return ranked if top_k is None else ranked[:top_k]

@@ -232,7 +232,7 @@ const unit = (a) => mul(a, 1 / (norm(a) || 1));
 // A frame's centre: a transforms frame's c2w translation, or a cameras.json entry's position.
 const position = (frame) => (frame.transform_matrix ? [0, 1, 2].map((i) => frame.transform_matrix[i][3]) : frame.position);
 const column = (frame, j) => [0, 1, 2].map((i) => frame.transform_matrix[i][j]);
-const cardLabel = (index, rank) => `candidate ${index} · rank #${rank + 1}`;
+const cardLabel = (index, rank) => `candidate ${index} · rank #${rank}`;
 
 // ------------------------------------------------------------------ camera files
 
@@ -706,9 +706,9 @@ function drawPlots() {
       dotEl.append(title);
       dotEl.addEventListener("click", () => pickCandidate(i));
       svg.append(dotEl);
-      if (view && view.rank < 3) {
+      if (view && view.rank <= 3) {
         const label = svgEl("text", { x: x + 7, y: y - 7, class: "label" });
-        label.textContent = String(view.rank + 1);
+        label.textContent = String(view.rank);
         svg.append(label);
       }
     }
@@ -836,7 +836,7 @@ async function cancelRank() {
 
 // The download row after a ranking: the model's own convention first, the first k poses.
 function showDownload(result, model) {
-  const own = result.camera_format || model.camera_format || "nerfstudio";
+  const own = [result.camera_format, model.camera_format].find((f) => state.formats.some((o) => o.name === f)) || "nerfstudio";
   $("poses-format").replaceChildren(...state.formats.map((f) => el("option", {
     value: f.name, text: f.title + (f.name === own ? " (the model's own)" : "") })));
   $("poses-format").value = own;

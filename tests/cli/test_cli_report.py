@@ -135,9 +135,9 @@ def test_rank_prints_a_table_of_the_top_k_with_the_json_poses(files, capsys) -> 
     rows = [line.split() for line in table.splitlines() if re.match(r"\s*#\d", line)]
     code, out, _ = run(capsys, *argv, "--json")
     ranking = json.loads(out)["ranking"]
-    assert len(rows) == len(ranking) == 3
+    assert len(rows) == len(ranking) == 3 and [r["rank"] for r in ranking] == [1, 2, 3]
     for row, ranked in zip(rows, ranking):
-        assert [int(row[0][1:]), int(row[1])] == [ranked["rank"] + 1, ranked["index"]]     # #1 is rank 0
+        assert [int(row[0][1:]), int(row[1])] == [ranked["rank"], ranked["index"]]     # #1 is rank 1, as the JSON says
         assert float(row[2]) == pytest.approx(ranked["score"], rel=1e-3)
         assert float(row[3]) == pytest.approx(ranked["sigma_max"], rel=1e-3)
         c2w = np.array(ranked["camera"]["transform_matrix"])

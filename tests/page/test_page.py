@@ -131,7 +131,7 @@ def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_pa
         assert [v.camera for v in expected.views] == [generated[v.index].to_frame() for v in expected.views]
         cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
         assert [int(c.get_attribute("data-index")) for c in cards] == [v.index for v in expected.views]
-        assert [int(c.get_attribute("data-rank")) for c in cards] == list(range(7))
+        assert [int(c.get_attribute("data-rank")) for c in cards] == list(range(1, 8))      # #1 first, as REST says
         scores = [float(c.find_element(By.CSS_SELECTOR, "dd.score").text) for c in cards]
         assert scores == pytest.approx([v.score for v in expected.views], rel=1e-3)
         # Every heat map and render loaded, at the rendered size, and shows the artefact's pixels.
@@ -568,7 +568,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
         expected = phd.rank(model_a.id, candidates=spec, samples=3, seed=1, downscale=2)
     cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
     assert [c.find_element(By.CSS_SELECTOR, ".title").text for c in cards] == \
-        [f"candidate {v.index} · rank #{v.rank + 1}" for v in expected.views]
+        [f"candidate {v.index} · rank #{v.rank}" for v in expected.views]
     # The ranking reached the 3D view: one frustum per returned pose, with its rank; a rank card's
     # click selects its frustum, and a frustum's pick marks its card.
     frusta = browser.execute_script("return phdView3d.debug().frusta")

@@ -158,7 +158,7 @@ def test_clicking_a_frustum_picks_it_and_shows_its_render_and_heat_map(browser, 
     _call(browser, "phdView3d.showRanking(arguments[0], {candidates: arguments[1]})", ranking, candidates)
     browser.execute_script("window.picked = []; phdView3d.onPick(i => window.picked.push(i));")
     state = browser.execute_script("return phdView3d.debug()")
-    first = next(v for v in ranking["views"] if v["rank"] == 0)
+    first = next(v for v in ranking["views"] if v["rank"] == 1)
     px, py, _ = _project(state, _image_centre(first["camera"], state["frustumDepth"]))
     canvas = browser.find_element(By.CSS_SELECTOR, "#view3d canvas")
     size = canvas.size
@@ -181,7 +181,7 @@ def test_clicking_a_frustum_picks_it_and_shows_its_render_and_heat_map(browser, 
     assert shown[:2] == [truth.shape[1], truth.shape[0]]
     assert np.array_equal(np.array(shown[2], np.uint8).reshape(shown[1], shown[0], 4)[..., :3], truth)
     # select() from the page (a rank card clicked) highlights another candidate without a pick event.
-    second = next(v for v in ranking["views"] if v["rank"] == 1)
+    second = next(v for v in ranking["views"] if v["rank"] == 2)
     _call(browser, "phdView3d.select(arguments[0])", second["index"])
     assert browser.execute_script("return [phdView3d.debug().selected, window.picked]") == \
         [second["index"], [first["index"]]]
