@@ -928,7 +928,7 @@ async function readChoices() {
   } catch (_) { /* the strategy stays free text, the rule list empty: the server's defaults apply */ }
 }
 
-const FORMAT_TITLES = { nerfstudio: "transforms.json (nerfstudio)", blender: "transforms.json (Blender)",
+const FORMAT_TITLES = { nerfstudio: "transforms.json (nerfstudio)", blender: "transforms_train.json (Blender)",
   colmap: "COLMAP images.txt + cameras.txt (zip)", "3dgs-output": "cameras.json (reference 3DGS)" };
 
 function start() {

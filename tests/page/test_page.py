@@ -581,14 +581,14 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
         "blender"
     set_field(browser, "poses-topk", 3)
     first = [v for v in expected.views[:3]]
-    for convention, name in (("blender", "transforms.json"), ("colmap", "colmap.zip")):
+    for convention, name in (("blender", "transforms_train.json"), ("colmap", "colmap.zip")):
         Select(browser.find_element(By.ID, "poses-format")).select_by_value(convention)
         before = {p.name for p in downloads.iterdir()}
         browser.find_element(By.ID, "poses-download").click()
         saved = _download(browser, downloads, before)
         assert saved.name == name and f"Saved the first 3 poses as {name}" in text_of(browser, "rank-message")
         # What `phd rank --export` writes for the REST answer's poses, with the same image names.
-        written = tmp_path / convention / ("transforms.json" if convention == "blender" else "colmap")
+        written = tmp_path / convention / ("transforms_train.json" if convention == "blender" else "colmap")
         export_cameras(written, [camera_from_frame(v.camera) for v in first],
                        [candidate_name(v.rank, v.index) for v in first], convention)
         if convention == "blender":
