@@ -141,6 +141,18 @@ def check_coarse(coarse: float | None, refine: int | None) -> tuple[float | None
     return coarse, refine
 
 
+def check_rank(renderer: Renderer, strategy: str, top_k: int | None, coarse: float | None, refine: int | None,
+               targets: Sequence[Camera] | None
+               ) -> tuple[int | None, float | None, int | None, list[Camera] | None]:
+    """`rank_views`' choices, checked as it uses them (top_k, coarse, refine, targets for the
+    strategy): callers that calibrate before ranking (the CLI) check them first."""
+    get_strategy(strategy)
+    if top_k is not None:
+        top_k = check_int(top_k, "top_k", 1)
+    coarse, refine = check_coarse(coarse, refine)
+    return top_k, coarse, refine, check_targets(renderer, targets, strategy)
+
+
 def coarse_cameras(cameras: Sequence[Camera], scale: float) -> list[Camera]:
     """The cameras at `scale` times their size (at least 1 x 1 pixels), intrinsics scaled."""
     return [c.resized(max(1, round(c.width * scale)), max(1, round(c.height * scale))) for c in cameras]
@@ -176,10 +188,7 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     and the agreement with the full-size ranking are in docs/performance.md.
     """
     chosen = get_strategy(strategy)
-    if top_k is not None:
-        top_k = check_int(top_k, "top_k", 1)
-    coarse, refine = check_coarse(coarse, refine)
-    targets = check_targets(renderer, targets, strategy)
+    top_k, coarse, refine, targets = check_rank(renderer, strategy, top_k, coarse, refine, targets)
     if coarse is not None:
         return coarse_to_fine(renderer, cameras, coarse, refine, ratio=ratio, samples=samples, seed=seed,
                               top_k=top_k, strategy=strategy, captured=captured, keep_peak=keep_peak,

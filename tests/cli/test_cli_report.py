@@ -90,6 +90,44 @@ def test_quiet_and_progress_exclude_each_other(files, capsys) -> None:
     assert "not allowed with" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command, field", [
+    (["rank", "--candidates", "{candidates}", "--targets", "{root}/walk/targets.json"], "targets"),
+    (["rank", "--candidates", "{candidates}", "--targets", "orbit:3", "--strategy", "sigma_max"], "targets"),
+    (["rank", "--candidates", "{candidates}", "--top-k", "0"], "top_k"),
+    (["rank", "--candidates", "{candidates}", "--coarse", "2"], "coarse"),
+    (["rank", "--candidates", "{candidates}", "--export", "{root}/plan.yaml"], "export"),
+    (["rank", "--candidates", "{candidates}", "--samples", "1"], "samples"),
+    (["uq", "--data", "{data}", "--samples", "1", "--out", "{root}/uq"], "samples"),
+    (["select", "--model-b", "{model}", "--data", "{data}", "--ratio-b", "2"], "ratio_b"),
+])
+def test_every_input_is_checked_before_anything_is_calibrated(files, capsys, tmp_path, command, field) -> None:
+    """A bad target file, option or number is refused (exit 2, naming it) before r_drop is
+    calibrated: nothing is stored beside the model."""
+    model = tmp_path / "model.ply"                                  # a copy without a stored calibration
+    model.write_bytes(files["model"].read_bytes())
+    sidecar_path(model).write_bytes(sidecar_path(files["model"]).read_bytes())
+    names = {"candidates": files["candidates"], "data": files["data"], "root": tmp_path, "model": model}
+    argv = [command[0], "--model-a" if command[0] == "select" else "--model", model,
+            *[word.format(**names) for word in command[1:]], *CALIBRATION, "--calibration-samples", 2]
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and f"{field}:" in err and "Traceback" not in err, err
+    assert "calibrated" not in err and not model.with_name("model.ply.phd-cache").exists()
+
+
+def test_a_misspelt_frames_key_is_named_with_the_keys_found(files, capsys, tmp_path) -> None:
+    """As the page does: a "frame" typo (top level or in a frame) lists the keys the file holds."""
+    frames = json.loads(files["candidates"].read_text())
+    (tmp_path / "typo.json").write_text(json.dumps({"camera_angle_x": FOV, "frame": frames}))
+    frames[1]["transfrom_matrix"] = frames[1].pop("transform_matrix")
+    (tmp_path / "typo2.json").write_text(json.dumps({"frames": frames}))
+    for name, said in (("typo.json", "no 'frames' list (its keys: 'camera_angle_x', 'frame')"),
+                       ("typo2.json", "frames[1].transform_matrix: missing from the frame (its keys: ")):
+        code, _, err = run(capsys, "rank", "--model", files["model"], "--candidates", tmp_path / name,
+                           "--dropout-ratio", 0.3, "--samples", 3)
+        assert code == 2 and said in err, err
+    assert "'transfrom_matrix'" in err
+
+
 def test_calibration_is_stored_beside_the_model_and_reused(files, capsys, tmp_path) -> None:
     cache = files["model"].with_name("model.ply.phd-cache")
     code, out, err = run(capsys, "calibrate", "--model", files["model"], *CALIBRATION, "--samples", 2)
