@@ -220,7 +220,7 @@ def test_upload_fields_camera_format_and_background_are_checked(svc_start, outpu
     server = svc_start()
     ply = next(output_folder.glob("point_cloud/iteration_30000/point_cloud.ply"))
     frames = json.dumps([c.to_frame() for c in svc_cameras(3)])
-    for data, field in (({"cameras": frames, "camera_format": "llff"}, "camera_format"),
+    for data, field in (({"cameras": frames, "camera_format": "ply"}, "camera_format"),
                         ({"cameras": frames, "background": "purple"}, "background")):
         with open(ply, "rb") as f:
             response = httpx.post(f"{server.url}/v1/models", files={"file": ("m.ply", f)}, data=data)

@@ -242,10 +242,11 @@ def test_downloaded_poses_are_what_phd_rank_export_writes(svc_start, svc_trained
             assert answer.content == export.read_bytes()
             assert answer.headers["content-disposition"] == \
                 f'attachment; filename="{convention.file_name or "transforms.json"}"'
-    # Without a format, the model's own: its sidecar's capture was a Blender scene.
+    # Without a format, the model's own: its sidecar's capture was a Blender scene (ranks from 1).
     own = httpx.post(f"{server.url}/v1/models/{model.id}/poses", json={"cameras": body["cameras"]})
-    assert own.headers["content-disposition"] == 'attachment; filename="transforms.json"'
-    assert [f["file_path"] for f in own.json()["frames"]] == [f"images/rank00{k}_candidate000{k}.png" for k in range(3)]
+    assert own.headers["content-disposition"] == 'attachment; filename="transforms_train.json"'
+    assert [f["file_path"] for f in own.json()["frames"]] == [f"./images/rank00{k + 1}_candidate000{k}"
+                                                              for k in range(3)]
     wrong = httpx.post(f"{server.url}/v1/models/{model.id}/poses", json={**body, "indices": [1]})
     assert wrong.status_code == 422 and "one index per camera" in wrong.json()["error"]["message"]
 
