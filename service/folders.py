@@ -173,8 +173,8 @@ def upload_relative(text: str, folder: Path) -> str:
     return text
 
 
-def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderModel:
-    """The model in an unpacked folder (named `name` when its files sit at the top); splats
+def read_folder(folder: Path, name: str | None, ply: Path, max_bytes: int) -> FolderModel:
+    """The model in an unpacked folder (named `name`, the zip's, when its files sit at the top); splats
     a trainer stored in its own frame are written, moved into the user's, to `ply`, unless
     that file would be past `max_bytes` (TooLarge)."""
     output_folder = find_output(folder)
@@ -193,7 +193,7 @@ def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderMod
         # The run's name as the reader gives it ("<experiment>/<method>", "<folder>/gsplat", ...), as
         # the client names it; a run whose files sit at the upload's top names the upload instead of
         # the server's temp folder.
-        run = output.name.replace(folder.resolve().name, name)
+        run = output.name.replace(folder.resolve().name, name or "folder")
         return FolderModel(output.ply or ply, run,
                            [c.to_frame() for c in output.cameras] or None, list(output.background),
                            f"{title}: its trainer's setting", output.camera_format,
@@ -207,7 +207,10 @@ def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderMod
     path = models[0]
     family = family_of(path.read_bytes()[:SNIFF_BYTES])
     assert family is not None                 # model_files sniffed it
-    result = FolderModel(path, path.name)
+    # Named as the Name field promises: the folder the model sits in; at the upload's top, the zip's
+    # name, else the sidecar's run (below), else the file's (`phd train` calls it model.ply every time).
+    at_top = path.parent == folder
+    result = FolderModel(path, (name or path.name) if at_top else path.parent.name)
     if family.beside is None:
         return result                         # the file carries what it has (a NeRF checkpoint: its cameras)
     renderer = family.load(path.read_bytes(), path.name, None)
@@ -215,6 +218,8 @@ def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderMod
     if extra is renderer:
         return result                         # nothing beside it: an upload of the bare file
     facts = extra.describe()
+    if at_top and name is None and isinstance(facts.get("name"), str):
+        result.name = facts["name"]
     cameras = extra.training_cameras or []
     fmt = facts.get("camera_format")
     result.cameras = [c.to_frame() for c in cameras] or None

@@ -134,6 +134,9 @@ class ModelInfo(_Response):
     camera_format: str | None = Field(None, description="The format of the capture the training cameras came from "
                                       "(phd_core.data.FORMATS, the name `phd rank` reports); ranked poses come back in "
                                       "it too where it has a pose convention (phd_core.data.POSES).")
+    note: str | None = Field(None, description="Set only in an upload's answer (status 200, not 201) when the same "
+                             "bytes with the same training cameras, background and capture format are stored already "
+                             "under this key: the answer is that model, and no entry was added.")
 
     @field_validator("kind")
     @classmethod

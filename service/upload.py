@@ -78,6 +78,7 @@ class Upload:
     folder: Path | None = None          # `files` parts land here, under their own paths
     archive: Path | None = None         # an `archive` part lands here
     folder_files: int = 0
+    note: str | None = None             # set when the upload is answered by a model stored already
     background_source: str | None = None   # who set `background` when it was not the request (a sidecar)
     notes: list[str] = field(default_factory=list)   # what reading a folder noted, shown with the model
 
@@ -298,10 +299,12 @@ def parse_camera_json(raw: bytes) -> Any:
 
 def unwrap_sidecar(source: Any, upload: Upload) -> Any:
     """Cameras given as the sidecar `phd train` wrote beside its PLY: its training cameras, and
-    its background and capture format where the request gave none (the Python client's rule)."""
+    its name, background and capture format where the request gave none (the Python client's rule)."""
     if not (isinstance(source, dict) and isinstance(source.get("training_cameras"), list)):
         return source                   # a sidecar is known by its list, as phd_core.data.load_cameras knows it
     frames = source["training_cameras"]
+    if upload.name is None and isinstance(source.get("name"), str):
+        upload.name = source["name"]
     background = source.get("background")
     if upload.background is None and isinstance(background, list):
         upload.background, upload.background_source = json.dumps(background).encode(), SIDECAR_SOURCE

@@ -374,6 +374,7 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
     sidecar = {
         "format": SIDECAR_FORMAT,
         "model": recipe.kind,
+        "name": f"{out.resolve().parent.name}/{out.stem}",    # the run's folder and file: what an upload is named
         **renderer.trained_on.fields(),
         "split": "train",
         "view_indices": dataset.indices,

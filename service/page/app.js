@@ -464,7 +464,9 @@ async function upload(event) {
   // The model chosen as A stays A (its ranking too): the new one becomes model B.
   await loadModels(keepA ? keepA.id : info.id, keepA ? info.id : undefined);
   const where = keepA ? "It is model B for selection; choose it under Model to rank it." : "It is the chosen model.";
-  if (!info.has_training_cameras) {
+  if (info.note) {
+    say("upload-message", `${info.name}: ${info.note}. ${where}`);
+  } else if (!info.has_training_cameras) {
     say("upload-message", `Uploaded ${info.name}, but it has no training cameras. ` + NO_CAMERAS_ADVICE, "warning");
   } else {
     say("upload-message", `Uploaded ${info.name}: ${info.kind}, ${info.num_training_cameras} training cameras` +

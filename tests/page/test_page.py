@@ -501,7 +501,8 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     choose_files(browser, "upload-file", svc_trained, sidecar)          # picked together, as trained
     assert text_of(browser, "upload-picked").startswith("2 files")
     browser.find_element(By.ID, "upload-run").click()
-    wait(browser, lambda d: "Uploaded model.ply: 3dgs, 4 training cameras (blender)" in text_of(d, "upload-message"),
+    run = f"{svc_trained.parent.name}/model"                           # named by its sidecar, not "model.ply"
+    wait(browser, lambda d: f"Uploaded {run}: 3dgs, 4 training cameras (blender)" in text_of(d, "upload-message"),
          what="the uploaded model")
     assert "4 training cameras (blender)" in text_of(browser, "model-info")
     # The 3D view (view3d.js) is mounted on the uploaded model by the page: its splats and 4 cameras.
@@ -516,6 +517,12 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
         (model_a,) = phd.list_models()
         assert phd.training_cameras(model_a.id) == json.loads(sidecar.read_text())["training_cameras"]
         assert model_a.details["background"] == json.loads(sidecar.read_text())["background"]
+    # The same two files again: the model stored already, said so; no second entry.
+    choose_files(browser, "upload-file", svc_trained, sidecar)
+    browser.find_element(By.ID, "upload-run").click()
+    wait(browser, lambda d: "no new entry" in text_of(d, "upload-message"), what="the repeat's note")
+    assert text_of(browser, "upload-message").startswith(f"{run}: the same file")
+    assert [m.id for m in PHDClient(server.url, api_key=KEY).list_models()] == [model_a.id]
 
     # The bare PLY: said at once that it has no cameras and what to add; model A stays chosen.
     choose_files(browser, "upload-file", svc_trained)
@@ -529,11 +536,14 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     assert Select(browser.find_element(By.ID, "model-b-select")).first_selected_option.get_attribute("value") == \
         model_b.id
 
-    # The same two files as a zip (what a user mails around), dropped: read by the same rules, with cameras.
+    # The PLY and a sidecar with 3 of its 4 cameras (another model) as a zip (what a user mails around),
+    # dropped: read by the same rules, with cameras.
     zipped = tmp_path / "run.zip"
+    fewer = json.loads(sidecar.read_text())
+    fewer["training_cameras"] = fewer["training_cameras"][:3]
     with zipfile.ZipFile(zipped, "w") as archive:
-        for path in (svc_trained, sidecar):
-            archive.write(path, f"run/{path.name}")
+        archive.write(svc_trained, "run/model.ply")
+        archive.writestr("run/model.json", json.dumps(fewer))
     choose_files(browser, "upload-file", zipped)       # then dropped on the box instead (the drop's path)
     browser.execute_script(
         "const input = document.getElementById('upload-file'), dt = new DataTransfer(); "
@@ -543,7 +553,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     wait(browser, lambda d: text_of(d, "upload-picked") == "1 file: run.zip", what="the dropped zip")
     set_field(browser, "upload-name", "from the zip")
     browser.find_element(By.ID, "upload-run").click()
-    wait(browser, lambda d: "Uploaded from the zip: 3dgs, 4 training cameras (blender). It is model B"
+    wait(browser, lambda d: "Uploaded from the zip: 3dgs, 3 training cameras (blender). It is model B"
          in text_of(d, "upload-message"), what="the zip's model")
     with PHDClient(server.url, api_key=KEY) as phd:
         model_c = next(m for m in phd.list_models() if m.name == "from the zip")
@@ -621,9 +631,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
 def test_page_checks_a_candidates_file_and_asks_for_its_image_size(browser, trained_server, svc_trained, tmp_path):
     server = trained_server
     with PHDClient(server.url, api_key=KEY) as phd:
-        if not any(m.name == "model.ply" for m in phd.list_models()):
-            phd.upload_model(svc_trained)
-        model = next(m for m in phd.list_models() if m.name == "model.ply")
+        model = phd.upload_model(svc_trained)       # the model stored already, when an earlier test uploaded it
     browser.get(server.url + "/ui/")
     set_field(browser, "api-key", KEY)
     browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
@@ -698,11 +706,11 @@ def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, traine
     wait(browser, lambda d: "3dgs, 3 training cameras (3dgs-output)" in text_of(d, "upload-message"),
          what="the folder's model")
     with PHDClient(server.url, api_key=KEY) as phd:
-        expected = phd.upload_model(folder)                 # named after the run, as the page's upload is
+        # The same run through the client: the page's model (the same bytes, cameras and background), named alike.
+        expected = phd.upload_model(folder)
+        assert "no new entry" in (expected.note or "")
         assert text_of(browser, "upload-message").startswith(f"Uploaded {expected.name}: ")
-        uploaded = next(m for m in phd.list_models() if m.name == expected.name and m.id != expected.id)
-        assert uploaded.sha256 == expected.sha256
-        assert phd.training_cameras(uploaded.id) == phd.training_cameras(expected.id)
+        assert [m.id for m in phd.list_models() if m.name == expected.name] == [expected.id]
     # A PLY picked with a transforms file that is not its sidecar: the file goes up as its cameras,
     # and as its frames say no image size, the page asks for it beside the upload.
     cameras = tmp_path / "transforms_train.json"
