@@ -211,7 +211,7 @@ class Viewer:
             self.render_image.visible = self.heatmap_image.visible = True
             rank = self.ranking["ranks"].get(index)
             score = self.ranking["scores"].get(index)
-            self.info.content = (f"**candidate {index}**" + (f", rank {rank + 1}, score {score:.4g}" if rank is not None
+            self.info.content = (f"**candidate {index}**" + (f", rank {rank}, score {score:.4g}" if rank is not None
                                                              else "") +
                                  f": sigma_max {view.sigma_max:.4g}, sigma_mean {view.sigma_mean:.4g} "
                                  f"(ratio {self.ratio}, N = {self.samples}; heat map scaled to its own max)")
