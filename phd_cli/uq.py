@@ -18,6 +18,7 @@ from phd_core.errors import InputError
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
 from phd_core.executors import LOCAL, Executor, make_executor
 from phd_core.io import ModelCache, write_heatmap, write_json_atomic
+from phd_core.io.heatmap import check_vmax
 from phd_core.renderers import DEFAULT_SIGNAL, SIGNALS, signals_help
 from phd_core.scene import Camera
 from phd_core.uq.calibrate import check_calibration
@@ -230,6 +231,8 @@ def _check_settings(args: argparse.Namespace) -> None:
     for name in ("dropout_ratio", "ratio_a", "ratio_b"):
         if getattr(args, name, None) is not None:
             check_ratio(getattr(args, name), name)
+    if getattr(args, "vmax", None) is not None:         # uq's heat-map scale
+        check_vmax(args.vmax)
 
 
 def _views(args: argparse.Namespace, model: OpenedModel, warnings: list[str]):

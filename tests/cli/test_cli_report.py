@@ -99,6 +99,7 @@ def test_quiet_and_progress_exclude_each_other(files, capsys) -> None:
     (["rank", "--candidates", "{candidates}", "--export", "{root}/plan.yaml"], "export"),
     (["rank", "--candidates", "{candidates}", "--samples", "1"], "samples"),
     (["uq", "--data", "{data}", "--samples", "1", "--out", "{root}/uq"], "samples"),
+    (["uq", "--data", "{data}", "--vmax", "0", "--out", "{root}/uq"], "vmax"),
     (["select", "--model-b", "{model}", "--data", "{data}", "--ratio-b", "2"], "ratio_b"),
 ])
 def test_every_input_is_checked_before_anything_is_calibrated(files, capsys, tmp_path, command, field) -> None:
