@@ -107,8 +107,8 @@ def time_hint(cameras: list[Camera], iterations: int) -> str:
     minutes = iterations * pixels * SECONDS_PER_PIXEL_STEP / 60
     rate = SECONDS_PER_PIXEL_STEP * 1e6
     return (f"training {sizes(cameras)} for {iterations} steps: about {minutes:.1f} minutes of CPU time ("
-            f"{iterations} steps x {pixels:,.0f} pixels a view at lego_200's measured {rate:.1f} us a pixel-step; "
-            "a capture that grows more splats takes longer)")
+            f"{iterations} steps x {pixels:,.0f} pixels a view at the {rate:.1f} us a pixel-step {DEFAULT_FAMILY} "
+            "took on lego_200; a capture that grows more splats takes longer, other families differ)")
 
 
 def run(args: argparse.Namespace) -> int:
