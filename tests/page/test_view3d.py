@@ -143,7 +143,7 @@ def test_the_view_draws_the_splats_and_the_returned_poses_where_they_project(bro
         colour = image[int(py), int(px)].astype(int)
         assert np.abs(colour - drawn[v["index"]]["rgb"]).max() <= 40, (v["index"], colour, drawn[v["index"]]["rgb"])
         label = browser.find_element(By.CSS_SELECTOR, f".v3d-label[data-index='{v['index']}']")
-        assert label.text == f"#{v['rank'] + 1}"
+        assert label.text == f"#{v['rank']}"                               # ranks count from 1
     top = max(ranking["views"], key=lambda v: v["score"])
     assert drawn[top["index"]]["rgb"] == [253, 231, 37] and max(scores) == top["score"]
     legend = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
@@ -358,7 +358,8 @@ def test_calibrating_on_the_page_lets_the_view_explain_the_model(browser, ranked
     while its job runs) then brings the fragility colours, and the message goes."""
     server, model, _, _ = ranked
     with PHDClient(server.url, api_key=KEY) as phd:
-        bare = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(3), name="calibrated on the page")
+        # Another model than the fixture's (4 cameras, not 3): the same upload would answer the calibrated one.
+        bare = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(4), name="calibrated on the page")
     _open(browser, server, bare)
     _call(browser, "phdView3d.setMode('fragility')")
     status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status")
