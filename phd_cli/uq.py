@@ -124,8 +124,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "the table")
     rank.add_argument("--export", type=Path, metavar="FILE",
                       help="also write the ranked batch (the first --top-k, else all) for a capture tool: a *.json "
-                           "file is a nerfstudio transforms.json, a file named cameras.json the reference trainer's, "
-                           "a path without a suffix a COLMAP text model folder (or say --export-format)")
+                           "file is a nerfstudio transforms.json, a file named transforms_train.json a Blender one "
+                           "(camera_angle_x), one named cameras.json the reference trainer's, a path without a suffix "
+                           "a COLMAP text model folder (or say --export-format)")
     rank.add_argument("--export-format", choices=sorted(POSES), default=None,
                       help="the convention of --export, instead of reading it off the name")
     add_progress_args(rank)
