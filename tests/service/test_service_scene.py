@@ -150,7 +150,9 @@ def test_the_up_is_found_once_at_upload_on_the_floor_the_splats_show(svc_start, 
     with PHDClient(server.url, api_key=KEY) as phd:
         info = phd.upload_model(tmp_path / "floor.ply", cameras=cameras)
         ranking = phd.rank(info.id, candidates="orbit:6", strategy="random", dropout_ratio=0.2)
+        through_client = phd.cameras(info.id)
     served = httpx.get(f"{server.url}/v1/models/{info.id}/cameras", headers=AUTH).json()
+    assert (through_client.up, through_client.up_rule) == (served["up"], served["up_rule"])
     assert served["up_rule"] == "support plane"
     assert degrees_from_up(torch.tensor(served["up"], dtype=torch.float64)) < 1.0
     assert degrees_from_up(capture_up(cameras).vector) > 4.0                          # the cameras' own lean
