@@ -18,6 +18,7 @@ import pytest
 from client import PHDClient
 from phd_core import uq
 from phd_core.data import candidate_name, export_cameras
+from phd_core.renderers.gs3d import write_ply
 from phd_core.scene import camera_from_frame
 from phd_core.uq.candidates import candidate_cameras
 from support.browser import chromium, have_browser, hold_worker
@@ -248,6 +249,31 @@ def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_p
     browser.save_screenshot(str(tmp_path / "page_select.png"))
     assert _csp_violations(browser) == []
 
+    # A model B not calibrated yet is calibrated from here: model A stays chosen, its ranking shown.
+    write_ply(svc_random_gaussians(200, seed=3), tmp_path / "fresh.ply")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        fresh = phd.upload_model(tmp_path / "fresh.ply", cameras=svc_cameras(3), name="fresh")
+        try:
+            assert not browser.find_element(By.ID, "calibrate-b").is_displayed()      # model B is calibrated
+            browser.find_element(By.ID, "refresh-models").click()
+            wait(browser, lambda d: len(Select(d.find_element(By.ID, "model-b-select")).options) == 3,
+                 what="the new model")
+            Select(browser.find_element(By.ID, "model-b-select")).select_by_value(fresh.id)
+            browser.find_element(By.ID, "calibrate-b").click()
+            wait(browser, lambda d: "calibrated fresh: r_drop" in text_of(d, "select-message"), what="model B's r_drop")
+            assert phd.get_model(fresh.id).calibration is not None
+            assert Select(browser.find_element(By.ID, "model-select")).first_selected_option.get_attribute(
+                "value") == model_a.id
+            ranked = browser.execute_script("return state.ranking")
+            assert ranked["modelId"] == model_a.id and [int(c.get_attribute("data-index")) for c in
+                                                        browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")] \
+                == [v["index"] for v in ranked["views"]]
+            assert not browser.find_element(By.ID, "calibrate-b").is_displayed()
+            browser.find_element(By.ID, "select-run").click()           # over the same ranked poses, against B
+            wait(browser, lambda d: "(fresh)" in text_of(d, "select-summary"), what="the selection against B")
+        finally:
+            phd.delete_model(fresh.id)
+
 
 def test_page_takes_the_users_own_candidate_list(browser, models, tmp_path):
     server, model_a, _ = models
@@ -420,6 +446,45 @@ def test_page_uploads_calibrates_and_deletes_a_model(browser, svc_model_files, t
             wait(browser, lambda d: "No model yet" in text_of(d, "model-info"), what="the deletion")
             assert phd.list_models() == []
         assert _csp_violations(browser) == []
+    finally:
+        server.stop()
+
+
+def _messages(driver) -> dict[str, str]:
+    """The text of every message line and warning of the sections shown, and the model's facts line, by id."""
+    return driver.execute_script(
+        "return Object.fromEntries([...document.querySelectorAll('main .message, #model-info')]"
+        ".filter(p => !p.hidden && p.textContent).map(p => [p.id, p.textContent]))")
+
+
+def test_page_says_each_cause_once_and_forgets_it_with_the_next_upload(browser, svc_model_files, tmp_path):
+    """A PLY without its sidecar: that it has no cameras and what to add is said once (the warning
+    under Model), with no advice that cannot apply (press Calibrate; read from its folder), and
+    Calibrate is off. The next upload, with cameras, leaves no message of the first model's."""
+    from service.runner import BackgroundServer
+    from service.settings import Settings
+
+    server = BackgroundServer(Settings(data_dir=tmp_path / "data", api_key=KEY))
+    try:
+        _open_empty(browser, server)
+        choose_files(browser, "upload-file", svc_model_files["ply_b"])
+        browser.find_element(By.ID, "upload-run").click()
+        wait(browser, lambda d: "Uploaded" in text_of(d, "upload-message"), what="the bare PLY")
+        said = _messages(browser)
+        assert [where for where, text in said.items() if "sidecar" in text] == ["model-warning"], said
+        assert "no training cameras, so it cannot be calibrated" in said["model-info"]
+        assert not any(words in text for text in said.values() for words in ("press Calibrate", "folder:"))
+        assert browser.find_element(By.ID, "calibrate").get_attribute("disabled") is not None
+        # Model B with cameras: model A (chosen) keeps its facts, its warning is not left above B's message.
+        cameras = tmp_path / "transforms_train.json"
+        cameras.write_text(json.dumps({"frames": [c.to_frame() for c in svc_cameras(3)]}))
+        choose_files(browser, "upload-file", svc_model_files["ply"])
+        choose_files(browser, "upload-cameras", cameras)
+        browser.find_element(By.ID, "upload-run").click()
+        wait(browser, lambda d: "It is model B" in text_of(d, "upload-message"), what="model B")
+        said = _messages(browser)
+        assert set(said) == {"model-info", "upload-message"} and "sidecar" not in said["upload-message"], said
+        assert "warning" not in _classes(browser, "upload-message")
     finally:
         server.stop()
 
@@ -600,12 +665,14 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
             assert {n: files.read(n) for n in files.namelist()} == {
                 f"colmap/{p.name}": p.read_bytes() for p in written.iterdir()}
 
-    # Selection against the model without cameras (so never calibrated): said beside Select, in words.
+    # Selection against the model without cameras (so never calibrated): said beside Select, in words
+    # that fit (it cannot be calibrated: no "press Calibrate", no Calibrate model B button).
     Select(browser.find_element(By.ID, "model-b-select")).select_by_value(model_b.id)
     browser.find_element(By.ID, "select-run").click()
     wait(browser, lambda d: "error" in _classes(d, "select-message"), what="the calibration's error")
     said = text_of(browser, "select-message")
-    assert said.startswith("Model B is not calibrated yet: choose it under Model")
+    assert said.startswith("Model B has no training cameras, so it cannot be calibrated")
+    assert not browser.find_element(By.ID, "calibrate-b").is_displayed()
     assert _in_view(browser, "select-message")
     assert not any(word in said for word in ("/v1", "409", "field", "ratio_b", model_b.id))
     assert browser.find_element(By.ID, "select-progress").get_attribute("hidden") is not None
