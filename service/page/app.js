@@ -381,14 +381,30 @@ function pickedFiles() {
   return files.concat([...$("upload-folder").files].map((file) => ({ file, path: file.webkitRelativePath || file.name })));
 }
 
-const IMAGES = /\.(png|jpe?g|exr|webp|tiff?|bmp|mp4|mov)$/i;   // a trainer's folder needs none of these
+// What a folder's upload leaves behind, and why: photos (the model needs none) and what `phd` keeps
+// in its .phd-cache/ but the calibrations (the service uses one made for this model, on its
+// cameras: docs/service.md), since the rest is worked out again by the service.
+const LEFT_OUT = [
+  { test: (path) => /\.(png|jpe?g|exr|webp|tiff?|bmp|mp4|mov)$/i.test(path), what: "image", why: "the model needs no photos" },
+  { test: (path) => /phd-cache\//.test(path) && !/phd-cache\/calibration-[^/]*\.json$/.test(path),
+    what: "other .phd-cache file", why: "results the service works out itself" },
+];
+const leftOut = (path) => LEFT_OUT.find((rule) => rule.test(path)) || null;
+const plural = (count, word) => `${count} ${word}${count === 1 ? "" : "s"}`;
 
+// The line under the pickers: what goes up (the first few named), what stays behind and why.
 function describePicked() {
   const picked = pickedFiles();
-  const images = picked.filter((p) => IMAGES.test(p.path)).length;
-  $("upload-picked").textContent = picked.length === 0 ? "" : picked.length === 1 ? "1 file: " + picked[0].path :
-    `${picked.length} files` + (images ? ` (${images} images left out: the model does not need them)` : "") +
-    ": " + picked.filter((p) => !IMAGES.test(p.path)).slice(0, 4).map((p) => p.path).join(", ") + (picked.length > 4 ? ", ..." : "");
+  if (picked.length <= 1) {
+    $("upload-picked").textContent = picked.length ? "Uploads 1 file: " + picked[0].path : "";
+    return;
+  }
+  const sent = picked.filter((p) => !leftOut(p.path));
+  const behind = LEFT_OUT.map((rule) => [rule, picked.filter((p) => leftOut(p.path) === rule).length])
+    .filter(([, count]) => count).map(([rule, count]) => `${plural(count, rule.what)} (${rule.why})`);
+  $("upload-picked").textContent = `Uploads ${plural(sent.length, "file")}: ` +
+    sent.slice(0, 4).map((p) => p.path).join(", ") + (sent.length > 4 ? ", ..." : "") + "." +
+    (behind.length ? " Leaves out " + behind.join(" and ") + "." : "");
 }
 
 // What a drop holds, folders walked: [{file, path}].
@@ -429,7 +445,7 @@ const stem = (path) => path.replace(/^.*\//, "").replace(/\.[^.]*$/, "");
 // model picked with a camera file that is not its sidecar (<stem>.json) sends that file as its
 // training cameras.
 async function uploadForm() {
-  let picked = pickedFiles().filter((p) => !IMAGES.test(p.path) || pickedFiles().length === 1);
+  let picked = pickedFiles().filter((p) => !leftOut(p.path) || pickedFiles().length === 1);
   if (picked.length === 0) throw new ApiError("Choose the model's files first (or drop them on the box).");
   const json = picked.filter((p) => /\.json$/i.test(p.path));
   const model = picked.filter((p) => !/\.json$/i.test(p.path));
@@ -483,7 +499,9 @@ async function upload(event) {
       (keepA ? NO_CAMERAS_ADVICE : "What to add is said under Model above."), "warning");
   } else {
     say("upload-message", `Uploaded ${info.name}: ${info.kind}, ${info.num_training_cameras} training cameras` +
-      (info.camera_format ? ` (${info.camera_format})` : "") + ". " + where);
+      (info.camera_format ? ` (${info.camera_format})` : "") +
+      (info.calibration ? `, calibrated: r_drop = ${info.calibration.r_drop} (the calibration phd stored in its .phd-cache/)` : "") +
+      ". " + where);
   }
 }
 

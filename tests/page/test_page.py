@@ -564,7 +564,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     assert browser.find_element(By.ID, "upload-details").get_attribute("open") is not None   # opened for a newcomer
 
     choose_files(browser, "upload-file", svc_trained, sidecar)          # picked together, as trained
-    assert text_of(browser, "upload-picked").startswith("2 files")
+    assert text_of(browser, "upload-picked").startswith("Uploads 2 files: ")
     browser.find_element(By.ID, "upload-run").click()
     wait(browser, lambda d: "Uploaded model.ply: 3dgs, 4 training cameras (blender)" in text_of(d, "upload-message"),
          what="the uploaded model")
@@ -605,7 +605,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
         "for (const f of input.files) dt.items.add(f); input.value = ''; "
         "document.getElementById('drop-zone').dispatchEvent(new DragEvent('drop', {dataTransfer: dt, bubbles: true, "
         "cancelable: true}))")
-    wait(browser, lambda d: text_of(d, "upload-picked") == "1 file: run.zip", what="the dropped zip")
+    wait(browser, lambda d: text_of(d, "upload-picked") == "Uploads 1 file: run.zip", what="the dropped zip")
     set_field(browser, "upload-name", "from the zip")
     browser.find_element(By.ID, "upload-run").click()
     wait(browser, lambda d: "Uploaded from the zip: 3dgs, 4 training cameras (blender). It is model B"
@@ -746,30 +746,64 @@ def test_api_docs_render_offline(browser, trained_server):
     assert icon.status_code == 200 and icon.headers["content-type"] == "image/svg+xml"
 
 
-def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, trained_server, tmp_path):
+def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, trained_server, tmp_path, capsys):
     """A reference-trainer output folder picked whole (the folder input): its files go up by their
-    paths, its images stay behind, and the service reads it as the client does."""
+    paths, its images and phd's cached results stay behind (the line says which and why), and the
+    service reads it as the client does. The calibration `phd calibrate` stored in its .phd-cache/
+    for this model and these cameras is used, not run again; one made on other cameras is not."""
+    from phd_cli import main
     from support.captures import write_output_folder
 
     server = trained_server
     folder = write_output_folder(tmp_path / "lego_out", svc_random_gaussians(200), svc_cameras(3))
     (folder / "input.png").write_bytes(b"\x89PNG not needed")
+    calibrate = ["calibrate", "--model", str(folder), "--epsilon", "0.05", "--step", "0.2", "--samples", "3",
+                 "--quiet", "--out"]
+    assert main([*calibrate, str(tmp_path / "calibration.json")]) == 0
+    r_drop = json.loads((tmp_path / "calibration.json").read_text())["r_drop"]
+    cached = sorted(p.name for p in (folder / ".phd-cache").iterdir())
+    assert len(cached) == 2 and cached[0].startswith("calibration-")      # the entry, and the digest memo
     browser.get(server.url + "/ui/")
     set_field(browser, "api-key", KEY)
     browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
     wait(browser, lambda d: text_of(d, "message") == "key saved in this browser", what="the key")
     browser.execute_script("document.getElementById('upload-details').open = true")
     browser.find_element(By.ID, "upload-folder").send_keys(str(folder))
-    wait(browser, lambda d: "(1 images left out" in text_of(d, "upload-picked"), what="the picked folder")
+    wait(browser, lambda d: "Leaves out" in text_of(d, "upload-picked"), what="the picked folder")
+    picked = text_of(browser, "upload-picked")
+    assert picked.startswith("Uploads 5 files: ") and picked.endswith(
+        "Leaves out 1 image (the model needs no photos) and 1 other .phd-cache file (results the service "
+        "works out itself)."), picked
     browser.find_element(By.ID, "upload-run").click()
     wait(browser, lambda d: "3dgs, 3 training cameras (3dgs-output)" in text_of(d, "upload-message"),
          what="the folder's model")
+    assert f"calibrated: r_drop = {r_drop} (the calibration phd stored" in text_of(browser, "upload-message")
     with PHDClient(server.url, api_key=KEY) as phd:
         expected = phd.upload_model(folder)                 # named after the run, as the page's upload is
         assert text_of(browser, "upload-message").startswith(f"Uploaded {expected.name}: ")
         uploaded = next(m for m in phd.list_models() if m.name == expected.name and m.id != expected.id)
         assert uploaded.sha256 == expected.sha256
         assert phd.training_cameras(uploaded.id) == phd.training_cameras(expected.id)
+        assert uploaded.calibration is not None and uploaded.calibration.r_drop == r_drop
+        assert any("not run again" in note for note in uploaded.details["notes"])
+        phd.delete_model(uploaded.id)
+
+    # Calibrated on other cameras (at half their size) only: that calibration is not this model's.
+    for entry in (folder / ".phd-cache").glob("calibration-*.json"):
+        entry.unlink()
+    assert main([*calibrate, str(tmp_path / "half.json"), "--downscale", "2"]) == 0
+    capsys.readouterr()
+    browser.execute_script("document.getElementById('upload-folder').value = ''")    # the folder as it is now
+    browser.find_element(By.ID, "upload-folder").send_keys(str(folder))
+    browser.find_element(By.ID, "upload-run").click()
+    wait(browser, lambda d: text_of(d, "upload-message").startswith(f"Uploaded {expected.name}: 3dgs, 3 training "
+                                                                   "cameras (3dgs-output). It is"),
+         what="the second folder upload, not calibrated")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        again = next(m for m in phd.list_models() if m.name == expected.name and m.id != expected.id)
+        assert again.calibration is None
+        assert any("made on other training cameras" in note for note in again.details["notes"])
+        phd.delete_model(again.id)
     # A PLY picked with a transforms file that is not its sidecar: the file goes up as its cameras,
     # and as its frames say no image size, the page asks for it beside the upload.
     cameras = tmp_path / "transforms_train.json"
