@@ -356,6 +356,15 @@ def test_page_ranks_for_target_views_from_a_file(browser, models, tmp_path):
     assert "in the order to capture them for the 2 target views;" in text_of(browser, "rank-summary")
     assert text_of(browser, "targets-message") == ""
     assert len(browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand[fill]")) == 5
+    # Target views whose own size is above the server's cap of 800 pixels a side (a phone's frames):
+    # rendered at the candidates' size, so the same order, not a refusal.
+    set_field(browser, "targets-width", 1200)
+    set_field(browser, "targets-height", 1200)
+    browser.find_element(By.ID, "rank-run").click()
+    wait(browser, lambda d: "Ranked" in text_of(d, "rank-message") or "error" in _classes(d, "targets-message"),
+         what="the ranking for the large target views")
+    assert [int(c.get_attribute("data-index")) for c in browser.find_elements(
+        By.CSS_SELECTOR, "#rank-grid li.card")] == order, text_of(browser, "targets-message")
     browser.find_element(By.ID, "targets-clear").click()
     wait(browser, lambda d: d.execute_script("return phdView3d.debug().targets.length") == 0, what="cleared targets")
     assert text_of(browser, "targets-info") == "" and not browser.find_element(By.ID, "targets-clear").is_displayed()
