@@ -494,6 +494,17 @@ def test_page_says_each_cause_once_and_forgets_it_with_the_next_upload(browser, 
         said = _messages(browser)
         assert set(said) == {"model-info", "upload-message"} and "sidecar" not in said["upload-message"], said
         assert "warning" not in _classes(browser, "upload-message")
+        # Choosing a model says what is news about it: nothing for the one with cameras, the advice
+        # (once) for the bare one chosen again, Calibrate on and off with them.
+        bare, with_cameras = (o.get_attribute("value") for o in Select(
+            browser.find_element(By.ID, "model-select")).options)
+        Select(browser.find_element(By.ID, "model-select")).select_by_value(with_cameras)
+        wait(browser, lambda d: "3 training cameras" in text_of(d, "model-info"), what="the model with cameras")
+        assert "model-warning" not in _messages(browser)
+        assert browser.find_element(By.ID, "calibrate").get_attribute("disabled") is None
+        Select(browser.find_element(By.ID, "model-select")).select_by_value(bare)
+        wait(browser, lambda d: "model-warning" in _messages(d), what="the bare model's warning")
+        assert [where for where, text in _messages(browser).items() if "sidecar" in text] == ["model-warning"]
     finally:
         server.stop()
 
