@@ -79,6 +79,7 @@ class Upload:
     folder_files: int = 0
     background_source: str | None = None   # who set `background` when it was not the request (a sidecar)
     notes: list[str] = field(default_factory=list)   # what reading a folder noted, shown with the model
+    calibrations: list[dict] = field(default_factory=list)   # a folder's stored ones for its model (FolderModel)
 
 
 @dataclass
