@@ -115,6 +115,11 @@ def main() -> int:
             size = driver.execute_script("return [state.ranking.width, state.ranking.height]")
             driver.execute_script("document.querySelector('#rank-grid li.card').click()")
             driver.find_element(By.ID, "rank-section").screenshot(str(args.out / "page_rank.png"))
+            # The page's first screenful and a half as a new user meets it after a rank (docs' overview).
+            driver.set_window_size(1280, 1800)
+            driver.execute_script("window.scrollTo(0, 0)")
+            driver.save_screenshot(str(args.out / "page_overview.png"))
+            driver.set_window_size(1280, 4400)
             # An error where it happened: a candidates file with a misspelt key.
             typo = Path(tempfile.mkdtemp()) / "candidates.json"
             typo.write_text(json.dumps({"camera_angle_x": 0.69, "frame": []}))

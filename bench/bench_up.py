@@ -32,11 +32,18 @@ tilt toward their mean right axis and toward their mean heading.
 (the bench extra: `pip install -e ".[bench]"`, OpenCV's line segment detector; `--doc`: the
 tables into docs/formats.md, section "The upright frame"; PHD_CACHE_DIR: where the distorted
 captures' undistorted photos go.)
+
+`--models DIR` judges the estimate the service makes when a model is uploaded instead: from the
+model's training cameras and its opaque splat centres (not the SfM points), for every DIR/NAME.ply
+`phd train` wrote on a capture above, against the references that `--out` stored:
+
+    nice -n 10 .venv/bin/python -m bench.bench_up --models DIR --doc
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,8 +61,10 @@ from bench.vanishing import (
     vanishing_pixel,
 )
 from phd_core.data import Dataset, load_dataset
+from phd_core.renderers import load_model
 from phd_core.scene import capture_up
 from phd_core.scene.up import PLANE_BAND, find_plane, point_extent
+from phd_core.uq.candidates import scene_points
 
 CAPTURES = {"cup_colmap": _harness.DATA / "cup_colmap",
             **{name: _harness.DATA / "real" / name
@@ -322,13 +331,56 @@ def save(photo: Image.Image, path: Path) -> None:
     photo.save(path)
 
 
+# ----------------------------------------------------------------------------- trained models
+
+def splat_rows(models: Path, references: Path) -> list[dict]:
+    """For every capture with a model in `models`: the up the service finds at upload (its
+    training cameras, refined on the plane its opaque splats show) against the references of the
+    SfM points' run (`references`: that run's --out)."""
+    rows = []
+    for reference in json.loads(references.read_text())["rows"]:
+        path = models / f"{reference['capture']}.ply"
+        if not path.exists():
+            continue
+        renderer = load_model(path)
+        found = capture_up(renderer.training_cameras or [], scene_points(renderer))
+        estimate = found.vector.numpy()
+        rows.append({"capture": reference["capture"], "splats": renderer.num_units, "rule": found.rule,
+                     "estimate": estimate.tolist(),
+                     "vs_lines_deg": degrees(estimate, np.array(reference["lines_reference"])),
+                     "vs_plane_deg": degrees(estimate, np.array(reference["plane_reference"])),
+                     "vs_points_estimate_deg": degrees(estimate, np.array(reference["estimate"])),
+                     "points_vs_lines_deg": reference["estimate_vs_lines_deg"]})
+    return rows
+
+
+def splat_table(rows: list[dict]) -> str:
+    lines = ["| capture | splats | rule | estimate from the splats vs lines / plane | the SfM points' estimate vs "
+             "lines | the two estimates apart |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['capture']} | {r['splats']:,} | {r['rule']} | **{r['vs_lines_deg']:.1f}°** / "
+                     f"{r['vs_plane_deg']:.1f}° | {r['points_vs_lines_deg']:.1f}° | "
+                     f"{r['vs_points_estimate_deg']:.1f}° |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--check", type=Path, help="write the check images here (CAPTURE_K.png: plane candidate "
                         "K; CAPTURE_lines.png: the lines)")
     parser.add_argument("--out", type=Path, help="the results as JSON")
     parser.add_argument("--doc", action="store_true", help="write the tables into docs/formats.md")
+    parser.add_argument("--models", type=Path, help="judge the service's estimate on the models NAME.ply here "
+                        "instead, against the references of --references")
+    parser.add_argument("--references", type=Path, default=_harness.RESULTS / "up.json")
     args = parser.parse_args()
+    if args.models:
+        text = splat_table(splat_rows(args.models, args.references))
+        print(text)
+        if args.doc:
+            run = f"    nice -n 10 .venv/bin/{_harness.command()}"
+            _harness.write_doc(_harness.DOCS / "formats.md", f"{text}\n\n{run}", "up_splats")
+        return
     rows = []
     for name, folder in CAPTURES.items():
         capture = read_capture(name, folder)

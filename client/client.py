@@ -343,9 +343,14 @@ class PHDClient:
     def get_model(self, model_id: str) -> ModelInfo:
         return ModelInfo.model_validate(self._request("GET", f"/v1/models/{model_id}").json())
 
+    def cameras(self, model_id: str) -> TrainingCameras:
+        """The model's stored training cameras (`frames`) and the capture's up (`up`, `up_rule`):
+        the direction the generated poses stand on, for poses of your own."""
+        return TrainingCameras.model_validate(self._request("GET", f"/v1/models/{model_id}/cameras").json())
+
     def training_cameras(self, model_id: str) -> list[dict]:
         """The model's stored training cameras as transforms-style frames ([] when it has none)."""
-        return TrainingCameras.model_validate(self._request("GET", f"/v1/models/{model_id}/cameras").json()).frames
+        return self.cameras(model_id).frames
 
     def delete_model(self, model_id: str) -> None:
         self._request("DELETE", f"/v1/models/{model_id}")

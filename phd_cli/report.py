@@ -16,21 +16,18 @@ the cameras calibrated on); `phd rank`, `uq` and `select` reuse it and say so on
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
 import sys
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from typing import Any, Callable, Iterator
 
 from phd_core import uq as phd
-from phd_core.io.cache import ModelCache
+from phd_core.io.cache import CALIBRATION, ModelCache, cameras_digest, content_digest
 from phd_core.scene import Camera
 
 from .models import OpenedModel
 
 PERCENT = 100                       # a bar counts percent of the step's views
-CALIBRATION = "calibration"         # the ModelCache kind
 
 
 def add_progress_args(parser: argparse.ArgumentParser) -> None:
@@ -105,10 +102,9 @@ def say(args: argparse.Namespace, message: str) -> None:
 
 def calibration_settings(args: argparse.Namespace, model: OpenedModel, cameras: list[Camera]) -> dict[str, Any]:
     """Everything that changes r_drop besides the model's content (the cache key)."""
-    poses = json.dumps([c.to_frame() for c in cameras], sort_keys=True)
     return {"epsilon": args.epsilon, "step": args.step, "samples": args.calibration_samples, "method": args.method,
             "seed": args.seed, "signal": args.signal, "background": model.renderer.describe().get("background"),
-            "cameras": hashlib.sha256(poses.encode()).hexdigest()}
+            "cameras": cameras_digest([c.to_frame() for c in cameras])}
 
 
 def calibrated(args: argparse.Namespace, model: OpenedModel, cameras: list[Camera], *,
@@ -127,8 +123,11 @@ def calibrated(args: argparse.Namespace, model: OpenedModel, cameras: list[Camer
         result = phd.calibrate(model.renderer, cameras, epsilon=args.epsilon, step=args.step,
                                samples=args.calibration_samples, method=args.method, seed=args.seed,
                                executor=args.executor, signal=args.signal, progress=progress)
+    # The model file's own digest: a service given the folder (without its photos) finds the entry by it.
+    digest = cache.digest if model.output is None else content_digest(model.output.source)
     entry = {"by": f"phd {args.command}", "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-             "views": len(cameras), "settings": settings, "result": result.to_dict()}
+             "views": len(cameras), "settings": settings, "result": result.to_dict(),
+             "model_sha256": digest}
     if cache.save_json(CALIBRATION, settings, entry):
         say(args, f"{model.label}: calibrated, r_drop {result.r_drop}; stored in "
                   f"{cache.path(CALIBRATION, settings, '.json')} for the next commands")

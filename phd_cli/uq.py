@@ -417,7 +417,8 @@ def run_rank(args: argparse.Namespace) -> int:
         # Frames without w/h take the candidates' image size: the coverage strategies render them.
         captured = load_cameras(args.captured, width=args.width or poses[0].width,
                                 height=args.height or poses[0].height)
-    targets = None if args.targets is None else _scaled(_candidates(args, renderer, "targets"), args.downscale)
+    # Targets render at the candidates' size (the service's rule too), whatever their photos' size.
+    targets = None if args.targets is None else phd.targets_at_size(_candidates(args, renderer, "targets"), candidates)
     check_rank(renderer, args.strategy, args.top_k, args.coarse, args.refine, targets)
     ratio, calibration = _ratio(args, model)                # every input is known good before calibrating
     # What the captured views saw is kept beside the model (computed once per model and set of poses).

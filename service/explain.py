@@ -54,7 +54,8 @@ MAGIC = b"PHD3"
 POINT_BYTES = 12 + 4 + 4            # what one point costs in the binary
 DRAW_UNIT_BYTES = 40                # the draw: importance, uniforms and keys (float64) per splat, and the ids
 NO_VALUE = 255                      # an explained quantity's byte for "no value"
-FRAGILITY_QUANTILE = 0.99           # the fragility drawn as the top colour: one hot splat does not wash out the rest
+FRAGILITY_QUANTILE = 0.99           # the fragility (and novelty) drawn as the top colour: one hot splat does not
+                                    # wash out the rest
 COVERAGE_FULL = 3.0                 # views' worth of unhidden sight drawn as the top colour: enough to place a splat
                                     # (two views triangulate it), whatever the number of training views
 
@@ -123,7 +124,11 @@ def explanation_values(result: Explanation, ids: torch.Tensor) -> tuple[dict[str
                   "fragility": (result.fragility, float(np.quantile(fragile.numpy(), FRAGILITY_QUANTILE))
                                 if len(fragile) else 0.0)}
     if result.novelty is not None:
-        quantities["novelty"] = (result.novelty, 1.0)
+        # What the pick newly sees is often a small share of a splat (the captured views saw most of
+        # it): drawn to the share it reaches, so what #1 adds shows; 0 when it adds nothing.
+        novel = result.novelty[result.novelty > 0]
+        quantities["novelty"] = (result.novelty, float(np.quantile(novel.numpy(), FRAGILITY_QUANTILE))
+                                 if len(novel) else 0.0)
     scales = {name: scale for name, (_, scale) in quantities.items()}
     values = {name: base64.b64encode(quantize(v[ids], scale)).decode("ascii")
               for name, (v, scale) in quantities.items()}

@@ -33,6 +33,7 @@ from typing import Iterator
 from phd_core.data import FORMATS
 from phd_core.errors import InputError, TooLarge, shown
 from phd_core.io.archives import DAMAGED, ZipRules, open_zip
+from phd_core.io.cache import ModelCache, calibration_entries, content_digest
 from phd_core.io.foreign import CHECKPOINT_SUFFIXES, checkpoint_bytes
 from phd_core.renderers import SNIFF_BYTES, accepts_background, family_of, family_titles
 from phd_core.renderers.outputs import OUTPUTS, read_output
@@ -61,6 +62,9 @@ class FolderModel:
     background_source: str | None = None
     camera_format: str | None = None
     notes: list[str] = field(default_factory=list)
+    # Calibrations `phd` stored beside the model (its .phd-cache/) for this model file's content;
+    # used when one was made on the training cameras and background stored (service.state).
+    calibrations: list[dict] = field(default_factory=list)
 
 
 def relative_path(name: str | None, where: str) -> PurePosixPath:
@@ -194,10 +198,11 @@ def read_folder(folder: Path, name: str | None, ply: Path, max_bytes: int) -> Fo
         # the client names it; a run whose files sit at the upload's top names the upload instead of
         # the server's temp folder.
         run = output.name.replace(folder.resolve().name, name or "folder")
-        return FolderModel(output.ply or ply, run,
-                           [c.to_frame() for c in output.cameras] or None, list(output.background),
-                           f"{title}: its trainer's setting", output.camera_format,
-                           [upload_relative(n, folder) for n in output.notes + output.warnings])
+        return with_calibrations(FolderModel(output.ply or ply, run,
+                                             [c.to_frame() for c in output.cameras] or None, list(output.background),
+                                             f"{title}: its trainer's setting", output.camera_format,
+                                             [upload_relative(n, folder) for n in output.notes + output.warnings]),
+                                 ModelCache(output_folder).dir, output.source)
     models = model_files(folder)
     if len(models) != 1:
         listed = ", ".join(str(p.relative_to(folder)) for p in models[:5]) + (" ..." if len(models) > 5 else "")
@@ -210,7 +215,8 @@ def read_folder(folder: Path, name: str | None, ply: Path, max_bytes: int) -> Fo
     # Named as the Name field promises: the folder the model sits in; at the upload's top, the zip's
     # name, else the sidecar's run (below), else the file's (`phd train` calls it model.ply every time).
     at_top = path.parent == folder
-    result = FolderModel(path, (name or path.name) if at_top else path.parent.name)
+    result = with_calibrations(FolderModel(path, (name or path.name) if at_top else path.parent.name),
+                               ModelCache(path).dir, path)
     if family.beside is None:
         return result                         # the file carries what it has (a NeRF checkpoint: its cameras)
     renderer = family.load(path.read_bytes(), path.name, None)
@@ -227,6 +233,16 @@ def read_folder(folder: Path, name: str | None, ply: Path, max_bytes: int) -> Fo
     if accepts_background(extra) and isinstance(facts.get("background"), list):
         result.background, result.background_source = facts["background"], SIDECAR_SOURCE
     return result
+
+
+def with_calibrations(found: FolderModel, cache_dir: Path, source: Path) -> FolderModel:
+    """`found` with the calibrations its cache folder holds for the content of `source` (the file
+    the model was read from), and a note of those it holds for another."""
+    found.calibrations, others = calibration_entries(cache_dir, content_digest(source))
+    if others:
+        found.notes.append(f"{others} calibration{'s' if others > 1 else ''} in {cache_dir.name}/ made for another "
+                           "model file (or by a phd that did not record which): not used")
+    return found
 
 
 def remove_folder(folder: Path) -> None:

@@ -406,7 +406,8 @@ class ExplainResult(_Response):
     cap: int
     scales: dict[str, float] = Field(description="Per quantity, the value its byte 254 stands for (bytes 0-254 "
                                      "are linear from 0; coverage: 3 views' worth, fragility: its 99th "
-                                     "percentile, novelty: 1).")
+                                     "percentile, novelty: the 99th percentile of its non-zero values, 0 "
+                                     "when the pick shows nothing no captured view did).")
     values: dict[str, str] = Field(description="Per quantity (coverage, fragility, novelty with a pick), base64 "
                                    "of one byte per point; 255: no value (a splat no view shows).")
     unseen_share: float = Field(description="Share of the model's splats no captured view saw unhidden.")

@@ -8,7 +8,7 @@ import asyncio
 import hashlib
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +16,7 @@ from fastapi.responses import JSONResponse
 
 from phd_core.errors import InputError, TooLarge, bounded_notes, cut
 from phd_core.executors import LOCAL, Executor
+from phd_core.io.cache import matching_calibration
 from phd_core.renderers import (
     FAMILIES,
     NO_CAMERAS_NOTE,
@@ -36,7 +37,7 @@ from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
 from .keys import Principal
 from .metrics import Metrics
-from .schemas import Job, RenderSize
+from .schemas import Calibration, Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore, writing
 from .upload import (
@@ -173,6 +174,7 @@ class ServiceState:
         upload.camera_format = upload.camera_format or found.camera_format
         upload.name = upload.name or found.name
         upload.notes = found.notes
+        upload.calibrations = found.calibrations
         return self.ingest(upload, sniff_kind(upload.head), who)
 
     def _store(self, upload: Upload, kind: str, who: Principal, cameras: list[Camera] | None,
@@ -204,10 +206,15 @@ class ServiceState:
         notes = [*facts.get("notes", []), *upload.notes]
         if not frames and NO_CAMERAS_NOTE not in notes:
             notes.append(NO_CAMERAS_NOTE)
+        stored, note = folder_calibration(upload.calibrations, frames, facts.get("background"))
+        if note:
+            notes.append(note)
         if notes:
             facts["notes"] = bounded_notes(notes)
         same = identical(self.store.list(), upload.sha256, who.name, frames, facts)
         if same is not None:
+            if same.calibration is None and stored is not None and self.store.set_calibration(same.id, stored):
+                same = replace(same, calibration=stored)          # what the repeat carried is still used
             upload.note = (f"the same file with the same training cameras, background and capture format is stored "
                            f"already under this key, as {same.name!r} ({same.id}, uploaded {same.created_at}): this "
                            "is that model, no new entry")
@@ -215,6 +222,8 @@ class ServiceState:
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)
+        if stored is not None and self.store.set_calibration(record.id, stored):
+            record = replace(record, calibration=stored)
         parse.keep(record.id, renderer, record.size_bytes)
         self.metrics.uploads.labels(record.kind).inc()
         return record
@@ -242,6 +251,26 @@ def check_cameras_see(renderer: Renderer, cameras: list[Camera]) -> None:
                            "are another capture's, or in another frame, so its renders would be empty and its "
                            "rankings meaningless; send the cameras it was trained on, or set other_capture to store "
                            "it with these all the same", "cameras")
+
+
+def folder_calibration(entries: list[dict], frames: list[dict] | None,
+                       background: Any) -> tuple[dict[str, Any] | None, str | None]:
+    """The stored calibration (as the calibrate job stores one) of the entries a folder's
+    .phd-cache/ holds for its model file, when one was made on these training cameras over this
+    background; and a note that says it was used, or why none was."""
+    if not entries:
+        return None, None
+    entry = matching_calibration(entries, frames or [], background)
+    if entry is None:
+        return None, (f"the calibration `{entries[0].get('by', 'phd')}` stored in .phd-cache/ was made on other "
+                      "training cameras or another background than those stored: not used (calibrate here)")
+    try:
+        calibration = Calibration(**entry["result"], num_cameras=entry["views"], created_at=entry["created_at"])
+    except (KeyError, TypeError, ValueError):
+        return None, "the calibration stored in .phd-cache/ could not be read: not used (calibrate here)"
+    return calibration.model_dump(), (f"r_drop {calibration.r_drop} from the calibration `{entry.get('by', 'phd')}` "
+                                      f"stored on {calibration.created_at} in .phd-cache/ for this model file, "
+                                      "training cameras and background: not run again")
 
 
 def file_sha256(path: Path) -> str:

@@ -81,6 +81,7 @@ class Upload:
     note: str | None = None             # set when the upload is answered by a model stored already
     background_source: str | None = None   # who set `background` when it was not the request (a sidecar)
     notes: list[str] = field(default_factory=list)   # what reading a folder noted, shown with the model
+    calibrations: list[dict] = field(default_factory=list)   # a folder's stored ones for its model (FolderModel)
 
 
 @dataclass

@@ -382,7 +382,9 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
             check_target_strategy(body.strategy)
         except InputError as exc:
             raise invalid(exc.field, exc.reason) from None
-        targets = parse_cameras(body.targets, body, settings, field="targets", cap=settings.max_candidates)
+        # At the candidates' render size, whatever their own (`targets_at_size`, as `phd rank` does).
+        targets = uq.targets_at_size(read_cameras(body.targets, body, settings, field="targets",
+                                                  cap=settings.max_candidates), cameras)
     heatmaps = body.heatmaps != "none"
     returned = len(cameras) if body.top_k is None else min(body.top_k, len(cameras))
     rendered = pixels(cameras[:returned]) if heatmaps else 0   # one plain render per returned view

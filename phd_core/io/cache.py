@@ -124,3 +124,40 @@ class ModelCache:
             return False
         self.skipped = None
         return True
+
+
+# ----------------------------------------------------------------------------- calibrations
+
+CALIBRATION = "calibration"    # the entry kind of a calibration (`phd calibrate`, `rank`, `uq`, `select`)
+
+
+def cameras_digest(frames: list[dict[str, Any]]) -> str:
+    """sha256 of the frames a calibration ran on (sorted JSON): the `cameras` of its settings."""
+    return hashlib.sha256(json.dumps(frames, sort_keys=True).encode()).hexdigest()
+
+
+def calibration_entries(cache_dir: Path, model_sha256: str) -> tuple[list[dict[str, Any]], int]:
+    """The calibration entries in a cache folder made for the model whose file has `model_sha256`
+    (the `model_sha256` each entry records), and how many others it holds (another model's, or
+    written before entries recorded it). Unreadable entries count as others."""
+    mine, others = [], 0
+    for path in sorted(cache_dir.glob(CALIBRATION + "-*.json")):
+        try:
+            entry = json.loads(path.read_text())
+        except (OSError, ValueError):
+            entry = None
+        if isinstance(entry, dict) and entry.get("model_sha256") == model_sha256:
+            mine.append(entry)
+        else:
+            others += 1
+    return mine, others
+
+
+def matching_calibration(entries: list[dict[str, Any]], frames: list[dict[str, Any]],
+                         background: Any) -> dict[str, Any] | None:
+    """The newest entry calibrated on exactly these training cameras over this background (its
+    settings say both): r_drop depends on them, so an entry for others is not this model's."""
+    digest = cameras_digest(frames)
+    fits = [e for e in entries if isinstance(e.get("settings"), dict) and e["settings"].get("cameras") == digest
+            and e["settings"].get("background") == background]
+    return max(fits, key=lambda e: str(e.get("created_at", ""))) if fits else None

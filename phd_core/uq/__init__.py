@@ -28,7 +28,7 @@ from .calibrate import (
     calibrate_ssim,
 )
 from .candidates import GENERATORS
-from .rank import RankedView, candidate_evidence, coarse_cameras, rank_views
+from .rank import RankedView, candidate_evidence, coarse_cameras, rank_views, targets_at_size
 from .sampling import (
     MAX_MASKS_PER_RENDER,
     Progress,
@@ -57,6 +57,7 @@ __all__ = [
     "SELECTION_RULES", "SELECTION_TRAINING_VIEWS", "STRATEGIES", "CalibrationError", "CalibrationResult",
     "Progress", "RankedView", "RunningStd", "SelectionResult", "SelectionRule", "ViewSelection", "ViewUncertainty",
     "calibrate", "calibrate_ssim", "candidate_evidence", "coarse_cameras", "dropout_uniforms", "keep_masks",
-    "limit_mask_batch", "rank_views", "rules_help", "sample_std", "select_models", "sigma_max_bar", "uncertainty",
+    "limit_mask_batch", "rank_views", "rules_help", "sample_std", "select_models", "sigma_max_bar", "targets_at_size",
+    "uncertainty",
     "view_uncertainty",
 ]

@@ -158,6 +158,15 @@ def coarse_cameras(cameras: Sequence[Camera], scale: float) -> list[Camera]:
     return [c.resized(max(1, round(c.width * scale)), max(1, round(c.height * scale))) for c in cameras]
 
 
+def targets_at_size(targets: Sequence[Camera], candidates: Sequence[Camera]) -> list[Camera]:
+    """The target views at the candidates' render size: each scaled, its aspect kept, so that its
+    longer side is the candidates' longest. Targets only weigh what they show, so they need the
+    resolution the candidates are judged at, not their photos' (a capture's 720x1280 frames
+    would otherwise render above a server's cap while its candidates render at a tenth of that)."""
+    side = max(max(c.width, c.height) for c in candidates)
+    return [coarse_cameras([t], side / max(t.width, t.height))[0] for t in targets]
+
+
 def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, samples: int = DEFAULT_SAMPLES,
                seed: int = 0, top_k: int | None = None, strategy: str = DEFAULT_STRATEGY,
                captured: Sequence[Camera] | None = None, keep_peak: bool = False,

@@ -45,8 +45,9 @@ const PLAIN = {
   unauthorized: () => (state.key ? "The server refused this API key: check it and press \"Use key\" again." :
     "The server asks for an API key: type it at the top and press \"Use key\"."),
   no_training_cameras: () => "This model has no training cameras. " + NO_CAMERAS_ADVICE,
-  not_calibrated: (m, field) => (field === "ratio_b" ?
-    "Model B is not calibrated yet: choose it under Model in section 1, press \"Calibrate\", then choose model A again." :
+  not_calibrated: (m, field) => (field === "ratio_b" ? (modelB() && !calibratable(modelB()) ?
+    "Model B has no training cameras, so it cannot be calibrated: upload it again with them, or choose another model B." :
+    "Model B is not calibrated yet: press \"Calibrate model B\" beside Select.") :
     "This model is not calibrated yet: press \"Calibrate\" in section 1 first."),
   signal_mismatch: (m) => "The model was calibrated for another signal: calibrate it again. (" + m + ")",
   queue_full: () => "The server is busy with other work: try again in a few seconds.",
@@ -324,7 +325,13 @@ async function modelChosen() {
   if (changed) state.viewReady = false;       // until the 3D view has drawn this model
   state.training = [];
   state.up = [0, 0, 1];
-  $("model-warning").hidden = true;
+  if (changed) {                              // the last model's messages are not about this one
+    $("model-warning").hidden = true;
+    say("model-message", "");
+  }
+  $("calibrate").disabled = Boolean(model) && !calibratable(model);   // the warning says why
+  $("calibrate").title = $("calibrate").disabled ? "This model has no training cameras: see the warning above." : "";
+  showCalibrateB();
   if (!model) {
     $("model-info").textContent = "No model yet: upload one below.";
     $("upload-details").open = true;
@@ -333,17 +340,20 @@ async function modelChosen() {
     $("model-info").textContent = model.kind + ", " + model.num_units + " dropout units, " +
       (model.num_training_cameras ? model.num_training_cameras + " training cameras" : "no training cameras") +
       (model.camera_format ? " (" + model.camera_format + ")" : "") + ", " +
-      (cal ? "calibrated: r_drop = " + cal.r_drop : "not calibrated yet: press Calibrate before ranking");
+      (cal ? "calibrated: r_drop = " + cal.r_drop : model.has_training_cameras ?
+        "not calibrated yet: press Calibrate before ranking" : "so it cannot be calibrated");
     if (model.has_training_cameras) {
       const cameras = (await apiJson("/v1/models/" + model.id + "/cameras")).data;
       state.training = cameras.frames;
       state.up = cameras.up;
-    } else {
+    } else if (changed) {                     // said once, when the model is chosen: the one place for this advice
       $("model-warning").textContent = "This model has no training cameras. " + NO_CAMERAS_ADVICE;
       $("model-warning").hidden = false;
     }
-    const notes = (model.details && model.details.notes) || [];
-    if (notes.length) $("model-info").textContent += ". Read from its folder: " + notes.join(" ");
+    // What reading the model noted, but the service's note that it has no cameras (NO_CAMERAS_NOTE):
+    // the warning above says that already, with what to do.
+    const notes = ((model.details && model.details.notes) || []).filter((n) => !n.startsWith("the model has no training cameras"));
+    if (notes.length) $("model-info").textContent += ". Noted on reading it: " + notes.join(" ");
   }
   if (changed) {
     const scale = String(defaultDownscale(state.training));
@@ -371,14 +381,30 @@ function pickedFiles() {
   return files.concat([...$("upload-folder").files].map((file) => ({ file, path: file.webkitRelativePath || file.name })));
 }
 
-const IMAGES = /\.(png|jpe?g|exr|webp|tiff?|bmp|mp4|mov)$/i;   // a trainer's folder needs none of these
+// What a folder's upload leaves behind, and why: photos (the model needs none) and what `phd` keeps
+// in its .phd-cache/ but the calibrations (the service uses one made for this model, on its
+// cameras: docs/service.md), since the rest is worked out again by the service.
+const LEFT_OUT = [
+  { test: (path) => /\.(png|jpe?g|exr|webp|tiff?|bmp|mp4|mov)$/i.test(path), what: "image", why: "the model needs no photos" },
+  { test: (path) => /phd-cache\//.test(path) && !/phd-cache\/calibration-[^/]*\.json$/.test(path),
+    what: "other .phd-cache file", why: "results the service works out itself" },
+];
+const leftOut = (path) => LEFT_OUT.find((rule) => rule.test(path)) || null;
+const plural = (count, word) => `${count} ${word}${count === 1 ? "" : "s"}`;
 
+// The line under the pickers: what goes up (the first few named), what stays behind and why.
 function describePicked() {
   const picked = pickedFiles();
-  const images = picked.filter((p) => IMAGES.test(p.path)).length;
-  $("upload-picked").textContent = picked.length === 0 ? "" : picked.length === 1 ? "1 file: " + picked[0].path :
-    `${picked.length} files` + (images ? ` (${images} images left out: the model does not need them)` : "") +
-    ": " + picked.filter((p) => !IMAGES.test(p.path)).slice(0, 4).map((p) => p.path).join(", ") + (picked.length > 4 ? ", ..." : "");
+  if (picked.length <= 1) {
+    $("upload-picked").textContent = picked.length ? "Uploads 1 file: " + picked[0].path : "";
+    return;
+  }
+  const sent = picked.filter((p) => !leftOut(p.path));
+  const behind = LEFT_OUT.map((rule) => [rule, picked.filter((p) => leftOut(p.path) === rule).length])
+    .filter(([, count]) => count).map(([rule, count]) => `${plural(count, rule.what)} (${rule.why})`);
+  $("upload-picked").textContent = `Uploads ${plural(sent.length, "file")}: ` +
+    sent.slice(0, 4).map((p) => p.path).join(", ") + (sent.length > 4 ? ", ..." : "") + "." +
+    (behind.length ? " Leaves out " + behind.join(" and ") + "." : "");
 }
 
 // What a drop holds, folders walked: [{file, path}].
@@ -419,7 +445,7 @@ const stem = (path) => path.replace(/^.*\//, "").replace(/\.[^.]*$/, "");
 // model picked with a camera file that is not its sidecar (<stem>.json) sends that file as its
 // training cameras.
 async function uploadForm() {
-  let picked = pickedFiles().filter((p) => !IMAGES.test(p.path) || pickedFiles().length === 1);
+  let picked = pickedFiles().filter((p) => !leftOut(p.path) || pickedFiles().length === 1);
   if (picked.length === 0) throw new ApiError("Choose the model's files first (or drop them on the box).");
   const json = picked.filter((p) => /\.json$/i.test(p.path));
   const model = picked.filter((p) => !/\.json$/i.test(p.path));
@@ -461,35 +487,53 @@ async function upload(event) {
   state.dropped = null;
   $("upload-other-capture").checked = false;          // the override was for these files only
   $("upload-other-capture-row").hidden = true;
+  // Messages about the models before this upload (a failed calibration, a warning) are done with.
+  $("model-warning").hidden = true;
+  say("model-message", "");
   // The model chosen as A stays A (its ranking too): the new one becomes model B.
   await loadModels(keepA ? keepA.id : info.id, keepA ? info.id : undefined);
   const where = keepA ? "It is model B for selection; choose it under Model to rank it." : "It is the chosen model.";
   if (info.note) {
     say("upload-message", `${info.name}: ${info.note}. ${where}`);
   } else if (!info.has_training_cameras) {
-    say("upload-message", `Uploaded ${info.name}, but it has no training cameras. ` + NO_CAMERAS_ADVICE, "warning");
+    // Chosen, the warning under Model gives the advice; as model B, this is the one place for it.
+    say("upload-message", `Uploaded ${info.name}, but it has no training cameras. ` +
+      (keepA ? NO_CAMERAS_ADVICE : "What to add is said under Model above."), "warning");
   } else {
     say("upload-message", `Uploaded ${info.name}: ${info.kind}, ${info.num_training_cameras} training cameras` +
-      (info.camera_format ? ` (${info.camera_format})` : "") + ". " + where);
+      (info.camera_format ? ` (${info.camera_format})` : "") +
+      (info.calibration ? `, calibrated: r_drop = ${info.calibration.r_drop} (the calibration phd stored in its .phd-cache/)` : "") +
+      ". " + where);
   }
 }
 
-async function calibrate() {
-  const model = currentModel();
+// Calibrate a model with section 1's samples and downscale, reported in the line `where` and the
+// bar `bar`: the chosen model from section 1, model B from section 4 (A stays chosen, its ranking shown).
+async function calibrate(model, where, bar) {
   if (!model) throw new ApiError("Choose or upload a model first.");
-  say("model-message", "calibrating " + model.name + "...");
-  $("calibrate").disabled = true;          // one calibration at a time from this page
+  say(where, "calibrating " + model.name + "...");
+  for (const id of ["calibrate", "calibrate-b"]) $(id).disabled = true;   // one calibration at a time from this page
   let result;
   try {
     result = await runJob("/v1/models/" + model.id + "/calibrate",
-      { samples: Number($("cal-samples").value), downscale: Number($("cal-downscale").value) }, $("cal-progress"));
+      { samples: Number($("cal-samples").value), downscale: Number($("cal-downscale").value) }, bar);
   } finally {
-    $("calibrate").disabled = false;
+    $("calibrate-b").disabled = false;
+    $("calibrate").disabled = Boolean(currentModel()) && !calibratable(currentModel());
   }
-  say("model-message", "calibrated " + model.name + ": r_drop = " + result.r_drop);
+  say(where, "calibrated " + model.name + ": r_drop = " + result.r_drop);
   await loadModels($("model-select").value);   // the model chosen now, which may be another one by this time
   // The 3D view explains the calibrated model again (fragility is measured at its new ratio).
   if (view3d() && state.viewReady && state.modelId === model.id) await view3d().refresh();
+}
+
+const modelB = () => state.models.find((m) => m.id === $("model-b-select").value) || null;
+const calibratable = (model) => model.has_training_cameras;   // calibration renders the training views
+
+// "Calibrate model B" beside Select: for a model B that is not calibrated and can be (it has cameras).
+function showCalibrateB() {
+  const b = modelB();
+  $("calibrate-b").hidden = !(b && !b.calibration && calibratable(b) && b.id !== $("model-select").value);
 }
 
 async function deleteModel() {
@@ -948,7 +992,11 @@ function start() {
   $("refresh-models").addEventListener("click", () => guarded("model-message", () => loadModels($("model-select").value)));
   $("model-select").addEventListener("change", () => guarded("model-message", modelChosen));
   $("delete-model").addEventListener("click", () => guarded("model-message", deleteModel));
-  $("calibrate").addEventListener("click", () => guarded("model-message", calibrate));
+  $("calibrate").addEventListener("click", () => guarded("model-message", () =>
+    calibrate(currentModel(), "model-message", $("cal-progress"))));
+  $("calibrate-b").addEventListener("click", () => guarded("select-message", () =>
+    calibrate(modelB(), "select-message", $("select-progress"))));
+  $("model-b-select").addEventListener("change", () => { say("select-message", ""); showCalibrateB(); });
   $("upload-form").addEventListener("submit", (e) => guarded("upload-message", () => upload(e)));
   for (const id of ["upload-file", "upload-folder"]) {
     $(id).addEventListener("change", () => { state.dropped = null; describePicked(); });

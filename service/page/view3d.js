@@ -34,8 +34,15 @@ const EXPLAIN_SAMPLES = 8;          // masks per view for fragility: the page's 
 const EXPLAIN_SIDE = 160;           // explain renders at most this many pixels a side (downscaled from the frames)
 const FRUSTUM_SHARE = 0.12;         // a frustum's depth, of the scene's radius
 const BACKGROUND = 0x15181d;
-// Target views: orange, off the candidates' ramp and the cameras' greys, and faint (under the candidates).
-const TARGET = { rgb: [255, 140, 0], fill: 0.25, opacity: 0.8 };
+// How each kind of frustum is drawn: wire colour and opacity, and the fill of its image rectangle.
+// The legend draws its swatches from the same table, so a swatch looks like the frusta it names.
+// Target views: orange, off the candidates' ramp and the cameras' greys, and faint: a capture's
+// whole path (tens of frusta) lies over the training cameras and the model and must not hide them.
+const FRUSTA = {
+  training: { rgb: [232, 236, 240], opacity: 0.75, fill: 0 },
+  target: { rgb: [255, 140, 0], opacity: 0.35, fill: 0.1 },
+  unreturned: { rgb: [138, 148, 160], opacity: 0.3, fill: 0 },
+};
 
 // Ramps: five stops each, low to high. Scores and fragility on the heat maps' ramp (viridis);
 // coverage from red (no captured view saw it) to teal (seen by many); novelty grey to magenta.
@@ -155,6 +162,7 @@ const view = {
   root: null, renderer: null, scene: null, camera: null, controls: null,
   headers: {}, modelId: null, header: null, points: null, positions: null, up: [0, 0, 1],
   training: [], ranking: null, frusta: [], selected: null, pickCallbacks: [], targets: [], targetFrusta: [],
+  targetsShown: true, // the legend's check box: the target views' frusta drawn
   mode: "colour", explained: null, explaining: null, radius: 1, centre: new THREE.Vector3(),
   sortPending: true, sortMs: null, touched: false, blobs: [],
   noWebGL: null,      // why the browser cannot draw the view, once it has failed to
@@ -288,7 +296,7 @@ function sortPoints() {
 
 // ------------------------------------------------------------------ frusta
 
-function frustum(frame, colour, { fill = 0, opacity = 1, order = 1 } = {}) {
+function frustum(frame, colour, { fill = 0, opacity = 1, order = 1 } = {}) {   // colour: a THREE.Color
   const cam = frameCamera(frame);
   const d = FRUSTUM_SHARE * view.radius;
   // Image corners at depth d, camera space (OpenGL: x right, y up, looking along -z).
@@ -320,10 +328,14 @@ function frustum(frame, colour, { fill = 0, opacity = 1, order = 1 } = {}) {
   return { group, wire, quad, centre, top: top.clone().applyMatrix4(cam.c2w), depth: d };
 }
 
+// A frustum drawn as FRUSTA says for its kind.
+const styled = (frame, style, order = 1) => frustum(frame, new THREE.Color(css(style.rgb)),
+  { fill: style.fill, opacity: style.opacity, order });
+
 function drawTraining() {
   if (view.trainingGroup) view.scene.remove(view.trainingGroup);
   view.trainingGroup = new THREE.Group();
-  for (const frame of view.training) view.trainingGroup.add(frustum(frame, 0xe8ecf0, { opacity: 0.75 }).group);
+  for (const frame of view.training) view.trainingGroup.add(styled(frame, FRUSTA.training).group);
   view.scene.add(view.trainingGroup);
 }
 
@@ -331,9 +343,9 @@ function drawTraining() {
 function drawTargets() {
   if (view.targetGroup) view.scene.remove(view.targetGroup);
   view.targetGroup = new THREE.Group();
-  view.targetFrusta = view.targets.map((frame) => frustum(frame, new THREE.Color(css(TARGET.rgb)),
-    { fill: TARGET.fill, opacity: TARGET.opacity, order: 2 }));
+  view.targetFrusta = view.targets.map((frame) => styled(frame, FRUSTA.target, 2));
   for (const f of view.targetFrusta) view.targetGroup.add(f.group);
+  view.targetGroup.visible = view.targetsShown;
   view.scene.add(view.targetGroup);
   draw();
 }
@@ -349,7 +361,7 @@ function drawCandidates() {
   const lo = Math.min(...scores), hi = Math.max(...scores);
   const returned = new Set(r.views.map((v) => v.index));
   (view.allCandidates || []).forEach((frame, index) => {
-    if (!returned.has(index)) view.candidateGroup.add(frustum(frame, 0x8a94a0, { opacity: 0.3, order: 2 }).group);
+    if (!returned.has(index)) view.candidateGroup.add(styled(frame, FRUSTA.unreturned, 2).group);
   });
   // Low ranks drawn last: the first to capture lies on top where frusta overlap.
   [...r.views].sort((a, b) => b.rank - a.rank).forEach((v, k) => {
@@ -467,9 +479,11 @@ function applyMode() {
   if (!points) return;
   const uniforms = points.material.uniforms;
   const values = view.explained && view.explained.values[view.mode];
-  if (view.mode === "colour" || !values) {
-    uniforms.mode.value = 0;
+  if (view.mode === "colour" || !values || nothingNew()) {
+    uniforms.mode.value = 0;                 // the splats' own colours; nothingNew says why in words
+    if (nothingNew()) say(NOTHING_NEW);
   } else {
+    say(measured(view.explained.result));   // what the explanation measured (not NOTHING_NEW from before)
     points.geometry.setAttribute("value", new THREE.BufferAttribute(values, 1, true));
     uniforms.mode.value = 1;
     uniforms.ramp.value = RAMPS[view.mode].map((c) => new THREE.Vector3(...c.map((v) => v / 255)));
@@ -477,6 +491,14 @@ function applyMode() {
   drawLegend();
   draw();
 }
+
+// Whether "seen by #1" has nothing to show: the first pick sees no part of a splat the captured
+// views had not (its explained novelty's scale is 0), which the status line then says in words.
+const nothingNew = () => view.mode === "novelty" && view.explained && view.explained.result.scales.novelty === 0;
+
+// What an explanation measured, in the status line.
+const measured = (result) => `${result.num_views} training views, N = ${result.samples}, dropout ratio ` +
+  `${result.dropout_ratio}: ${(100 * result.unseen_share).toFixed(1)} % of the splats no training view saw`;
 
 function pickFrame() {
   const first = view.ranking && view.ranking.views.find((v) => v.rank === 1);
@@ -517,8 +539,7 @@ async function explainModel() {
       if (result.count !== view.header.count) throw new ViewError("the explanation is for other points than those drawn");
       const decode = (b64) => Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
       view.explained = { key, result, values: Object.fromEntries(Object.entries(result.values).map(([k, v]) => [k, decode(v)])) };
-      say(`${result.num_views} training views, N = ${result.samples}, dropout ratio ${result.dropout_ratio}: ` +
-        `${(100 * result.unseen_share).toFixed(1)} % of the splats no training view saw`);
+      say(measured(result));
     } finally {
       view.progress.hidden = true;
       if (view.explaining === mine) view.explaining = null;   // a newer request stays
@@ -528,26 +549,45 @@ async function explainModel() {
   return mine.promise;
 }
 
+const SVG = "http://www.w3.org/2000/svg";
+
+// A legend swatch: a small frustum (image rectangle, the edges to its centre, the up mark) on the
+// view's background, drawn in the wire colour, opacity and fill FRUSTA gives that kind.
+function glyph(kind) {
+  const style = FRUSTA[kind];
+  const svg = document.createElementNS(SVG, "svg");
+  const path = document.createElementNS(SVG, "path");
+  for (const [k, v] of Object.entries({ class: `v3d-glyph ${kind}`, viewBox: "0 0 22 16", width: "22", height: "16" })) svg.setAttribute(k, v);
+  for (const [k, v] of Object.entries({ d: "M4 5H18V14H4ZM4 5L11 9.5L18 5M4 14L11 9.5L18 14M8 5L11 2L14 5", stroke: css(style.rgb),
+    "stroke-opacity": style.opacity, fill: style.fill ? css(style.rgb) : "none", "fill-opacity": style.fill })) path.setAttribute(k, v);
+  svg.append(path);
+  return svg;
+}
+
+const NOTHING_NEW = "#1 shows no part of a splat that the training views had not already shown, so no splat is " +
+  "coloured here: its score comes from seeing splats from new angles and from where the model is unsure (fragility).";
+
 function drawLegend() {
   const parts = [];
   if (view.ranking) {
     const bar = el("span", { class: "v3d-ramp score" });
     parts.push(el("span", { class: "v3d-key" }, el("span", { text: "candidate score: low " }), bar, el("span", { text: " high (capture first); #n = rank" })));
   }
-  parts.push(el("span", { class: "v3d-key" }, el("span", { class: "v3d-swatch train" }), el("span", { text: " training camera" })));
-  if (view.targets.length) {
-    const swatch = el("span", { class: "v3d-swatch target" });   // in the frusta's own colours (TARGET)
-    swatch.style.borderColor = css(TARGET.rgb);
-    swatch.style.backgroundColor = `rgba(${TARGET.rgb.join(",")}, ${TARGET.fill})`;
-    parts.push(el("span", { class: "v3d-key" }, swatch, el("span", { text: ` target view (${view.targets.length})` })));
+  parts.push(el("span", { class: "v3d-key" }, glyph("training"), el("span", { text: " training camera" })));
+  if (view.targets.length) {     // a check box: the target views' frusta shown or hidden
+    const box = el("input", { type: "checkbox", class: "v3d-targets-shown" });
+    box.checked = view.targetsShown;
+    box.addEventListener("change", () => showTargetFrusta(box.checked));
+    parts.push(el("label", { class: "v3d-key" }, box, glyph("target"), el("span", { text: ` target view (${view.targets.length})` })));
   }
   if (view.ranking && view.allCandidates && view.allCandidates.length > view.ranking.views.length) {
-    parts.push(el("span", { class: "v3d-key" }, el("span", { class: "v3d-swatch none" }), el("span", { text: " not returned" })));
+    parts.push(el("span", { class: "v3d-key" }, glyph("unreturned"), el("span", { text: " not returned" })));
   }
   const mode = MODES[view.mode];
-  if (mode.legend && view.explained && view.explained.values[view.mode]) {
+  if (mode.legend && view.explained && view.explained.values[view.mode] && !nothingNew()) {
     const scale = view.explained.result.scales[view.mode];
-    const top = { coverage: `${scale}+ views`, fragility: `zeta ${Number(scale).toPrecision(3)}`, novelty: "all of it" }[view.mode];
+    const top = { coverage: `${scale}+ views`, fragility: `zeta ${Number(scale).toPrecision(3)}`,
+      novelty: `${(100 * scale).toPrecision(2)} % of it or more` }[view.mode];
     parts.push(el("span", { class: "v3d-key" }, el("span", { text: `${mode.legend[0]} (0) ` }),
       el("span", { class: "v3d-ramp " + view.mode }), el("span", { text: ` ${mode.legend[1]} (${top})` })));
     if (view.mode !== "coverage") parts.push(el("span", { class: "v3d-key" }, el("span", { class: "v3d-swatch unseen" }), el("span", { text: " no view shows it" })));
@@ -655,6 +695,13 @@ function showTargets(frames) {
   drawFrusta();
 }
 
+// The legend's check box: the target views' frusta shown or not (they stay in the legend either way).
+function showTargetFrusta(shown) {
+  view.targetsShown = shown;
+  if (view.targetGroup) view.targetGroup.visible = shown;
+  draw();
+}
+
 // Every frustum again (their size follows the scene's reach, which fit() sets) and the legend.
 function drawFrusta() {
   drawTraining();
@@ -696,7 +743,8 @@ function debug() {
     total: view.header ? view.header.total : 0, training: view.training.length, mode: view.mode,
     explained: view.explained ? Object.keys(view.explained.values) : [], selected: view.selected,
     frusta: view.frusta.map((f) => ({ index: f.index, rank: f.rank, rgb: f.rgb, centre: f.centre.toArray() })),
-    targets: view.targetFrusta.map((f) => ({ rgb: TARGET.rgb, fill: TARGET.fill, centre: f.centre.toArray() })),
+    targets: view.targetFrusta.map((f) => ({ rgb: FRUSTA.target.rgb, fill: FRUSTA.target.fill, centre: f.centre.toArray() })),
+    targetsShown: view.targetsShown, styles: FRUSTA,
     centre: view.centre.toArray(), up: view.up.slice(), sortMs: view.sortMs,
   };
 }

@@ -66,3 +66,21 @@ def test_rank_refuses_targets_for_a_strategy_that_ignores_them(box, capsys) -> N
     code, _, err = run(capsys, "rank", "--model", box["model"], "--candidates", box["candidates"],
                        "--dropout-ratio", 0.3, "--samples", 4, "--targets", "missing/targets.json")
     assert code == 2 and "targets: no such file" in err
+
+
+def test_rank_renders_targets_at_the_candidates_size_as_the_service_does(box, capsys, tmp_path) -> None:
+    """Targets written at twice the candidates' size (a capture's full-size frames) rank exactly as
+    targets at the candidates' size: the service's rule (`targets_at_size`), not their photos' size."""
+    large = tmp_path / "large_targets.json"
+    large.write_text(json.dumps([c.resized(2 * c.width, 2 * c.height).to_frame() for c in TARGETS]))
+    argv = ["rank", "--model", box["model"], "--candidates", box["candidates"], "--captured", box["captured"],
+            "--dropout-ratio", 0.3, "--samples", 4, "--json", "--targets"]
+    code, out, _ = run(capsys, *argv, large)
+    expected = phd.rank_views(load_model(box["model"]), CANDIDATES, ratio=0.3, samples=4, captured=CAPTURED,
+                              targets=TARGETS)
+    assert code == 0 and [r["score"] for r in json.loads(out)["ranking"]] == pytest.approx(
+        [r.score for r in expected], rel=1e-6)
+    # Portrait targets keep their aspect: the longer side becomes the candidates' longest.
+    portrait = [TARGETS[0].resized(40, 80)]
+    assert [(c.width, c.height) for c in phd.targets_at_size(portrait, CANDIDATES)] == [
+        (CANDIDATES[0].width // 2, CANDIDATES[0].width)]

@@ -18,6 +18,7 @@ import pytest
 from client import PHDClient
 from phd_core import uq
 from phd_core.data import candidate_name, export_cameras
+from phd_core.renderers.gs3d import write_ply
 from phd_core.scene import camera_from_frame
 from phd_core.uq.candidates import candidate_cameras
 from support.browser import chromium, have_browser, hold_worker
@@ -248,6 +249,31 @@ def test_page_selection_shows_both_renders_and_the_choice(browser, models, tmp_p
     browser.save_screenshot(str(tmp_path / "page_select.png"))
     assert _csp_violations(browser) == []
 
+    # A model B not calibrated yet is calibrated from here: model A stays chosen, its ranking shown.
+    write_ply(svc_random_gaussians(200, seed=3), tmp_path / "fresh.ply")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        fresh = phd.upload_model(tmp_path / "fresh.ply", cameras=svc_cameras(3), name="fresh")
+        try:
+            assert not browser.find_element(By.ID, "calibrate-b").is_displayed()      # model B is calibrated
+            browser.find_element(By.ID, "refresh-models").click()
+            wait(browser, lambda d: len(Select(d.find_element(By.ID, "model-b-select")).options) == 3,
+                 what="the new model")
+            Select(browser.find_element(By.ID, "model-b-select")).select_by_value(fresh.id)
+            browser.find_element(By.ID, "calibrate-b").click()
+            wait(browser, lambda d: "calibrated fresh: r_drop" in text_of(d, "select-message"), what="model B's r_drop")
+            assert phd.get_model(fresh.id).calibration is not None
+            assert Select(browser.find_element(By.ID, "model-select")).first_selected_option.get_attribute(
+                "value") == model_a.id
+            ranked = browser.execute_script("return state.ranking")
+            assert ranked["modelId"] == model_a.id and [int(c.get_attribute("data-index")) for c in
+                                                        browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")] \
+                == [v["index"] for v in ranked["views"]]
+            assert not browser.find_element(By.ID, "calibrate-b").is_displayed()
+            browser.find_element(By.ID, "select-run").click()           # over the same ranked poses, against B
+            wait(browser, lambda d: "(fresh)" in text_of(d, "select-summary"), what="the selection against B")
+        finally:
+            phd.delete_model(fresh.id)
+
 
 def test_page_takes_the_users_own_candidate_list(browser, models, tmp_path):
     server, model_a, _ = models
@@ -330,6 +356,15 @@ def test_page_ranks_for_target_views_from_a_file(browser, models, tmp_path):
     assert "in the order to capture them for the 2 target views;" in text_of(browser, "rank-summary")
     assert text_of(browser, "targets-message") == ""
     assert len(browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand[fill]")) == 5
+    # Target views whose own size is above the server's cap of 800 pixels a side (a phone's frames):
+    # rendered at the candidates' size, so the same order, not a refusal.
+    set_field(browser, "targets-width", 1200)
+    set_field(browser, "targets-height", 1200)
+    browser.find_element(By.ID, "rank-run").click()
+    wait(browser, lambda d: "Ranked" in text_of(d, "rank-message") or "error" in _classes(d, "targets-message"),
+         what="the ranking for the large target views")
+    assert [int(c.get_attribute("data-index")) for c in browser.find_elements(
+        By.CSS_SELECTOR, "#rank-grid li.card")] == order, text_of(browser, "targets-message")
     browser.find_element(By.ID, "targets-clear").click()
     wait(browser, lambda d: d.execute_script("return phdView3d.debug().targets.length") == 0, what="cleared targets")
     assert text_of(browser, "targets-info") == "" and not browser.find_element(By.ID, "targets-clear").is_displayed()
@@ -424,6 +459,56 @@ def test_page_uploads_calibrates_and_deletes_a_model(browser, svc_model_files, t
         server.stop()
 
 
+def _messages(driver) -> dict[str, str]:
+    """The text of every message line and warning of the sections shown, and the model's facts line, by id."""
+    return driver.execute_script(
+        "return Object.fromEntries([...document.querySelectorAll('main .message, #model-info')]"
+        ".filter(p => !p.hidden && p.textContent).map(p => [p.id, p.textContent]))")
+
+
+def test_page_says_each_cause_once_and_forgets_it_with_the_next_upload(browser, svc_model_files, tmp_path):
+    """A PLY without its sidecar: that it has no cameras and what to add is said once (the warning
+    under Model), with no advice that cannot apply (press Calibrate; read from its folder), and
+    Calibrate is off. The next upload, with cameras, leaves no message of the first model's."""
+    from service.runner import BackgroundServer
+    from service.settings import Settings
+
+    server = BackgroundServer(Settings(data_dir=tmp_path / "data", api_key=KEY))
+    try:
+        _open_empty(browser, server)
+        choose_files(browser, "upload-file", svc_model_files["ply_b"])
+        browser.find_element(By.ID, "upload-run").click()
+        wait(browser, lambda d: "Uploaded" in text_of(d, "upload-message"), what="the bare PLY")
+        said = _messages(browser)
+        assert [where for where, text in said.items() if "sidecar" in text] == ["model-warning"], said
+        assert "no training cameras, so it cannot be calibrated" in said["model-info"]
+        assert not any(words in text for text in said.values() for words in ("press Calibrate", "folder:"))
+        assert browser.find_element(By.ID, "calibrate").get_attribute("disabled") is not None
+        # Model B with cameras: model A (chosen) keeps its facts, its warning is not left above B's message.
+        cameras = tmp_path / "transforms_train.json"
+        cameras.write_text(json.dumps({"frames": [c.to_frame() for c in svc_cameras(3)]}))
+        choose_files(browser, "upload-file", svc_model_files["ply"])
+        choose_files(browser, "upload-cameras", cameras)
+        browser.find_element(By.ID, "upload-run").click()
+        wait(browser, lambda d: "It is model B" in text_of(d, "upload-message"), what="model B")
+        said = _messages(browser)
+        assert set(said) == {"model-info", "upload-message"} and "sidecar" not in said["upload-message"], said
+        assert "warning" not in _classes(browser, "upload-message")
+        # Choosing a model says what is news about it: nothing for the one with cameras, the advice
+        # (once) for the bare one chosen again, Calibrate on and off with them.
+        bare, with_cameras = (o.get_attribute("value") for o in Select(
+            browser.find_element(By.ID, "model-select")).options)
+        Select(browser.find_element(By.ID, "model-select")).select_by_value(with_cameras)
+        wait(browser, lambda d: "3 training cameras" in text_of(d, "model-info"), what="the model with cameras")
+        assert "model-warning" not in _messages(browser)
+        assert browser.find_element(By.ID, "calibrate").get_attribute("disabled") is None
+        Select(browser.find_element(By.ID, "model-select")).select_by_value(bare)
+        wait(browser, lambda d: "model-warning" in _messages(d), what="the bare model's warning")
+        assert [where for where, text in _messages(browser).items() if "sidecar" in text] == ["model-warning"]
+    finally:
+        server.stop()
+
+
 def test_page_refuses_another_captures_cameras_and_uploads_them_when_told(browser, svc_model_files, tmp_path):
     """Training cameras that see none of the model (raised 100 units: another capture's frame): the
     service's refusal in the page's words, and the box that overrides it; ticked, the same files upload."""
@@ -499,7 +584,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     assert browser.find_element(By.ID, "upload-details").get_attribute("open") is not None   # opened for a newcomer
 
     choose_files(browser, "upload-file", svc_trained, sidecar)          # picked together, as trained
-    assert text_of(browser, "upload-picked").startswith("2 files")
+    assert text_of(browser, "upload-picked").startswith("Uploads 2 files: ")
     browser.find_element(By.ID, "upload-run").click()
     run = f"{svc_trained.parent.name}/model"                           # named by its sidecar, not "model.ply"
     wait(browser, lambda d: f"Uploaded {run}: 3dgs, 4 training cameras (blender)" in text_of(d, "upload-message"),
@@ -550,7 +635,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
         "for (const f of input.files) dt.items.add(f); input.value = ''; "
         "document.getElementById('drop-zone').dispatchEvent(new DragEvent('drop', {dataTransfer: dt, bubbles: true, "
         "cancelable: true}))")
-    wait(browser, lambda d: text_of(d, "upload-picked") == "1 file: run.zip", what="the dropped zip")
+    wait(browser, lambda d: text_of(d, "upload-picked") == "Uploads 1 file: run.zip", what="the dropped zip")
     set_field(browser, "upload-name", "from the zip")
     browser.find_element(By.ID, "upload-run").click()
     wait(browser, lambda d: "Uploaded from the zip: 3dgs, 3 training cameras (blender). It is model B"
@@ -610,12 +695,14 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
             assert {n: files.read(n) for n in files.namelist()} == {
                 f"colmap/{p.name}": p.read_bytes() for p in written.iterdir()}
 
-    # Selection against the model without cameras (so never calibrated): said beside Select, in words.
+    # Selection against the model without cameras (so never calibrated): said beside Select, in words
+    # that fit (it cannot be calibrated: no "press Calibrate", no Calibrate model B button).
     Select(browser.find_element(By.ID, "model-b-select")).select_by_value(model_b.id)
     browser.find_element(By.ID, "select-run").click()
     wait(browser, lambda d: "error" in _classes(d, "select-message"), what="the calibration's error")
     said = text_of(browser, "select-message")
-    assert said.startswith("Model B is not calibrated yet: choose it under Model")
+    assert said.startswith("Model B has no training cameras, so it cannot be calibrated")
+    assert not browser.find_element(By.ID, "calibrate-b").is_displayed()
     assert _in_view(browser, "select-message")
     assert not any(word in said for word in ("/v1", "409", "field", "ratio_b", model_b.id))
     assert browser.find_element(By.ID, "select-progress").get_attribute("hidden") is not None
@@ -687,30 +774,64 @@ def test_api_docs_render_offline(browser, trained_server):
     assert icon.status_code == 200 and icon.headers["content-type"] == "image/svg+xml"
 
 
-def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, trained_server, tmp_path):
+def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, trained_server, tmp_path, capsys):
     """A reference-trainer output folder picked whole (the folder input): its files go up by their
-    paths, its images stay behind, and the service reads it as the client does."""
+    paths, its images and phd's cached results stay behind (the line says which and why), and the
+    service reads it as the client does. The calibration `phd calibrate` stored in its .phd-cache/
+    for this model and these cameras is used, not run again; one made on other cameras is not."""
+    from phd_cli import main
     from support.captures import write_output_folder
 
     server = trained_server
     folder = write_output_folder(tmp_path / "lego_out", svc_random_gaussians(200), svc_cameras(3))
     (folder / "input.png").write_bytes(b"\x89PNG not needed")
+    calibrate = ["calibrate", "--model", str(folder), "--epsilon", "0.05", "--step", "0.2", "--samples", "3",
+                 "--quiet", "--out"]
+    assert main([*calibrate, str(tmp_path / "calibration.json")]) == 0
+    r_drop = json.loads((tmp_path / "calibration.json").read_text())["r_drop"]
+    cached = sorted(p.name for p in (folder / ".phd-cache").iterdir())
+    assert len(cached) == 2 and cached[0].startswith("calibration-")      # the entry, and the digest memo
     browser.get(server.url + "/ui/")
     set_field(browser, "api-key", KEY)
     browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
     wait(browser, lambda d: text_of(d, "message") == "key saved in this browser", what="the key")
     browser.execute_script("document.getElementById('upload-details').open = true")
     browser.find_element(By.ID, "upload-folder").send_keys(str(folder))
-    wait(browser, lambda d: "(1 images left out" in text_of(d, "upload-picked"), what="the picked folder")
+    wait(browser, lambda d: "Leaves out" in text_of(d, "upload-picked"), what="the picked folder")
+    picked = text_of(browser, "upload-picked")
+    assert picked.startswith("Uploads 5 files: ") and picked.endswith(
+        "Leaves out 1 image (the model needs no photos) and 1 other .phd-cache file (results the service "
+        "works out itself)."), picked
     browser.find_element(By.ID, "upload-run").click()
     wait(browser, lambda d: "3dgs, 3 training cameras (3dgs-output)" in text_of(d, "upload-message"),
          what="the folder's model")
+    assert f"calibrated: r_drop = {r_drop} (the calibration phd stored" in text_of(browser, "upload-message")
     with PHDClient(server.url, api_key=KEY) as phd:
         # The same run through the client: the page's model (the same bytes, cameras and background), named alike.
         expected = phd.upload_model(folder)
         assert "no new entry" in (expected.note or "")
         assert text_of(browser, "upload-message").startswith(f"Uploaded {expected.name}: ")
         assert [m.id for m in phd.list_models() if m.name == expected.name] == [expected.id]
+        assert expected.calibration is not None and expected.calibration.r_drop == r_drop
+        assert any("not run again" in note for note in expected.details["notes"])
+        phd.delete_model(expected.id)
+
+    # Calibrated on other cameras (at half their size) only: that calibration is not this model's.
+    for entry in (folder / ".phd-cache").glob("calibration-*.json"):
+        entry.unlink()
+    assert main([*calibrate, str(tmp_path / "half.json"), "--downscale", "2"]) == 0
+    capsys.readouterr()
+    browser.execute_script("document.getElementById('upload-folder').value = ''")    # the folder as it is now
+    browser.find_element(By.ID, "upload-folder").send_keys(str(folder))
+    browser.find_element(By.ID, "upload-run").click()
+    wait(browser, lambda d: text_of(d, "upload-message").startswith(f"Uploaded {expected.name}: 3dgs, 3 training "
+                                                                   "cameras (3dgs-output). It is"),
+         what="the second folder upload, not calibrated")
+    with PHDClient(server.url, api_key=KEY) as phd:
+        again = next(m for m in phd.list_models() if m.name == expected.name and m.id != expected.id)
+        assert again.calibration is None
+        assert any("made on other training cameras" in note for note in again.details["notes"])
+        phd.delete_model(again.id)
     # A PLY picked with a transforms file that is not its sidecar: the file goes up as its cameras,
     # and as its frames say no image size, the page asks for it beside the upload.
     cameras = tmp_path / "transforms_train.json"

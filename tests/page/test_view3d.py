@@ -7,6 +7,7 @@ where the returned poses project through the view's camera, computed here."""
 from __future__ import annotations
 
 import base64
+import json
 import re
 
 import httpx
@@ -211,6 +212,10 @@ def test_colour_modes_show_coverage_fragility_and_what_the_first_pick_sees(brows
     assert np.abs(fragility - coverage).sum(-1).mean() > 20
     _call(browser, "phdView3d.setMode('novelty')")
     assert "newly seen by #1" in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    # What #1 adds is drawn to the share it reaches: magenta splats, not a model all grey.
+    novelty = _pixels(browser)[area].astype(int)
+    magenta = (novelty[..., 0] > 150) & (novelty[..., 2] > 150) & (novelty[..., 1] < 110)
+    assert magenta.sum() > 20, magenta.sum()
     # One explain job served all three modes: its pick is the ranking's first pose.
     jobs = browser.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
     assert sum(name.endswith(f"/v1/models/{model.id}/explain") for name in jobs) == 1
@@ -218,6 +223,23 @@ def test_colour_modes_show_coverage_fragility_and_what_the_first_pick_sees(brows
     _call(browser, "phdView3d.setMode('colour')")
     assert np.abs(_pixels(browser)[area].astype(int) - before).max() <= 2
     assert all(name.startswith((server.url, "blob:", "data:")) for name in jobs)     # nothing from another host
+    # A first pick that shows nothing new (here it looks away from the model): said in words, and
+    # the splats keep their own colours rather than all turning grey.
+    away = json.loads(json.dumps(ranking))
+    matrix = np.array(away["views"][0]["camera"]["transform_matrix"])
+    matrix[:3, 0] *= -1
+    matrix[:3, 2] *= -1                                       # turned about its own y axis: looking outwards
+    away["views"][0]["camera"]["transform_matrix"] = matrix.tolist()
+    _call(browser, "phdView3d.showRanking(arguments[0], {candidates: arguments[1]})", away, candidates)
+    before = _pixels(browser)[area].astype(int)              # the splats' own colours, as framed now
+    _call(browser, "phdView3d.setMode('novelty')")
+    status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status").text
+    assert "#1 shows no part of a splat that the training views had not already shown" in status
+    assert "newly seen by #1" not in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
+    assert np.abs(_pixels(browser)[area].astype(int) - before).max() <= 2
+    _call(browser, "phdView3d.setMode('coverage')")        # another mode says what was measured again
+    assert "training views, N = " in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status").text
+    _call(browser, "phdView3d.setMode('colour')")
     assert _console_errors(browser) == []
 
 
@@ -242,9 +264,17 @@ def test_target_views_are_drawn_faint_in_their_own_colour_where_they_project(bro
     ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(25, 10).release().perform()
     state = browser.execute_script("return phdView3d.debug()")
     with_targets = _pixels(browser).astype(float)
+    # The legend's check box hides the target frusta and shows them again (the legend keeps the entry).
+    shown = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend input.v3d-targets-shown")
+    shown.click()
+    assert browser.execute_script("return phdView3d.debug().targetsShown") is False
+    hidden = _pixels(browser).astype(float)
+    browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend input.v3d-targets-shown").click()
+    assert np.abs(_pixels(browser).astype(float) - with_targets).max() <= 2
     _call(browser, "phdView3d.showTargets([])")                # the view was turned: it stays where it is
     assert browser.execute_script("return phdView3d.debug().view") == state["view"]
     without = _pixels(browser).astype(float)
+    assert np.abs(hidden - without).max() <= 2
     assert len(state["targets"]) == 3
     for camera, drawn in zip(cameras, state["targets"]):
         centre = _image_centre(camera.to_frame(), state["frustumDepth"])
@@ -255,6 +285,7 @@ def test_target_views_are_drawn_faint_in_their_own_colour_where_they_project(bro
         blend = drawn["fill"] * np.array(drawn["rgb"]) + (1 - drawn["fill"]) * without[area]
         assert np.median(np.abs(with_targets[area] - blend).max(-1)) <= 6, (with_targets[area], blend)
         assert np.abs(with_targets[area] - without[area]).max() > 20
+        assert drawn["fill"] <= 0.1              # faint: a capture's whole path must not hide the model
     # Not a colour of the score ramp (sampled finely), nor the training cameras' grey.
     ramp = np.concatenate([a + (b - a) * t[:, None] for a, b, t in
                            zip(SCORE_RAMP, SCORE_RAMP[1:], [np.linspace(0, 1, 50)] * 4)])
@@ -274,9 +305,34 @@ def test_target_views_are_drawn_faint_in_their_own_colour_where_they_project(bro
         assert np.abs(covered[int(py), int(px)] - alone[int(py), int(px)]).max() <= 8
     legend = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
     assert "candidate score" in legend and f"target view ({TOP_K})" in legend
+    _assert_swatches_look_like_the_frusta(browser, state["styles"])
     _call(browser, "phdView3d.showTargets([])")
     assert "target view" not in browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
     assert _console_errors(browser) == []
+
+
+def _assert_swatches_look_like_the_frusta(driver, styles: dict) -> None:
+    """Every frustum kind in the legend (training cameras, target views, unreturned candidates) has a
+    swatch drawn as a small wireframe in its frusta's own wire colour, opacity and fill, on the
+    view's background: the training camera's a white wireframe, not a filled box."""
+    swatches = driver.execute_script(
+        "return [...document.querySelectorAll('#view3d .v3d-legend svg')].map(s => { const p = s.querySelector('path');"
+        "return [s.getAttribute('class'), getComputedStyle(s).backgroundColor, p.getAttribute('stroke'),"
+        "Number(p.getAttribute('stroke-opacity')), p.getAttribute('fill'), Number(p.getAttribute('fill-opacity'))]; })")
+    assert sorted(s[0].split()[1] for s in swatches) == ["target", "training", "unreturned"]
+    for kind_class, background, stroke, stroke_opacity, fill, fill_opacity in swatches:
+        style = styles[kind_class.split()[1]]
+        colour = "rgb({}, {}, {})".format(*style["rgb"]).replace(" ", "")
+        assert background == "rgb({}, {}, {})".format(*BACKGROUND)
+        assert stroke.replace(" ", "") == colour and stroke_opacity == style["opacity"]
+        assert (fill == "none") if style["fill"] == 0 else (fill.replace(" ", "") == colour
+                                                            and fill_opacity == style["fill"])
+    import imageio.v3 as iio
+    training = driver.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend svg.training")
+    pixels = iio.imread(training.screenshot_as_png)[..., :3].astype(int)
+    light = (pixels.min(-1) > 120).mean()                    # wire lines: light grey over the dark background
+    dark = (np.abs(pixels - BACKGROUND).max(-1) <= 8).mean()
+    assert 0.05 < light < 0.5 and dark > 0.4, (light, dark)
 
 
 def test_the_view_files_are_local_and_open(ranked):

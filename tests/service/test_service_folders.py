@@ -317,3 +317,34 @@ def test_uploads_are_named_by_their_sidecar_or_folder_and_a_repeat_answers_the_s
         answer = httpx.post(f"{server.url}/v1/models", files=parts, timeout=120)
         assert answer.status_code == 201 and answer.json()["name"] == name, answer.text
         httpx.delete(f"{server.url}/v1/models/{answer.json()['id']}")
+
+
+def test_a_folder_brings_the_calibration_phd_stored_for_its_model_and_cameras(svc_start, svc_trained,
+                                                                               tmp_path, capsys) -> None:
+    """What `phd train` wrote, calibrated by `phd calibrate` (its model.ply.phd-cache/), zipped: the
+    stored calibration is the model's (same file, cameras and background), said in its notes; one
+    made on other cameras (at half their size) is not used, and the notes say why."""
+    import shutil
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for path in (svc_trained, svc_trained.with_name("model.json")):
+        shutil.copy(path, run / path.name)
+    calibrate = ["calibrate", "--model", str(run / "model.ply"), "--samples", "2", "--quiet", "--out"]
+    assert phd([*calibrate, str(tmp_path / "full.json")]) == 0
+    r_drop = json.loads((tmp_path / "full.json").read_text())["r_drop"]
+    server = svc_start()
+    used = httpx.post(f"{server.url}/v1/models", files=[("archive", ("run.zip", _zip(run)))], timeout=60)
+    assert used.status_code == 201, used.text
+    assert used.json()["calibration"]["r_drop"] == r_drop
+    assert any("not run again" in note for note in used.json()["details"]["notes"])
+
+    httpx.delete(f"{server.url}/v1/models/{used.json()['id']}")     # else the same model answers again
+    for entry in (run / "model.ply.phd-cache").glob("calibration-*.json"):
+        entry.unlink()
+    assert phd([*calibrate, str(tmp_path / "half.json"), "--downscale", "2"]) == 0
+    capsys.readouterr()
+    other = httpx.post(f"{server.url}/v1/models", files=[("archive", ("run.zip", _zip(run)))], timeout=60)
+    assert other.status_code == 201, other.text
+    assert other.json()["calibration"] is None
+    assert any("made on other training cameras" in note for note in other.json()["details"]["notes"])

@@ -81,7 +81,9 @@ def test_explain_sends_phd_cores_values_for_the_scenes_points(svc_start, svc_mod
     ids = point_subset(importance(renderer.model), 150)
     assert (result["total"], result["count"], result["num_views"], result["ratio_source"]) == (300, 150, 3, "request")
     assert result["scales"]["coverage"] == 3.0             # three views' worth of sight: the top colour
-    assert result["scales"]["novelty"] == 1.0
+    novel = direct.novelty[direct.novelty > 0]               # what the pick adds, drawn to the share it reaches
+    assert result["scales"]["novelty"] == pytest.approx(float(np.quantile(novel.numpy(), 0.99)))
+    assert result["scales"]["novelty"] < 1.0
     fragile = direct.fragility[~torch.isnan(direct.fragility)]
     assert result["scales"]["fragility"] == pytest.approx(float(np.quantile(fragile.numpy(), 0.99)))
     assert result["unseen_share"] == pytest.approx(float((direct.coverage == 0).double().mean()))
@@ -150,7 +152,9 @@ def test_the_up_is_found_once_at_upload_on_the_floor_the_splats_show(svc_start, 
     with PHDClient(server.url, api_key=KEY) as phd:
         info = phd.upload_model(tmp_path / "floor.ply", cameras=cameras)
         ranking = phd.rank(info.id, candidates="orbit:6", strategy="random", dropout_ratio=0.2)
+        through_client = phd.cameras(info.id)
     served = httpx.get(f"{server.url}/v1/models/{info.id}/cameras", headers=AUTH).json()
+    assert (through_client.up, through_client.up_rule) == (served["up"], served["up_rule"])
     assert served["up_rule"] == "support plane"
     assert degrees_from_up(torch.tensor(served["up"], dtype=torch.float64)) < 1.0
     assert degrees_from_up(capture_up(cameras).vector) > 4.0                          # the cameras' own lean

@@ -13,16 +13,17 @@ from support.fixtures import svc_cameras
 
 
 def test_rank_with_target_views_equals_the_library(svc_start, svc_model_files):
-    server = svc_start()
+    # Targets whose photos are above the render cap are rendered at the candidates' size, not refused.
+    server = svc_start(max_image_size=40)       # the targets at their own size would render at 48 px
     train, candidates = svc_cameras(3), svc_cameras(6, phase=0.3)
-    targets = svc_cameras(4, radius=2.5, size=48, phase=1.1)          # their own size: rendered at the candidates'
+    targets = svc_cameras(4, radius=2.5, size=96, phase=1.1)          # their own size: rendered at the candidates'
     renderer = GaussianRenderer(read_ply(svc_model_files["ply"]), training_cameras=train)
     with PHDClient(server.url) as phd:
         info = phd.upload_model(svc_model_files["ply"], cameras=train)
         told = phd.rank(info.id, candidates, samples=4, seed=2, dropout_ratio=0.2, targets=targets, downscale=2)
         scaled = [c.scaled(2) for c in candidates]
         expected = uq.rank_views(renderer, scaled, ratio=0.2, samples=4, seed=2,
-                                 targets=[c.scaled(2) for c in targets])
+                                 targets=[c.resized(12, 12) for c in targets])
         plain = uq.rank_views(renderer, scaled, ratio=0.2, samples=4, seed=2)
         assert [v.index for v in told.views] == [r.index for r in expected]
         assert [v.score for v in told.views] == pytest.approx([r.score for r in expected], rel=1e-6)

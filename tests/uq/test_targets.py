@@ -58,12 +58,22 @@ def test_a_part_no_target_shows_is_worth_nothing() -> None:
 def seen(vis: Visibility) -> dict[int, tuple[float, torch.Tensor]]:
     """Element id -> (min(1, visible share / SEEN_SHARE), its point), one dict entry at a time."""
     share = (vis.weight / vis.footprint.clamp_min(1e-300)).clamp(0, 1)
-    return {int(e): (min(1.0, float(s) / SEEN_SHARE), p) for e, s, p in zip(vis.elements, share, vis.points)}
+    return {e: (min(1.0, s / SEEN_SHARE), tuple(p))
+            for e, s, p in zip(vis.elements.tolist(), share.tolist(), vis.points.tolist())}
 
 
-def near(point: torch.Tensor, a: Camera, b: Camera) -> float:
-    da, db = a.center - point, b.center - point
-    cos = float(da @ db) / max(float(da.norm() * db.norm()), 1e-300)
+Point = tuple[float, ...]
+
+
+def centre(camera: Camera) -> Point:
+    return tuple(camera.center.tolist())
+
+
+def near(point: Point, a: Point, b: Point) -> float:
+    """exp(-(1 - cos angle(point; a, b)) / ANGLE_SCALE) for camera centres a and b, in Python floats
+    (float64, element by element: fast enough to rescore every candidate after every pick)."""
+    da, db = [x - p for x, p in zip(a, point)], [x - p for x, p in zip(b, point)]
+    cos = sum(x * y for x, y in zip(da, db)) / max(math.hypot(*da) * math.hypot(*db), 1e-300)
     return math.exp(-(1.0 - cos) / ANGLE_SCALE)
 
 
@@ -77,8 +87,9 @@ def reference_fragility(evidence: Evidence, fragility: bool) -> list[dict[int, f
     views = evidence.candidate_views or []
     valued = [v for v in views if v.valued is not None]
     scale = sum(float(v.valued.sum()) for v in valued) / max(sum(float(v.weight.sum()) for v in valued), 1e-300)
-    return [{int(e): 1.0 + (float(z) / max(float(w), 1e-300) / scale if fragility and v.valued is not None else 0.0)
-             for e, w, z in zip(v.elements, v.weight, v.valued if v.valued is not None else v.weight)}
+    return [{e: 1.0 + (z / max(w, 1e-300) / scale if fragility and v.valued is not None else 0.0)
+             for e, w, z in zip(v.elements.tolist(), v.weight.tolist(),
+                                (v.valued if v.valued is not None else v.weight).tolist())}
             for v in views]
 
 
@@ -91,32 +102,35 @@ def reference_values(evidence: Evidence, fragility: bool = False, picked: Sequen
     near(u; t, c) * fragility(u, c), n_t(u) = prod over captured v (1 - seen(u, v) near(u; t, v)).
     support: every seen(u, v) (of a captured view or the candidate) times it."""
     # The captured views come as the library stores them (`Seen`: ids and visible shares).
-    captured = [(v.camera, {int(e): support * min(1.0, float(s) / SEEN_SHARE)
-                            for e, s in zip(v.elements, v.visible_share)})
+    captured = [(centre(v.camera), {e: support * min(1.0, s / SEEN_SHARE)
+                                    for e, s in zip(v.elements.tolist(), v.visible_share.tolist())})
                 for v in evidence.captured_views or []]
     candidates = evidence.candidate_views or []
-    captured += [(candidates[c].camera, {e: support * share for e, (share, _) in seen(candidates[c]).items()})
+    captured += [(centre(candidates[c].camera), {e: support * share for e, (share, _) in seen(candidates[c]).items()})
                  for c in picked]
     # Per target t: element id -> (pixels it fills in t, its point, n_t(u)).
-    targets = [(t.camera, {int(e): (float(w), p, math.prod(1.0 - by[int(e)] * near(p, t.camera, cam)
-                                                           for cam, by in captured if int(e) in by))
-                           for e, w, p in zip(t.elements, t.weight, t.points)})
-               for t in evidence.target_views or []]
+    targets = []
+    for t in evidence.target_views or []:
+        at_t = centre(t.camera)
+        targets.append((at_t, {e: (w, tuple(p), math.prod(1.0 - by[e] * near(tuple(p), at_t, cam)
+                                                          for cam, by in captured if e in by))
+                               for e, w, p in zip(t.elements.tolist(), t.weight.tolist(), t.points.tolist())}))
     scale = reference_fragility(evidence, fragility)
     values = []
     for c, vis in enumerate(candidates):
-        fills = {int(e): float(w) for e, w in zip(vis.elements, vis.weight)}
+        fills = dict(zip(vis.elements.tolist(), vis.weight.tolist()))
         total = 0.0
+        at_c = centre(vis.camera)
         for element, (share, point) in seen(vis).items():
             if evidence.target_views is None:
-                novelty = math.prod(1.0 - by[element] * near(point, vis.camera, cam)
+                novelty = math.prod(1.0 - by[element] * near(point, at_c, cam)
                                     for cam, by in captured if element in by)
                 total += fills[element] * novelty
                 continue
             for target, shows in targets:
                 if element in shows:
                     pixels, at, novelty = shows[element]
-                    total += pixels * novelty * support * share * near(at, target, vis.camera) * scale[c][element]
+                    total += pixels * novelty * support * share * near(at, target, at_c) * scale[c][element]
         if evidence.target_views is None:
             total += EMPTY_WEIGHT * vis.empty * reference_axis_novelty(vis, evidence.captured_views or [])
         values.append(total)
