@@ -66,7 +66,7 @@ def screenshots(server: BackgroundServer, model: Path, out: Path, candidates: in
     try:
         open_view(driver, server, info.id)
         call(driver, "phdView3d.showRanking(arguments[0])", ranking)
-        first = next(v["index"] for v in ranking["views"] if v["rank"] == 0)
+        first = next(v["index"] for v in ranking["views"] if v["rank"] == 1)
         call(driver, "phdView3d.select(arguments[0])", first)
         driver.execute_script("document.getElementById('view3d').scrollIntoView()")
         driver.find_element(By.ID, "view3d").screenshot(str(out / "view3d_rank.png"))

@@ -206,16 +206,16 @@ def camera_frames(cameras: Cameras) -> list[dict]:
 
 # ----------------------------------------------------------------------------- the client
 
-def _sidecar(sidecar: Path) -> tuple[list[float] | None, str | None]:
-    """The background and capture format a `phd train` sidecar records (None for what it has
-    not, or when it is unreadable)."""
+def _sidecar(sidecar: Path) -> tuple[list[float] | None, str | None, str | None]:
+    """The background, capture format and name a `phd train` sidecar records (None for what it
+    has not, or when it is unreadable)."""
     try:
         data = json.loads(sidecar.read_text())
-        value, source = data.get("background"), data.get("dataset_format")
+        value, source, name = data.get("background"), data.get("dataset_format"), data.get("name")
     except (OSError, ValueError, AttributeError):
-        return None, None
+        return None, None, None
     return (list(value) if isinstance(value, (list, tuple)) and len(value) == 3 else None,
-            source if isinstance(source, str) else None)
+            source if isinstance(source, str) else None, name if isinstance(name, str) else None)
 
 
 def _capture_format(cameras: Cameras | None) -> str | None:
@@ -230,13 +230,13 @@ def _capture_format(cameras: Cameras | None) -> str | None:
         return None
 
 
-def _with_convention(name: str | None) -> str | None:
-    """A capture format found on disk, when poses can be handed back in its convention."""
+def _known_format(name: str | None) -> str | None:
+    """A capture format's name (phd_core.data.FORMATS, as `phd rank` reports it), else None."""
     if name is None:
         return None
-    from phd_core.data import POSES
+    from phd_core.data import FORMATS
 
-    return name if name in POSES else None
+    return name if name in FORMATS else None
 
 
 class PHDClient:
@@ -286,9 +286,11 @@ class PHDClient:
         models): the colour trained over, else the sidecar's or the folder's (else the
         service's rule, docs/service.md). `camera_format`: the pose convention of the cameras'
         source (ranked poses come back in it), else the folder's, the sidecar's capture's or
-        that of a capture given as `cameras`. Cameras most of which see almost none of the model
-        (another capture's) are refused with InvalidInputError naming `cameras`, unless
-        `other_capture`."""
+        that of a capture given as `cameras`. `name`: else the sidecar's (`phd train` records
+        "<folder>/<stem>") or the run's, else the file's. Cameras most of which see almost none of
+        the model (another capture's) are refused with InvalidInputError naming `cameras`, unless
+        `other_capture`. The same bytes with the same cameras, background and capture format as a
+        model stored under this key answer that model, with `note` saying so (no new entry)."""
         path = Path(path)
         if path.is_dir():
             from phd_core.renderers.gs3d import write_ply
@@ -308,12 +310,13 @@ class PHDClient:
             path = output.ply
         sidecar = path.with_name(path.stem + ".json")
         if path.suffix.lower() == ".ply" and sidecar.is_file():
-            sidecar_background, sidecar_format = _sidecar(sidecar)
+            sidecar_background, sidecar_format, sidecar_name = _sidecar(sidecar)
+            name = name if name is not None else sidecar_name
             if cameras is None:
-                cameras, camera_format = sidecar, camera_format or _with_convention(sidecar_format)
+                cameras, camera_format = sidecar, camera_format or _known_format(sidecar_format)
             if background is None:
                 background = sidecar_background
-        camera_format = camera_format or _with_convention(_capture_format(cameras))
+        camera_format = camera_format or _capture_format(cameras)
         data = {}
         if cameras is not None:
             data["cameras"] = json.dumps(camera_frames(cameras))

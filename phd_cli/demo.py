@@ -21,6 +21,8 @@ from pathlib import Path
 from phd_core.errors import InputError
 from phd_core.renderers import DEFAULT_FAMILY, FAMILIES
 
+from .report import add_progress_args, bars_on
+
 DEFAULT_OUT = Path("phd-demo")
 DOWNSCALE = 2            # lego_200 is 200x200: 100x100 renders
 TRAIN_VIEWS = 16
@@ -59,12 +61,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--candidates", type=int, default=CANDIDATES,
                         help=f"held-out candidate views to rank (default {CANDIDATES})")
     parser.add_argument("--retrain", action="store_true", help="train even when a cached model matches")
+    add_progress_args(parser)
     parser.set_defaults(func=run)
 
 
 # ----------------------------------------------------------------------------- steps
 
-def _train(data: Path, views: list[int], iterations: int | None, out: Path, retrain: bool, name: str) -> Path:
+def _train(data: Path, views: list[int], iterations: int | None, out: Path, retrain: bool, name: str,
+           bars: bool) -> Path:
     """Train a model of the default family on `views` of the train split, or reuse a
     cached one whose sidecar (written by the trainer) records the same scene, views and
     iterations (with the trainer's default iterations, None, it always trains)."""
@@ -86,12 +90,16 @@ def _train(data: Path, views: list[int], iterations: int | None, out: Path, retr
             return model
     model.parent.mkdir(parents=True, exist_ok=True)
     print(f"  {name}: training {iterations or 'the default'} iterations on train views {views} ...", flush=True)
-    family.train(data, views=views, downscale=DOWNSCALE, iterations=iterations, seed=0, out=model, progress=True)
+    family.train(data, views=views, downscale=DOWNSCALE, iterations=iterations, seed=0, out=model, progress=bars)
     return model
 
 
-def _progress(label: str):
-    """A job-progress callback that redraws one line: '  label  42.0%'."""
+def _progress(label: str, bars: bool):
+    """A job-progress callback that redraws one line: '  label  42.0%' (None: bars are off, as on a
+    stdout that is not a terminal, where each redraw would stay in the file)."""
+    if not bars:
+        return None
+
     def show(fraction: float) -> None:
         print(f"\r  {label} {100 * fraction:5.1f}%", end="\n" if fraction >= 1 else "", flush=True)
     return show
@@ -144,8 +152,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"phd demo: scene {data}, output {out}")
     print("1/5 models")
     iterations = args.iterations or None
-    model_a = _train(data, views_a, iterations, out, args.retrain, "model_a")
-    model_b = _train(data, views_b, iterations, out, args.retrain, "model_b")
+    bars = bars_on(args)
+    model_a = _train(data, views_a, iterations, out, args.retrain, "model_a", bars)
+    model_b = _train(data, views_b, iterations, out, args.retrain, "model_b", bars)
     lap("train_or_reuse")
 
     train_a = load_blender(data, "train", downscale=DOWNSCALE, views=views_a, with_images=False).cameras
@@ -161,14 +170,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"  uploaded A: {info_a.num_units} splats, B: {info_b.num_units} splats")
             lap("service_upload")
             print("3/5 calibrate (Algorithm 1 on the 16 training poses)", flush=True)
-            cal_a = phd.calibrate(info_a.id, run_async=True, progress=_progress("A"))
-            cal_b = phd.calibrate(info_b.id, run_async=True, progress=_progress("B"))
+            cal_a = phd.calibrate(info_a.id, run_async=True, progress=_progress("A", bars))
+            cal_b = phd.calibrate(info_b.id, run_async=True, progress=_progress("B", bars))
             assert isinstance(cal_a, Calibration) and isinstance(cal_b, Calibration)  # wait=True: the results
             print(f"  r_drop A = {cal_a.r_drop}, B = {cal_b.r_drop}")
             lap("calibrate")
             print(f"4/5 rank {len(test.cameras)} held-out views (test split), N = {args.samples}", flush=True)
             ranking = phd.rank(info_a.id, test.cameras, samples=args.samples, run_async=True,
-                               progress=_progress("rank"))
+                               progress=_progress("rank", bars))
             assert isinstance(ranking, RankResult)
             lap("rank")
             top = ranking.views[:TOP]
@@ -178,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
             lap("heatmaps")
             print("5/5 select between A and B per view", flush=True)
             selection = phd.select(info_a.id, info_b.id, test.cameras, samples=args.samples, run_async=True,
-                                   progress=_progress("select"))
+                                   progress=_progress("select", bars))
             assert isinstance(selection, SelectResult)
             lap("select")
 
@@ -187,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
     lap("ground_truth")
 
     by_view = {v.index: v for v in ranking.views}
-    rmse_rank = {i: r for r, i in enumerate(sorted(range(len(rmse_a)), key=lambda i: -rmse_a[i]))}
+    rmse_rank = {i: r for r, i in enumerate(sorted(range(len(rmse_a)), key=lambda i: -rmse_a[i]), 1)}
     rho = spearman([by_view[i].sigma_max for i in range(len(rmse_a))], rmse_a)
     rho_score = spearman([by_view[i].score for i in range(len(rmse_a))], rmse_a)
     text = lambda value: "undefined" if value is None else f"{value:.3f}"  # noqa: E731

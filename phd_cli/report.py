@@ -142,15 +142,15 @@ TABLE_ROWS = 10     # rows `phd rank` prints without --top-k
 
 
 def rank_table(ranked: list[phd.RankedView], poses: list[Camera], rows: int) -> list[str]:
-    """The first `rows` ranked candidates: their place in the capture order (#1 first, as the
-    page numbers them; the JSON's `rank` is this minus one), candidate index, score, sigma_max,
+    """The first `rows` ranked candidates: their place in the capture order (#1 first, the
+    JSON's `rank` and the page's number), candidate index, score, sigma_max,
     the pose's centre and viewing direction (the camera's -z axis), in the candidates' frame."""
     lines = [f"{'#':>4}  {'candidate':>9}  {'score':>10}  {'sigma_max':>10}  {'centre x, y, z':^30}  "
              f"{'viewing direction x, y, z':^26}"]
     for view in ranked[:rows]:
         c2w = poses[view.index].c2w
         centre, forward = c2w[:3, 3].tolist(), (-c2w[:3, 2]).tolist()
-        lines.append(f"{'#' + str(view.rank + 1):>4}  {view.index:>9}  {view.score:>10.4g}  {view.sigma_max:>10.4g}  "
+        lines.append(f"{'#' + str(view.rank):>4}  {view.index:>9}  {view.score:>10.4g}  {view.sigma_max:>10.4g}  "
                      + " ".join(f"{v:>9.4f}" for v in centre) + "   " + " ".join(f"{v:>+7.3f}" for v in forward))
     return lines
 

@@ -10,10 +10,12 @@ from dataclasses import asdict, fields
 from pathlib import Path
 from typing import get_type_hints
 
+from phd_core.data import load_dataset
 from phd_core.renderers import DEFAULT_FAMILY, FAMILIES, Family
+from phd_core.scene import Camera
 
 from .options import add_background_arg, parse_background
-from .report import add_progress_args, bars_on
+from .report import add_progress_args, bars_on, say
 
 # Every trainer's default step count (phd_core.train.splats.TrainConfig.iterations and
 # phd_core.train.nerf.DEFAULT_ITERATIONS; tests/cli/test_cli_report.py holds them equal) and what
@@ -22,6 +24,9 @@ from .report import add_progress_args, bars_on
 DEFAULT_ITERATIONS = 2000
 TIME_HINT = (f"{DEFAULT_FAMILY} (the default family) at the defaults, 16 views of lego_200 at 100x100: 4.1 "
              "minutes of CPU time (measured: 14 minutes of wall clock on 2 cores busy with other work)")
+# That run's CPU time per step and pixel (246 s / (2000 steps x 100 x 100 pixels)): a step renders
+# one training view, so a capture's own hint is steps x pixels of a view x this.
+SECONDS_PER_PIXEL_STEP = 246 / (DEFAULT_ITERATIONS * 100 * 100)
 
 
 def trainable() -> list[Family]:
@@ -89,11 +94,30 @@ def check_out(out: Path, family: Family) -> None:
                                 f"(e.g. --out {out.with_suffix(family.extension)}, or choose the family with --model)")
 
 
+def sizes(cameras: list[Camera]) -> str:
+    """The views' count and size as a person reads them: "16 views at 100x100" (sizes listed when they differ)."""
+    shown = sorted({f"{c.width}x{c.height}" for c in cameras})
+    return f"{len(cameras)} view{'s' if len(cameras) != 1 else ''} at {', '.join(shown)}"
+
+
+def time_hint(cameras: list[Camera], iterations: int) -> str:
+    """What this capture's training should cost, from its own size: steps x pixels of a view
+    at the CPU time per pixel-step the lego run above measured (more splats cost more)."""
+    pixels = sum(c.width * c.height for c in cameras) / len(cameras)
+    minutes = iterations * pixels * SECONDS_PER_PIXEL_STEP / 60
+    rate = SECONDS_PER_PIXEL_STEP * 1e6
+    return (f"training {sizes(cameras)} for {iterations} steps: about {minutes:.1f} minutes of CPU time ("
+            f"{iterations} steps x {pixels:,.0f} pixels a view at the {rate:.1f} us a pixel-step {DEFAULT_FAMILY} "
+            "took on lego_200; a capture that grows more splats takes longer, other families differ)")
+
+
 def run(args: argparse.Namespace) -> int:
     views = parse_views(args.views)
     started = time.perf_counter()
     family = FAMILIES[args.model]
     check_out(args.out, family)
+    cameras = load_dataset(args.data, "train", views=views, downscale=args.downscale, with_images=False).cameras
+    say(args, time_hint(cameras, args.iterations or DEFAULT_ITERATIONS))
     options = {} if family.train_options is None else asdict(family.train_options(
         **{field.name: getattr(args, field.name) for field in fields(family.train_options)}))
     background = parse_background(args.background)
@@ -101,6 +125,6 @@ def run(args: argparse.Namespace) -> int:
         options["background"] = list(background)
     renderer = family.train(args.data, views=views, downscale=args.downscale, iterations=args.iterations,
                             seed=args.seed, out=args.out, progress=bars_on(args), **options)
-    print(f"trained {renderer.kind} with {renderer.num_units} dropout units in "
+    print(f"trained {renderer.kind} with {renderer.num_units} dropout units on {sizes(cameras)} in "
           f"{time.perf_counter() - started:.1f} s -> {args.out}")
     return 0

@@ -13,14 +13,18 @@ from pathlib import Path
 from typing import Any
 
 from phd_core import uq as phd
-from phd_core.data import POSES, candidate_name, export_cameras, load_cameras, source_pose
+from phd_core.data import POSES, candidate_name, export_cameras, export_convention, load_cameras, source_pose
 from phd_core.errors import InputError
 from phd_core.eval import image_uq_metrics, mean_defined, spearman
 from phd_core.executors import LOCAL, Executor, make_executor
 from phd_core.io import ModelCache, write_heatmap, write_json_atomic
+from phd_core.io.heatmap import check_vmax
 from phd_core.renderers import DEFAULT_SIGNAL, SIGNALS, signals_help
 from phd_core.scene import Camera
+from phd_core.uq.calibrate import check_calibration
 from phd_core.uq.candidates import GENERATORS
+from phd_core.uq.rank import check_rank
+from phd_core.uq.sampling import check_ratio, check_samples
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
 from phd_core.uq.strategies.captured import CapturedStore
 
@@ -120,8 +124,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "the table")
     rank.add_argument("--export", type=Path, metavar="FILE",
                       help="also write the ranked batch (the first --top-k, else all) for a capture tool: a *.json "
-                           "file is a nerfstudio transforms.json, a file named cameras.json the reference trainer's, "
-                           "a path without a suffix a COLMAP text model folder (or say --export-format)")
+                           "file is a nerfstudio transforms.json, a file named transforms_train.json a Blender one "
+                           "(camera_angle_x), one named cameras.json the reference trainer's, a path without a suffix "
+                           "a COLMAP text model folder (or say --export-format)")
     rank.add_argument("--export-format", choices=sorted(POSES), default=None,
                       help="the convention of --export, instead of reading it off the name")
     add_progress_args(rank)
@@ -218,6 +223,19 @@ def _executor(args: argparse.Namespace) -> Executor:
     return LOCAL if args.ray is None else make_executor("ray", args.ray)
 
 
+def _check_settings(args: argparse.Namespace) -> None:
+    """The command's numbers, checked before a model is opened, read or calibrated, so that a
+    typo in any of them costs no calibration and stores none."""
+    check_calibration(args.epsilon, args.step, args.calibration_samples, args.seed, args.method, args.signal)
+    if hasattr(args, "samples"):                       # uq, rank, select: zeta is a std over the masks
+        check_samples(args.samples, ddof=1)
+    for name in ("dropout_ratio", "ratio_a", "ratio_b"):
+        if getattr(args, name, None) is not None:
+            check_ratio(getattr(args, name), name)
+    if getattr(args, "vmax", None) is not None:         # uq's heat-map scale
+        check_vmax(args.vmax)
+
+
 def _views(args: argparse.Namespace, model: OpenedModel, warnings: list[str]):
     """The views of --split (of --data, or of a trainer folder's own capture) with their images
     composited over what the model renders over (so errors compare like with like), or without
@@ -299,6 +317,7 @@ def _print_curve(result: phd.CalibrationResult | phd.CalibrationError, file=None
 # ---------------------------------------------------------------------------------------- commands
 
 def run_calibrate(args: argparse.Namespace) -> int:
+    _check_settings(args)
     args.executor = _executor(args)
     model = open_model(args.model, args.background)
     if args.data is not None:
@@ -325,6 +344,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
 
 def run_uq(args: argparse.Namespace) -> int:
+    _check_settings(args)
     args.executor = _executor(args)
     model = open_model(args.model, args.background)
     renderer = model.renderer
@@ -384,12 +404,14 @@ def run_uq(args: argparse.Namespace) -> int:
 
 
 def run_rank(args: argparse.Namespace) -> int:
+    _check_settings(args)
+    if args.export is not None:
+        export_convention(args.export, args.export_format)
     args.executor = _executor(args)
     model = open_model(args.model, args.background)
     renderer = model.renderer
     poses = _candidates(args, renderer)                     # at their own size: what a capture rig is told
     candidates = _scaled(poses, args.downscale)             # what is rendered
-    ratio, calibration = _ratio(args, model)
     captured = None
     if args.captured is not None:
         # Frames without w/h take the candidates' image size: the coverage strategies render them.
@@ -397,6 +419,8 @@ def run_rank(args: argparse.Namespace) -> int:
                                 height=args.height or poses[0].height)
     # Targets render at the candidates' size (the service's rule too), whatever their photos' size.
     targets = None if args.targets is None else phd.targets_at_size(_candidates(args, renderer, "targets"), candidates)
+    check_rank(renderer, args.strategy, args.top_k, args.coarse, args.refine, targets)
+    ratio, calibration = _ratio(args, model)                # every input is known good before calibrating
     # What the captured views saw is kept beside the model (computed once per model and set of poses).
     store = (CapturedStore(ModelCache(args.model), default=renderer.training_cameras)
              if STRATEGIES[args.strategy].uses_visibility else None)
@@ -437,6 +461,7 @@ def run_rank(args: argparse.Namespace) -> int:
 
 
 def run_select(args: argparse.Namespace) -> int:
+    _check_settings(args)
     args.executor = _executor(args)
     models = {key: open_model(getattr(args, f"model_{key}"), args.background) for key in ("a", "b")}
     warnings: list[str] = []

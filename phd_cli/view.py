@@ -71,7 +71,7 @@ def read_ranking(path: Path) -> dict:
         raise InputError("ranking", f"{path} holds no ranking: expected 'ranking' (phd rank) or 'views' (the service) "
                                     "with an index and a score per candidate")
     return {"scores": {int(v["index"]): float(v["score"]) for v in views},
-            "ranks": {int(v["index"]): int(v.get("rank", k)) for k, v in enumerate(views)},
+            "ranks": {int(v["index"]): int(v.get("rank", k)) for k, v in enumerate(views, 1)},
             "ratio": data.get("dropout_ratio")}
 
 
@@ -211,7 +211,7 @@ class Viewer:
             self.render_image.visible = self.heatmap_image.visible = True
             rank = self.ranking["ranks"].get(index)
             score = self.ranking["scores"].get(index)
-            self.info.content = (f"**candidate {index}**" + (f", rank {rank + 1}, score {score:.4g}" if rank is not None
+            self.info.content = (f"**candidate {index}**" + (f", rank {rank}, score {score:.4g}" if rank is not None
                                                              else "") +
                                  f": sigma_max {view.sigma_max:.4g}, sigma_mean {view.sigma_mean:.4g} "
                                  f"(ratio {self.ratio}, N = {self.samples}; heat map scaled to its own max)")

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Iterator
 
-from phd_core.data import POSES
+from phd_core.data import FORMATS
 from phd_core.errors import InputError, TooLarge, shown
 from phd_core.io.archives import DAMAGED, ZipRules, open_zip
 from phd_core.io.cache import ModelCache, calibration_entries, content_digest
@@ -177,8 +177,8 @@ def upload_relative(text: str, folder: Path) -> str:
     return text
 
 
-def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderModel:
-    """The model in an unpacked folder (named `name` when its files sit at the top); splats
+def read_folder(folder: Path, name: str | None, ply: Path, max_bytes: int) -> FolderModel:
+    """The model in an unpacked folder (named `name`, the zip's, when its files sit at the top); splats
     a trainer stored in its own frame are written, moved into the user's, to `ply`, unless
     that file would be past `max_bytes` (TooLarge)."""
     output_folder = find_output(folder)
@@ -197,7 +197,7 @@ def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderMod
         # The run's name as the reader gives it ("<experiment>/<method>", "<folder>/gsplat", ...), as
         # the client names it; a run whose files sit at the upload's top names the upload instead of
         # the server's temp folder.
-        run = output.name.replace(folder.resolve().name, name)
+        run = output.name.replace(folder.resolve().name, name or "folder")
         return with_calibrations(FolderModel(output.ply or ply, run,
                                              [c.to_frame() for c in output.cameras] or None, list(output.background),
                                              f"{title}: its trainer's setting", output.camera_format,
@@ -212,7 +212,11 @@ def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderMod
     path = models[0]
     family = family_of(path.read_bytes()[:SNIFF_BYTES])
     assert family is not None                 # model_files sniffed it
-    result = with_calibrations(FolderModel(path, path.name), ModelCache(path).dir, path)
+    # Named as the Name field promises: the folder the model sits in; at the upload's top, the zip's
+    # name, else the sidecar's run (below), else the file's (`phd train` calls it model.ply every time).
+    at_top = path.parent == folder
+    result = with_calibrations(FolderModel(path, (name or path.name) if at_top else path.parent.name),
+                               ModelCache(path).dir, path)
     if family.beside is None:
         return result                         # the file carries what it has (a NeRF checkpoint: its cameras)
     renderer = family.load(path.read_bytes(), path.name, None)
@@ -220,10 +224,12 @@ def read_folder(folder: Path, name: str, ply: Path, max_bytes: int) -> FolderMod
     if extra is renderer:
         return result                         # nothing beside it: an upload of the bare file
     facts = extra.describe()
+    if at_top and name is None and isinstance(facts.get("name"), str):
+        result.name = facts["name"]
     cameras = extra.training_cameras or []
     fmt = facts.get("camera_format")
     result.cameras = [c.to_frame() for c in cameras] or None
-    result.camera_format = fmt if fmt in POSES else None
+    result.camera_format = fmt if fmt in FORMATS else None
     if accepts_background(extra) and isinstance(facts.get("background"), list):
         result.background, result.background_source = facts["background"], SIDECAR_SOURCE
     return result

@@ -131,8 +131,12 @@ class ModelInfo(_Response):
     num_training_cameras: int
     has_calibration: bool
     calibration: Calibration | None = None
-    camera_format: str | None = Field(None, description="The pose convention of the source the training cameras "
-                                      "came from (phd_core.data.POSES); ranked poses come back in it too.")
+    camera_format: str | None = Field(None, description="The format of the capture the training cameras came from "
+                                      "(phd_core.data.FORMATS, the name `phd rank` reports); ranked poses come back in "
+                                      "it too where it has a pose convention (phd_core.data.POSES).")
+    note: str | None = Field(None, description="Set only in an upload's answer (status 200, not 201) when the same "
+                             "bytes with the same training cameras, background and capture format are stored already "
+                             "under this key: the answer is that model, and no entry was added.")
 
     @field_validator("kind")
     @classmethod
@@ -311,7 +315,8 @@ class ExplainRequest(RenderSize):
 
 class RankedCandidate(_Response):
     index: int = Field(description="Position of the candidate in the request's camera list.")
-    rank: int = Field(description="0 = capture first; ranks 0..top_k-1 form one batch.")
+    rank: int = Field(description="1 = capture first; ranks 1..top_k form one batch (the CLI's, the page's and the "
+                      "demo's numbers).")
     sigma_max: float
     sigma_mean: float
     score: float = Field(description="The strategy's score of this candidate when it was ranked.")
@@ -352,8 +357,9 @@ class RankResult(_Response):
     num_targets: int = Field(0, description="The target views the order was made for (0: for every view alike), so "
                              "a client reading the job later knows which question it answers.")
     heatmap_vmax: float | None = Field(None, description="zeta value drawn as the top colour of every heat map.")
-    camera_format: str | None = Field(None, description="The pose convention of the model's camera source "
-                                      "(colmap, 3dgs-output, nerfstudio, blender), in which source_pose is given.")
+    camera_format: str | None = Field(None, description="The format of the model's camera source (colmap, "
+                                      "3dgs-output, nerfstudio, blender, llff), in which source_pose is given (null "
+                                      "for a format without a pose convention: llff).")
     views: list[RankedCandidate] = Field(description="In the order the strategy would capture them.")
     notes: list[str] = Field(default_factory=list, description="What loading the model noted that bears on these "
                              "poses (e.g. a model with no training cameras: its poses are in the frame its file "

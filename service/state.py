@@ -142,12 +142,12 @@ class ServiceState:
         field = "archive" if upload.archive is not None else "files"
         budget = self.settings.memory_budget_bytes
         cap, read_cap = largest_model_file(budget), largest_model_file(budget, READ_BYTES_PER_MODEL_BYTE)
-        named = cut(Path(upload.filename).stem, MAX_NAME_BYTES) if upload.filename else "folder"
+        named = cut(Path(upload.filename).stem, MAX_NAME_BYTES) if upload.filename else None
         with writing("the uploaded folder", field):        # a full disk: 507 (service.store.writing)
             try:
                 if upload.archive is not None:
                     unpack_zip(upload.archive, upload.folder, cap,
-                               self.store.free_bytes() - self.settings.keep_free_bytes, f"{named}.zip")
+                               self.store.free_bytes() - self.settings.keep_free_bytes, f"{named or 'folder'}.zip")
                 inflated = folder_bytes(upload.folder)
                 if inflated > read_cap:
                     raise TooLarge(field, f"its model inflates to {inflated} bytes in memory, more than the {read_cap} "
@@ -211,6 +211,14 @@ class ServiceState:
             notes.append(note)
         if notes:
             facts["notes"] = bounded_notes(notes)
+        same = identical(self.store.list(), upload.sha256, who.name, frames, facts)
+        if same is not None:
+            if same.calibration is None and stored is not None and self.store.set_calibration(same.id, stored):
+                same = replace(same, calibration=stored)          # what the repeat carried is still used
+            upload.note = (f"the same file with the same training cameras, background and capture format is stored "
+                           f"already under this key, as {same.name!r} ({same.id}, uploaded {same.created_at}): this "
+                           "is that model, no new entry")
+            return same
         record = self.store.add(upload.path, name=name, kind=renderer.kind, size_bytes=upload.size,
                                 sha256=upload.sha256, num_units=renderer.num_units, describe=facts,
                                 training_frames=frames, owner=who.name)
@@ -219,6 +227,17 @@ class ServiceState:
         parse.keep(record.id, renderer, record.size_bytes)
         self.metrics.uploads.labels(record.kind).inc()
         return record
+
+
+def identical(records: list[ModelRecord], sha256: str, owner: str | None, frames: list[dict] | None,
+              facts: dict) -> ModelRecord | None:
+    """The stored model an upload would repeat: the same key's, of the same bytes, training
+    cameras, background and capture format (the name alone does not make another model)."""
+    for record in records:
+        if ((record.owner, record.sha256, record.training_frames) == (owner, sha256, frames)
+                and all(record.describe.get(k) == facts.get(k) for k in ("background", "camera_format"))):
+            return record
+    return None
 
 
 def check_cameras_see(renderer: Renderer, cameras: list[Camera]) -> None:

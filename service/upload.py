@@ -18,9 +18,10 @@ Form fields of `POST /v1/models`:
   it). A bare PLY carries none, so without the field it is guessed by one rule
   (`guess_background`): black when the cameras are a reference-trainer cameras.json (that
   trainer's default), else white. Stored with the model and used by every render.
-- `camera_format` (optional): the pose convention of the cameras' source, one of
-  `phd_core.data.POSES` (colmap, 3dgs-output, nerfstudio, blender); default 3dgs-output for a
-  cameras.json, nerfstudio for frames. Ranked poses come back in it too.
+- `camera_format` (optional): the format of the capture the cameras came from, one of
+  `phd_core.data.FORMATS` (blender, nerfstudio, colmap, llff, 3dgs-output: the name `phd rank`
+  and the sidecar use); default 3dgs-output for a cameras.json, nerfstudio for frames. Ranked
+  poses come back in it too where it has a pose convention (`phd_core.data.POSES`; LLFF has none).
 - `other_capture` (optional): "true" stores a model whose training cameras see almost none of
   it (another capture's cameras, or cameras in another frame: refused with 422 otherwise,
   `service.state`); "false" (the default) refuses them.
@@ -45,7 +46,7 @@ from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
-from phd_core.data import POSES
+from phd_core.data import FORMATS
 from phd_core.data.inria import is_inria_cameras
 from phd_core.errors import InputError, check_color
 from phd_core.io import fsync_path
@@ -77,6 +78,7 @@ class Upload:
     folder: Path | None = None          # `files` parts land here, under their own paths
     archive: Path | None = None         # an `archive` part lands here
     folder_files: int = 0
+    note: str | None = None             # set when the upload is answered by a model stored already
     background_source: str | None = None   # who set `background` when it was not the request (a sidecar)
     notes: list[str] = field(default_factory=list)   # what reading a folder noted, shown with the model
     calibrations: list[dict] = field(default_factory=list)   # a folder's stored ones for its model (FolderModel)
@@ -298,14 +300,16 @@ def parse_camera_json(raw: bytes) -> Any:
 
 def unwrap_sidecar(source: Any, upload: Upload) -> Any:
     """Cameras given as the sidecar `phd train` wrote beside its PLY: its training cameras, and
-    its background and capture format where the request gave none (the Python client's rule)."""
+    its name, background and capture format where the request gave none (the Python client's rule)."""
     if not (isinstance(source, dict) and isinstance(source.get("training_cameras"), list)):
         return source                   # a sidecar is known by its list, as phd_core.data.load_cameras knows it
     frames = source["training_cameras"]
+    if upload.name is None and isinstance(source.get("name"), str):
+        upload.name = source["name"]
     background = source.get("background")
     if upload.background is None and isinstance(background, list):
         upload.background, upload.background_source = json.dumps(background).encode(), SIDECAR_SOURCE
-    if upload.camera_format is None and source.get("dataset_format") in POSES:
+    if upload.camera_format is None and source.get("dataset_format") in FORMATS:
         upload.camera_format = source["dataset_format"]
     return frames
 
@@ -320,11 +324,11 @@ def guess_background(camera_format: str | None) -> tuple[tuple[float, float, flo
 
 
 def parse_camera_format(name: str | None, cameras: Any) -> str | None:
-    """The `camera_format` field, checked against the registry; else read off the cameras
-    (a reference cameras.json or transforms frames); None without cameras."""
+    """The `camera_format` field, checked against the capture formats; else read off the
+    cameras (a reference cameras.json or transforms frames); None without cameras."""
     if name is not None:
-        if name not in POSES:
-            raise invalid("camera_format", POSES.unknown(name))
+        if name not in FORMATS:
+            raise invalid("camera_format", FORMATS.unknown(name))
         return name
     if cameras is None:
         return None

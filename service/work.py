@@ -551,12 +551,13 @@ def export_poses(record: ModelRecord, body: PosesRequest, settings: Settings) ->
     # A candidate's index names its image file: one of a rank request's at most max_candidates.
     indices = list(range(len(cameras))) if body.indices is None else [
         check_int(index, f"indices[{k}]", 0, settings.max_candidates - 1) for k, index in enumerate(body.indices)]
-    convention = POSES[body.format or record.describe.get("camera_format") or "nerfstudio"]
+    own = record.describe.get("camera_format")                 # a capture format; LLFF has no pose convention
+    convention = POSES[body.format or (own if isinstance(own, str) and own in POSES else "nerfstudio")]
     folder = convention.suffix == ""
     target = "colmap" if folder else convention.file_name or "transforms.json"
     with tempfile.TemporaryDirectory(prefix="phd-poses-") as tmp:
         path = Path(tmp) / target
-        export_cameras(path, cameras, [candidate_name(rank, index) for rank, index in enumerate(indices)],
+        export_cameras(path, cameras, [candidate_name(rank, index) for rank, index in enumerate(indices, 1)],
                        convention.name)
         if not folder:
             return PoseFile(path.read_bytes(), "application/json", target)

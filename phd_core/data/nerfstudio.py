@@ -56,5 +56,3 @@ def write_transforms(path: Path, cameras: Sequence[Camera], names: Sequence[str]
 
 TRANSFORMS_FRAME = "a transforms.json with one frame per camera"
 POSES.register(PoseConvention("nerfstudio", Camera.to_frame, write_transforms, TRANSFORMS_FRAME, suffix=".json"))
-# A Blender frame is the same frame (OpenGL c2w; per-frame fl_x reads in both layouts).
-POSES.register(PoseConvention("blender", Camera.to_frame, write_transforms, TRANSFORMS_FRAME))

@@ -36,6 +36,13 @@ def apply_colormap(t: np.ndarray) -> np.ndarray:
     return np.rint(rgb).astype(np.uint8)
 
 
+def check_vmax(vmax: float) -> float:
+    """A heat map's top value, checked: a positive finite number."""
+    if isinstance(vmax, bool) or not isinstance(vmax, (int, float)) or not math.isfinite(vmax) or vmax <= 0:
+        raise InputError("vmax", f"must be a positive finite number, got {vmax!r}")
+    return float(vmax)
+
+
 def colorize(values: Tensor, vmax: float | None = None) -> tuple[np.ndarray, float]:
     """Heat-map image of a [H, W] or [H, W, C] map: (RGB uint8 [H, W, 3], vmax used).
 
@@ -49,10 +56,7 @@ def colorize(values: Tensor, vmax: float | None = None) -> tuple[np.ndarray, flo
         raise InputError("values", f"heat map needs a [H, W] or [H, W, C] map, got shape {list(v.shape)}")
     if not torch.isfinite(v).all():
         raise InputError("values", "contains NaN or infinite values")
-    if vmax is None:
-        vmax = float(v.max())
-    elif isinstance(vmax, bool) or not isinstance(vmax, (int, float)) or not math.isfinite(vmax) or vmax <= 0:
-        raise InputError("vmax", f"must be a positive finite number, got {vmax!r}")
+    vmax = float(v.max()) if vmax is None else check_vmax(vmax)
     scaled = (v / vmax).numpy() if vmax > 0 else np.zeros(tuple(v.shape))
     return apply_colormap(scaled), float(vmax)
 

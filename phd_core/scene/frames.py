@@ -54,6 +54,13 @@ def _matrix(value: Any) -> torch.Tensor:
     return c2w
 
 
+def found_keys(entry: dict, most: int = 12) -> str:
+    """The first keys of a JSON object, quoted, for a message about the one it lacks: a typo
+    ("frame", "transfrom_matrix") is seen at once."""
+    keys = [f"'{k}'" for k in list(entry)[:most]]
+    return ", ".join(keys) + (", ..." if len(entry) > most else "") if keys else "none"
+
+
 def camera_from_frame(frame: dict, defaults: dict | None = None, *, width: int | None = None,
                       height: int | None = None, max_size: int = DEFAULT_MAX_SIZE) -> Camera:
     """Build a camera from a Blender or nerfstudio frame.
@@ -66,7 +73,7 @@ def camera_from_frame(frame: dict, defaults: dict | None = None, *, width: int |
     if not isinstance(frame, dict):
         raise InputError("frame", f"must be an object, got {type(frame).__name__}")
     if "transform_matrix" not in frame:
-        raise InputError("transform_matrix", "missing from frame")
+        raise InputError("transform_matrix", f"missing from the frame (its keys: {found_keys(frame)})")
     merged = {**(defaults or {}), **frame}
     c2w = _matrix(merged["transform_matrix"])
     w = _number(merged, "w") if "w" in merged else width
@@ -96,6 +103,9 @@ def cameras_from_json(source: dict | list, *, width: int | None = None,
         frames, defaults = source, {}
     elif isinstance(source, dict) and isinstance(source.get("frames"), list):
         frames, defaults = source["frames"], {k: v for k, v in source.items() if k != "frames"}
+    elif isinstance(source, dict):
+        raise InputError("frames", f"no 'frames' list (its keys: {found_keys(source)}): expected a transforms.json "
+                                   "with 'frames', a cameras.json or a list of frames")
     else:
         raise InputError("frames", "expected a list of frames or an object with a 'frames' list, got "
                                    f"{type(source).__name__}")

@@ -350,6 +350,13 @@ def densify(splats: Splats, grad_norm: torch.Tensor, config: TrainConfig, extent
 
 # ----------------------------------------------------------------------------- training
 
+# While densification adds splats every step grows slower, so the time left that tqdm extrapolates
+# from the rate so far runs short (issue 48: 3:19, then 7:53, in one run); until the splat count
+# stops growing the bar shows the rate and the splats, and the time left only from then on.
+GROWING_BAR = ("{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix}; time left once the splats "
+               "stop growing]")
+
+
 def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int] = 16, downscale: float = 2,
                  iterations: int | None = None, seed: int = 0, out: str | Path, progress: bool = True,
                  **overrides: Any) -> SplatRenderer:
@@ -374,6 +381,7 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
     sidecar = {
         "format": SIDECAR_FORMAT,
         "model": recipe.kind,
+        "name": f"{out.resolve().parent.name}/{out.stem}",    # the run's folder and file: what an upload is named
         **renderer.trained_on.fields(),
         "split": "train",
         "view_indices": dataset.indices,
@@ -415,8 +423,10 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
     grad_count = torch.zeros(splats.count)
     history: list[float] = []
     order = torch.randperm(len(dataset.cameras), generator=gen)
-    bar = tqdm(range(n_iter), disable=not progress, desc=recipe.kind, unit="it")
+    bar = tqdm(range(n_iter), disable=not progress, desc=recipe.kind, unit="it", bar_format=GROWING_BAR)
     for step in bar:
+        if step == densify_until:
+            bar.bar_format = None           # the splat count holds from here: tqdm's time left is fair
         if step % len(order) == 0 and step:
             order = torch.randperm(len(dataset.cameras), generator=gen)
         view = int(order[step % len(order)])

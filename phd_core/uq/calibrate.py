@@ -187,6 +187,18 @@ def dropout_errors(chunk: CalibrationChunk, renderer: Renderer, keep: Tensor, sa
     return errors
 
 
+def check_calibration(epsilon: float, step: float, samples: int, seed: int, method: str,
+                      signal: str) -> tuple[float, float, int, int, str]:
+    """`calibrate`'s settings, checked: epsilon, step, samples, seed and signal as it uses them.
+    Callers that hold a calibration until other inputs are read (the CLI) check them first."""
+    epsilon = check_float(epsilon, "epsilon")
+    if epsilon <= 0:
+        raise InputError("epsilon", f"must be positive, got {epsilon}")
+    if method not in ("linear", "bisection"):
+        raise InputError("method", f"must be 'linear' or 'bisection', got {method!r}")
+    return epsilon, check_step(step), check_int(samples, "samples", 1), check_seed(seed), check_signal(signal)
+
+
 def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float = DEFAULT_EPSILON,
               step: float = DEFAULT_STEP, samples: int = DEFAULT_CALIBRATION_SAMPLES,
               method: str = "linear", seed: int = 0, progress: Progress | None = None,
@@ -201,15 +213,7 @@ def calibrate(renderer: Renderer, cameras: Sequence[Camera], *, epsilon: float =
     (phd_core.renderers.SIGNALS; the default is the paper's, "composited"); the result records
     it, and zeta must be measured on the same signal. Raises CalibrationError when r_drop would be 0.
     """
-    epsilon = check_float(epsilon, "epsilon")
-    if epsilon <= 0:
-        raise InputError("epsilon", f"must be positive, got {epsilon}")
-    step = check_step(step)
-    samples = check_int(samples, "samples", 1)
-    seed = check_seed(seed)
-    if method not in ("linear", "bisection"):
-        raise InputError("method", f"must be 'linear' or 'bisection', got {method!r}")
-    signal = check_signal(signal)
+    epsilon, step, samples, seed, signal = check_calibration(epsilon, step, samples, seed, method, signal)
     cameras = check_cameras(cameras)
 
     grid = _grid_size(step)

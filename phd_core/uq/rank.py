@@ -26,7 +26,7 @@ class RankedView:
     sigma_max: float
     sigma_mean: float
     score: float        # the strategy's score when the candidate was ranked
-    rank: int           # 0 = capture first; ranks 0..k-1 are a batch to capture together
+    rank: int           # 1 = capture first; ranks 1..k are a batch to capture together (as every table says)
     refined: bool = True  # False: scored only at the coarse resolution (rank_views' coarse pass)
     peak: torch.Tensor | None = field(default=None, repr=False)  # [H, W] zeta max over channels (keep_peak=True)
 
@@ -141,6 +141,18 @@ def check_coarse(coarse: float | None, refine: int | None) -> tuple[float | None
     return coarse, refine
 
 
+def check_rank(renderer: Renderer, strategy: str, top_k: int | None, coarse: float | None, refine: int | None,
+               targets: Sequence[Camera] | None
+               ) -> tuple[int | None, float | None, int | None, list[Camera] | None]:
+    """`rank_views`' choices, checked as it uses them (top_k, coarse, refine, targets for the
+    strategy): callers that calibrate before ranking (the CLI) check them first."""
+    get_strategy(strategy)
+    if top_k is not None:
+        top_k = check_int(top_k, "top_k", 1)
+    coarse, refine = check_coarse(coarse, refine)
+    return top_k, coarse, refine, check_targets(renderer, targets, strategy)
+
+
 def coarse_cameras(cameras: Sequence[Camera], scale: float) -> list[Camera]:
     """The cameras at `scale` times their size (at least 1 x 1 pixels), intrinsics scaled."""
     return [c.resized(max(1, round(c.width * scale)), max(1, round(c.height * scale))) for c in cameras]
@@ -185,10 +197,7 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     and the agreement with the full-size ranking are in docs/performance.md.
     """
     chosen = get_strategy(strategy)
-    if top_k is not None:
-        top_k = check_int(top_k, "top_k", 1)
-    coarse, refine = check_coarse(coarse, refine)
-    targets = check_targets(renderer, targets, strategy)
+    top_k, coarse, refine, targets = check_rank(renderer, strategy, top_k, coarse, refine, targets)
     if coarse is not None:
         return coarse_to_fine(renderer, cameras, coarse, refine, ratio=ratio, samples=samples, seed=seed,
                               top_k=top_k, strategy=strategy, captured=captured, keep_peak=keep_peak,
@@ -203,7 +212,7 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]
     return [RankedView(index=i, sigma_max=float(evidence.sigma_max[i]), sigma_mean=float(evidence.sigma_mean[i]),
-                       score=selection.scores[i], rank=rank, peak=views[i].peak) for rank, i in enumerate(order)]
+                       score=selection.scores[i], rank=rank, peak=views[i].peak) for rank, i in enumerate(order, 1)]
 
 
 def coarse_to_fine(renderer: Renderer, cameras: Sequence[Camera], coarse: float, refine: int | None, *,
@@ -220,5 +229,5 @@ def coarse_to_fine(renderer: Renderer, cameras: Sequence[Camera], coarse: float,
     best = [v.index for v in first[:refine]]
     fine = rank_views(renderer, [cameras[i] for i in best], keep_peak=keep_peak, progress=half(0.5), **rank_args)
     ranked = [replace(v, index=best[v.index]) for v in fine]
-    ranked += [replace(v, rank=len(ranked) + j, refined=False) for j, v in enumerate(first[refine:])]
+    ranked += [replace(v, rank=len(ranked) + j, refined=False) for j, v in enumerate(first[refine:], 1)]
     return ranked if top_k is None else ranked[:top_k]

@@ -233,7 +233,7 @@ const unit = (a) => mul(a, 1 / (norm(a) || 1));
 // A frame's centre: a transforms frame's c2w translation, or a cameras.json entry's position.
 const position = (frame) => (frame.transform_matrix ? [0, 1, 2].map((i) => frame.transform_matrix[i][3]) : frame.position);
 const column = (frame, j) => [0, 1, 2].map((i) => frame.transform_matrix[i][j]);
-const cardLabel = (index, rank) => `candidate ${index} · rank #${rank + 1}`;
+const cardLabel = (index, rank) => `candidate ${index} · rank #${rank}`;
 
 // ------------------------------------------------------------------ camera files
 
@@ -493,7 +493,9 @@ async function upload(event) {
   // The model chosen as A stays A (its ranking too): the new one becomes model B.
   await loadModels(keepA ? keepA.id : info.id, keepA ? info.id : undefined);
   const where = keepA ? "It is model B for selection; choose it under Model to rank it." : "It is the chosen model.";
-  if (!info.has_training_cameras) {
+  if (info.note) {
+    say("upload-message", `${info.name}: ${info.note}. ${where}`);
+  } else if (!info.has_training_cameras) {
     // Chosen, the warning under Model gives the advice; as model B, this is the one place for it.
     say("upload-message", `Uploaded ${info.name}, but it has no training cameras. ` +
       (keepA ? NO_CAMERAS_ADVICE : "What to add is said under Model above."), "warning");
@@ -750,9 +752,9 @@ function drawPlots() {
       dotEl.append(title);
       dotEl.addEventListener("click", () => pickCandidate(i));
       svg.append(dotEl);
-      if (view && view.rank < 3) {
+      if (view && view.rank <= 3) {
         const label = svgEl("text", { x: x + 7, y: y - 7, class: "label" });
-        label.textContent = String(view.rank + 1);
+        label.textContent = String(view.rank);
         svg.append(label);
       }
     }
@@ -880,7 +882,7 @@ async function cancelRank() {
 
 // The download row after a ranking: the model's own convention first, the first k poses.
 function showDownload(result, model) {
-  const own = result.camera_format || model.camera_format || "nerfstudio";
+  const own = [result.camera_format, model.camera_format].find((f) => state.formats.some((o) => o.name === f)) || "nerfstudio";
   $("poses-format").replaceChildren(...state.formats.map((f) => el("option", {
     value: f.name, text: f.title + (f.name === own ? " (the model's own)" : "") })));
   $("poses-format").value = own;
@@ -972,7 +974,7 @@ async function readChoices() {
   } catch (_) { /* the strategy stays free text, the rule list empty: the server's defaults apply */ }
 }
 
-const FORMAT_TITLES = { nerfstudio: "transforms.json (nerfstudio)", blender: "transforms.json (Blender)",
+const FORMAT_TITLES = { nerfstudio: "transforms.json (nerfstudio)", blender: "transforms_train.json (Blender)",
   colmap: "COLMAP images.txt + cameras.txt (zip)", "3dgs-output": "cameras.json (reference 3DGS)" };
 
 function start() {

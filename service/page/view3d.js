@@ -368,7 +368,7 @@ function drawCandidates() {
     const rgb = rampColour("score", hi > lo ? (v.score - lo) / (hi - lo) : 1);
     const f = frustum(v.camera, new THREE.Color(css(rgb)), { fill: 0.9, order: 3 + k });
     f.quad.userData.index = v.index;
-    const label = el("span", { class: "v3d-label", text: "#" + (v.rank + 1), "data-index": v.index });
+    const label = el("span", { class: "v3d-label", text: "#" + v.rank, "data-index": v.index });
     view.labels.append(label);
     view.frusta.push(Object.assign(f, { index: v.index, rank: v.rank, score: v.score, rgb, label }));
     view.candidateGroup.add(f.group);
@@ -501,7 +501,7 @@ const measured = (result) => `${result.num_views} training views, N = ${result.s
   `${result.dropout_ratio}: ${(100 * result.unseen_share).toFixed(1)} % of the splats no training view saw`;
 
 function pickFrame() {
-  const first = view.ranking && view.ranking.views.find((v) => v.rank === 0);
+  const first = view.ranking && view.ranking.views.find((v) => v.rank === 1);
   return first ? first.camera : null;
 }
 
@@ -625,7 +625,7 @@ async function select(index) {
     const img = el("img", { alt: `${caption} of candidate ${index}`, class: caption === "zeta" ? "heatmap" : "render" });
     return { figure: el("figure", {}, img, el("figcaption", { text: caption })), img, url };
   });
-  view.detail.replaceChildren(el("p", { class: "v3d-title", text: `#${v.rank + 1}: candidate ${v.index}, score ${Number(v.score).toPrecision(4)}` }),
+  view.detail.replaceChildren(el("p", { class: "v3d-title", text: `#${v.rank}: candidate ${v.index}, score ${Number(v.score).toPrecision(4)}` }),
     el("div", { class: "v3d-pair" }, ...figures.map((f) => f.figure)));
   view.detail.hidden = false;
   await Promise.all(figures.map(async ({ img, url }) => {

@@ -72,7 +72,9 @@ async def upload_model(request: Request, svc: Service, who: Caller) -> JSONRespo
         temp.unlink(missing_ok=True)  # gone already after a successful move into the store
         await asyncio.to_thread(remove_folder, folder)
     info = model_info(record)
-    return JSONResponse(info.model_dump(mode="json"), status_code=201, headers={"Location": f"/v1/models/{record.id}"})
+    info.note = upload.note                 # an upload identical to a stored model: 200 and that model
+    return JSONResponse(info.model_dump(mode="json"), status_code=201 if upload.note is None else 200,
+                        headers={"Location": f"/v1/models/{record.id}"})
 
 
 @router.get("/models", response_model=ModelList)

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from phd_core import uq as phd
-from phd_core.data import load_cameras
+from phd_core.data import load_blender, load_cameras
 from phd_core.data.inria import camera_from_entry
 from phd_core.io.configs import SPLATFACTO_BACKGROUNDS as BACKGROUNDS
 from phd_core.renderers import load_model
@@ -102,6 +102,19 @@ def test_ranked_generated_candidates_carry_their_poses_and_export_as_a_batch(cap
     chosen = [poses[entry["index"]] for entry in ranking]
     reloaded = load_cameras(colmap, split="all")                    # sorted by name = capture order
     assert max((a.c2w - b.c2w).abs().max().item() for a, b in zip(reloaded, chosen, strict=True)) < 1e-9
+    blender = capture["root"] / "plan" / "blender" / "transforms_train.json"
+    code, out, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6,rings=2",
+                         "--samples", 3, "--dropout-ratio", 0.3, "--top-k", 4, "--export", blender,
+                         "--export-format", "blender")
+    assert code == 0 and "camera_angle_x" in out, err
+    written = json.loads(blender.read_text())                       # the same ranking: same masks, same seed
+    assert written["camera_angle_x"] == pytest.approx(2 * math.atan(chosen[0].width / (2 * chosen[0].fx)), abs=1e-15)
+    assert [f["file_path"] for f in written["frames"]] == [
+        f"./images/rank{k:03d}_candidate{entry['index']:04d}" for k, entry in enumerate(ranking, 1)]
+    reloaded = load_blender(blender.parent, "train", with_images=False).cameras
+    assert max((a.c2w - b.c2w).abs().max().item() for a, b in zip(reloaded, chosen, strict=True)) < 1e-12
+    assert [c.fx for c in reloaded] == pytest.approx([c.fx for c in chosen], rel=1e-12)
+    assert [(c.width, c.height) for c in reloaded] == [(c.width, c.height) for c in chosen]
     code, _, err = run(capsys, "rank", "--model", capture["folder"], "--candidates", "orbit:6", "--samples", 3,
                        "--dropout-ratio", 0.3, "--export", capture["root"] / "plan.yaml")
     assert code == 2 and "export:" in err and "plan.yaml" in err

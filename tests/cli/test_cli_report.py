@@ -12,6 +12,7 @@ import shlex
 
 import numpy as np
 import pytest
+import torch
 
 from phd_cli import build_parser, main
 from phd_cli.demo import next_steps
@@ -90,6 +91,45 @@ def test_quiet_and_progress_exclude_each_other(files, capsys) -> None:
     assert "not allowed with" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command, field", [
+    (["rank", "--candidates", "{candidates}", "--targets", "{root}/walk/targets.json"], "targets"),
+    (["rank", "--candidates", "{candidates}", "--targets", "orbit:3", "--strategy", "sigma_max"], "targets"),
+    (["rank", "--candidates", "{candidates}", "--top-k", "0"], "top_k"),
+    (["rank", "--candidates", "{candidates}", "--coarse", "2"], "coarse"),
+    (["rank", "--candidates", "{candidates}", "--export", "{root}/plan.yaml"], "export"),
+    (["rank", "--candidates", "{candidates}", "--samples", "1"], "samples"),
+    (["uq", "--data", "{data}", "--samples", "1", "--out", "{root}/uq"], "samples"),
+    (["uq", "--data", "{data}", "--vmax", "0", "--out", "{root}/uq"], "vmax"),
+    (["select", "--model-b", "{model}", "--data", "{data}", "--ratio-b", "2"], "ratio_b"),
+])
+def test_every_input_is_checked_before_anything_is_calibrated(files, capsys, tmp_path, command, field) -> None:
+    """A bad target file, option or number is refused (exit 2, naming it) before r_drop is
+    calibrated: nothing is stored beside the model."""
+    model = tmp_path / "model.ply"                                  # a copy without a stored calibration
+    model.write_bytes(files["model"].read_bytes())
+    sidecar_path(model).write_bytes(sidecar_path(files["model"]).read_bytes())
+    names = {"candidates": files["candidates"], "data": files["data"], "root": tmp_path, "model": model}
+    argv = [command[0], "--model-a" if command[0] == "select" else "--model", model,
+            *[word.format(**names) for word in command[1:]], *CALIBRATION, "--calibration-samples", 2]
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and f"{field}:" in err and "Traceback" not in err, err
+    assert "calibrated" not in err and not model.with_name("model.ply.phd-cache").exists()
+
+
+def test_a_misspelt_frames_key_is_named_with_the_keys_found(files, capsys, tmp_path) -> None:
+    """As the page does: a "frame" typo (top level or in a frame) lists the keys the file holds."""
+    frames = json.loads(files["candidates"].read_text())
+    (tmp_path / "typo.json").write_text(json.dumps({"camera_angle_x": FOV, "frame": frames}))
+    frames[1]["transfrom_matrix"] = frames[1].pop("transform_matrix")
+    (tmp_path / "typo2.json").write_text(json.dumps({"frames": frames}))
+    for name, said in (("typo.json", "no 'frames' list (its keys: 'camera_angle_x', 'frame')"),
+                       ("typo2.json", "frames[1].transform_matrix: missing from the frame (its keys: ")):
+        code, _, err = run(capsys, "rank", "--model", files["model"], "--candidates", tmp_path / name,
+                           "--dropout-ratio", 0.3, "--samples", 3)
+        assert code == 2 and said in err, err
+    assert "'transfrom_matrix'" in err
+
+
 def test_calibration_is_stored_beside_the_model_and_reused(files, capsys, tmp_path) -> None:
     cache = files["model"].with_name("model.ply.phd-cache")
     code, out, err = run(capsys, "calibrate", "--model", files["model"], *CALIBRATION, "--samples", 2)
@@ -135,9 +175,9 @@ def test_rank_prints_a_table_of_the_top_k_with_the_json_poses(files, capsys) -> 
     rows = [line.split() for line in table.splitlines() if re.match(r"\s*#\d", line)]
     code, out, _ = run(capsys, *argv, "--json")
     ranking = json.loads(out)["ranking"]
-    assert len(rows) == len(ranking) == 3
+    assert len(rows) == len(ranking) == 3 and [r["rank"] for r in ranking] == [1, 2, 3]
     for row, ranked in zip(rows, ranking):
-        assert [int(row[0][1:]), int(row[1])] == [ranked["rank"] + 1, ranked["index"]]     # #1 is rank 0
+        assert [int(row[0][1:]), int(row[1])] == [ranked["rank"], ranked["index"]]     # #1 is rank 1, as the JSON says
         assert float(row[2]) == pytest.approx(ranked["score"], rel=1e-3)
         assert float(row[3]) == pytest.approx(ranked["sigma_max"], rel=1e-3)
         c2w = np.array(ranked["camera"]["transform_matrix"])
@@ -167,6 +207,54 @@ def test_train_help_states_the_default_iterations_every_trainer_uses(capsys) -> 
         main(["train", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert f"default {DEFAULT_ITERATIONS}" in text and "minutes" in text
+
+
+def test_train_says_its_views_and_size_and_shows_no_time_left_while_splats_grow(files, capsys, tmp_path) -> None:
+    """The last line names the views and the size trained on; the hint before training is this
+    capture's (2 views at 16x16, 12 steps), and the bar (forced, --progress) gives no time left
+    until densification ends, then tqdm's."""
+    code, out, err = run(capsys, "train", "--data", files["data"], "--views", 2, "--downscale", 1, "--iterations", 12,
+                         "--progress", "--out", tmp_path / "m.ply")
+    assert code == 0, err
+    assert " on 2 views at 16x16 in " in out.splitlines()[-1]
+    assert "phd train: training 2 views at 16x16 for 12 steps: about " in err
+    frames = [part for part in re.split(r"[\r\n]", err) if BAR in part]
+    assert "stop growing" in frames[0] and "<" not in frames[0]                  # step 0: no estimate
+    assert frames[-1].count("12/12") == 1 and "<00:00" in frames[-1]            # densification over: tqdm's
+
+
+def test_the_time_hint_is_the_captures_own(capsys) -> None:
+    """Steps x pixels of a view x the CPU time per pixel-step measured on lego_200 (246 s for
+    2000 steps at 100x100): a phone capture's 71 views at 720x1280 are 92x lego's pixels."""
+    from phd_cli.train import time_hint
+    from phd_core.scene import Camera
+
+    phone = [Camera(torch.eye(4, dtype=torch.float64), 900.0, 900.0, 360.0, 640.0, 720, 1280)] * 71
+    minutes = 2000 * 720 * 1280 * (246 / (2000 * 100 * 100)) / 60
+    assert time_hint(phone, 2000).startswith(f"training 71 views at 720x1280 for 2000 steps: about {minutes:.1f} "
+                                             "minutes of CPU time")
+    lego = [Camera(torch.eye(4, dtype=torch.float64), 111.0, 111.0, 50.0, 50.0, 100, 100)] * 16
+    assert f"about {246 / 60:.1f} minutes" in time_hint(lego, 2000)               # the measured run itself
+
+
+def test_the_demo_draws_no_bars_into_a_file_and_ranks_from_1(capsys, tmp_path) -> None:
+    """`phd demo` on a tiny Blender scene (64 train views for its two disjoint 16-view sets, 8x8
+    pixels), its stderr and stdout files, not terminals: no tqdm bar, no redrawn percentages;
+    its table and report.json count ranks from 1, as the CLI, REST and the page do."""
+    scene = tmp_path / "scene"
+    g = np.random.default_rng(0)
+    for split, count, height in (("train", 64, 0.8), ("test", 3, 1.4)):
+        cameras = ring_cameras(count, size=8, height=height)
+        write_images(scene / split, [np.clip(0.5 + 0.2 * g.standard_normal((8, 8, 3)), 0, 1) for _ in cameras],
+                     [f"r_{i}.png" for i in range(count)])
+        frames = [{"file_path": f"./{split}/r_{i}", "transform_matrix": c.c2w.tolist()} for i, c in enumerate(cameras)]
+        (scene / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": FOV, "frames": frames}))
+    code, out, err = run(capsys, "demo", "--data", scene, "--iterations", 3, "--candidates", 2, "--samples", 2,
+                         "--out", tmp_path / "demo")
+    assert code == 0, err
+    assert BAR not in err and "\r" not in out, err[:300]
+    report = json.loads((tmp_path / "demo" / "report.json").read_text())
+    assert [row["rank"] for row in report["ranking"]] == [1, 2]
 
 
 def test_the_demo_ends_with_the_next_three_commands(tmp_path) -> None:

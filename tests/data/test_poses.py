@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from phd_core.data import POSES, export_cameras, export_convention, load_cameras, source_pose
+from phd_core.data import POSES, export_cameras, export_convention, load_blender, load_cameras, source_pose
 from phd_core.data.colmap import qvec_to_rotation, rotation_to_qvec
 from phd_core.data.inria import camera_from_entry
 from phd_core.errors import InputError
@@ -92,10 +92,12 @@ def test_cameras_json_and_transforms_entries_round_trip() -> None:
         assert np.allclose(entry["rotation"], written["rotation"], atol=1e-12)
         assert np.allclose(entry["position"], written["position"], atol=1e-12)
         assert_same_cameras([camera_from_entry(entry)], [camera])
-    for name in ("nerfstudio", "blender"):
-        frames = [source_pose(c, name) for c in cameras]
-        assert {f.pop("format") for f in frames} == {name}
-        assert_same_cameras([camera_from_frame(f) for f in frames], cameras, tol=0.0)
+    frames = [source_pose(c, "nerfstudio") for c in cameras]
+    assert {f.pop("format") for f in frames} == {"nerfstudio"}
+    assert_same_cameras([camera_from_frame(f) for f in frames], cameras, tol=0.0)
+    blender = [source_pose(c, "blender") for c in cameras]             # a field of view, not a focal length
+    assert {f.pop("format") for f in blender} == {"blender"} and not any("fl_x" in f for f in blender)
+    assert_same_cameras([camera_from_frame(f) for f in blender], cameras)
     assert source_pose(cameras[0], None) is None and source_pose(cameras[0], "llff") is None
 
 
@@ -117,11 +119,37 @@ def test_an_exported_batch_loads_back_as_the_same_cameras(tmp_path, name, conven
         assert sorted(p.name for p in (tmp_path / name).iterdir()) == ["cameras.txt", "images.txt", "points3D.txt"]
 
 
+def test_a_blender_export_is_what_the_blender_loader_reads(tmp_path) -> None:
+    """transforms_train.json as NeRF-synthetic has it: camera_angle_x = 2 atan(W / (2 fx)) once
+    at the top (no fl_x), the project's OpenGL camera-to-world matrices, ./images/<name>
+    without the suffix; `load_blender` reads back the same cameras; lenses that one
+    camera_angle_x cannot state are refused, naming the pose."""
+    width, height, fx = 80, 60, 55.0
+    cameras = [Camera(c.c2w, fx, fx, width / 2, height / 2, width, height) for c in random_cameras(5, seed=3)]
+    names = [f"rank{k:03d}_candidate{k * 3:04d}.png" for k in range(1, 6)]
+    written = export_cameras(tmp_path / "transforms_train.json", cameras, names)     # the name says Blender
+    assert written.name == "blender"
+    data = json.loads((tmp_path / "transforms_train.json").read_text())
+    assert data["camera_angle_x"] == pytest.approx(2 * math.atan(width / (2 * fx)), abs=1e-15)
+    assert "fl_x" not in data and "camera_model" not in data and all(set(f) == {"file_path", "transform_matrix"}
+                                                                     for f in data["frames"])
+    assert [f["file_path"] for f in data["frames"]] == [f"./images/rank{k:03d}_candidate{k * 3:04d}" for k in
+                                                        range(1, 6)]
+    assert_same_cameras(load_blender(tmp_path, "train", with_images=False).cameras, cameras)
+    odd = [Camera(c.c2w, 50.0, 52.0, 41.0, 29.5, width, height) for c in cameras[:2]]   # kept, not squared up
+    export_cameras(tmp_path / "odd" / "transforms_train.json", odd, names[:2])
+    assert_same_cameras(load_blender(tmp_path / "odd", "train", with_images=False).cameras, odd)
+    with pytest.raises(InputError) as info:
+        export_cameras(tmp_path / "mixed.json", [cameras[0], odd[0]], names[:2], "blender")
+    assert info.value.field == "cameras[1]" and "camera_angle_x" in info.value.reason
+
+
 def test_the_export_format_comes_from_the_name_or_the_flag(tmp_path) -> None:
     assert export_convention(tmp_path / "plan.json").name == "nerfstudio"
     assert export_convention(tmp_path / "Cameras.json").name == "3dgs-output"
     assert export_convention(tmp_path / "sparse0").name == "colmap"
     assert export_convention(tmp_path / "plan.json", "blender").name == "blender"
+    assert export_convention(tmp_path / "transforms_train.json").name == "blender"
     with pytest.raises(InputError) as info:
         export_convention(tmp_path / "plan.yaml")
     assert info.value.field == "export" and "plan.yaml" in info.value.reason

@@ -132,7 +132,7 @@ def test_page_ranks_a_model_and_shows_the_services_order(browser, models, tmp_pa
         assert [v.camera for v in expected.views] == [generated[v.index].to_frame() for v in expected.views]
         cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
         assert [int(c.get_attribute("data-index")) for c in cards] == [v.index for v in expected.views]
-        assert [int(c.get_attribute("data-rank")) for c in cards] == list(range(7))
+        assert [int(c.get_attribute("data-rank")) for c in cards] == list(range(1, 8))      # #1 first, as REST says
         scores = [float(c.find_element(By.CSS_SELECTOR, "dd.score").text) for c in cards]
         assert scores == pytest.approx([v.score for v in expected.views], rel=1e-3)
         # Every heat map and render loaded, at the rendered size, and shows the artefact's pixels.
@@ -586,7 +586,8 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     choose_files(browser, "upload-file", svc_trained, sidecar)          # picked together, as trained
     assert text_of(browser, "upload-picked").startswith("Uploads 2 files: ")
     browser.find_element(By.ID, "upload-run").click()
-    wait(browser, lambda d: "Uploaded model.ply: 3dgs, 4 training cameras (blender)" in text_of(d, "upload-message"),
+    run = f"{svc_trained.parent.name}/model"                           # named by its sidecar, not "model.ply"
+    wait(browser, lambda d: f"Uploaded {run}: 3dgs, 4 training cameras (blender)" in text_of(d, "upload-message"),
          what="the uploaded model")
     assert "4 training cameras (blender)" in text_of(browser, "model-info")
     # The 3D view (view3d.js) is mounted on the uploaded model by the page: its splats and 4 cameras.
@@ -601,6 +602,12 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
         (model_a,) = phd.list_models()
         assert phd.training_cameras(model_a.id) == json.loads(sidecar.read_text())["training_cameras"]
         assert model_a.details["background"] == json.loads(sidecar.read_text())["background"]
+    # The same two files again: the model stored already, said so; no second entry.
+    choose_files(browser, "upload-file", svc_trained, sidecar)
+    browser.find_element(By.ID, "upload-run").click()
+    wait(browser, lambda d: "no new entry" in text_of(d, "upload-message"), what="the repeat's note")
+    assert text_of(browser, "upload-message").startswith(f"{run}: the same file")
+    assert [m.id for m in PHDClient(server.url, api_key=KEY).list_models()] == [model_a.id]
 
     # The bare PLY: said at once that it has no cameras and what to add; model A stays chosen.
     choose_files(browser, "upload-file", svc_trained)
@@ -614,11 +621,14 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     assert Select(browser.find_element(By.ID, "model-b-select")).first_selected_option.get_attribute("value") == \
         model_b.id
 
-    # The same two files as a zip (what a user mails around), dropped: read by the same rules, with cameras.
+    # The PLY and a sidecar with 3 of its 4 cameras (another model) as a zip (what a user mails around),
+    # dropped: read by the same rules, with cameras.
     zipped = tmp_path / "run.zip"
+    fewer = json.loads(sidecar.read_text())
+    fewer["training_cameras"] = fewer["training_cameras"][:3]
     with zipfile.ZipFile(zipped, "w") as archive:
-        for path in (svc_trained, sidecar):
-            archive.write(path, f"run/{path.name}")
+        archive.write(svc_trained, "run/model.ply")
+        archive.writestr("run/model.json", json.dumps(fewer))
     choose_files(browser, "upload-file", zipped)       # then dropped on the box instead (the drop's path)
     browser.execute_script(
         "const input = document.getElementById('upload-file'), dt = new DataTransfer(); "
@@ -628,7 +638,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
     wait(browser, lambda d: text_of(d, "upload-picked") == "Uploads 1 file: run.zip", what="the dropped zip")
     set_field(browser, "upload-name", "from the zip")
     browser.find_element(By.ID, "upload-run").click()
-    wait(browser, lambda d: "Uploaded from the zip: 3dgs, 4 training cameras (blender). It is model B"
+    wait(browser, lambda d: "Uploaded from the zip: 3dgs, 3 training cameras (blender). It is model B"
          in text_of(d, "upload-message"), what="the zip's model")
     with PHDClient(server.url, api_key=KEY) as phd:
         model_c = next(m for m in phd.list_models() if m.name == "from the zip")
@@ -653,7 +663,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
         expected = phd.rank(model_a.id, candidates=spec, samples=3, seed=1, downscale=2)
     cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
     assert [c.find_element(By.CSS_SELECTOR, ".title").text for c in cards] == \
-        [f"candidate {v.index} · rank #{v.rank + 1}" for v in expected.views]
+        [f"candidate {v.index} · rank #{v.rank}" for v in expected.views]
     # The ranking reached the 3D view: one frustum per returned pose, with its rank; a rank card's
     # click selects its frustum, and a frustum's pick marks its card.
     frusta = browser.execute_script("return phdView3d.debug().frusta")
@@ -666,14 +676,14 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
         "blender"
     set_field(browser, "poses-topk", 3)
     first = [v for v in expected.views[:3]]
-    for convention, name in (("blender", "transforms.json"), ("colmap", "colmap.zip")):
+    for convention, name in (("blender", "transforms_train.json"), ("colmap", "colmap.zip")):
         Select(browser.find_element(By.ID, "poses-format")).select_by_value(convention)
         before = {p.name for p in downloads.iterdir()}
         browser.find_element(By.ID, "poses-download").click()
         saved = _download(browser, downloads, before)
         assert saved.name == name and f"Saved the first 3 poses as {name}" in text_of(browser, "rank-message")
         # What `phd rank --export` writes for the REST answer's poses, with the same image names.
-        written = tmp_path / convention / ("transforms.json" if convention == "blender" else "colmap")
+        written = tmp_path / convention / ("transforms_train.json" if convention == "blender" else "colmap")
         export_cameras(written, [camera_from_frame(v.camera) for v in first],
                        [candidate_name(v.rank, v.index) for v in first], convention)
         if convention == "blender":
@@ -708,9 +718,7 @@ def test_page_takes_what_phd_train_wrote_and_hands_back_the_poses(browser, train
 def test_page_checks_a_candidates_file_and_asks_for_its_image_size(browser, trained_server, svc_trained, tmp_path):
     server = trained_server
     with PHDClient(server.url, api_key=KEY) as phd:
-        if not any(m.name == "model.ply" for m in phd.list_models()):
-            phd.upload_model(svc_trained)
-        model = next(m for m in phd.list_models() if m.name == "model.ply")
+        model = phd.upload_model(svc_trained)       # the model stored already, when an earlier test uploaded it
     browser.get(server.url + "/ui/")
     set_field(browser, "api-key", KEY)
     browser.find_element(By.CSS_SELECTOR, "#key-form button").click()
@@ -799,14 +807,14 @@ def test_page_uploads_a_trainer_output_folder_picked_as_a_folder(browser, traine
          what="the folder's model")
     assert f"calibrated: r_drop = {r_drop} (the calibration phd stored" in text_of(browser, "upload-message")
     with PHDClient(server.url, api_key=KEY) as phd:
-        expected = phd.upload_model(folder)                 # named after the run, as the page's upload is
+        # The same run through the client: the page's model (the same bytes, cameras and background), named alike.
+        expected = phd.upload_model(folder)
+        assert "no new entry" in (expected.note or "")
         assert text_of(browser, "upload-message").startswith(f"Uploaded {expected.name}: ")
-        uploaded = next(m for m in phd.list_models() if m.name == expected.name and m.id != expected.id)
-        assert uploaded.sha256 == expected.sha256
-        assert phd.training_cameras(uploaded.id) == phd.training_cameras(expected.id)
-        assert uploaded.calibration is not None and uploaded.calibration.r_drop == r_drop
-        assert any("not run again" in note for note in uploaded.details["notes"])
-        phd.delete_model(uploaded.id)
+        assert [m.id for m in phd.list_models() if m.name == expected.name] == [expected.id]
+        assert expected.calibration is not None and expected.calibration.r_drop == r_drop
+        assert any("not run again" in note for note in expected.details["notes"])
+        phd.delete_model(expected.id)
 
     # Calibrated on other cameras (at half their size) only: that calibration is not this model's.
     for entry in (folder / ".phd-cache").glob("calibration-*.json"):

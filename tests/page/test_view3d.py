@@ -144,7 +144,7 @@ def test_the_view_draws_the_splats_and_the_returned_poses_where_they_project(bro
         colour = image[int(py), int(px)].astype(int)
         assert np.abs(colour - drawn[v["index"]]["rgb"]).max() <= 40, (v["index"], colour, drawn[v["index"]]["rgb"])
         label = browser.find_element(By.CSS_SELECTOR, f".v3d-label[data-index='{v['index']}']")
-        assert label.text == f"#{v['rank'] + 1}"
+        assert label.text == f"#{v['rank']}"                               # ranks count from 1
     top = max(ranking["views"], key=lambda v: v["score"])
     assert drawn[top["index"]]["rgb"] == [253, 231, 37] and max(scores) == top["score"]
     legend = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-legend").text
@@ -159,7 +159,7 @@ def test_clicking_a_frustum_picks_it_and_shows_its_render_and_heat_map(browser, 
     _call(browser, "phdView3d.showRanking(arguments[0], {candidates: arguments[1]})", ranking, candidates)
     browser.execute_script("window.picked = []; phdView3d.onPick(i => window.picked.push(i));")
     state = browser.execute_script("return phdView3d.debug()")
-    first = next(v for v in ranking["views"] if v["rank"] == 0)
+    first = next(v for v in ranking["views"] if v["rank"] == 1)
     px, py, _ = _project(state, _image_centre(first["camera"], state["frustumDepth"]))
     canvas = browser.find_element(By.CSS_SELECTOR, "#view3d canvas")
     size = canvas.size
@@ -182,7 +182,7 @@ def test_clicking_a_frustum_picks_it_and_shows_its_render_and_heat_map(browser, 
     assert shown[:2] == [truth.shape[1], truth.shape[0]]
     assert np.array_equal(np.array(shown[2], np.uint8).reshape(shown[1], shown[0], 4)[..., :3], truth)
     # select() from the page (a rank card clicked) highlights another candidate without a pick event.
-    second = next(v for v in ranking["views"] if v["rank"] == 1)
+    second = next(v for v in ranking["views"] if v["rank"] == 2)
     _call(browser, "phdView3d.select(arguments[0])", second["index"])
     assert browser.execute_script("return [phdView3d.debug().selected, window.picked]") == \
         [second["index"], [first["index"]]]
@@ -414,7 +414,8 @@ def test_calibrating_on_the_page_lets_the_view_explain_the_model(browser, ranked
     while its job runs) then brings the fragility colours, and the message goes."""
     server, model, _, _ = ranked
     with PHDClient(server.url, api_key=KEY) as phd:
-        bare = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(3), name="calibrated on the page")
+        # Another model than the fixture's (4 cameras, not 3): the same upload would answer the calibrated one.
+        bare = phd.upload_model(svc_model_files["ply"], cameras=svc_cameras(4), name="calibrated on the page")
     _open(browser, server, bare)
     _call(browser, "phdView3d.setMode('fragility')")
     status = browser.find_element(By.CSS_SELECTOR, "#view3d .v3d-status")

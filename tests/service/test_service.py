@@ -64,6 +64,7 @@ def test_ply_upload_calibrate_rank_equal_the_library(svc_start, svc_model_files)
         ranking = phd.rank(info.id, candidates, samples=6, seed=2, heatmaps="base64")
         expected = uq.rank_views(renderer, candidates, ratio=direct.r_drop, samples=6, seed=2)
         _assert_ranking_equal(ranking, expected)
+        assert [v.rank for v in ranking.views] == list(range(1, len(candidates) + 1))    # #1 first, as the CLI says
         assert ranking.strategy == uq.DEFAULT_STRATEGY
         assert (ranking.ratio_source, ranking.dropout_ratio, ranking.width) == ("calibration", direct.r_drop, 24)
         # Another strategy and other captured poses give the library's answer for the same arguments.

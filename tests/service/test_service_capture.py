@@ -23,6 +23,7 @@ from phd_core.scene import Camera
 from phd_core.uq.candidates import candidate_cameras
 from support.captures import colmap_pose as written_colmap_pose
 from support.captures import inria_entries, write_colmap, write_llff, write_output_folder
+from support.cli import run
 from support.fixtures import svc_cameras, svc_random_gaussians
 from support.trainers import gsplat_scene, splatfacto_scene
 
@@ -116,10 +117,9 @@ def test_upload_cameras_from_any_format(svc_start, output_folder, tmp_path, kind
         expected = {"raw cameras.json": 3, "colmap": 2, "llff": 7}[kind]   # train splits hold out every 8th
         assert stored.num_training_cameras == expected
         assert client.calibrate(model_id, epsilon=0.05, samples=2).num_cameras == expected
-        # Poses come back in the source's convention; LLFF has no converter, so its cameras went up
-        # as transforms frames and come back as such.
-        assert stored.camera_format == {"raw cameras.json": "3dgs-output", "colmap": "colmap",
-                                        "llff": "nerfstudio"}[kind]
+        # Poses come back in the source's convention; LLFF keeps its name but has no converter, so its
+        # poses come back as transforms frames only (source_pose null).
+        assert stored.camera_format == {"raw cameras.json": "3dgs-output", "colmap": "colmap", "llff": "llff"}[kind]
         candidates = svc_cameras(2, phase=0.3)
         ranking = client.rank(model_id, candidates, samples=2, dropout_ratio=0.2)
     for view in ranking.views:
@@ -130,9 +130,36 @@ def test_upload_cameras_from_any_format(svc_start, output_folder, tmp_path, kind
             sign = 1.0 if qvec[0] >= 0 else -1.0
             assert np.allclose(view.source_pose["qvec"], sign * np.array(qvec), atol=1e-9)
             assert np.allclose(view.source_pose["tvec"], tvec, atol=1e-9)
-        assert (view.source_pose or {}).get("format") == stored.camera_format
+        assert (view.source_pose or {}).get("format") == (None if kind == "llff" else stored.camera_format)
     if kind == "raw cameras.json":                   # no background field: the reference trainer's black, said so
         assert stored.details["background"] == [0.0, 0.0, 0.0] and "guessed" in stored.details["background_source"]
+
+
+def test_a_capture_format_has_one_name_in_the_cli_and_the_service(svc_start, tmp_path, capsys) -> None:
+    """A model `phd train` made of an LLFF capture is "llff" in `phd rank --json`, in the upload's
+    answer and in a rank answer (REST and the client), not "nerfstudio" where the service has
+    no converter; its poses download as a transforms.json (the default for a format without one)."""
+    cameras = [Camera(c.c2w, c.fx, c.fx, 12, 12, 24, 24) for c in svc_cameras(9)]
+    reference = GaussianRenderer(svc_random_gaussians(300, seed=0), (1.0, 1.0, 1.0), cameras)
+    write_llff(tmp_path / "llff", cameras, images=[reference.render(c)[0].numpy() for c in cameras])
+    ply = tmp_path / "m.ply"
+    code, _, err = run(capsys, "train", "--data", tmp_path / "llff", "--views", 7, "--iterations", 2, "--downscale", 1,
+                       "--out", ply, "--quiet")
+    assert code == 0, err
+    code, out, err = run(capsys, "rank", "--json", "--model", ply, "--candidates", "orbit:3", "--samples", 2,
+                         "--dropout-ratio", 0.2)
+    assert code == 0, err
+    cli = json.loads(out)
+    assert cli["camera_format"] == "llff" and all(r["source_pose"] is None for r in cli["ranking"])
+    server = svc_start()
+    with PHDClient(server.url) as client:
+        info = client.upload_model(ply)                              # its sidecar beside it
+        ranking = client.rank(info.id, candidates="orbit:3", samples=2, dropout_ratio=0.2)
+    assert info.camera_format == ranking.camera_format == "llff"
+    assert httpx.get(f"{server.url}/v1/models/{info.id}").json()["camera_format"] == "llff"
+    assert all(v.source_pose is None for v in ranking.views)
+    poses = httpx.post(f"{server.url}/v1/models/{info.id}/poses", json={"cameras": [ranking.views[0].camera]})
+    assert poses.status_code == 200 and 'filename="transforms.json"' in poses.headers["content-disposition"]
 
 
 def test_malformed_capture_input_is_a_4xx(svc_start, output_folder) -> None:
@@ -193,7 +220,7 @@ def test_upload_fields_camera_format_and_background_are_checked(svc_start, outpu
     server = svc_start()
     ply = next(output_folder.glob("point_cloud/iteration_30000/point_cloud.ply"))
     frames = json.dumps([c.to_frame() for c in svc_cameras(3)])
-    for data, field in (({"cameras": frames, "camera_format": "llff"}, "camera_format"),
+    for data, field in (({"cameras": frames, "camera_format": "ply"}, "camera_format"),
                         ({"cameras": frames, "background": "purple"}, "background")):
         with open(ply, "rb") as f:
             response = httpx.post(f"{server.url}/v1/models", files={"file": ("m.ply", f)}, data=data)

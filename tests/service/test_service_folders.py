@@ -72,11 +72,14 @@ def test_a_folder_uploads_as_the_client_reads_it(svc_start, svc_trained, tmp_pat
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")        # the readers' notes, issued as Python warnings
             expected = client.upload_model(source)
+        expected_frames = client.training_cameras(expected.id)
+        client.delete_model(expected.id)            # else the same model again answers the stored one
         zipped = _zip(zip_root or folder, zip_root.parent if zip_root else None)
-        answers = [httpx.post(f"{server.url}/v1/models", files={"archive": ("run.zip", zipped)}, timeout=120)]
+        uploads = [{"archive": ("run.zip", zipped)}]
         if trainer in ("phd train", "reference 3DGS"):   # also picked as a folder, one part per file
-            answers.append(httpx.post(f"{server.url}/v1/models", files=_files(folder), timeout=120))
-        for answer in answers:
+            uploads.append(_files(folder))
+        for parts in uploads:
+            answer = httpx.post(f"{server.url}/v1/models", files=parts, timeout=120)
             assert answer.status_code == 201, answer.text
             got = answer.json()
             assert got["sha256"] == expected.sha256 and got["num_units"] == expected.num_units
@@ -84,13 +87,14 @@ def test_a_folder_uploads_as_the_client_reads_it(svc_start, svc_trained, tmp_pat
             assert got["num_training_cameras"] == expected.num_training_cameras > 0
             assert got["details"]["background"] == expected.details["background"]
             assert np.allclose([f["transform_matrix"] for f in client.training_cameras(got["id"])],
-                               [f["transform_matrix"] for f in client.training_cameras(expected.id)], atol=1e-9)
+                               [f["transform_matrix"] for f in expected_frames], atol=1e-9)
+            client.delete_model(got["id"])
     if trainer == "phd train":     # what its sidecar says, and where the background came from
         sidecar = json.loads((folder / "model.json").read_text())
         assert got["camera_format"] == sidecar["dataset_format"] == "blender"
         assert got["details"]["background"] == sidecar["background"]
         assert got["details"]["background_source"] == "the sidecar its trainer wrote"
-        assert got["name"] == "model.ply"
+        assert got["name"] == "run"                 # the folder's, not the file's (model.ply every time)
     else:
         assert got["name"] == expected.name         # the run's name, as the client gives it
         # What the reader noted (the frame it undid, the checkpoint it read) is kept with the model.
@@ -242,10 +246,11 @@ def test_downloaded_poses_are_what_phd_rank_export_writes(svc_start, svc_trained
             assert answer.content == export.read_bytes()
             assert answer.headers["content-disposition"] == \
                 f'attachment; filename="{convention.file_name or "transforms.json"}"'
-    # Without a format, the model's own: its sidecar's capture was a Blender scene.
+    # Without a format, the model's own: its sidecar's capture was a Blender scene (ranks from 1).
     own = httpx.post(f"{server.url}/v1/models/{model.id}/poses", json={"cameras": body["cameras"]})
-    assert own.headers["content-disposition"] == 'attachment; filename="transforms.json"'
-    assert [f["file_path"] for f in own.json()["frames"]] == [f"images/rank00{k}_candidate000{k}.png" for k in range(3)]
+    assert own.headers["content-disposition"] == 'attachment; filename="transforms_train.json"'
+    assert [f["file_path"] for f in own.json()["frames"]] == [f"./images/rank00{k + 1}_candidate000{k}"
+                                                              for k in range(3)]
     wrong = httpx.post(f"{server.url}/v1/models/{model.id}/poses", json={**body, "indices": [1]})
     assert wrong.status_code == 422 and "one index per camera" in wrong.json()["error"]["message"]
 
@@ -279,6 +284,41 @@ def test_a_sidecars_record_of_its_capture_is_checked_before_it_is_stored(svc_sta
     assert httpx.get(f"{server.url}/v1/models", timeout=30).status_code == 200
 
 
+def test_uploads_are_named_by_their_sidecar_or_folder_and_a_repeat_answers_the_stored_model(svc_start, svc_trained,
+                                                                                           tmp_path) -> None:
+    """`phd train`'s model.ply is named by its sidecar ("<run folder>/model"), a zip or a picked
+    folder by the folder, never "model.ply"; the same bytes with the same cameras, background
+    and capture format again answer the stored model (200 and a note, no new entry), through
+    the client and REST alike, while another background makes another model."""
+    server = svc_start()
+    sidecar = svc_trained.with_name("model.json")
+    with PHDClient(server.url) as client:
+        first = client.upload_model(svc_trained)
+        assert first.name == f"{svc_trained.parent.name}/model" and first.note is None
+        again = client.upload_model(svc_trained, name="another name")
+        assert again.id == first.id and again.name == first.name and "no new entry" in (again.note or "")
+        # As the page sends them: the PLY, and the sidecar as its cameras.
+        answer = httpx.post(f"{server.url}/v1/models", files={"file": ("model.ply", svc_trained.read_bytes())},
+                            data={"cameras": sidecar.read_text()})
+        assert answer.status_code == 200 and answer.json()["id"] == first.id and "no new entry" in answer.json()["note"]
+        other = client.upload_model(svc_trained, background="black")
+        assert other.id != first.id and other.note is None
+        assert sorted(m.id for m in client.list_models()) == sorted([first.id, other.id])
+        for model in (first, other):
+            client.delete_model(model.id)
+
+    run = tmp_path / "desk_run"
+    run.mkdir()
+    for path in (svc_trained, sidecar):
+        (run / path.name).write_bytes(path.read_bytes())
+    for parts, name in (({"archive": ("desk_run.zip", _zip(run))}, "desk_run"),             # the folder inside
+                        ({"archive": ("flat.zip", _zip(run, under=run))}, "flat"),          # its files at the top
+                        (_files(run), "desk_run")):                                         # picked as a folder
+        answer = httpx.post(f"{server.url}/v1/models", files=parts, timeout=120)
+        assert answer.status_code == 201 and answer.json()["name"] == name, answer.text
+        httpx.delete(f"{server.url}/v1/models/{answer.json()['id']}")
+
+
 def test_a_folder_brings_the_calibration_phd_stored_for_its_model_and_cameras(svc_start, svc_trained,
                                                                                tmp_path, capsys) -> None:
     """What `phd train` wrote, calibrated by `phd calibrate` (its model.ply.phd-cache/), zipped: the
@@ -299,6 +339,7 @@ def test_a_folder_brings_the_calibration_phd_stored_for_its_model_and_cameras(sv
     assert used.json()["calibration"]["r_drop"] == r_drop
     assert any("not run again" in note for note in used.json()["details"]["notes"])
 
+    httpx.delete(f"{server.url}/v1/models/{used.json()['id']}")     # else the same model answers again
     for entry in (run / "model.ply.phd-cache").glob("calibration-*.json"):
         entry.unlink()
     assert phd([*calibrate, str(tmp_path / "half.json"), "--downscale", "2"]) == 0

@@ -45,7 +45,8 @@ def ranked(result: RankResult) -> dict[str, Any]:
 def through_client(url: str, key: str, model: Path, frames: Path, *, orbit: int = 64, top_k: int = 5,
                    samples: int = DEFAULT_SAMPLES) -> dict[str, Any]:
     """Upload (the sidecar beside the PLY goes with it), calibrate, rank `orbit` generated
-    candidates and the poses file's frames (heat maps as files: the first one is downloaded)."""
+    candidates and the poses file's frames (heat maps as files: the first one is downloaded);
+    the model is deleted at the end, so that the next door uploads its own."""
     watch = Stopwatch()
     with PHDClient(url, api_key=key) as phd:
         info = phd.upload_model(model, name=f"{model.stem} (client)")
@@ -59,7 +60,8 @@ def through_client(url: str, key: str, model: Path, frames: Path, *, orbit: int 
         first = own.views[0]
         heatmap = iio.imread(phd.download(first.heatmap_url or ""))
         watch.lap("rank_frames")
-    return {"model_id": info.id, "training_cameras": info.num_training_cameras, "r_drop": calibration.r_drop,
+        phd.delete_model(info.id)       # else the page's upload of the same files is answered by this model
+    return {"training_cameras": info.num_training_cameras, "r_drop": calibration.r_drop,
             "seconds": watch.seconds, "orbit": ranked(around), "frames": ranked(own),
             "heatmap_size": [heatmap.shape[1], heatmap.shape[0]], "frame_size": [first.camera["w"], first.camera["h"]]}
 

@@ -342,7 +342,7 @@ def test_sigma_max_ranking_orders_by_sigma_max_with_index_ties(blobs: BlobRender
     cameras = [away_camera(), CAMERAS[0], CAMERAS[2], away_camera(), CAMERAS[0], CAMERAS[4]]
     ranked = phd.rank_views(blobs, cameras, ratio=0.4, samples=8, seed=1, strategy="sigma_max")
     views = phd.uncertainty(blobs, cameras, ratio=0.4, samples=8, seed=1)
-    assert [r.rank for r in ranked] == list(range(6))
+    assert [r.rank for r in ranked] == list(range(1, 7))
     expected = sorted(range(6), key=lambda i: (-views[i].sigma_max, i))
     assert [r.index for r in ranked] == expected
     positions = {r.index: r.rank for r in ranked}

@@ -105,7 +105,7 @@ def test_every_ranked_candidate_carries_sigma_and_the_strategys_score(name: str)
     ranked = phd.rank_views(renderer, candidates, ratio=0.3, samples=6, seed=2, strategy=name)
     views = phd.uncertainty(renderer, candidates, ratio=0.3, samples=6, seed=2)
     assert sorted(r.index for r in ranked) == list(range(6))
-    assert [r.rank for r in ranked] == list(range(6))
+    assert [r.rank for r in ranked] == list(range(1, 7))
     for r in ranked:
         assert r.sigma_max == views[r.index].sigma_max and r.sigma_mean == views[r.index].sigma_mean
         assert math.isfinite(r.score)
@@ -179,7 +179,7 @@ def test_coarse_to_fine_ranks_the_best_again_at_full_size(name: str) -> None:
     best = [v.index for v in first[:4]]
     fine = phd.rank_views(renderer, [candidates[i] for i in best], ratio=0.3, samples=6, seed=2, strategy=name)
     assert [v.index for v in ranked] == [best[v.index] for v in fine] + [v.index for v in first[4:]]
-    assert [v.rank for v in ranked] == list(range(10))
+    assert [v.rank for v in ranked] == list(range(1, 11))
     assert [v.refined for v in ranked] == [True] * 4 + [False] * 6
     full = phd.uncertainty(renderer, candidates, ratio=0.3, samples=6, seed=2)
     small = phd.uncertainty(renderer, coarse, ratio=0.3, samples=6, seed=2)

@@ -54,7 +54,7 @@ class SplatRenderer(ABC):
     def __init__(self, model: GaussianModel, background: Sequence[float] = (1.0, 1.0, 1.0),
                  training_cameras: list[Camera] | None = None, *, tile: int = DEFAULT_TILE,
                  near: float = NEAR_PLANE, compositor: str = DEFAULT_COMPOSITOR, camera_format: str | None = None,
-                 notes: Sequence[str] = (), trained_on: TrainedOn | None = None):
+                 notes: Sequence[str] = (), trained_on: TrainedOn | None = None, name: str | None = None):
         if not isinstance(model, self.model_type) or model.scale_axes != self.model_type.scale_axes:
             raise InputError("model", f"a {self.kind} renderer needs a {self.model_type.__name__}, "
                                       f"got {type(model).__name__}")
@@ -66,6 +66,7 @@ class SplatRenderer(ABC):
         self.camera_format = camera_format      # the source's pose convention (phd_core.data.POSES), when known
         self.notes = list(notes)                # what loading found that the user should know (frames, cameras)
         self.trained_on = trained_on            # the capture `phd train` fitted it to, when its sidecar says
+        self.name = name                        # the run's name its sidecar records ("<folder>/<stem>")
         self.tile = tile
         self.near = near
         self.compositor = compositor
@@ -146,6 +147,7 @@ class SplatRenderer(ABC):
             "camera_format": self.camera_format,
             "notes": list(self.notes),
             "trained_on": None if self.trained_on is None else self.trained_on.fields(),
+            "name": self.name,
         }
 
 
@@ -171,4 +173,5 @@ def with_sidecar(path: Path, renderer: SplatRenderer) -> SplatRenderer:
         return renderer
     return type(renderer)(renderer.model, sidecar.get("background", (1.0, 1.0, 1.0)),
                           cameras_from_json(sidecar["training_cameras"]), camera_format=sidecar.get("dataset_format"),
-                          notes=renderer.notes, trained_on=TrainedOn.from_fields(sidecar))
+                          notes=renderer.notes, trained_on=TrainedOn.from_fields(sidecar),
+                          name=sidecar["name"] if isinstance(sidecar.get("name"), str) else None)
