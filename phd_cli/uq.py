@@ -407,7 +407,7 @@ def run_rank(args: argparse.Namespace) -> int:
     if store is not None and store.cache.skipped:
         print(f"warning: {store.cache.skipped}", file=sys.stderr)
     convention = renderer.describe().get("camera_format")
-    result = {"strategy": args.strategy, "signal": args.signal, "dropout_ratio": ratio,
+    result = {"strategy": args.strategy, "rule": ranked.rule, "signal": args.signal, "dropout_ratio": ratio,
               "calibration": calibration,
               "samples": args.samples, "seed": args.seed, "coarse": args.coarse,
               "candidates": len(candidates), "targets": None if targets is None else len(targets),
@@ -421,7 +421,7 @@ def run_rank(args: argparse.Namespace) -> int:
                                  [candidate_name(r.rank, r.index) for r in ranked], args.export_format)
         print(f"exported {len(ranked)} poses as {written.writes} ({written.name}) to {args.export}",
               file=sys.stderr if args.json else sys.stdout)         # stdout carries only the JSON
-    summary = f"ranked {len(candidates)} candidates ({args.strategy}) at dropout ratio {ratio}"
+    summary = f"ranked {len(candidates)} candidates ({args.strategy}: {ranked.rule}) at dropout ratio {ratio}"
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False))
     elif args.out is not None:
