@@ -21,7 +21,7 @@ from phd_core.io import ModelCache, write_heatmap, write_json_atomic
 from phd_core.renderers import DEFAULT_SIGNAL, SIGNALS, signals_help
 from phd_core.scene import Camera
 from phd_core.uq.candidates import GENERATORS
-from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
+from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, STRATEGY_ADVICE
 from phd_core.uq.strategies.captured import CapturedStore
 
 from .models import OpenedModel, check_cameras_see, check_capture, model_views, open_model
@@ -94,7 +94,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "transforms-style JSON or a list of frames (needs w/h, or give --width/--height), or any "
                       "capture (all its frames)"),
     rank.add_argument("--strategy", choices=sorted(STRATEGIES), default=DEFAULT_STRATEGY,
-                      help="; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items())))
+                      help="; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items()))
+                      + ". " + STRATEGY_ADVICE)
     rank.add_argument("--captured", type=Path, default=None,
                       help="JSON of the poses already captured (default: the model's training cameras)")
     rank.add_argument("--targets", default=None, metavar="FILE|GENERATOR",
