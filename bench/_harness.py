@@ -24,6 +24,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, Callable
 
+import numba
 import torch
 
 from phd_core.data import Dataset, load_blender, load_dataset
@@ -41,6 +42,12 @@ DOCS = ROOT / "docs"
 DATA = ROOT.parent / "shared" / "data"              # ../shared/data beside the checkout
 DONUT = DATA / "donut_200"
 LEGO = DATA / "lego_200"
+REAL_CAPTURES = ("cup_colmap", "flask_desk", "imac_chair", "meeting_room_a", "drone_flight1")   # real photos
+
+
+def capture_path(name: str) -> Path:
+    """Where a real capture of REAL_CAPTURES lies: cup_colmap in ../shared/data, the others in its real/."""
+    return DATA / name if name == "cup_colmap" else DATA / "real" / name
 
 
 def command(argv: list[str] | None = None) -> str:
@@ -227,6 +234,15 @@ def subset(data: Dataset, indices: list[int]) -> Dataset:
                                images=None if data.images is None else [data.images[i] for i in indices],
                                alphas=None if data.alphas is None else [data.alphas[i] for i in indices],
                                indices=[data.indices[i] for i in indices])
+
+
+def pin_determinism() -> None:
+    """One thread for torch and numba and only deterministic kernels: the same views and seed then train
+    the same model bit for bit (parallel sums round differently from run to run), as a comparison of
+    strategies that share their first model needs."""
+    torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(True)
+    numba.set_num_threads(1)
 
 
 def train(data: Dataset, indices: list[int], iterations: int, seed: int) -> GaussianRenderer:

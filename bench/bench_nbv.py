@@ -48,6 +48,18 @@ margin, 95 % bootstrap interval over scenes) in their own section of docs/nbv.md
 `--family walk` and `--family room` run the walks and rooms the same script makes (captures
 along one path, split as cup_colmap is, told their own train frames as targets), each reported
 in its own section.
+
+The real family (`--family real`, issue 47): the real captures (bench._harness.REAL_CAPTURES, or any COLMAP
+capture folders given as `--scenes PATH ...`), each split as cup_colmap is and read by the product's loaders,
+the widest view `--resolution` px wide and every view at its own aspect. Its protocol: training pinned to
+be deterministic (the round-0 model, trained once per capture and seed, is the same for every strategy;
+a stored task whose first model now tests otherwise stops the run), a budget that grows with the views
+(`--iterations-per-view`), and a report paired by capture and seed with a bootstrap over those pairs,
+each round's ranking seconds beside it:
+
+    PHD_CACHE_DIR=<a directory> OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.bench_nbv \
+        --family real --jobs 2 --resolution 50 --iterations-per-view 40 --per-round 3 --rounds 2 --seeds 0 1 2 \
+        --strategies random fvs visibility_sigma_fvs visibility_sigma_fvs+targets
 """
 
 from __future__ import annotations
@@ -62,11 +74,27 @@ import statistics
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Callable
 
 import torch
 
 from bench import nbv_experiments  # importing registers the strategies tried, not shipped
-from bench._harness import DATA, DOCS, RESULTS, fmt, machine, subset, svg_plot, train, write_doc, write_result
+from bench._harness import (
+    DATA,
+    DOCS,
+    REAL_CAPTURES,
+    RESULTS,
+    capture_path,
+    fmt,
+    load_average,
+    machine,
+    pin_determinism,
+    subset,
+    svg_plot,
+    train,
+    write_doc,
+    write_result,
+)
 from phd_core import uq as phd
 from phd_core.data import Dataset, load_dataset
 from phd_core.data.frames import HOLDOUT
@@ -91,7 +119,7 @@ TARGETS = "targets"         # the run-name suffix of a run told the target views
 TEST_VIEWS = "testviews"    # ... told the test views themselves: the target gain's ceiling, not a protocol
 TARGETED = f"{DEFAULT_STRATEGY}+{TARGETS}"
 FAMILY = RESULTS / "nbv_scenes"   # bench/nbv_scenes.py's output: the held-out families
-FAMILIES = ("held", "walk", "room")   # its kinds of scene (bench/nbv_scenes.py's docstring)
+FAMILIES = ("held", "walk", "room", "real")   # nbv_scenes.py's kinds of scene, and real captures (REAL_CAPTURES)
 
 
 def parse_args() -> argparse.Namespace:
@@ -101,6 +129,8 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--data", type=Path, default=DATA)
     p.add_argument("--resolution", type=int, default=50, help="square image size for training and testing")
     p.add_argument("--iterations", type=int, default=600)
+    p.add_argument("--iterations-per-view", type=int, default=None, help="a budget that grows with the views: "
+                   "every training runs this many iterations per view it is trained on (instead of --iterations)")
     p.add_argument("--initial", type=int, default=4)
     p.add_argument("--per-round", type=int, default=2)
     p.add_argument("--rounds", type=int, default=4)
@@ -121,11 +151,18 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--family", nargs="?", const="held", default=None, choices=FAMILIES,
                    help="a held-out family of bench/nbv_scenes.py: held (the default), walk or room (default "
                    "--scenes: every one of that kind generated), results in bench/results/nbv_heldout, a doc "
-                   "section for each kind")
+                   "section for each kind); real: the real captures (default --scenes: bench._harness."
+                   "REAL_CAPTURES, or COLMAP capture folders given as paths), each split as cup_colmap is, "
+                   "--resolution the widest view's width, results in bench/results/nbv_real")
     p.add_argument("--repeat-of", type=Path, default=None, help="with --family --report: a results directory "
                    "holding the same runs again, to report how far two identical runs differ (the noise floor)")
     args = p.parse_args()
-    if args.family:
+    args.captures = {}      # scene name -> capture folder, where it is not under --data
+    if args.family == "real":
+        given = REAL_CAPTURES if args.scenes == p.get_default("scenes") else args.scenes
+        args.captures = {Path(s).name: Path(s) if Path(s).is_dir() else capture_path(s) for s in given}
+        args.scenes = list(args.captures)
+    elif args.family:
         if args.scenes == p.get_default("scenes"):
             args.scenes = sorted(path.name for path in FAMILY.glob(f"{args.family}_*") if path.is_dir())
         if args.data == DATA:
@@ -155,14 +192,22 @@ def tag(args: argparse.Namespace, results: bool = False) -> str:
     """What names this resolution's (or the family's) doc section and plots apart from the four scenes
     at the default 50 px; with `results`, its results directory (one for every family: a task is
     found by its scene's name)."""
-    family = "" if args.family is None else "_heldout" if results or args.family == "held" else f"_{args.family}s"
+    family = ("" if args.family is None else "_real" if args.family == "real"
+              else "_heldout" if results or args.family == "held" else f"_{args.family}s")
     return family + ("" if args.resolution == 50 else f"_{args.resolution}px")
 
 
 def protocol(args: argparse.Namespace) -> dict:
-    """The settings a stored result must match to be reused."""
-    return {k: getattr(args, k) for k in ("resolution", "iterations", "initial", "per_round", "rounds",
-                                          "test_views", "samples")}
+    """The settings a stored result must match to be reused (a growing budget only where it is set, so results
+    of a fixed one stay valid)."""
+    kept = ("resolution", "iterations", "initial", "per_round", "rounds", "test_views", "samples")
+    return {k: getattr(args, k) for k in kept} | (
+        {"iterations_per_view": args.iterations_per_view} if args.iterations_per_view else {})
+
+
+def budget(args: argparse.Namespace, views: int) -> int:
+    """Training iterations for a model of `views` views: --iterations-per-view times the views, else --iterations."""
+    return args.iterations_per_view * views if args.iterations_per_view else args.iterations
 
 
 # ---------------------------------------------------------------------------------------- one task
@@ -194,17 +239,19 @@ def scene_fold(scene: str) -> tuple[str, int | None]:
 
 
 def load_split(args: argparse.Namespace, scene: str, split: str, **kw) -> Dataset:
-    """A split of a scene at the protocol's size (--resolution wide; WIDTH_SCALE for 4:3 captures); of a
-    holdout fold (`scene_fold`), the fold's frames of the capture's "all" split."""
+    """A split of a scene at the protocol's size (the widest view --resolution wide; outside the real family
+    WIDTH_SCALE for 4:3 captures), every view at its own aspect; of a holdout fold (`scene_fold`), the
+    fold's frames of the capture's "all" split."""
     name, fold = scene_fold(scene)
-    size = load_dataset(args.data / name, "train", with_images=False).cameras[0].width
-    downscale = size / (args.resolution * WIDTH_SCALE.get(name, 1.0))
+    folder = args.captures.get(name, args.data / name)
+    size = max(c.width for c in load_dataset(folder, "train", with_images=False).cameras)
+    downscale = size / (args.resolution * (1.0 if args.family == "real" else WIDTH_SCALE.get(name, 1.0)))
     if fold is None:
-        return load_dataset(args.data / name, split, downscale=downscale, **kw)
+        return load_dataset(folder, split, downscale=downscale, **kw)
     if split not in ("train", "test"):
         raise InputError("split", f"a holdout fold has the splits train and test, not {split!r}")
     views = kw.pop("views", None)
-    every = load_dataset(args.data / name, "all", downscale=downscale, **kw)
+    every = load_dataset(folder, "all", downscale=downscale, **kw)
     chosen = [i for i in range(len(every.cameras)) if (i % HOLDOUT == fold) == (split == "test")]
     if views is not None and views < len(chosen):
         raise InputError("test_views", f"a holdout fold tests on all of its {len(chosen)} views")
@@ -225,7 +272,7 @@ def calibrated_ratio(renderer: GaussianRenderer, captured: list, signal: str = D
 
 
 def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
-    torch.set_num_threads(1)
+    pin_determinism()
     path = args.results / f"{scene}-{seed}.json"
     stored = json.loads(path.read_text()) if path.exists() else {}
     if stored.get("protocol") != protocol(args):
@@ -241,8 +288,11 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     if not todo:
         return f"{scene} seed {seed}: stored"
     started = time.perf_counter()
-    base = train(train_data, init, args.iterations, seed)
+    base = train(train_data, init, budget(args, len(init)), seed)
     base_psnr, base_rmse = test_errors(base, test)
+    if stored and stored.get("initial_psnr") != base_psnr:   # the strategies stored must share this first model
+        raise RuntimeError(f"{scene} seed {seed}: the initial model tests at {base_psnr!r} dB, the stored runs' "
+                           f"at {stored.get('initial_psnr')!r}: training is not deterministic here")
     captured = [train_data.cameras[i] for i in init]
     views_told = {TARGETS: target_cameras(args, scene) if any(variant(n)[2] == TARGETS for n in todo) else None,
                   TEST_VIEWS: test.cameras}
@@ -264,7 +314,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
         result["spearman"][name] = spearman(strategy.select(test_evidence, 0, seed).scores, base_rmse)
         started = time.perf_counter()
         chosen, renderer, curve, ratios = list(init), base, [base_psnr], [ratio]
-        cost = []       # seconds of each round's ranking (evidence and selection) per candidate
+        seconds = []    # wall seconds of each round's ranking (evidence and selection)
+        cost = []       # ... per candidate
         for round_ in range(args.rounds):
             pool = [i for i in range(len(train_data.cameras)) if i not in chosen]
             captured = [train_data.cameras[i] for i in chosen]
@@ -284,13 +335,15 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
                 if strategy.uses_fisher:
                     add_fisher(evidence, renderer, seed + round_)
                 picks = strategy.select(evidence, args.per_round, seed + round_).order[:args.per_round]
-            cost.append((time.perf_counter() - ranked_at) / len(candidates))
+            seconds.append(time.perf_counter() - ranked_at)
+            cost.append(seconds[-1] / len(candidates))
             chosen += [pool[i] for i in picks]
-            renderer = train(train_data, chosen, args.iterations, seed)
+            renderer = train(train_data, chosen, budget(args, len(chosen)), seed)
             curve.append(test_errors(renderer, test)[0])
             if strategy.uses_dropout and round_ < args.rounds - 1:
                 ratios.append(calibrated_ratio(renderer, [train_data.cameras[i] for i in chosen], signal))
         result["runs"][name] = {"psnr": curve, "chosen": chosen, "ratios": ratios, "cost_per_candidate": cost,
+                                "rank_seconds": seconds,
                                 "seconds": round(time.perf_counter() - started, 1)}
         write_result(path, result)
         print(f"{scene} seed {seed} {name}: " + " ".join(f"{p:.2f}" for p in curve), flush=True)
@@ -439,16 +492,17 @@ BASELINES = ("fvs", "random")
 DISTANCE_RULE = "visibility_sigma_fvs_far+targets"   # the default told the targets before it followed a walk
 
 
-def pair_differences(tasks: list[dict], name: str, baseline: str, final: bool = True) -> dict[str, list[float]]:
-    """By scene, `name`'s PSNR minus `baseline`'s for each seed that ran both: after the last round
-    (final), or the mean over rounds 1..R."""
+def pair_differences(tasks: list[dict], name: str, baseline: str, final: bool = True,
+                     unit: Callable[[dict], str] = lambda t: t["scene"]) -> dict[str, list[float]]:
+    """By scene (or by another `unit` of a task), `name`'s PSNR minus `baseline`'s for each seed that ran
+    both: after the last round (final), or the mean over rounds 1..R."""
     def value(run: dict) -> float:
         return run["psnr"][-1] if final else statistics.mean(run["psnr"][1:])
-    by_scene: dict[str, list[float]] = {}
+    by_unit: dict[str, list[float]] = {}
     for t in tasks:
         if name in t["runs"] and baseline in t["runs"]:
-            by_scene.setdefault(t["scene"], []).append(value(t["runs"][name]) - value(t["runs"][baseline]))
-    return by_scene
+            by_unit.setdefault(unit(t), []).append(value(t["runs"][name]) - value(t["runs"][baseline]))
+    return by_unit
 
 
 def bootstrap_interval(by_scene: dict[str, list[float]], resamples: int = BOOTSTRAP,
@@ -463,9 +517,11 @@ def bootstrap_interval(by_scene: dict[str, list[float]], resamples: int = BOOTST
     return means[int(0.025 * resamples)], means[int(0.975 * resamples) - 1]
 
 
-def comparison(tasks: list[dict], name: str, baseline: str, final: bool = True) -> dict | None:
-    """Paired differences of `name` against `baseline` over the family: pairs, win rate, mean, interval."""
-    by_scene = pair_differences(tasks, name, baseline, final)
+def comparison(tasks: list[dict], name: str, baseline: str, final: bool = True,
+               unit: Callable[[dict], str] = lambda t: t["scene"]) -> dict | None:
+    """Paired differences of `name` against `baseline` over the family (the bootstrap resamples `unit`s, by
+    default scenes with their seeds): pairs, win rate, mean, interval."""
+    by_scene = pair_differences(tasks, name, baseline, final, unit)
     diffs = [d for values in by_scene.values() for d in values]
     if len(by_scene) < 2:
         return None
@@ -641,6 +697,69 @@ def family_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -
     return "\n".join(lines)
 
 
+def real_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> str:
+    """The real family: each strategy's mean, every strategy paired with FVS and random (and a run told the
+    targets with the default told nothing) capture by capture and seed by seed, the bootstrap over the
+    (capture, seed) pairs, then every task's final PSNR and whether each curve rose every round."""
+    tasks = [t for scene_tasks in by_scene.values() for t in scene_tasks]
+    names = sorted({n for t in tasks for n in t["runs"]}, key=lambda n: (n not in BASELINES, n))
+    views = [args.initial + args.per_round * r for r in range(args.rounds + 1)]
+    shared = all(len({r["psnr"][0] for r in t["runs"].values()}) == 1 for t in tasks)
+    lines = [f"Command: `PHD_CACHE_DIR=<a directory> OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 nice -n 10 .venv/bin/python "
+             f"-m bench.bench_nbv --family real --jobs 2 --resolution {args.resolution} --iterations-per-view "
+             f"{args.iterations_per_view} --initial {args.initial} --per-round {args.per_round} --rounds {args.rounds} "
+             f"--seeds {' '.join(map(str, args.seeds))} --strategies {' '.join(names)}` "
+             f"({platform.machine()}, {os.cpu_count()} cores shared with other work, one thread per task; load "
+             f"average when this was written: {' '.join(map(str, load_average()))}). Protocol: the captures "
+             "read by phd_core.data.load_dataset (distorted ones undistorted by pycolmap), every 8th frame a test "
+             f"view, the rest candidates and the `+targets` runs' targets; the widest view {args.resolution} px "
+             f"wide, every view at its own aspect; {args.initial} initial views (one by the seed, then FVS), "
+             f"{args.per_round} views per round, {args.rounds} rounds ({' -> '.join(map(str, views))} views); "
+             f"training {args.iterations_per_view} iterations per view "
+             f"({' -> '.join(str(budget(args, v)) for v in views)}), from scratch every round, deterministic "
+             "(bench._harness.pin_determinism); N = "
+             f"{args.samples} masks. Round 0 is trained once per (capture, seed) and shared by every strategy: "
+             + ("identical in every task." if shared else "NOT identical in some task.") + "", "",
+             "| strategy | runs | mean final PSNR | mean over rounds | ranking seconds per round (median) |",
+             "|---|---|---|---|---|"]
+    for name in names:
+        runs = [t["runs"][name] for t in tasks if name in t["runs"]]
+        ranking = statistics.median(s for r in runs for s in r["rank_seconds"])
+        lines.append(f"| {label(name)} | {len(runs)} | {statistics.fmean(r['psnr'][-1] for r in runs):.2f} | "
+                     f"{statistics.fmean(statistics.fmean(r['psnr'][1:]) for r in runs):.2f} | {ranking:.1f} |")
+    lines += ["", "Paired capture by capture and seed by seed: the strategy's PSNR minus the other's (after the last "
+              "round, and the mean over rounds 1..R), how often it is ahead, and the mean with its 95 % bootstrap "
+              f"interval ((capture, seed) pairs resampled, {BOOTSTRAP} resamples).", "",
+              "| strategy | against | pairs | ahead | final: mean [95 % interval] | rounds: mean [95 % interval] |",
+              "|---|---|---|---|---|---|"]
+    def pair(t: dict) -> str:
+        return f"{t['scene']} {t['seed']}"
+    for name in names:
+        for baseline in (*BASELINES, *((DEFAULT_STRATEGY,) if variant(name)[2] else ())):
+            final, rounds = (comparison(tasks, name, baseline, last, pair) for last in (True, False))
+            if name == baseline or final is None or rounds is None or (name, baseline) == BASELINES[::-1]:
+                continue
+            lines.append(f"| {label(name)} | {baseline} | {final['pairs']} | {final['wins']} of {final['pairs']} | "
+                         f"{interval_text(final)} | {interval_text(rounds)} |")
+    lines += ["", "Every task's final PSNR, and the rounds' PSNR where a curve did not rise every round "
+              f"({' -> '.join(map(str, views))} views):", "",
+              "| capture | seed | candidates | test views | round 0 | " + " | ".join(names) + " |",
+              "|---|---|---|---|---|" + "---|" * len(names)]
+    sizes = {scene: [len(load_split(args, scene, split, with_images=False).cameras) for split in ("train", "test")]
+             for scene in by_scene}
+    for t in tasks:
+        cells = []
+        for name in names:
+            curve = t["runs"].get(name, {}).get("psnr")
+            rose = curve is not None and all(b > a for a, b in zip(curve, curve[1:]))
+            cells.append("" if curve is None else f"{curve[-1]:.2f}" if rose
+                         else f"{curve[-1]:.2f} (not rising: {' / '.join(f'{p:.2f}' for p in curve)})")
+        first = next(iter(t["runs"].values()))["psnr"][0]
+        lines.append(f"| {t['scene']} | {t['seed']} | {sizes[t['scene']][0]} | {sizes[t['scene']][1]} | {first:.2f} | "
+                     + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def plotted_runs(tasks: list[dict]) -> tuple[list[str], list[int]]:
     """The PLOTTED strategies a scene ran, and the seeds every one of them ran."""
     names = [n for n in PLOTTED if any(n in t["runs"] for t in tasks)]
@@ -669,7 +788,7 @@ def measure_costs(args: argparse.Namespace) -> dict:
     scene, seed = args.scenes[0], args.seeds[0]
     train_data = load_split(args, scene, "train")
     init = initial_views(train_data.cameras, args.initial, seed)
-    renderer = train(train_data, init, args.iterations, seed)
+    renderer = train(train_data, init, budget(args, len(init)), seed)
     captured = [train_data.cameras[i] for i in init]
     candidates = [c for i, c in enumerate(train_data.cameras) if i not in init]
     ratio = calibrated_ratio(renderer, captured)
@@ -720,6 +839,11 @@ def main() -> None:
             for message in pool.map(run_task, *zip(*tasks), [args] * len(tasks)):
                 print(message, flush=True)
     by_scene = load_results(args)
+    if args.family == "real":
+        write_doc(args.doc, real_markdown(by_scene, args), section=f"nbv{tag(args)}")
+        plots(by_scene, args)
+        print(f"wrote {args.doc}")
+        return
     if args.family:
         write_doc(args.doc, family_markdown(by_scene, args), section=f"nbv{tag(args)}")
         print(f"wrote {args.doc}")

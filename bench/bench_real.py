@@ -47,13 +47,9 @@ DOORS = ("cli", "client", "page")
 KEY = "bench-real-key"
 
 
-def capture_path(name: str) -> Path:
-    return _harness.DATA / name if name == "cup_colmap" else _harness.DATA / "real" / name
-
-
 def run_capture(name: str, iterations: int, model: Path, frames: Path) -> dict:
     """The CLI door: train, render the test split, rank orbit:64 and the test frames."""
-    data, downscale = capture_path(name), CAPTURES[name]
+    data, downscale = _harness.capture_path(name), CAPTURES[name]
     phd = _harness.PHD
     renders, ranking = model.with_name(f"{name}_test"), model.with_name(f"{name}_rank.json")
     frames_ranking = model.with_name(f"{name}_frames_rank.json")

@@ -25,7 +25,7 @@ from phd_core.uq.calibrate import check_calibration
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.rank import check_rank
 from phd_core.uq.sampling import check_ratio, check_samples
-from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
+from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES, STRATEGY_ADVICE
 from phd_core.uq.strategies.captured import CapturedStore
 
 from .models import OpenedModel, check_cameras_see, check_capture, model_views, open_model
@@ -98,7 +98,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "transforms-style JSON or a list of frames (needs w/h, or give --width/--height), or any "
                       "capture (all its frames)"),
     rank.add_argument("--strategy", choices=sorted(STRATEGIES), default=DEFAULT_STRATEGY,
-                      help="; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items())))
+                      help=("; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items()))
+                            + ". " + STRATEGY_ADVICE).replace("%", "%%"))   # argparse formats help with %
     rank.add_argument("--captured", type=Path, default=None,
                       help="JSON of the poses already captured (default: the model's training cameras)")
     rank.add_argument("--targets", default=None, metavar="FILE|GENERATOR",
@@ -432,7 +433,7 @@ def run_rank(args: argparse.Namespace) -> int:
     if store is not None and store.cache.skipped:
         print(f"warning: {store.cache.skipped}", file=sys.stderr)
     convention = renderer.describe().get("camera_format")
-    result = {"strategy": args.strategy, "signal": args.signal, "dropout_ratio": ratio,
+    result = {"strategy": args.strategy, "rule": ranked.rule, "signal": args.signal, "dropout_ratio": ratio,
               "calibration": calibration,
               "samples": args.samples, "seed": args.seed, "coarse": args.coarse,
               "candidates": len(candidates), "targets": None if targets is None else len(targets),
@@ -446,7 +447,7 @@ def run_rank(args: argparse.Namespace) -> int:
                                  [candidate_name(r.rank, r.index) for r in ranked], args.export_format)
         print(f"exported {len(ranked)} poses as {written.writes} ({written.name}) to {args.export}",
               file=sys.stderr if args.json else sys.stdout)         # stdout carries only the JSON
-    summary = f"ranked {len(candidates)} candidates ({args.strategy}) at dropout ratio {ratio}"
+    summary = f"ranked {len(candidates)} candidates ({args.strategy}: {ranked.rule}) at dropout ratio {ratio}"
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False))
     elif args.out is not None:

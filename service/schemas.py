@@ -348,6 +348,8 @@ class RankResult(_Response):
     dropout_ratio: float
     ratio_source: Literal["request", "calibration"]
     strategy: str
+    rule: str = Field(description="The rule that ordered the views, in words: the default follows target views "
+                      "that are the capture's own path and spreads from the captured views otherwise.")
     signal: str = Field(DEFAULT_SIGNAL, description="What zeta was measured on.")
     samples: int
     seed: int

@@ -445,7 +445,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
                                                            f"render_{view.index:04d}.png", artifacts, job_url)
                 done((k + 1) / len(views))
         result = RankResult(model_id=record.id, dropout_ratio=ratio, ratio_source=source, strategy=body.strategy,
-                            signal=signal, samples=samples,
+                            rule=ranked.rule, signal=signal, samples=samples,
                             seed=body.seed, width=cameras[0].width, height=cameras[0].height,
                             num_candidates=len(cameras), num_targets=len(targets or []), heatmap_vmax=vmax,
                             camera_format=convention, views=views,

@@ -28,7 +28,7 @@ from .calibrate import (
     calibrate_ssim,
 )
 from .candidates import GENERATORS
-from .rank import RankedView, candidate_evidence, coarse_cameras, rank_views, targets_at_size
+from .rank import RankedView, Ranking, candidate_evidence, coarse_cameras, rank_views, targets_at_size
 from .sampling import (
     MAX_MASKS_PER_RENDER,
     Progress,
@@ -55,7 +55,8 @@ __all__ = [
     "DEFAULT_CALIBRATION_SAMPLES", "DEFAULT_EPSILON", "DEFAULT_SAMPLES", "DEFAULT_SELECTION_RULE",
     "DEFAULT_SSIM_MARGIN", "DEFAULT_STEP", "DEFAULT_STRATEGY", "GENERATORS", "LOOKAHEAD", "MAX_MASKS_PER_RENDER",
     "SELECTION_RULES", "SELECTION_TRAINING_VIEWS", "STRATEGIES", "CalibrationError", "CalibrationResult",
-    "Progress", "RankedView", "RunningStd", "SelectionResult", "SelectionRule", "ViewSelection", "ViewUncertainty",
+    "Progress", "RankedView", "Ranking", "RunningStd", "SelectionResult", "SelectionRule", "ViewSelection",
+    "ViewUncertainty",
     "calibrate", "calibrate_ssim", "candidate_evidence", "coarse_cameras", "dropout_uniforms", "keep_masks",
     "limit_mask_batch", "rank_views", "rules_help", "sample_std", "select_models", "sigma_max_bar", "targets_at_size",
     "uncertainty",

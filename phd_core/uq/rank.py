@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, replace
-from typing import Sequence, cast
+from typing import Iterable, Sequence, cast
 
 import torch
 
@@ -32,6 +32,16 @@ class RankedView:
 
     def to_dict(self) -> dict:
         return {k: v for k, v in asdict(self).items() if k != "peak"}
+
+
+class Ranking(list[RankedView]):
+    """`rank_views`' answer: the ranked views in order, and `rule`, in words, the rule that ordered them
+    (a strategy may choose among rules by what it is told: the default follows targets that are the
+    capture's own path, and spreads from the captured views otherwise)."""
+
+    def __init__(self, views: Iterable[RankedView], rule: str):
+        super().__init__(views)
+        self.rule = rule
 
 
 def candidate_evidence(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float,
@@ -173,8 +183,9 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
                progress: Progress | None = None, executor: Executor = LOCAL,
                coarse: float | None = None, refine: int | None = None,
                signal: str = DEFAULT_SIGNAL, captured_store: CapturedStore | None = None,
-               targets: Sequence[Camera] | None = None) -> list[RankedView]:
-    """Candidates in the order the strategy would capture them; ties go to the lower index.
+               targets: Sequence[Camera] | None = None) -> Ranking:
+    """Candidates in the order the strategy would capture them, and the rule that ordered them (`Ranking`);
+    ties go to the lower index.
 
     top_k keeps the first k, a batch meant to be captured together (all when k exceeds the
     number of candidates). Every candidate carries sigma_max and sigma_mean whatever the
@@ -211,12 +222,13 @@ def rank_views(renderer: Renderer, cameras: Sequence[Camera], *, ratio: float, s
     count = len(evidence.candidates)
     selection = chosen.select(evidence, count if top_k is None else min(top_k, count), seed)
     order = selection.order if top_k is None else selection.order[:top_k]
-    return [RankedView(index=i, sigma_max=float(evidence.sigma_max[i]), sigma_mean=float(evidence.sigma_mean[i]),
-                       score=selection.scores[i], rank=rank, peak=views[i].peak) for rank, i in enumerate(order, 1)]
+    ranked = (RankedView(index=i, sigma_max=float(evidence.sigma_max[i]), sigma_mean=float(evidence.sigma_mean[i]),
+                         score=selection.scores[i], rank=rank, peak=views[i].peak) for rank, i in enumerate(order, 1))
+    return Ranking(ranked, selection.rule or chosen.summary)
 
 
 def coarse_to_fine(renderer: Renderer, cameras: Sequence[Camera], coarse: float, refine: int | None, *,
-                   top_k: int | None, keep_peak: bool, progress: Progress | None, **rank_args) -> list[RankedView]:
+                   top_k: int | None, keep_peak: bool, progress: Progress | None, **rank_args) -> Ranking:
     """`rank_views` with a coarse pass (see there): all candidates at `coarse` times their
     size, then the best `refine` again at full size."""
     cameras = check_cameras(cameras, "cameras")
@@ -230,4 +242,4 @@ def coarse_to_fine(renderer: Renderer, cameras: Sequence[Camera], coarse: float,
     fine = rank_views(renderer, [cameras[i] for i in best], keep_peak=keep_peak, progress=half(0.5), **rank_args)
     ranked = [replace(v, index=best[v.index]) for v in fine]
     ranked += [replace(v, rank=len(ranked) + j, refined=False) for j, v in enumerate(first[refine:], 1)]
-    return ranked if top_k is None else ranked[:top_k]
+    return Ranking(ranked if top_k is None else ranked[:top_k], fine.rule)

@@ -822,7 +822,7 @@ async function rank(event) {
   }
   state.ranking = Object.assign({}, r, { modelId: model.id });
   $("rank-summary").textContent = `${r.views.length} of ${r.num_candidates} candidates, in the order to capture them${forTargets(r.num_targets)}; ` +
-    `strategy ${r.strategy}, dropout ratio ${r.dropout_ratio} (${r.ratio_source === "calibration" ? "calibrated" : "given"}), ` +
+    `strategy ${r.strategy} (${r.rule}), dropout ratio ${r.dropout_ratio} (${r.ratio_source === "calibration" ? "calibrated" : "given"}), ` +
     `${r.samples} samples, rendered at ${r.width} x ${r.height} px; ` +
     `heat maps share one scale: yellow = zeta ${fmt(r.heatmap_vmax)}, dark blue = 0`;
   drawPlots();

@@ -84,3 +84,16 @@ def test_rank_renders_targets_at_the_candidates_size_as_the_service_does(box, ca
     portrait = [TARGETS[0].resized(40, 80)]
     assert [(c.width, c.height) for c in phd.targets_at_size(portrait, CANDIDATES)] == [
         (CANDIDATES[0].width // 2, CANDIDATES[0].width)]
+
+
+def test_rank_names_the_rule_that_ordered_it_in_its_json_and_its_table(box, capsys) -> None:
+    argv = ["rank", "--model", box["model"], "--candidates", box["candidates"], "--captured", box["captured"],
+            "--dropout-ratio", 0.3, "--samples", 4]
+    renderer = load_model(box["model"])
+    expected = phd.rank_views(renderer, CANDIDATES, ratio=0.3, samples=4, captured=CAPTURED, targets=TARGETS).rule
+    code, out, _ = run(capsys, *argv, "--targets", box["targets"], "--json")
+    assert code == 0 and json.loads(out)["rule"] == expected
+    assert expected == "spread from the captured views, toward what the target views show that no captured view saw"
+    code, out, _ = run(capsys, *argv)
+    assert code == 0 and "(visibility_sigma_fvs: spread from the captured views, toward what no captured view saw)" \
+        in out.splitlines()[0]

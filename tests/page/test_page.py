@@ -354,6 +354,7 @@ def test_page_ranks_for_target_views_from_a_file(browser, models, tmp_path):
     cards = browser.find_elements(By.CSS_SELECTOR, "#rank-grid li.card")
     assert [int(c.get_attribute("data-index")) for c in cards] == order != untargeted
     assert "in the order to capture them for the 2 target views;" in text_of(browser, "rank-summary")
+    assert f"strategy {uq.DEFAULT_STRATEGY} ({aimed.json()['rule']})," in text_of(browser, "rank-summary")
     assert text_of(browser, "targets-message") == ""
     assert len(browser.find_elements(By.CSS_SELECTOR, "#plot-top circle.cand[fill]")) == 5
     # Target views whose own size is above the server's cap of 800 pixels a side (a phone's frames):

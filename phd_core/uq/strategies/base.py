@@ -44,6 +44,8 @@ class Evidence:
 class Selection:
     order: list[int]              # every candidate, best first; order[:k] is the batch
     scores: list[float]           # [C] each candidate's score when it was ranked
+    rule: str = ""                # the rule that made the order, for a strategy that chooses among rules
+                                  # by its evidence ("" : the strategy's summary says it)
 
 
 @dataclass(frozen=True)

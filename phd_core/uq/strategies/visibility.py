@@ -43,6 +43,7 @@ two identical candidates never share a batch. Families that cannot report visibi
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 from typing import Sequence
 
@@ -72,7 +73,7 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: fl
     support: the share of an element's novelty one view that saw it from the same direction removes."""
     count = len(evidence.candidates)
     if evidence.candidate_views is None or evidence.captured_views is None:
-        return FVS_SIGMA_FLOOR.select(evidence, k, 0)
+        return dataclasses.replace(FVS_SIGMA_FLOOR.select(evidence, k, 0), rule=FALLBACK_RULE)
     cand, captured = centres(evidence.candidates), centres(evidence.captured)   # [C, 3], [V, 3]
     targets = evidence.target_views
     aimed = centres([view.camera for view in targets]) if targets is not None else None
@@ -121,7 +122,21 @@ def coverage_select(evidence: Evidence, k: int, fragility: bool, angle_scale: fl
     rest = [(value(i), i) for i in range(count) if i not in taken]
     for v, i in rest:
         scores[i] = v
-    return Selection(order + [i for _, i in sorted(rest, key=lambda item: (-item[0], item[1]))], scores)
+    return Selection(order + [i for _, i in sorted(rest, key=lambda item: (-item[0], item[1]))], scores,
+                     coverage_rule(targets is not None, density is not None, spread))
+
+
+FALLBACK_RULE = ("spread from the captured views, weighted by sigma_mean (fvs_sigma_floor: this model's family "
+                 "reports no visibility)")
+
+
+def coverage_rule(targeted: bool, dense: bool, spread: bool) -> str:
+    """The rule `coverage_select` ordered by, in words: what it valued, and how it spread the picks."""
+    toward = ("toward what the target views show that no captured view saw" if targeted
+              else "toward what no captured view saw")
+    how = ("followed the targets' density (they are the capture's own path), " if dense
+           else "spread from the captured views, " if spread else "")
+    return how + toward
 
 
 def uncovered_share(views: list[Visibility], captured: Sequence[Visibility | Seen]) -> Tensor:
