@@ -62,6 +62,8 @@ _CAMERAS_DOC = ("A list of Blender/nerfstudio frames, or a transforms.json objec
                 "width/height in the request).")
 
 
+NOT_RECORDED = "not recorded"      # what a stored answer of an earlier release lacks
+
 class _Request(BaseModel):
     """Request bodies reject unknown fields, so a misspelt option is a 422, not ignored."""
 
@@ -348,8 +350,9 @@ class RankResult(_Response):
     dropout_ratio: float
     ratio_source: Literal["request", "calibration"]
     strategy: str
-    rule: str = Field(description="The rule that ordered the views, in words: the default follows target views "
-                      "that are the capture's own path and spreads from the captured views otherwise.")
+    rule: str = Field(NOT_RECORDED, description="The rule that ordered the views, in words: the default follows "
+                      "target views that are the capture's own path and spreads from the captured views otherwise "
+                      f"({NOT_RECORDED!r} in a job stored by an earlier release).")
     signal: str = Field(DEFAULT_SIGNAL, description="What zeta was measured on.")
     samples: int
     seed: int
