@@ -27,7 +27,19 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(f"{__name__}.{name}").register(subparsers)
+    _literal_help(parser)
     return parser
+
+
+def _literal_help(parser: argparse.ArgumentParser) -> None:
+    """Every option's help as plain text: argparse %-formats it, and text read from a registry
+    ("the top 10 % of pixels") would break --help. No help here uses %(default)s."""
+    for action in parser._actions:
+        if action.help:
+            action.help = action.help.replace("%", "%%")
+        if isinstance(action, argparse._SubParsersAction):
+            for command in action.choices.values():
+                _literal_help(command)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -98,8 +98,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "transforms-style JSON or a list of frames (needs w/h, or give --width/--height), or any "
                       "capture (all its frames)"),
     rank.add_argument("--strategy", choices=sorted(STRATEGIES), default=DEFAULT_STRATEGY,
-                      help=("; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items()))
-                            + ". " + STRATEGY_ADVICE).replace("%", "%%"))   # argparse formats help with %
+                      help="; ".join(f"{name}: {s.summary}" for name, s in sorted(STRATEGIES.items()))
+                      + ". " + STRATEGY_ADVICE)
     rank.add_argument("--captured", type=Path, default=None,
                       help="JSON of the poses already captured (default: the model's training cameras)")
     rank.add_argument("--targets", default=None, metavar="FILE|GENERATOR",

@@ -209,6 +209,19 @@ def test_train_help_states_the_default_iterations_every_trainer_uses(capsys) -> 
     assert f"default {DEFAULT_ITERATIONS}" in text and "minutes" in text
 
 
+def test_help_shows_registry_text_with_percent_signs_as_it_is(capsys, monkeypatch) -> None:
+    """A strategy registered with '%' in its summary (bench/nbv_experiments.py has 'the top 10 %')
+    is shown as written: argparse %-formats help, and such a text broke `phd rank --help`."""
+    import dataclasses
+
+    from phd_core.uq.strategies import STRATEGIES
+
+    monkeypatch.setitem(STRATEGIES, "random", dataclasses.replace(STRATEGIES["random"], summary="the top 10 % of it"))
+    with pytest.raises(SystemExit):
+        main(["rank", "--help"])
+    assert "random: the top 10 % of it" in " ".join(capsys.readouterr().out.split())
+
+
 def test_train_says_its_views_and_size_and_shows_no_time_left_while_splats_grow(files, capsys, tmp_path) -> None:
     """The last line names the views and the size trained on; the hint before training is this
     capture's (2 views at 16x16, 12 steps), and the bar (forced, --progress) gives no time left
