@@ -27,10 +27,11 @@ from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import write_ply
 from service.budget import MemoryLedger
 from service.errors import ServiceError
+from service.requests import stored_cameras
 from service.schemas import RankRequest
 from service.settings import Settings
 from service.store import ModelStore
-from service.work import model_loader, rank_job, stored_cameras
+from service.work import model_loader, rank_job
 from tests.support.fixtures import SvcProcess
 
 

@@ -34,12 +34,8 @@ from phd_core.uq.explain import EXPLAIN_UNIT_BYTES, Explanation, explain
 from .budget import MemoryLedger
 from .errors import busy, invalid
 from .jobs import Work
-from .schemas import ExplainRequest, ExplainResult
-from .settings import Settings
-from .store import ModelRecord
-from .work import (
-    Bounded,
-    Renders,
+from .plans import Bounded, Renders
+from .requests import (
     check_samples,
     job_signal,
     parse_cameras,
@@ -49,6 +45,9 @@ from .work import (
     stored_ratio,
     stored_up,
 )
+from .schemas import ExplainRequest, ExplainResult
+from .settings import Settings
+from .store import ModelRecord
 
 MAGIC = b"PHD3"
 POINT_BYTES = 12 + 4 + 4            # what one point costs in the binary

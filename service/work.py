@@ -1,4 +1,4 @@
-"""What the routes ask the worker pool to do: request checks, then calls into `phd_core`.
+"""What the routes ask the worker pool to do: request checks (`service.requests`), then calls into `phd_core`.
 
 Each `*_job` function validates a request on the event loop (cheap: parsing cameras,
 checking caps, finding the dropout ratio) and returns the `Work` that a worker thread runs
@@ -13,56 +13,56 @@ import base64
 import io
 import tempfile
 import zipfile
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 from phd_core import uq
 from phd_core.data import POSES, candidate_name, export_cameras, source_pose
-from phd_core.data.inria import cameras_from_entries, is_inria_cameras
 from phd_core.errors import InputError, check_int
 from phd_core.executors import LOCAL, Executor
 from phd_core.io import colorize, png_bytes
 from phd_core.renderers import (
-    DEFAULT_SIGNAL,
-    FAMILIES,
     Renderer,
-    RenderMemory,
     accepts_background,
     load_model_bytes,
-    memory_probe_bytes,
     set_background,
     signal_channels,
 )
 from phd_core.renderers.visibility import (
     COVERAGE_CAPTURE_BYTES,
-    PASS_UNIT_BYTES,
     SEEN_LOADED_BYTES,
     seen_bytes,
     visibility_bytes,
 )
-from phd_core.scene import Camera, cameras_from_json, capture_up
+from phd_core.scene import Camera
 from phd_core.uq import Progress
 from phd_core.uq.candidates import candidate_cameras, check_option_names
 from phd_core.uq.rank import check_target_strategy
-from phd_core.uq.sampling import VIEW_CACHE_BYTES
 from phd_core.uq.select import level_views
-from phd_core.uq.strategies import CHEAPER_STRATEGY, get_strategy
+from phd_core.uq.strategies import get_strategy
 from phd_core.uq.strategies.captured import CapturedStore, camera_key
 from phd_core.uq.strategies.targets import density_bytes
 
 from .budget import (
-    DEFAULT_MASK_PIXEL_BYTES,
     PNG_PIXEL_BYTES,
     MemoryLedger,
-    MemoryPlan,
-    ModelSize,
-    OverBudget,
     model_bytes,
-    plan_work,
 )
 from .errors import ServiceError, busy, invalid, not_found
 from .jobs import Work
+from .plans import Bounded, Renders, span
+from .requests import (
+    check_samples,
+    job_signal,
+    parse_cameras,
+    pixels,
+    read_cameras,
+    render_size,
+    stored_cameras,
+    stored_ratio,
+    stored_up,
+)
 from .schemas import (
     CalibrateRequest,
     Calibration,
@@ -94,201 +94,6 @@ def model_loader(store: ModelStore) -> Callable[[str], Renderer]:
             set_background(renderer, record.describe["background"])
         return renderer
     return load
-
-
-# ----------------------------------------------------------------------------- request checks
-
-FRAME_KEYS = {"fx": "fl_x", "fy": "fl_y", "width": "w", "height": "h"}  # Camera attribute -> frame key
-
-
-def _camera_field(prefix: str, library_field: str) -> str:
-    """'frames[3].fx' from the library -> 'cameras[3].fl_x', the key the user wrote."""
-    if library_field.startswith("frames"):
-        path, _, key = library_field[len("frames"):].rpartition(".")
-        return f"{prefix}{path}.{FRAME_KEYS.get(key, key)}" if path else prefix + key
-    return f"{prefix}.{library_field}"
-
-
-def read_cameras(source: Any, size: RenderSize, settings: Settings, *, field: str, cap: int) -> list[Camera]:
-    """Validated cameras at their own size (frames without w/h take the request's width x
-    height), or a 422 naming the frame and key."""
-    frames = source.get("frames") if isinstance(source, dict) else source
-    if isinstance(frames, list) and len(frames) > cap:
-        raise invalid(field, f"{len(frames)} cameras exceed the cap of {cap} per request")
-    if (size.width is None) != (size.height is None):
-        raise invalid("width" if size.width is None else "height", "give width and height together")
-    try:
-        if is_inria_cameras(source):     # the reference 3DGS trainer's cameras.json, as is
-            return cameras_from_entries(source, settings.max_frame_size, file="frames")
-        return cameras_from_json(source, width=size.width, height=size.height, max_size=settings.max_frame_size)
-    except InputError as exc:
-        raise invalid(_camera_field(field, exc.field), exc.reason) from None
-
-
-def render_size(cameras: list[Camera], size: RenderSize, settings: Settings, *, field: str) -> list[Camera]:
-    """The cameras at the requested render size (width x height, else 1/downscale), each
-    within the render cap, or a 422 naming the field to change."""
-    try:
-        if size.width is not None:
-            # A width without a height reaches resized, whose check answers 422 naming height.
-            cameras = [c.resized(size.width, size.height) for c in cameras]  # type: ignore[arg-type]
-        elif size.downscale is not None:
-            cameras = [c.scaled(size.downscale) for c in cameras]
-    except InputError as exc:
-        raise invalid(exc.field if exc.field in ("downscale", "width", "height") else field, exc.reason) from None
-    for i, camera in enumerate(cameras):
-        if max(camera.width, camera.height) > settings.max_image_size:
-            raise invalid(f"{field}[{i}]", f"renders at {camera.width}x{camera.height}, above the cap of "
-                          f"{settings.max_image_size} pixels per side (lower the resolution with downscale "
-                          "or width/height)")
-    return cameras
-
-
-def parse_cameras(source: Any, size: RenderSize, settings: Settings, *, field: str, cap: int) -> list[Camera]:
-    """Validated cameras at the requested render size, or a 422 naming the frame and key."""
-    return render_size(read_cameras(source, size, settings, field=field, cap=cap), size, settings, field=field)
-
-
-def stored_cameras(record: ModelRecord) -> list[Camera]:
-    """The training cameras stored with a model (validated at upload), [] when there are none."""
-    return cameras_from_json(record.training_frames) if record.training_frames else []
-
-
-def stored_up(record: ModelRecord) -> tuple[list[float], str]:
-    """The model's up and how it was found: as found at upload (`capture_up` on its training
-    cameras and opaque splats); for a model stored before that, from its cameras alone."""
-    up, rule = record.describe.get("up"), record.describe.get("up_rule")
-    if isinstance(up, list) and isinstance(rule, str):
-        return up, rule
-    found = capture_up(stored_cameras(record))
-    return found.vector.tolist(), found.rule
-
-
-def check_samples(samples: int | None, settings: Settings, default: int) -> int:
-    samples = default if samples is None else samples
-    if samples > settings.max_samples:
-        raise invalid("samples", f"{samples} samples exceed the cap of {settings.max_samples}")
-    return samples
-
-
-def stored_ratio(record: ModelRecord, field: str, given: float | None) -> tuple[float, str]:
-    """The dropout ratio to use: the request's, else the stored calibration's, else 409."""
-    if given is not None:
-        return given, "request"
-    if record.calibration is None:
-        raise ServiceError(409, "not_calibrated", f"model '{record.id}' has no calibration: calibrate it "
-                           f"(POST /v1/models/{record.id}/calibrate) or give {field}", field)
-    return float(record.calibration["r_drop"]), "calibration"
-
-
-def job_signal(given: str | None, ratios: list[tuple[ModelRecord, str]]) -> str:
-    """What a job measures zeta on: the request's signal, else that of the stored calibrations
-    whose r_drop it uses (ratios: (record, ratio source) per model), else the default. An r_drop
-    calibrated on another signal than the request's is a 409 naming `signal`."""
-    used = {record.id: record.calibration.get("signal", DEFAULT_SIGNAL) for record, source in ratios
-            if source == "calibration" and record.calibration is not None}
-    signal = given if given is not None else next(iter(used.values()), DEFAULT_SIGNAL)
-    for model_id, calibrated in used.items():
-        if calibrated != signal:
-            raise ServiceError(409, "signal_mismatch", f"model '{model_id}' was calibrated on the {calibrated} "
-                               f"signal, not {signal}: calibrate it with signal '{signal}', give the dropout "
-                               "ratio, or use its signal", "signal")
-    return signal
-
-
-def pixels(cameras: list[Camera]) -> int:
-    return sum(c.width * c.height for c in cameras)
-
-
-
-@dataclass
-class Renders:
-    """What a job renders, for its memory plan: each model (with the request field naming it)
-    and every camera rendered with it; what the job keeps across views."""
-
-    models: list[tuple[ModelRecord, str, list[Camera]]]
-    samples: int
-    kept_bytes: int = 0
-    kept_field: str = "cameras"
-    keeps_views: bool = False       # calibration keeps prepared views for re-use (up to VIEW_CACHE_BYTES)
-    visibility: bool = False        # a visibility pass follows each render (rank strategies that use it)
-    signal: str = DEFAULT_SIGNAL    # what the renders return (its channels size the engine's images)
-    cheaper: Renders | None = None  # the same job under CHEAPER_STRATEGY (a strategy that uses visibility)
-    sizes: dict[str, int] = field(init=False)    # file bytes by model id
-
-    def __post_init__(self) -> None:
-        self.sizes = {record.id: record.size_bytes for record, _, _ in self.models}
-
-    def plan(self, settings: Settings, bounds: RenderMemory | None = None, kept_views: int = 0,
-             renderers: dict[str, Renderer] | None = None) -> MemoryPlan:
-        """The memory plan (service.budget), or a 413 naming the field to lower. Without the
-        renders' bounds (before the models are loaded), a lower bound. When the strategy's own
-        memory is what does not fit (the `cheaper` job would), the 413 names `strategy`."""
-        pixels = max(c.width * c.height for _, _, cameras in self.models for c in cameras)
-        try:
-            return plan_work([ModelSize(r.id, r.num_units, r.size_bytes, name) for r, name, _ in self.models], pixels,
-                             self.samples, self.kept_bytes + kept_views, settings.memory_budget_bytes, renders=bounds,
-                             size_field="downscale", kept_field=self.kept_field,
-                             channels=signal_channels(self.signal))
-        except OverBudget as refused:
-            if self.cheaper is None:
-                raise
-            try:
-                self.cheaper.plan(settings, None if renderers is None else
-                                  self.cheaper.bounds(renderers, lambda fraction: None)[0])
-            except OverBudget:
-                raise refused from None
-            raise OverBudget("strategy", refused.need, refused.budget,
-                              f"strategy '{CHEAPER_STRATEGY}', which fits (the strategy's view of what each camera "
-                              "sees does not), or a lower resolution (downscale, or width/height)") from None
-
-    def bounds(self, renderers: dict[str, Renderer], progress: Progress) -> tuple[RenderMemory, int]:
-        """The largest bounds of the renders, and what calibration's prepared views keep."""
-        found, kept = [], 0
-        for record, _, cameras in self.models:
-            renderer = renderers[record.id]
-            memory = FAMILIES[renderer.kind].memory
-            for camera in cameras:
-                progress(0.0)                     # a cancelled job stops here too
-                bound = (RenderMemory(0, 0, DEFAULT_MASK_PIXEL_BYTES * camera.width * camera.height)
-                         if memory is None else memory(renderer, camera))
-                if self.visibility:
-                    bound = replace(bound, fixed=bound.fixed + PASS_UNIT_BYTES * record.num_units + bound.seen)
-                found.append(bound)
-                kept += bound.kept
-        return RenderMemory.largest(found), min(kept, VIEW_CACHE_BYTES) if self.keeps_views else 0
-
-
-@dataclass
-class Bounded:
-    """A job's work, run with its models in memory and its memory reserved, together. Once its
-    models are loaded the plan is made again with the bounds of its renders (each model
-    projected into each camera), and the renders are batched to fit it."""
-
-    renders: Renders
-    settings: Settings
-    ledger: MemoryLedger
-    work: Callable[[dict[str, Renderer], Progress], tuple[Any, dict[str, bytes]]]
-
-    def plan(self, renderers: dict[str, Renderer], progress: Progress) -> MemoryPlan:
-        """The plan with the bounds of the renders, or a 413 naming the field to lower."""
-        return self.renders.plan(self.settings, *self.renders.bounds(renderers, progress), renderers=renderers)
-
-    def __call__(self, progress: Progress) -> tuple[Any, dict[str, bytes]]:
-        probe = max(memory_probe_bytes(record.num_units) for record, _, _ in self.renders.models)
-        with self.ledger.models(self.renders.sizes, probe) as renderers:
-            plan = self.plan(renderers, progress)
-        with self.ledger.models(self.renders.sizes, plan.bytes) as renderers, uq.limit_mask_batch(plan.mask_batch):
-            return self.work(renderers, progress)
-
-
-def b64(data: bytes) -> str:
-    return base64.b64encode(data).decode("ascii")
-
-
-def _span(progress: Progress, start: float, end: float) -> Progress:
-    """Progress of one phase mapped onto [start, end] of the job."""
-    return lambda fraction: progress(start + (end - start) * fraction)
 
 
 # ----------------------------------------------------------------------------- calibrate
@@ -422,7 +227,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
         renderer = renderers[record.id]
         ranked = uq.rank_views(renderer, cameras, ratio=ratio, samples=samples, seed=body.seed, top_k=body.top_k,
                                strategy=body.strategy, captured=captured, keep_peak=heatmaps,
-                               progress=_span(progress, 0.0, split), executor=executor, coarse=body.coarse,
+                               progress=span(progress, 0.0, split), executor=executor, coarse=body.coarse,
                                refine=body.refine, signal=signal, captured_store=coverage, targets=targets)
         views = [RankedCandidate(index=r.index, rank=r.rank, sigma_max=r.sigma_max, sigma_mean=r.sigma_mean,
                                  score=r.score, refined=r.refined, camera=poses[r.index].to_frame(),
@@ -433,7 +238,7 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
             # One colour scale for all maps (the largest sigma_max), so they compare by eye. The
             # maps are the ranking's own zeta (kept as its channel max): nothing is rendered twice.
             vmax = max(v.sigma_max for v in views)
-            done = _span(progress, split, 1.0)
+            done = span(progress, split, 1.0)
             for k, (view, r) in enumerate(zip(views, ranked)):
                 assert r.peak is not None  # ranked with keep_peak=heatmaps
                 png = png_bytes(colorize(r.peak, vmax if vmax > 0 else None)[0])
@@ -453,6 +258,10 @@ def rank_job(record: ModelRecord, body: RankRequest, settings: Settings, job_url
         return result, artifacts
 
     return Bounded(renders, settings, ledger, work), float(estimate)
+
+
+def b64(data: bytes) -> str:
+    return base64.b64encode(data).decode("ascii")
 
 
 def deliver(png: bytes, mode: str, name: str, artifacts: dict[str, bytes],

@@ -13,10 +13,11 @@ from ..budget import largest_model_file
 from ..deps import ERRORS, Caller, Service
 from ..errors import not_found
 from ..folders import remove_folder
+from ..requests import stored_up
 from ..schemas import Calibration, ModelInfo, ModelList, PosesRequest, TrainingCameras
 from ..store import ModelRecord
 from ..upload import receive_upload, sniff_kind
-from ..work import export_poses, stored_up
+from ..work import export_poses
 
 router = APIRouter(prefix="/v1", responses=ERRORS, tags=["models"])
 UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
