@@ -36,15 +36,11 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, Callable
 
-from python_multipart import MultipartParser
-from python_multipart.exceptions import FormParserError
-from python_multipart.multipart import parse_options_header
-from starlette.requests import ClientDisconnect, Request
+from starlette.requests import Request
 
 from phd_core.data import FORMATS
 from phd_core.data.inria import is_inria_cameras
@@ -52,8 +48,9 @@ from phd_core.errors import InputError, check_color
 from phd_core.io import fsync_path
 from phd_core.renderers import SNIFF_BYTES, family_titles, model_kind
 
-from .errors import JSON_ERRORS, ServiceError, insufficient_storage, invalid, json_problem
+from .errors import JSON_ERRORS, ServiceError, invalid, json_problem
 from .folders import CLASHES, SIDECAR_SOURCE, folder_target
+from .multipart import Buffer, DiskRoom, FileSink, Part, Sink, boundary, read_parts
 from .store import writing
 
 MAX_NAME_BYTES = 256
@@ -82,17 +79,7 @@ class Upload:
     background_source: str | None = None   # who set `background` when it was not the request (a sidecar)
     notes: list[str] = field(default_factory=list)   # what reading a folder noted, shown with the model
     calibrations: list[dict] = field(default_factory=list)   # a folder's stored ones for its model (FolderModel)
-
-
-@dataclass
-class _Part:
-    headers: dict[str, str] = field(default_factory=dict)
-    header_name: bytes = b""
-    header_value: bytes = b""
-    name: str = ""
-    buffer: bytearray | None = None
-    file: BinaryIO | None = None
-    counted: bool = False               # a folder's file or archive: counted, not hashed
+    facts: dict[str, Any] = field(default_factory=dict)      # stored with its facts (a capture's model: its link)
 
 
 async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: int, max_file_bytes: int,
@@ -106,46 +93,34 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
     it streams, and so is a write the full disk refuses. The caller deletes `temp_path` and the
     folder on any failure.
     """
-    content_type, params = parse_options_header(request.headers.get("content-type", ""))
-    if content_type != b"multipart/form-data" or not params.get(b"boundary"):
-        raise ServiceError(415, "unsupported_media_type", "upload the model as multipart/form-data with a "
-                           "'file' part (and optionally 'cameras' and 'name')", "file")
-    free = shutil.disk_usage(temp_path.parent).free
-    length = request.headers.get("content-length", "")
-
-    def check_room(size: int, what: str, field: str = "file") -> None:
-        if size > free - keep_free:
-            kept = f", of which {keep_free} are kept free (PHD_KEEP_FREE_BYTES)" if keep_free else ""
-            raise insufficient_storage(f"{what} ({size} bytes)", field,
-                                       f"the service's disk has {free} bytes free{kept}")
-
-    if length.isdigit():
-        check_room(int(length), "the upload")
+    separator = boundary(request, "upload the model as multipart/form-data with a 'file' part (and optionally "
+                         "'cameras' and 'name')", "file")
+    room = DiskRoom(temp_path.parent, keep_free)
+    room.check(request.headers.get("content-length", ""), "the upload", "file")
     upload = Upload(path=temp_path)
     digest = hashlib.sha256()
-    part = _Part()
 
-    def on_part_begin() -> None:
-        nonlocal part
-        part = _Part()
+    def count(part: str, folder: bool) -> Callable[[int], None]:
+        """What each chunk of a model part adds: the cap first, then the disk's room."""
+        def add(size: int) -> None:
+            upload.size += size
+            if upload.size > max_file_bytes:
+                raise ServiceError(413, "payload_too_large", (
+                    f"the folder's files exceed {max_file_bytes} bytes, the largest this service's memory budget can "
+                    "read (leave out the images: the model and its cameras are enough)") if folder else (
+                    f"the model file exceeds {max_file_bytes} bytes, the largest this service's memory budget can "
+                    "parse"), part)
+            room.check(upload.size, "the folder's files" if folder else "the model file", part)
+        return add
 
-    def on_header_field(data: bytes, start: int, end: int) -> None:
-        part.header_name += data[start:end]
+    def sniff(chunk: bytes) -> None:
+        if len(upload.head) < SNIFF_BYTES:
+            upload.head += chunk[:SNIFF_BYTES - len(upload.head)]
+        digest.update(chunk)
 
-    def on_header_value(data: bytes, start: int, end: int) -> None:
-        part.header_value += data[start:end]
-
-    def on_header_end() -> None:
-        part.headers[part.header_name.decode("latin-1").lower()] = part.header_value.decode("latin-1")
-        part.header_name, part.header_value = b"", b""
-
-    def on_headers_finished() -> None:
-        _, options = parse_options_header(part.headers.get("content-disposition", ""))
-        part.name = options.get(b"name", b"").decode("utf-8", "replace")
+    def open_part(part: Part) -> Sink:
         if part.name not in FIELDS:
             raise invalid(part.name or "file", f"unknown form field '{part.name}': expected one of {', '.join(FIELDS)}")
-        raw_filename = options.get(b"filename")
-        filename = None if raw_filename is None else raw_filename.decode("utf-8", "replace")
         if part.name in MODEL_PARTS:
             kinds = {"file": upload.has_file, "files": upload.folder_files > 0, "archive": upload.archive is not None}
             other = next((kind for kind, given in kinds.items() if given and kind != part.name), None)
@@ -154,107 +129,50 @@ async def receive_upload(request: Request, temp_path: Path, max_cameras_bytes: i
         if part.name in ("files", "archive"):
             if part.name == "archive" and upload.archive is not None:
                 raise invalid("archive", "more than one 'archive' part: upload one zip per request")
-            where = folder_target(folder_path, part.name, filename, upload.folder_files)
+            where = folder_target(folder_path, part.name, part.filename, upload.folder_files)
             upload.folder_files += part.name == "files"
             upload.folder = folder_path
             if part.name == "archive":
                 upload.archive = where
-                upload.filename = filename
+                upload.filename = part.filename
             try:
                 where.parent.mkdir(parents=True, exist_ok=True)
-                part.file = open(where, "xb")
+                return FileSink(where, count(part.name, folder=True), mode="xb")
             except CLASHES:
-                raise invalid(part.name, f"'{filename}' comes twice or clashes with a folder") from None
-            part.counted = True
-        elif part.name == "file":
+                raise invalid(part.name, f"'{part.filename}' comes twice or clashes with a folder") from None
+        if part.name == "file":
             if upload.has_file:
                 raise invalid("file", "more than one 'file' part: upload one model per request")
             upload.has_file = True
-            upload.filename = filename
-            part.file = open(upload.path, "wb")
-        else:
-            part.buffer = bytearray()
+            upload.filename = part.filename
+            return FileSink(upload.path, count("file", folder=False), sniff)
+        return Buffer(part.name, max_cameras_bytes if part.name == "cameras" else MAX_NAME_BYTES,
+                      lambda data: set_field(upload, part.name, data))
 
-    def on_part_data(data: bytes, start: int, end: int) -> None:
-        chunk = data[start:end]
-        if part.counted:
-            assert part.file is not None        # on_headers_finished opened it
-            upload.size += len(chunk)
-            if upload.size > max_file_bytes:
-                raise ServiceError(413, "payload_too_large", f"the folder's files exceed {max_file_bytes} bytes, the "
-                                   "largest this service's memory budget can read (leave out the images: the model "
-                                   "and its cameras are enough)", part.name)
-            check_room(upload.size, "the folder's files", part.name)
-            part.file.write(chunk)
-            return
-        if part.file is not None:
-            if len(upload.head) < SNIFF_BYTES:
-                upload.head += chunk[:SNIFF_BYTES - len(upload.head)]
-            digest.update(chunk)
-            upload.size += len(chunk)
-            if upload.size > max_file_bytes:
-                raise ServiceError(413, "payload_too_large", f"the model file exceeds {max_file_bytes} bytes, the "
-                                   "largest this service's memory budget can parse", "file")
-            check_room(upload.size, "the model file")
-            part.file.write(chunk)
-            return
-        assert part.buffer is not None         # on_headers_finished set it for every non-file part
-        part.buffer += chunk
-        cap = max_cameras_bytes if part.name == "cameras" else MAX_NAME_BYTES
-        if len(part.buffer) > cap:
-            raise ServiceError(413, "payload_too_large", f"the '{part.name}' field exceeds {cap} bytes", part.name)
-
-    def on_part_end() -> None:
-        nonlocal part
-        if part.file is not None:
-            part.file.close()
-            part.file = None
-        elif part.buffer is None:
-            pass                        # its headers never finished: no named field to store
-        elif part.name == "cameras":
-            upload.cameras = bytes(part.buffer)
-        elif part.name == "name":
-            upload.name = part.buffer.decode("utf-8", "replace").strip() or None
-        elif part.name == "background":
-            upload.background = bytes(part.buffer)
-        elif part.name == "camera_format":
-            upload.camera_format = part.buffer.decode("utf-8", "replace").strip() or None
-        elif part.name == "other_capture":
-            upload.other_capture = parse_yes(bytes(part.buffer), "other_capture")
-        part = _Part()                  # an error between parts is no part's (names the upload: file)
-
-    try:
-        parser = MultipartParser(params[b"boundary"], {
-            "on_part_begin": on_part_begin, "on_header_field": on_header_field, "on_header_value": on_header_value,
-            "on_header_end": on_header_end, "on_headers_finished": on_headers_finished,
-            "on_part_data": on_part_data, "on_part_end": on_part_end,
-        })
-    except FormParserError as exc:      # e.g. a boundary past the parser's 256 characters
-        raise ServiceError(400, "invalid_multipart", f"the multipart boundary is refused: {exc}",
-                           "Content-Type") from None
-    what = "the uploaded model file"      # its every write and flush: a full disk is 507 (service.store.writing)
-    try:
-        with writing(what, "file"):
-            async for chunk in request.stream():
-                parser.write(chunk)
-            parser.finalize()
-    except ClientDisconnect:
-        raise ServiceError(400, "upload_incomplete", "the upload ended before the body was complete", "file") from None
-    except FormParserError as exc:
-        raise ServiceError(400, "invalid_multipart", f"malformed multipart body: {exc}", part.name or "file") from None
-    finally:
-        if part.file is not None:
-            with writing(what, "file"):
-                part.file.close()
+    await read_parts(request, separator, open_part, what="the uploaded model file", field="file")
     if upload.folder is not None or upload.archive is not None:
         return upload                   # service.folders finds the model in it
     if not upload.has_file:
         raise invalid("file", "no 'file' part: the request must include the model file (or a folder's 'files' or "
                       "'archive')")
     upload.sha256 = digest.hexdigest()
-    with writing(what, "file"):
+    with writing("the uploaded model file", "file"):
         await asyncio.to_thread(fsync_path, upload.path)
     return upload
+
+
+def set_field(upload: Upload, name: str, data: bytes) -> None:
+    """A text field of the form, once all of it is in."""
+    if name == "cameras":
+        upload.cameras = data
+    elif name == "name":
+        upload.name = data.decode("utf-8", "replace").strip() or None
+    elif name == "background":
+        upload.background = data
+    elif name == "camera_format":
+        upload.camera_format = data.decode("utf-8", "replace").strip() or None
+    elif name == "other_capture":
+        upload.other_capture = parse_yes(data, "other_capture")
 
 
 def sniff_kind(head: bytes) -> str:
