@@ -4,10 +4,22 @@ Results are the service's pydantic schemas (`service.schemas`, pure pydantic: im
 the client imports neither FastAPI nor torch).
 """
 
-from service.schemas import Calibration, Health, Job, ModelInfo, RankedCandidate, RankResult, SelectedView, SelectResult
+from service.schemas import (
+    Calibration,
+    CaptureInfo,
+    Health,
+    Job,
+    ModelInfo,
+    RankedCandidate,
+    RankResult,
+    SelectedView,
+    SelectResult,
+    TrainResult,
+)
 
 from .client import (
     AuthenticationError,
+    Capture,
     ConflictError,
     InvalidInputError,
     JobCancelledError,
@@ -24,9 +36,10 @@ from .client import (
 )
 
 __all__ = [
-    "PHDClient", "camera_frames",
+    "PHDClient", "Capture", "camera_frames",
     "PHDError", "AuthenticationError", "NotFoundError", "ConflictError", "PayloadTooLargeError",
     "UnsupportedModelError", "InvalidInputError", "QueueFullError", "ServerError", "ServiceUnavailableError",
     "JobFailedError", "JobCancelledError",
     "Calibration", "Health", "Job", "ModelInfo", "RankedCandidate", "RankResult", "SelectedView", "SelectResult",
+    "CaptureInfo", "TrainResult",
 ]

@@ -33,6 +33,8 @@ from pydantic import BaseModel
 
 from service.schemas import (
     Calibration,
+    CaptureInfo,
+    CaptureList,
     ExplainResult,
     Health,
     Job,
@@ -41,6 +43,7 @@ from service.schemas import (
     RankResult,
     SelectResult,
     TrainingCameras,
+    TrainResult,
 )
 
 ProgressCallback = Callable[[float], None]
@@ -447,6 +450,54 @@ class PHDClient:
             progress(1.0)
         return result
 
+    # ------------------------------------------------------------------ captures: the capture loop
+
+    def create_capture(self, photos: str | Path | Sequence[str | Path], *, name: str | None = None,
+                       test: Sequence[str] = (), wait: bool = True, progress: ProgressCallback | None = None,
+                       timeout: float | None = None, **sfm: Any) -> "Capture":
+        """A capture from photos (a folder of them, photo files, or one video), reconstructed by the
+        service (structure-from-motion, waited for unless `wait=False`). `test`: names of photos held
+        out of training, on which every round's model is measured. `sfm`: matcher, camera_model,
+        min_registered, fps, as `phd capture` takes them."""
+        fields = {key: str(value) for key, value in sfm.items() if value is not None}
+        if name is not None:
+            fields["name"] = name
+        if test:
+            fields["test"] = json.dumps(list(test))
+        info = self._send_photos("/v1/captures", photos, fields, video=True)
+        capture = Capture(self, info)
+        return capture.wait(progress=progress, timeout=timeout) if wait else capture
+
+    def get_capture(self, capture_id: str) -> "Capture":
+        return Capture(self, CaptureInfo.model_validate(self._request("GET", f"/v1/captures/{capture_id}").json()))
+
+    def list_captures(self) -> list[CaptureInfo]:
+        return CaptureList.model_validate(self._request("GET", "/v1/captures").json()).captures
+
+    def delete_capture(self, capture_id: str) -> None:
+        self._request("DELETE", f"/v1/captures/{capture_id}")
+
+    def _send_photos(self, path: str, photos: str | Path | Sequence[str | Path], fields: dict[str, str], *,
+                     video: bool) -> CaptureInfo:
+        """POST the photos (one part each; a video as `video`), streamed from their files."""
+        given = [Path(photos)] if isinstance(photos, (str, Path)) else [Path(p) for p in photos]
+        if len(given) == 1 and given[0].is_dir():
+            given = sorted(p for p in given[0].iterdir() if p.is_file() and not p.name.startswith("."))
+        from phd_core.process.photos import is_video
+
+        part = "video" if video and len(given) == 1 and is_video(given[0]) else "photos"
+        try:
+            handles = [open(p, "rb") for p in given]
+        except OSError as exc:
+            raise InvalidInputError(f"cannot open {exc.filename}: {exc.strerror or exc}", field=part) from None
+        try:
+            files = [(part, (p.name, f, "application/octet-stream")) for p, f in zip(given, handles)]
+            response = self._request("POST", path, data=fields, files=files)
+        finally:
+            for f in handles:
+                f.close()
+        return CaptureInfo.model_validate(response.json())
+
     # ------------------------------------------------------------------ jobs
 
     def get_job(self, job_id: str) -> Job:
@@ -479,3 +530,62 @@ class PHDClient:
     def download(self, url: str) -> bytes:
         """The bytes of an artefact (a heatmap_url or image_url from a result)."""
         return self._request("GET", url).content
+
+
+class Capture:
+    """A capture on the service, round after round: `add_photos`, `train`, `next_views`; `info`
+    is the capture as last read (`refresh` reads it again)."""
+
+    def __init__(self, client: PHDClient, info: CaptureInfo):
+        self.client, self.info = client, info
+
+    @property
+    def id(self) -> str:
+        return self.info.id
+
+    def refresh(self) -> "Capture":
+        self.info = self.client.get_capture(self.id).info
+        return self
+
+    def wait(self, *, progress: ProgressCallback | None = None, timeout: float | None = None) -> "Capture":
+        """Wait for the structure-from-motion job the last call started (JobFailedError when it failed)."""
+        if self.info.job is not None:
+            self.client.wait_job(self.info.job, progress=progress, timeout=timeout)
+        return self.refresh()
+
+    def add_photos(self, photos: str | Path | Sequence[str | Path], *, test: Sequence[str] = (), wait: bool = True,
+                   progress: ProgressCallback | None = None, timeout: float | None = None) -> "Capture":
+        """Photos added: registered into the reconstruction, the others' poses unchanged (a new round)."""
+        fields = {"test": json.dumps(list(test))} if test else {}
+        self.info = self.client._send_photos(f"/v1/captures/{self.id}/photos", photos, fields, video=False)
+        return self.wait(progress=progress, timeout=timeout) if wait else self
+
+    def train(self, model: str | None = None, *, iterations: int | None = None, downscale: float | None = None,
+              seed: int = 0, warm_start: bool = True, options: dict | None = None, samples: int | None = None,
+              wait: bool = True, progress: ProgressCallback | None = None,
+              timeout: float | None = None) -> TrainResult | Job:
+        """A model trained on the capture (warm-started from the latest one), calibrated and measured on
+        the test photos; its id is `result.summary.model_id` (an ordinary stored model)."""
+        body = {"model": model, "iterations": iterations, "downscale": downscale, "seed": seed,
+                "warm_start": warm_start, "options": options, "samples": samples, "async": True}
+        result = self.client._work(f"/v1/captures/{self.id}/train", body, TrainResult, wait, progress, 0.2, timeout)
+        self.refresh()
+        return result
+
+    def next_views(self, count: int = 2, *, candidates: str | dict | None = None, cameras: Cameras | None = None,
+                   targets: str | Cameras | None = None, strategy: str | None = None, samples: int | None = None,
+                   seed: int = 0, downscale: float | None = None, width: int | None = None,
+                   height: int | None = None, wait: bool = True, progress: ProgressCallback | None = None,
+                   timeout: float | None = None) -> RankResult | Job:
+        """The next `count` views to capture, ranked with the capture's latest model; each view's
+        `camera` is the pose, in the capture's frame. `targets="capture"`: the capture's own path
+        as the views the model will be looked at from. `candidates`: a generator name or spec
+        (default: 64 orbit poses around the capture)."""
+        spec = {"generator": candidates} if isinstance(candidates, str) else candidates
+        body = {"top_k": count, "candidates": spec, "strategy": strategy, "samples": samples, "seed": seed,
+                "downscale": downscale, "width": width, "height": height,
+                "cameras": None if cameras is None else camera_frames(cameras),
+                "targets": targets if targets is None or targets == "capture" else camera_frames(targets)}
+        result = self.client._work(f"/v1/captures/{self.id}/next", body, RankResult, wait, progress, 0.2, timeout)
+        self.refresh()
+        return result

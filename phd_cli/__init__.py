@@ -16,7 +16,7 @@ from phd_core.allocator import keep_freed_memory
 from phd_core.errors import InputError, ModelNote, ModelWarning
 
 # Each module defines register(subparsers) and sets `func` on its parsers.
-COMMAND_MODULES = ("capture", "train", "render", "serve", "demo", "uq", "candidates", "view")
+COMMAND_MODULES = ("capture", "train", "render", "serve", "loop", "demo", "uq", "candidates", "view")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -19,6 +19,12 @@ error, FastAPI's own included, answers with `{"error": {"code", "message", "fiel
     POST   /v1/select                       per view, which of two models to trust
     GET    /v1/models/{id}/scene            the splats as points for the page's 3D view (a binary)
     POST   /v1/models/{id}/explain          per point: coverage, fragility, what a pick newly sees
+    POST   /v1/captures                     photos (or a video) in: structure-from-motion as a job (service.loop)
+    GET    /v1/captures, /v1/captures/{id}  captures: rounds, photos, models, the poses asked for
+    DELETE /v1/captures/{id}                delete a capture (its folder; its models stay as models)
+    POST   /v1/captures/{id}/photos         photos added: registered into its reconstruction, a new round
+    POST   /v1/captures/{id}/train          a model trained on it (warm start), calibrated, measured
+    POST   /v1/captures/{id}/next           the next views to capture, ranked with its latest model
     GET    /v1/jobs/{id}                    state, progress, result of a job
     DELETE /v1/jobs/{id}                    cancel a job
     GET    /v1/jobs/{id}/artifacts/{name}   a PNG a job produced (heat map, selected image)
@@ -45,6 +51,7 @@ from phd_core.executors import make_executor
 from phd_core.renderers import FAMILIES
 
 from .budget import MemoryLedger
+from .captures import CaptureStore
 from .errors import ServiceError, error_body, from_exception, json_problem
 from .guard import Guard
 from .jobs import JobManager
@@ -135,7 +142,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     interrupted = job_store.recover()
     if interrupted:
         log.warning("%d job(s) were unfinished at the last shutdown: marked failed (interrupted)", interrupted)
-    state = ServiceState(settings=settings, store=store, job_store=job_store,
+    captures = CaptureStore(store)
+    undone = captures.recover()
+    if undone:
+        log.warning("removed %d unfinished capture folder(s) or photo upload(s)", len(undone))
+    state = ServiceState(settings=settings, store=store, job_store=job_store, captures=captures,
                          ledger=MemoryLedger(settings.memory_budget_bytes, settings.cache_size, model_loader(store)),
                          executor=make_executor(settings.executor, settings.executor_address))
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 from typing import Any, Awaitable, Callable
 
 from .errors import error_body
@@ -36,7 +37,7 @@ MAX_HEADER_BYTES = 64 * 1024
 OPEN_PATHS: tuple[str, ...] = ("/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
 OPEN_PATHS += ("/", "/ui", "/favicon.ico")
 OPEN_PREFIXES = ("/ui/", "/docs-assets/")   # the page's and the docs' static files; the page's API calls send the key
-UPLOAD_PATH = "/v1/models"
+UPLOAD_PATHS = re.compile(r"^/v1/(models|captures|captures/[^/]+/photos)/?$")   # multipart bodies
 DOC_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")   # FastAPI's pages start their scripts inline
 # Same-origin files only (the web page: HTML, one JS and one CSS file, images from the API or
 # blob:/data: URLs), no inline script or style, no frames, no plugins.
@@ -92,10 +93,12 @@ class Guard:
             await _drain(receive, DRAIN_LIMIT)
             return
         scope.setdefault("state", {})["principal"] = principal
-        is_upload = scope["method"] == "POST" and scope["path"].rstrip("/") == UPLOAD_PATH
+        upload = UPLOAD_PATHS.match(scope["path"]) if scope["method"] == "POST" else None
+        is_upload = upload is not None
         cap = self.settings.max_upload_bytes if is_upload else self.settings.max_json_bytes
-        what = "model upload" if is_upload else "request body"
-        field = "file" if is_upload else None
+        models = upload is not None and upload.group(1) == "models"
+        what = "model upload" if models else "photo upload" if is_upload else "request body"
+        field = "file" if models else "photos" if is_upload else None
         too_large = error_body("payload_too_large", f"the {what} exceeds the cap of {cap} bytes", field)
         length = headers.get("content-length")
         if length is not None and length.isdigit() and int(length) > cap:

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator,
 
 from phd_core.data import POSES
 from phd_core.registry import Registry
-from phd_core.renderers import DEFAULT_SIGNAL, FAMILIES, SIGNALS, Family, signals_help
+from phd_core.renderers import DEFAULT_FAMILY, DEFAULT_SIGNAL, FAMILIES, SIGNALS, Family, signals_help
 from phd_core.uq import DEFAULT_SELECTION_RULE, SELECTION_RULES, rules_help
 from phd_core.uq.candidates import GENERATORS
 from phd_core.uq.strategies import DEFAULT_STRATEGY, STRATEGIES
@@ -28,7 +28,7 @@ API_VERSION = "v1"
 
 CameraList = Union[list[dict[str, Any]], dict[str, Any]]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-JobKind = Literal["calibrate", "rank", "select", "explain"]
+JobKind = Literal["calibrate", "rank", "select", "explain", "capture", "add_photos", "train", "next"]
 HeatmapMode = Literal["none", "base64", "files"]
 
 def _by_family(fact: Callable[[Family], str]) -> str:
@@ -417,6 +417,100 @@ class ExplainResult(_Response):
                                    "of one byte per point; 255: no value (a splat no view shows).")
     unseen_share: float = Field(description="Share of the model's splats no captured view saw unhidden.")
 
+# ----------------------------------------------------------------------------- captures (the capture loop)
+
+class TrainSummary(_Response):
+    """What training a round's model measured (service.loop)."""
+
+    model_id: str
+    family: str
+    iterations: int | None = Field(description="Optimisation steps (None: the trainer's default).")
+    train_views: int
+    warm_from: str | None = Field(None, description="The model training continued from (warm start), else None.")
+    seconds: float = Field(description="Wall seconds of training alone.")
+    num_units: int
+    r_drop: float | None = Field(None, description="The calibration's dropout ratio (None: calibration failed, "
+                                 "`calibration_error` says why).")
+    calibration_error: str | None = None
+    test_views: int = Field(0, description="Held-out photos the model was measured on (the capture's test_photos).")
+    test_psnr: float | None = Field(None, description="Mean PSNR (dB) of the model's renders of the held-out "
+                                    "photos; None without any.")
+    sigma_max_bar: float | None = Field(None, description="Mean over the held-out views of sigma_max, the largest "
+                                        "per-pixel std over dropout renders (the paper's Appendix A.1).")
+
+
+class CaptureRound(_Response):
+    round: int = Field(description="0: the photos the capture was created with; then one per addition.")
+    photos: list[str] = Field(description="The photos sent this round, as named in the capture.")
+    registered: list[str] = Field(description="Of them, those structure-from-motion registered.")
+    not_registered: list[str] = Field(default_factory=list)
+    sfm_seconds: float | None = None
+    captured: list[dict[str, Any]] = Field(default_factory=list, description="The registered photos' cameras "
+                                           "(transforms frames, the capture's frame; PINHOLE, undistorted).")
+    train: TrainSummary | None = None
+    next: list[dict[str, Any]] | None = Field(None, description="The poses the round's next views asked for, in "
+                                              "order (transforms frames).")
+
+    @property
+    def model_id(self) -> str | None:
+        return None if self.train is None else self.train.model_id
+
+
+class CaptureInfo(_Response):
+    id: str
+    name: str
+    state: Literal["reconstructing", "registering", "ready", "failed"]
+    created_at: str
+    updated_at: str
+    num_photos: int = Field(description="Photos registered in the reconstruction.")
+    test_photos: list[str] = Field(description="Photos held out of training: each round's test PSNR.")
+    model_id: str | None = Field(None, description="The latest model trained on the capture.")
+    rounds: list[CaptureRound]
+    report: dict[str, Any] | None = Field(None, description="The latest structure-from-motion report (matcher, "
+                                          "points, reprojection error, seconds per stage, notes).")
+    error: ErrorDetail | None = Field(None, description="Why the first reconstruction failed (state failed).")
+    job: str | None = Field(None, description="Set in the answer that started work on it: the job's id "
+                            "(GET /v1/jobs/{id}).")
+
+
+class CaptureList(_Response):
+    captures: list[CaptureInfo]
+
+
+class TrainRequest(_Request):
+    model: str = Field(DEFAULT_FAMILY, description="Model family: " + ", ".join(
+        f"`{f.name}`" for f in FAMILIES.values() if f.trainer))
+    iterations: int | None = Field(None, ge=1, le=100_000, description="Optimisation steps; default the family's "
+                                   "trainer's (as `phd train`).")
+    downscale: FiniteFloat = Field(1.0, ge=1, le=64, description="Train on the photos at 1/downscale of their size "
+                                   "(they are at most the capture's max_size already).")
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    warm_start: bool = Field(True, description="Continue from the capture's latest model of this family (its "
+                             "splats, densification resumed) instead of from scratch (docs/service.md, 'The capture "
+                             "loop': measured against a cold start).")
+    options: dict[str, Any] = Field(default_factory=dict, description="The family's own training options, as "
+                                    "`phd train` flags, underscored (the families' options: docs/gaussians.md, docs/gs2d.md).")
+    samples: int | None = Field(None, ge=2, description="Dropout samples N of the calibration and of sigma_max_bar.")
+    run_async: bool = Field(True, alias="async", description="Answer 202 with a job at once (the default: training "
+                            "takes minutes).")
+
+
+class TrainResult(_Response):
+    capture_id: str
+    round: int
+    summary: TrainSummary
+
+
+class NextRequest(RankRequest):
+    """A rank request of the capture's latest model; `targets` may be "capture": the capture's own
+    registered views (its path) as the views the model will be looked at from."""
+
+    targets: Union[CameraList, Literal["capture"], None] = Field(  # type: ignore[assignment]
+        None, description="The views the model will be looked at from: 'capture' for the capture's own registered "
+        "views (its path), or cameras. " + _CAMERAS_DOC)
+    top_k: int | None = Field(2, ge=1, description="How many views to capture next (the batch).")
+
+
 class Job(_Response):
     id: str
     kind: JobKind
@@ -426,6 +520,6 @@ class Job(_Response):
     started_at: str | None = None
     finished_at: str | None = None
     estimated_pixels: float = Field(description="The work estimate: rendered views x samples x pixels.")
-    result: Union[RankResult, SelectResult, Calibration, ExplainResult, None] = None
+    result: Union[RankResult, SelectResult, Calibration, ExplainResult, CaptureInfo, TrainResult, None] = None
     error: ErrorDetail | None = None
     artifacts: list[str] = Field(default_factory=list, description="Names of downloadable PNG artefacts.")

@@ -62,6 +62,10 @@ class Settings(BaseSettings):
     max_candidates: PositiveInt = Field(1000, description="cameras per rank/select request")
     max_training_cameras: PositiveInt = Field(1000, description="cameras per calibration / upload")
     max_samples: PositiveInt = Field(256, description="dropout samples N per request")
+    max_capture_photos: PositiveInt = Field(300, description="photos a capture may hold (a video is sampled to at "
+                                            "most this many frames)")
+    capture_max_size: PositiveInt = Field(1600, description="a capture's photos larger than this many pixels on their "
+                                          "longer side are downscaled to it before structure-from-motion")
     async_threshold: PositiveFloat = Field(
         2e7, description="estimated rendered pixels (views * N * H * W) above which a request becomes a 202 job")
     memory_budget_bytes: PositiveInt = Field(

@@ -31,12 +31,14 @@ from phd_core.scene import UNSEEN_SHARE, Camera, capture_up
 from phd_core.uq.candidates import scene_points
 
 from .budget import READ_BYTES_PER_MODEL_BYTE, MemoryLedger, Reservation, largest_model_file, load_bytes, read_bytes
+from .captures import CaptureRecord, CaptureStore
 from .errors import ServiceError, busy, from_exception, not_found
 from .folders import folder_bytes, read_folder, unpack_zip, upload_relative
 from .jobs import JobManager, JobRecord, QueueFull, Work
 from .jobstore import JobStore
 from .keys import Principal
 from .metrics import Metrics
+from .requests import parse_cameras
 from .schemas import Calibration, Job, RenderSize
 from .settings import Settings
 from .store import ModelRecord, ModelStore, writing
@@ -50,7 +52,6 @@ from .upload import (
     sniff_kind,
     unwrap_sidecar,
 )
-from .work import parse_cameras
 
 
 @dataclass
@@ -59,6 +60,7 @@ class ServiceState:
     store: ModelStore
     ledger: MemoryLedger                # the memory budget, and the models in memory
     job_store: JobStore
+    captures: CaptureStore              # the capture loop's captures (service.captures)
     # Made by the app's lifespan (service.app.create_app), so every request sees it; unset before.
     jobs: JobManager = field(init=False)
     executor: Executor = LOCAL          # where the jobs' rendering runs (settings.executor)
@@ -69,6 +71,13 @@ class ServiceState:
         record = self.store.get(model_id)
         if record is None or not who.may_see(record.owner):
             raise not_found("model", model_id, field)
+        return record
+
+    def capture(self, capture_id: str, who: Principal) -> CaptureRecord:
+        """The capture, or 404 when it does not exist or belongs to another key."""
+        record = self.captures.get(capture_id)
+        if record is None or not who.may_see(record.owner):
+            raise not_found("capture", capture_id)
         return record
 
     def job(self, job_id: str, who: Principal) -> Job:
@@ -201,6 +210,7 @@ class ServiceState:
         facts["up"], facts["up_rule"] = up.vector.tolist(), up.rule
         if background_source is not None:
             facts["background_source"] = background_source
+        facts.update(upload.facts)
         # What loading the file noted, then what reading its trainer's folder noted; and a model
         # stored without training cameras says so (its poses are in the file's frame).
         notes = [*facts.get("notes", []), *upload.notes]

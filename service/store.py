@@ -2,10 +2,12 @@
 
 Layout of the data directory:
 
-    phd.sqlite3          metadata: tables `models` (one row per model, calibration included) and `jobs`
+    phd.sqlite3          metadata: tables `models` (one row per model, calibration included), `jobs` and
+                         `captures` (service.captures)
     schema-version       the store's schema version (also SQLite's `PRAGMA user_version`)
     models/<id>.<ext>    the uploaded model file, byte for byte (.ply or .nerf)
     models/<id>.<ext>.phd-cache/   results derived from it (`cache`), deleted with it
+    captures/<id>/       a capture's photos and reconstruction (service.captures)
     tmp/                 uploads in progress (swept at startup)
 
 Crash safety comes from the order of operations. An upload is written to `tmp/`, fsynced,
@@ -98,8 +100,26 @@ def _to_v1(db: sqlite3.Connection) -> None:
     db.execute("CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state, finished_at)")
 
 
+def _to_v2(db: sqlite3.Connection) -> None:
+    """Version 2: the `captures` table (issue 49, the capture loop)."""
+    db.execute("""
+        CREATE TABLE IF NOT EXISTS captures (
+            id TEXT PRIMARY KEY,
+            name TEXT NOT NULL,
+            state TEXT NOT NULL,
+            created_at TEXT NOT NULL,
+            updated_at TEXT NOT NULL,
+            test_json TEXT NOT NULL,
+            settings_json TEXT NOT NULL,
+            report_json TEXT,
+            rounds_json TEXT NOT NULL,
+            error_json TEXT,
+            owner TEXT
+        )""")
+
+
 # MIGRATIONS[v] takes a store at version v to v + 1; version 0 is any store from before versions.
-MIGRATIONS: list[Callable[[sqlite3.Connection], None]] = [_to_v1]
+MIGRATIONS: list[Callable[[sqlite3.Connection], None]] = [_to_v1, _to_v2]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 

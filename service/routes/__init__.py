@@ -1,5 +1,5 @@
 """The routes, one module per resource; `ROUTERS` is what the app includes."""
 
-from . import health, jobs, models, page, scene, work
+from . import captures, health, jobs, models, page, scene, work
 
-ROUTERS = (health.router, models.router, work.router, scene.router, jobs.router, page.router)
+ROUTERS = (health.router, models.router, work.router, scene.router, captures.router, jobs.router, page.router)

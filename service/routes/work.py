@@ -30,7 +30,7 @@ async def rank(model_id: str, body: RankRequest, svc: Service, who: Caller) -> A
     """Candidate poses in the order to capture them (next-best view; strategy in the body, docs/nbv.md)."""
     record = svc.model(model_id, who)
     job_id = svc.jobs.new_id()
-    work, estimate = await asyncio.to_thread(rank_job, record, body, svc.settings, _artifact_url(job_id),
+    work, estimate = await asyncio.to_thread(rank_job, record, body, svc.settings, artifact_url(job_id),
                                              svc.ledger, svc.executor, svc.store)
     return await svc.run(job_id, "rank", work, estimate, body.run_async, who)
 
@@ -41,9 +41,9 @@ async def select(body: SelectRequest, svc: Service, who: Caller) -> Any:
     record_a, record_b = svc.model(body.model_a, who, "model_a"), svc.model(body.model_b, who, "model_b")
     job_id = svc.jobs.new_id()
     work, estimate = await asyncio.to_thread(select_job, record_a, record_b, body, svc.settings,
-                                             _artifact_url(job_id), svc.ledger, svc.executor)
+                                             artifact_url(job_id), svc.ledger, svc.executor)
     return await svc.run(job_id, "select", work, estimate, body.run_async, who)
 
 
-def _artifact_url(job_id: str):
+def artifact_url(job_id: str):
     return lambda name: f"/v1/jobs/{job_id}/artifacts/{name}"
