@@ -56,7 +56,7 @@ class CaptureRecord:
     @property
     def model_id(self) -> str | None:
         """The latest round's model, else the latest model of an earlier round."""
-        return next((r["model_id"] for r in reversed(self.rounds) if r.get("model_id")), None)
+        return next((r["train"]["model_id"] for r in reversed(self.rounds) if r.get("train")), None)
 
 
 class CaptureStore:

@@ -49,7 +49,7 @@ from phd_core.uq import Progress
 
 from .budget import MemoryLedger, OverBudget
 from .captures import CaptureRecord, CaptureStore
-from .errors import ServiceError, from_exception, invalid, not_found
+from .errors import ServiceError, from_exception, insufficient_storage, invalid, not_found
 from .jobs import Work
 from .photos import PhotoUpload
 from .plans import Bounded, Renders, span
@@ -68,7 +68,7 @@ from .schemas import (
     TrainSummary,
 )
 from .settings import Settings
-from .store import ModelRecord, ModelStore, utc_now
+from .store import ModelRecord, ModelStore, utc_now, writing
 from .upload import Upload
 from .work import rank_job
 
@@ -78,6 +78,11 @@ SFM_PIXEL_BYTES = 48              # per pixel of the largest photo, per core: SI
 TRAIN_SPLAT_BYTES = 2048          # per splat of the budget: parameters, gradients and Adam's two moments, twice
 TRAIN_PIXEL_BYTES = 2048          # per pixel of the largest view: the rasteriser's lists and their gradients
 IMAGE_PIXEL_BYTES = 16            # per pixel of every view: the training images (float32 RGBA)
+# What structure-from-motion writes, checked against the disk's room before it starts: the photos
+# as COLMAP sees them and undistorted (each at most the size sent, downscaled ones smaller), the
+# database's features, and the reconstruction.
+SFM_DISK_PER_BYTE = 3
+SFM_DISK_FIXED = 32 << 20
 DEFAULT_CANDIDATES = CandidateSpec(generator="orbit", count=64)   # next views' candidates when none are given
 
 
@@ -103,6 +108,16 @@ def sfm_bytes(settings: Settings) -> int:
     return SFM_FIXED_BYTES + SFM_PIXEL_BYTES * side * side * (os.cpu_count() or 1)
 
 
+def check_room(store: ModelStore, upload: PhotoUpload, settings: Settings) -> None:
+    """507 naming `photos` when what structure-from-motion writes would not fit on the data
+    directory's disk outside the space kept free (checked before it starts)."""
+    need = SFM_DISK_PER_BYTE * upload.size + SFM_DISK_FIXED
+    room = store.free_bytes() - settings.keep_free_bytes
+    if need > room:
+        raise insufficient_storage(f"the reconstruction of {upload.count} photos (about {need} bytes)", "photos",
+                                   f"the service's disk has {max(room, 0)} bytes free outside the space kept free")
+
+
 def _frames(folder: Path, names: list[str]) -> list[dict[str, Any]]:
     """The cameras of the photos `names` of a capture as transforms frames (capture order)."""
     data = load_dataset(folder, "all", with_images=False)
@@ -125,6 +140,19 @@ def _test_names(report: CaptureReport, asked: list[str], sent: list[str]) -> lis
     return [by_origin.get(name, name) for name in asked if by_origin.get(name, name) in set(sent)]
 
 
+def users_terms(exc: BaseException, upload: PhotoUpload) -> BaseException:
+    """A library error that names the server's folder of the photos in the words of the request
+    (the photos sent); any other exception as it is."""
+    if isinstance(exc, InputError):
+        reason = exc.reason
+        for path, shown in ((upload.folder, "the photos sent"), (upload.video, "the video sent")):
+            if path is not None:
+                reason = reason.replace(str(path), shown)
+        if reason != exc.reason:
+            return InputError(exc.field, reason)
+    return exc
+
+
 def check_test(upload: PhotoUpload) -> list[str]:
     """The `test` names, each one of the photos sent (422 naming `test` otherwise)."""
     asked = upload.test_photos()
@@ -143,16 +171,20 @@ def reconstruct_job(record: CaptureRecord, upload: PhotoUpload, captures: Captur
     """The first photos -> the capture folder; the capture `ready` with round 0, or `failed`."""
     def work(progress: Progress) -> tuple[CaptureInfo, dict[str, bytes]]:
         try:
-            with ledger.reserve(sfm_bytes(settings)):
-                report = sfm.run_capture(upload.inputs(), captures.folder(record.id), max_size=settings.capture_max_size,
-                                     max_images=settings.max_capture_photos, progress=_stages(progress),
-                                     **record.settings)
-        except BaseException as exc:
+            check_room(captures.store, upload, settings)
+            with ledger.reserve(sfm_bytes(settings)), writing("the capture's reconstruction", "photos"):
+                report = sfm.run_capture(upload.inputs(), captures.folder(record.id),
+                                         max_size=settings.capture_max_size, max_images=settings.max_capture_photos,
+                                         progress=_stages(progress), **record.settings)
+        except BaseException as raised:
+            exc = users_terms(raised, upload)
             known = from_exception(exc)
             detail = (known or ServiceError(500, "internal_error", f"structure-from-motion failed "
                                             f"({type(exc).__name__}); see the server log")).detail()
             captures.update(record.id, state="failed", error=detail.model_dump())
-            raise
+            if exc is raised:
+                raise
+            raise exc from None
         finally:
             shutil.rmtree(upload.folder, ignore_errors=True)
             if upload.video is not None:
@@ -175,13 +207,17 @@ def add_photos_job(record: CaptureRecord, upload: PhotoUpload, captures: Capture
 
     def work(progress: Progress) -> tuple[CaptureInfo, dict[str, bytes]]:
         try:
-            with ledger.reserve(sfm_bytes(settings)):
+            check_room(captures.store, upload, settings)
+            with ledger.reserve(sfm_bytes(settings)), writing("the photos' registration", "photos"):
                 before = set((record.report or {}).get("registered", []))
                 report = sfm.add_photos(folder, upload.folder, max_size=settings.capture_max_size,
                                     max_images=settings.max_capture_photos, progress=_stages(progress))
-        except BaseException:
+        except BaseException as raised:
             captures.update(record.id, state="ready")
-            raise
+            exc = users_terms(raised, upload)
+            if exc is raised:
+                raise
+            raise exc from None
         finally:
             shutil.rmtree(upload.folder, ignore_errors=True)
         sent = [name for name in report.origins if name not in before]
@@ -398,7 +434,7 @@ def next_job(record: CaptureRecord, body: NextRequest, captures: CaptureStore, s
     if model is None:
         raise ServiceError(409, "not_trained", f"capture '{record.id}' has no model yet: train it first "
                            f"(POST /v1/captures/{record.id}/train)", "capture_id")
-    fields = body.model_dump(by_alias=True, exclude_unset=True, exclude={"targets"})
+    fields = body.model_dump(by_alias=True, exclude_unset=True, exclude={"targets", "top_k"})
     if body.cameras is None and body.candidates is None:
         fields["candidates"] = DEFAULT_CANDIDATES.model_dump()
     fields["top_k"] = body.top_k

@@ -451,10 +451,6 @@ class CaptureRound(_Response):
     next: list[dict[str, Any]] | None = Field(None, description="The poses the round's next views asked for, in "
                                               "order (transforms frames).")
 
-    @property
-    def model_id(self) -> str | None:
-        return None if self.train is None else self.train.model_id
-
 
 class CaptureInfo(_Response):
     id: str
@@ -489,7 +485,7 @@ class TrainRequest(_Request):
                              "splats, densification resumed) instead of from scratch (docs/service.md, 'The capture "
                              "loop': measured against a cold start).")
     options: dict[str, Any] = Field(default_factory=dict, description="The family's own training options, as "
-                                    "`phd train` flags, underscored (the families' options: docs/gaussians.md, docs/gs2d.md).")
+                                    "`phd train` takes them as flags, underscored (`phd train --help`).")
     samples: int | None = Field(None, ge=2, description="Dropout samples N of the calibration and of sigma_max_bar.")
     run_async: bool = Field(True, alias="async", description="Answer 202 with a job at once (the default: training "
                             "takes minutes).")
@@ -509,6 +505,14 @@ class NextRequest(RankRequest):
         None, description="The views the model will be looked at from: 'capture' for the capture's own registered "
         "views (its path), or cameras. " + _CAMERAS_DOC)
     top_k: int | None = Field(2, ge=1, description="How many views to capture next (the batch).")
+    candidates: CandidateSpec | None = Field(None, description="Poses made by a generator around the capture; "
+                                             "default 64 orbit poses (or give cameras).")
+
+    @model_validator(mode="after")
+    def _one_candidate_source(self) -> "NextRequest":      # replaces RankRequest's: neither is the default
+        if self.cameras is not None and self.candidates is not None:
+            raise ValueError("give either cameras (explicit candidate poses) or candidates (a generator spec)")
+        return self
 
 
 class Job(_Response):

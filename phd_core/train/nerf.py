@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -79,8 +79,9 @@ class TrainSettings:
 def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, downscale: float = 2,
                encoding: str = NeRFOptions.encoding, freenerf: bool = NeRFOptions.freenerf,
                iterations: int | None = None, seed: int = 0, out: str | Path | None, progress: bool = True,
-               **overrides: Any) -> NeRFRenderer:
-    """Train a NeRF on the "train" split of `data` and write it to `out` (None: don't write),
+               split: str = "train", init: str | Path | None = None,
+               on_step: Callable[[int, int], None] | None = None, **overrides: Any) -> NeRFRenderer:
+    """Train a NeRF on a split of `data` (`views` within it) and write it to `out` (None: don't write),
     with what identifies the capture and the fit reached on it when `data` is a path
     (`phd_core.renderers.provenance`; a Dataset in memory names no capture).
 
@@ -89,8 +90,12 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
     `freenerf` switches on both FreeNeRF parts; the overrides `freenerf_frequency` /
     `freenerf_occlusion` switch them one by one. Other overrides are `NeRFConfig` fields
     (depth, width, samples, bounds, ...) or `TrainSettings` fields (batch_rays, lr, ...).
-    iterations=None: DEFAULT_ITERATIONS.
+    iterations=None: DEFAULT_ITERATIONS. `on_step(step, total)` after every step (raising from it
+    stops the run). A warm start (`init`) is for the splat families: refused here, since a NeRF's
+    occupancy grid and bounds are fitted to the views it started with.
     """
+    if init is not None:
+        raise InputError("init", "a NeRF trains from scratch: warm starts continue splat models (3dgs, 2dgs)")
     NeRFOptions(encoding, freenerf)
     iterations = check_int(DEFAULT_ITERATIONS if iterations is None else iterations, "iterations", 1)
     seed = check_int(seed, "seed")
@@ -106,7 +111,7 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
         if "background" in overrides and background != list(dataset.background):
             raise InputError("background", f"the dataset's images are composited on {list(dataset.background)}")
     else:
-        dataset = load_dataset(data, "train", downscale=downscale, views=views, background=background)
+        dataset = load_dataset(data, split, downscale=downscale, views=views, background=background)
     if dataset.images is None:
         raise InputError("data", "training needs the images (the dataset was loaded without them)")
 
@@ -127,7 +132,7 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
     else:
         hull = None
 
-    fit(model, dataset, settings, iterations=iterations, seed=seed, hull=hull, progress=progress)
+    fit(model, dataset, settings, iterations=iterations, seed=seed, hull=hull, progress=progress, on_step=on_step)
     model.grid.set_density(model.cell_density())
     renderer = NeRFRenderer(model, list(dataset.cameras))
     if not isinstance(data, Dataset):
@@ -138,7 +143,8 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
 
 
 def fit(model: RadianceField, dataset: Dataset, settings: TrainSettings, *, iterations: int, seed: int,
-        hull: torch.Tensor | None, progress: bool) -> list[float]:
+        hull: torch.Tensor | None, progress: bool,
+        on_step: Callable[[int, int], None] | None = None) -> list[float]:
     """The optimisation loop; returns the loss of every iteration."""
     config = model.config
     generator = torch.Generator().manual_seed(seed)
@@ -193,6 +199,8 @@ def fit(model: RadianceField, dataset: Dataset, settings: TrainSettings, *, iter
             update_grid(model, generator, settings.grid_decay, hull)
         if step % 50 == 0:
             bar.set_postfix(loss=f"{losses[-1]:.4f}", occupied=f"{model.grid.fraction:.3f}", samples=out.samples)
+        if on_step is not None:
+            on_step(step, iterations)
     model.eval()
     return losses
 

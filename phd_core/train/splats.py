@@ -31,6 +31,7 @@ family's trainer is its recipe (`phd_core.train.gs3d`, `phd_core.train.gs2d`).
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -50,6 +51,8 @@ from ..renderers.splats import SH_C0, SIDECAR_FORMAT, GaussianModel, sidecar_pat
 from ..renderers.splats.renderer import RenderOutput, SplatRenderer
 from ..scene import Camera, footprint, scene_bounds, visual_hull
 from ..scene.rotations import quaternion_to_rotation
+
+StepCallback = Callable[[int, int], None]     # (step just done, steps in the run)
 
 
 @dataclass
@@ -265,6 +268,17 @@ def training_extent(data: Dataset, extent: float) -> float:
     return max(extent, 1.1 * float((eyes - eyes.mean(0)).norm(dim=1).max()))
 
 
+def with_sh_degree(model: GaussianModel, degree: int, recipe: Recipe) -> GaussianModel:
+    """`model` as `recipe`'s model type with `degree` SH bands: higher bands cut, missing ones zero."""
+    if not isinstance(model, recipe.model_type):
+        raise InputError("init", f"the initial model is not a {recipe.kind} model")
+    coefficients = (degree + 1) ** 2
+    sh = model.sh[:, :coefficients]
+    if sh.shape[1] < coefficients:
+        sh = torch.cat([sh, sh.new_zeros(len(sh), coefficients - sh.shape[1], 3)], dim=1)
+    return recipe.model_type(model.means, model.log_scales, model.quats, model.opacity_logits, sh.contiguous())
+
+
 # ----------------------------------------------------------------------------- optimiser
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
@@ -357,21 +371,41 @@ GROWING_BAR = ("{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix
                "stop growing]")
 
 
+def warm_start(path: str | Path, recipe: Recipe, background: Sequence[float]) -> GaussianModel:
+    """The splats of the model at `path` to continue training from: of `recipe`'s family, trained
+    over `background` (splats fitted over another colour would carry it in their edges), else an
+    InputError naming `init`."""
+    from ..renderers import load_model
+
+    renderer = load_model(path)
+    if renderer.kind != recipe.kind or not isinstance(renderer, SplatRenderer):
+        raise InputError("init", f"{Path(path).name} is a {renderer.kind} model: a {recipe.kind} run continues "
+                         f"from a {recipe.kind} model")
+    theirs = [round(float(v), 4) for v in renderer.background]
+    if theirs != [round(float(v), 4) for v in background]:
+        raise InputError("init", f"{Path(path).name} was trained over the background {theirs}, this run trains over "
+                         f"{[round(float(v), 4) for v in background]}: give the same background")
+    return renderer.model
+
+
 def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int] = 16, downscale: float = 2,
                  iterations: int | None = None, seed: int = 0, out: str | Path, progress: bool = True,
+                 split: str = "train", init: str | Path | None = None, on_step: StepCallback | None = None,
                  **overrides: Any) -> SplatRenderer:
-    """Train `recipe`'s family on the `train` split of a capture (Blender, nerfstudio, COLMAP,
-    LLFF) and write `out` (PLY) plus the sidecar `<stem>.json` with the training cameras, the
+    """Train `recipe`'s family on a split of a capture (Blender, nerfstudio, COLMAP, LLFF; `views`
+    within it) and write `out` (PLY) plus the sidecar `<stem>.json` with the training cameras, the
     views, the settings and what identifies the capture with the fit reached on it
-    (`phd_core.renderers.provenance`)."""
+    (`phd_core.renderers.provenance`). `init`: a model of the same family to continue from (a
+    warm start, `fit`), trained over the same background; the sidecar records it."""
     extra: dict[str, Any] = {} if iterations is None else {"iterations": iterations}
     config = TrainConfig(seed=seed, **overrides, **extra)
-    source = locate(data, "train")[0].name            # the capture's format: its pose convention
-    dataset = load_dataset(data, "train", downscale=downscale, views=views,
+    source = locate(data, split)[0].name              # the capture's format: its pose convention
+    dataset = load_dataset(data, split, downscale=downscale, views=views,
                            background=config.background or (1.0, 1.0, 1.0))
     background = training_background(dataset, config.background_rgb)
+    start = None if init is None else warm_start(init, recipe, background)
     started = time.perf_counter()
-    model, history = fit(dataset, config, recipe, progress=progress)
+    model, history = fit(dataset, config, recipe, progress=progress, init=start, on_step=on_step)
     seconds = time.perf_counter() - started
     renderer = recipe.renderer_type(model, background, dataset.cameras, tile=config.tile, camera_format=source)
     renderer.trained_on = record_training(renderer, data)
@@ -383,7 +417,7 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
         "model": recipe.kind,
         "name": f"{out.resolve().parent.name}/{out.stem}",    # the run's folder and file: what an upload is named
         **renderer.trained_on.fields(),
-        "split": "train",
+        "split": split,
         "view_indices": dataset.indices,
         "downscale": downscale,
         "background": list(background),
@@ -393,13 +427,26 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
         "train_seconds": round(seconds, 2),
         "final_loss": history[-1] if history else None,
     }
+    if init is not None:
+        assert start is not None
+        sidecar["init"] = {"file": Path(init).name, "sha256": hashlib.sha256(Path(init).read_bytes()).hexdigest(),
+                           "num_splats": start.num_splats}
     write_json_atomic(sidecar_path(out), sidecar)
     return renderer
 
 
-def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
-        progress: bool = True) -> tuple[GaussianModel, list[float]]:
+def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool = True,
+        init: GaussianModel | None = None,
+        on_step: StepCallback | None = None) -> tuple[GaussianModel, list[float]]:
     """The optimisation loop; returns the trained model and the loss every 100 steps.
+
+    `init` (a warm start): the splats to start from instead of the seeded ones, e.g. the last
+    round's model of an active capture after new photos came. Densification runs on the run's
+    schedule (the new views show new high-gradient regions) within the splat budget; the SH
+    bands the init has are active from the start; the opacity reset is skipped, because it
+    exists to clear the floaters of a model's first steps and on a trained model only throws
+    its fit away. `on_step(step, total)` is called after every step (progress; raising from it
+    stops the run).
 
     Seeded: bit-identical for a seed on one torch thread; with several threads, parallel
     sums may round differently in the last bits.
@@ -409,7 +456,9 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
     gen = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)
     centre, extent = scene_bounds(dataset.cameras)
-    model = seed_model(dataset, centre, extent, config, gen, recipe)
+    model = seed_model(dataset, centre, extent, config, gen, recipe) if init is None else \
+        with_sh_degree(init, config.sh_degree, recipe)
+    start_degree = 0 if init is None else min(init.sh_degree, config.sh_degree)
     extent = training_extent(dataset, extent)
     splats = Splats(model, config, extent)
     background = torch.tensor(training_background(dataset, config.background_rgb))
@@ -417,7 +466,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
     budget = int(config.splats_per_pixel * largest)
     n_iter = config.iterations
     densify_from, densify_until = int(config.densify_from * n_iter), int(config.densify_until * n_iter)
-    reset_every = int(config.opacity_reset_every * n_iter) if config.opacity_reset_every > 0 else 0
+    reset_every = int(config.opacity_reset_every * n_iter) if config.opacity_reset_every > 0 and init is None else 0
     sh_up = max(1, int(config.sh_up_every * n_iter))
     grad_sum = torch.zeros(splats.count)
     grad_count = torch.zeros(splats.count)
@@ -432,7 +481,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
         view = int(order[step % len(order)])
         cam, target = dataset.cameras[view], dataset.images[view]
         splats.set_means_lr(step / n_iter)
-        degree = min(config.sh_degree, step // sh_up)
+        degree = min(config.sh_degree, max(start_degree, step // sh_up))
         out = recipe.render(splats.model(degree), cam, background, tile=config.tile, compositor=config.compositor)
         out.means2d.retain_grad()
         image = out.rgb[0]
@@ -463,6 +512,8 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *,
         if step % 100 == 0 or step == n_iter - 1:
             history.append(round(loss.item(), 5))
             bar.set_postfix(loss=f"{loss.item():.4f}", splats=splats.count)
+        if on_step is not None:
+            on_step(step, n_iter)
     final = splats.model()
     keep = torch.sigmoid(final.opacity_logits.detach()) >= config.min_opacity
     detached = recipe.model_type(*(t.detach().clone() for t in (final.means, final.log_scales, final.quats,

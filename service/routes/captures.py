@@ -14,7 +14,7 @@ from ..deps import ACCEPTED, ERRORS, Caller, Service
 from ..errors import ServiceError, not_found
 from ..jobs import Work
 from ..keys import Principal
-from ..loop import add_photos_job, capture_info, check_test, next_job, reconstruct_job, train_job
+from ..loop import add_photos_job, capture_info, check_room, check_test, next_job, reconstruct_job, train_job
 from ..photos import PhotoUpload, receive_photos
 from ..schemas import CaptureInfo, CaptureList, NextRequest, RankResult, TrainRequest, TrainResult
 from ..state import ServiceState
@@ -73,6 +73,7 @@ async def create_capture(request: Request, svc: Service, who: Caller) -> JSONRes
     upload = await _received(request, svc, video=True)
     try:
         test = check_test(upload)
+        check_room(svc.store, upload, svc.settings)
         settings = upload.sfm_settings()
         name = upload.fields.get("name") or (upload.video.name if upload.video else f"{upload.count} photos")
         record = await asyncio.to_thread(svc.captures.add, name=name[:256], test_photos=[], settings=settings,
@@ -97,6 +98,7 @@ async def add_capture_photos(capture_id: str, request: Request, svc: Service, wh
     upload = await _received(request, svc, video=False)
     try:
         test = check_test(upload)
+        check_room(svc.store, upload, svc.settings)
         record = await asyncio.to_thread(svc.captures.begin, capture_id, "registering", BUSY)
         if record is None:
             current = svc.capture(capture_id, who)

@@ -26,6 +26,7 @@ from service.store import DB_NAME
 from support.fixtures import expect_error, svc_cameras
 
 DISK_BYTES = 8 << 20
+CUP = Path(__file__).resolve().parents[3] / "shared" / "data" / "cup_colmap" / "images"
 
 
 class Disk:
@@ -281,3 +282,26 @@ def test_a_start_on_a_full_disk_says_so_and_the_next_start_serves(disk, svc_star
     disk.free()
     with PHDClient(svc_start(data_dir=disk.root / "data").url) as phd:
         assert phd.list_models() == [model]
+
+
+def test_photos_for_a_capture_on_a_full_disk_are_507_and_leave_nothing(disk, served, tmp_path):
+    """A capture's photos: refused as they stream (or by their length) when the disk is full, and
+    before structure-from-motion when what it would write does not fit; nothing is kept."""
+    server, phd, model, job_id, heatmap = served
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for n in range(18, 22):
+        (photos / f"{n}.jpg").write_bytes((CUP / f"{n}.jpg").read_bytes())
+    disk.fill()
+    with pytest.raises(ServerError) as refused:
+        phd.create_capture(photos)
+    assert (refused.value.status, refused.value.code, refused.value.field) == (507, "insufficient_storage", "photos")
+    disk.free()
+    disk.fill(leave=2 << 20)        # room for the photos, not for what structure-from-motion writes
+    with pytest.raises(ServerError) as refused:
+        phd.create_capture(photos)
+    assert (refused.value.status, refused.value.field) == (507, "photos")
+    assert "the reconstruction of 4 photos" in refused.value.message
+    assert phd.list_captures() == [] and disk.files("captures") == []
+    stored_as_before(phd, model, job_id, heatmap)
+    no_partial_files(disk, [model.id], [job_id])
