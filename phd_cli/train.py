@@ -49,6 +49,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--iterations", type=int, default=None, help=f"optimisation steps (default {DEFAULT_ITERATIONS}, "
                    f"every trainer's; {TIME_HINT}; the time grows about linearly with the steps)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--init", type=Path, default=None, metavar="MODEL",
+                   help="continue from this model of the same family (a warm start: its splats, with "
+                   "densification resumed and no opacity reset; e.g. the model of the capture before its latest "
+                   "photos came). Splat families only")
     p.add_argument("--out", required=True, type=Path, help="output file, named for its family (" + ", ".join(
         f"{family.extension} for {family.name}" for family in families) + "; a PLY gets a sidecar <stem>.json "
         "with its training cameras)")
@@ -123,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
     background = parse_background(args.background)
     if background is not None:
         options["background"] = list(background)
+    if args.init is not None:
+        options["init"] = args.init
     renderer = family.train(args.data, views=views, downscale=args.downscale, iterations=args.iterations,
                             seed=args.seed, out=args.out, progress=bars_on(args), **options)
     print(f"trained {renderer.kind} with {renderer.num_units} dropout units on {sizes(cameras)} in "

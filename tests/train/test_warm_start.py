@@ -1,0 +1,104 @@
+"""Warm starts (issue 49): a splat run continues from a model of its family, reports every step,
+stops when its callback raises, trains on an explicit split and views, and refuses an init of
+another family or background by name."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from phd_cli import main
+from phd_core.data import load_blender, load_dataset
+from phd_core.errors import InputError
+from phd_core.renderers import load_model
+from phd_core.renderers.gs3d import read_sidecar
+from phd_core.train import gs2d, gs3d, nerf
+from phd_core.train.splats import TrainConfig
+from support.fixtures import LEGO
+
+STILL = {name: 0.0 for name in ("lr_means", "lr_sh_dc", "lr_sh_rest", "lr_opacity", "lr_scales", "lr_quats")}
+
+
+@pytest.fixture(scope="module")
+def first(tmp_path_factory):
+    """A 3DGS model trained 30 steps on 4 views of lego at 25 px: the round before new photos."""
+    out = tmp_path_factory.mktemp("warm") / "first.ply"
+    gs3d.train_gaussians(LEGO, views=[0, 10, 20, 30], downscale=8, iterations=30, out=out, progress=False)
+    return out
+
+
+def test_a_step_with_nothing_to_learn_gives_back_the_initial_splats(first) -> None:
+    """With every learning rate 0 the run's output is its init to the bit: it started from those
+    splats (a cold start would give the seeded ones)."""
+    data = load_blender(LEGO, "train", downscale=8, views=[0, 10, 20, 30, 40, 50])
+    init = load_model(first).model
+    model, _ = gs3d.splats.fit(data, TrainConfig(iterations=3, **STILL), gs3d.GAUSSIANS, progress=False, init=init)
+    assert model.num_splats == init.num_splats
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        assert torch.equal(getattr(model, name), getattr(init, name)), name
+    cold, _ = gs3d.splats.fit(data, TrainConfig(iterations=3, **STILL), gs3d.GAUSSIANS, progress=False)
+    assert cold.num_splats != init.num_splats or not torch.equal(cold.means, init.means)
+
+
+def test_a_warm_run_writes_what_it_continued_from_and_learns(first, tmp_path) -> None:
+    out = tmp_path / "warm.ply"
+    steps: list[tuple[int, int]] = []
+    gs3d.train_gaussians(LEGO, views=[0, 10, 20, 30, 40, 50], downscale=8, iterations=20, out=out, progress=False,
+                         init=first, on_step=lambda step, total: steps.append((step, total)))
+    assert steps == [(step, 20) for step in range(20)]
+    sidecar = read_sidecar(out)
+    assert sidecar["init"]["file"] == "first.ply" and sidecar["init"]["num_splats"] == load_model(first).num_units
+    assert len(sidecar["training_cameras"]) == 6
+    warm, start = load_model(out).model, load_model(first).model
+    assert not torch.equal(warm.means[: start.num_splats], start.means)       # it trained
+
+
+def test_raising_from_the_step_callback_stops_the_run(tmp_path) -> None:
+    class Stop(Exception):
+        pass
+
+    seen = []
+
+    def stop_at_5(step: int, total: int) -> None:
+        seen.append(step)
+        if step == 5:
+            raise Stop
+
+    with pytest.raises(Stop):
+        gs3d.train_gaussians(LEGO, views=4, downscale=8, iterations=50, out=tmp_path / "m.ply", progress=False,
+                             on_step=stop_at_5)
+    assert seen == list(range(6)) and not (tmp_path / "m.ply").exists()
+
+
+def test_a_split_with_views_trains_on_exactly_those_cameras(tmp_path) -> None:
+    out = tmp_path / "m.ply"
+    gs3d.train_gaussians(LEGO, split="test", views=[1, 50, 150], downscale=8, iterations=2, out=out, progress=False)
+    expected = load_dataset(LEGO, "test", views=[1, 50, 150], downscale=8, with_images=False).cameras
+    assert read_sidecar(out)["training_cameras"] == [c.to_frame() for c in expected]
+    assert read_sidecar(out)["split"] == "test"
+
+
+def test_an_init_of_another_family_or_background_is_refused_by_name(first, tmp_path) -> None:
+    with pytest.raises(InputError) as family:
+        gs2d.train_surfels(LEGO, views=4, downscale=8, iterations=2, out=tmp_path / "s.ply", progress=False,
+                           init=first)
+    assert family.value.field == "init" and "3dgs" in family.value.reason
+    with pytest.raises(InputError) as background:
+        gs3d.train_gaussians(LEGO, views=4, downscale=8, iterations=2, out=tmp_path / "b.ply", progress=False,
+                             init=first, background=[0, 0, 0])
+    assert background.value.field == "init" and "background" in background.value.reason
+    with pytest.raises(InputError) as network:
+        nerf.train_nerf(LEGO, views=4, downscale=8, iterations=2, out=None, progress=False, init=first)
+    assert network.value.field == "init"
+
+
+def test_phd_train_continues_from_init(first, tmp_path, capsys) -> None:
+    out = tmp_path / "cli.ply"
+    assert main(["train", "--data", str(LEGO), "--views", "6", "--downscale", "8", "--iterations", "5", "--init",
+                 str(first), "--out", str(out), "--quiet"]) == 0
+    assert json.loads(out.with_suffix(".json").read_text())["init"]["file"] == "first.ply"
+    assert main(["train", "--model", "2dgs", "--data", str(LEGO), "--views", "6", "--downscale", "8",
+                 "--iterations", "5", "--init", str(first), "--out", str(tmp_path / "s.ply"), "--quiet"]) == 2
+    assert "init" in capsys.readouterr().err
