@@ -3,6 +3,7 @@ takes as --data (structure-from-motion with pycolmap on the CPU: phd_core.proces
 
     phd capture photos/ --out captures/cup
     phd capture walk.mp4 --out captures/walk --fps 3
+    phd capture more/ --add-to captures/cup          # registered into it, the earlier poses unchanged
 """
 
 from __future__ import annotations
@@ -27,7 +28,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("inputs", nargs="+", type=Path, metavar="PHOTOS_OR_VIDEO",
                    help=f"a folder of photos ({', '.join(PHOTO_SUFFIXES)}), photo files, or one video "
                    f"({', '.join(VIDEO_SUFFIXES)})")
-    p.add_argument("--out", required=True, type=Path, help="the capture folder to write (new, or empty)")
+    target = p.add_mutually_exclusive_group(required=True)
+    target.add_argument("--out", type=Path, help="the capture folder to write (new, or empty)")
+    target.add_argument("--add-to", type=Path, metavar="DIR", help="add the photos to this capture instead: their "
+                        "features are matched with its photos and they are registered into its reconstruction, whose "
+                        "poses and frame stay as they are (photos that do not register are named; if none does, "
+                        "nothing changes)")
     p.add_argument("--matcher", choices=capture.MATCHERS, default="auto",
                    help="which photo pairs are matched. auto (default): a video's frames, and photos whose names "
                    "differ only in their numbers (IMG_0001.jpg, ...), are matched with their neighbours "
@@ -55,6 +61,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.add_to is not None:
+        return add(args)
     with stage_bars(args) as progress:
         report = capture.run_capture(args.inputs, args.out, matcher=args.matcher, max_size=args.max_size,
                                      max_images=args.max_images, fps=args.fps, camera_model=args.camera_model,
@@ -66,5 +74,18 @@ def run(args: argparse.Namespace) -> int:
     print(f"registered {len(report.registered)} of {report.inputs} {kind} ({report.share:.0%}); {report.matcher} "
           f"matching ({report.matcher_reason}); {report.points:,} points, mean reprojection error "
           f"{report.reprojection_error:.2f} px -> {report.out}")
+    print("seconds: " + ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in report.seconds.items()))
+    return 0
+
+
+def add(args: argparse.Namespace) -> int:
+    with stage_bars(args) as progress:
+        report = capture.add_photos(args.add_to, args.inputs, max_size=args.max_size, max_images=args.max_images,
+                                    seed=args.seed, progress=progress)
+    for note in report.notes:
+        say(args, f"note: {note}")
+    print(f"registered {len(report.added)} of {len(report.added) + len(report.not_registered)} photos into "
+          f"{args.add_to} ({len(report.registered)} in all)" + (
+              f"; not registered: {', '.join(report.not_registered)}" if report.not_registered else ""))
     print("seconds: " + ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in report.seconds.items()))
     return 0

@@ -16,8 +16,9 @@ Crash safety, as the model store's: the first photos are written to `captures/<i
 and the row inserted before any work; structure-from-motion builds the folder beside its place
 and renames it in (phd_core.process.capture), so `captures/<id>/` is a whole capture or absent.
 At start-up (`recover`) a capture left `reconstructing` becomes `failed` (interrupted), one left
-`registering` is `ready` again with the folder it had (the new photos were not added), and
-partial folders and leftover photos are removed.
+`registering` is `ready` again with the folder it had (the new photos were not added; a crash
+between add_photos' two renames leaves that folder under `.<id>.old-*/`, from where it is put
+back), and partial folders and leftover photos are removed.
 """
 
 from __future__ import annotations
@@ -86,6 +87,10 @@ class CaptureStore:
             db.execute("UPDATE captures SET state = 'ready', updated_at = ? WHERE state = 'registering'",
                        (utc_now(),))
             known = {row[0] for row in db.execute("SELECT id FROM captures")}
+        for capture_id in known:        # a crash between add_photos' two renames: the earlier folder goes back
+            kept = next(iter(self.root.glob(f".{capture_id}.old-*/{capture_id}")), None)
+            if kept is not None and not self.folder(capture_id).exists():
+                kept.rename(self.folder(capture_id))
         removed = [path for path in self.root.iterdir()
                    if path.name.startswith(".") or "." in path.name or path.name not in known]
         for path in removed:

@@ -209,7 +209,6 @@ def add_photos_job(record: CaptureRecord, upload: PhotoUpload, captures: Capture
         try:
             check_room(captures.store, upload, settings)
             with ledger.reserve(sfm_bytes(settings)), writing("the photos' registration", "photos"):
-                before = set((record.report or {}).get("registered", []))
                 report = sfm.add_photos(folder, upload.folder, max_size=settings.capture_max_size,
                                     max_images=settings.max_capture_photos, progress=_stages(progress))
         except BaseException as raised:
@@ -220,7 +219,7 @@ def add_photos_job(record: CaptureRecord, upload: PhotoUpload, captures: Capture
             raise exc from None
         finally:
             shutil.rmtree(upload.folder, ignore_errors=True)
-        sent = [name for name in report.origins if name not in before]
+        sent = sorted(report.added + report.not_registered)
         current = captures.get(record.id)
         if current is None:
             raise not_found("capture", record.id)
@@ -327,7 +326,6 @@ def train_job(record: CaptureRecord, body: TrainRequest, captures: CaptureStore,
             family.train_options(**options)
         except (TypeError, InputError) as exc:
             raise invalid("options", str(exc)) from None
-    spec = TrainSpec(body.model, views, body.downscale, body.iterations, body.seed, options)
     cameras = [data.cameras[i] for i in views]
     try:
         size = render_size([data.cameras[i] for i in held] + cameras, RenderSize(), settings, field="downscale")
@@ -337,6 +335,9 @@ def train_job(record: CaptureRecord, body: TrainRequest, captures: CaptureStore,
     if reserve > settings.memory_budget_bytes:
         raise OverBudget("downscale", reserve, settings.memory_budget_bytes, "a larger downscale")
     init = previous_model(record, body.model, store) if body.warm_start else None
+    if init is not None and isinstance(init.describe.get("background"), list):
+        options.setdefault("background", init.describe["background"])   # every warm round over one colour
+    spec = TrainSpec(body.model, views, body.downscale, body.iterations, body.seed, options)
     samples = body.samples or uq.DEFAULT_CALIBRATION_SAMPLES
     estimate = float(sum(c.width * c.height for c in size) * samples * 10)
 

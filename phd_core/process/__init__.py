@@ -6,6 +6,6 @@ COLMAP's stages; `capture` puts them together and reports what they did.
 """
 
 from . import capture
-from .capture import CaptureReport, run_capture
+from .capture import CaptureReport, add_photos, run_capture
 
-__all__ = ["CaptureReport", "capture", "run_capture"]
+__all__ = ["CaptureReport", "add_photos", "capture", "run_capture"]

@@ -20,6 +20,16 @@ view and training seven; half the inputs, because a capture that registers fewer
 of what the photos show (the rest failed, or formed models of their own), which the user
 should hear now rather than find in a trained model.
 
+Adding photos (`add_photos`, `phd capture NEW --add-to DIR`) extends a capture without
+recomputing it: the new photos' features are extracted into a copy of its database, matched
+with every photo of the capture (new x all pairs), and registered by the incremental mapper
+started from the capture's reconstruction with its frames fixed, so every earlier pose and the
+capture's frame stay as they were (a model trained on it stays in place). The registered photos
+are undistorted again (all of them: the shared camera's intrinsics do not move either, so the
+earlier images come out the same), and the copy replaces the capture. A photo that shares too
+little with the capture (a photo of something else) does not register; when none does, nothing
+is written.
+
 Every size is bounded before work: the number of photos (`max_images`; a video is sampled to
 at most that many frames), the pixels of each (`max_size` on the longer side; larger photos
 are downscaled first), and an output folder that exists and is not empty is refused unless
@@ -30,13 +40,14 @@ camera's size), and only then renamed into place: DIR holds a whole capture or n
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import shutil
 import tempfile
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 
@@ -81,6 +92,8 @@ class CaptureReport:
     notes: list[str]              # what was done to the inputs, in a sentence each
     seconds: dict[str, float] = field(default_factory=dict)   # per stage (STAGES)
     pycolmap: str = ""                                          # its version
+    added: list[str] = field(default_factory=list)             # add_photos: the photos it registered
+    not_registered: list[str] = field(default_factory=list)    # add_photos: those it could not
 
     @property
     def share(self) -> float:
@@ -129,6 +142,98 @@ def run_capture(inputs: str | Path | Sequence[str | Path], out: str | Path, *, m
             _check_loads(work, len(report.registered))
         write_json_atomic(work / REPORT, asdict(report))
         _replace(out, work)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    return report
+
+
+def read_report(capture: Path) -> CaptureReport:
+    """The CaptureReport `run_capture` (or `add_photos`) wrote in a capture folder."""
+    path = Path(capture) / REPORT
+    if not path.is_file():
+        raise InputError("capture", f"{capture} holds no {REPORT}: photos are added to a folder phd capture wrote")
+    try:
+        return CaptureReport(**json.loads(path.read_text()))
+    except (ValueError, TypeError) as exc:
+        raise InputError("capture", f"{path} cannot be read: {exc}") from None
+
+
+def add_photos(capture: str | Path, inputs: str | Path | Sequence[str | Path], *, max_size: int = DEFAULT_MAX_SIZE,
+               max_images: int = DEFAULT_MAX_IMAGES, seed: int = 0,
+               progress: StageProgress | None = None) -> CaptureReport:
+    """New photos (a folder of them, or photo files) registered into the capture at `capture`
+    (the module docstring); the capture's report after it, whose `added` and `not_registered`
+    name this call's photos."""
+    from . import sfm
+
+    capture = Path(capture)
+    before = read_report(capture)
+    paths = [Path(inputs)] if isinstance(inputs, (str, Path)) else [Path(p) for p in inputs]
+    check_int(max_size, "max_size", minimum=64)
+    photos, skipped = list_photos(paths)
+    if not photos:
+        raise InputError("photos", f"no photos to add ({', '.join(PHOTO_SUFFIXES)})")
+    known = set(before.origins)
+    total = len(known) + len(photos)
+    if total > max_images:
+        raise InputError("photos", f"the capture would hold {total} photos, more than max_images ({max_images})")
+    names = input_names(photos, False)
+    taken = [name for name in names if name in known]
+    if taken:
+        raise InputError("photos", f"the capture holds a photo named {taken[0]!r} already: rename the new one")
+    work = Path(tempfile.mkdtemp(dir=capture.parent, prefix=f".{capture.name}.partial-"))
+    os.chmod(work, 0o755)
+    stage = (lambda name: (lambda fraction: progress(name, fraction))) if progress else (lambda name: (lambda f: None))
+    seconds: dict[str, float] = {}
+    try:
+        with _timed(seconds, "input"):
+            for folder in ("input", "distorted"):
+                shutil.copytree(capture / folder, work / folder)
+            for i, (photo, name) in enumerate(zip(photos, names)):
+                write_photo(photo, work / "input" / name, max_size)
+                stage("input")((i + 1) / len(photos))
+        database, existing = work / "distorted" / "database.db", work / "distorted" / "sparse" / "0"
+        sfm.seed(seed)
+        with sfm.quiet_colmap():
+            with _timed(seconds, "features"):
+                sfm.add_features(database, work / "input", names, camera_model=before.camera_model,
+                                 progress=stage("features"))
+            with _timed(seconds, "matching"):
+                old = sorted(known)
+                pairs = [(new, other) for i, new in enumerate(names) for other in old + names[i + 1:]]
+                sfm.match_pairs(database, pairs, seed=seed, progress=stage("matching"))
+            with _timed(seconds, "mapping"):
+                model = sfm.map_images(database, work / "input", work / "distorted" / "extended" / "0", seed=seed,
+                                       progress=stage("mapping"), existing=existing)
+            registered = sorted(image.name for image in model.images.values() if image.has_pose)
+            added = [name for name in names if name in set(registered)]
+            missing = sorted(set(before.registered) - set(registered))
+            if missing:          # the fixed frames register by construction: anything else is a fault of ours
+                raise RuntimeError(f"extending the reconstruction lost {len(missing)} of its photos: {_some(missing)}")
+            if not added:
+                raise InputError("photos", f"none of the {len(names)} new photos registered ({_some(names)}): each "
+                                 "shares too few matched features with the capture (a photo of something else, or "
+                                 "too little overlap with the photos taken); nothing was changed")
+            shutil.rmtree(existing.parent)
+            (work / "distorted" / "extended").rename(existing.parent)
+            with _timed(seconds, "undistortion"):
+                sfm.undistort(existing, work / "input", work, registered, progress=stage("undistortion"))
+        not_registered = [name for name in names if name not in set(added)]
+        notes = [f"skipped {len(skipped)} files that are not photos: {_some(skipped)}"] if skipped else []
+        if not_registered:
+            notes.append(f"{len(not_registered)} of the {len(names)} photos added did not register: "
+                         f"{_some(not_registered)}")
+        report = replace(before, inputs=before.inputs + len(names), registered=registered,
+                         pairs=before.pairs + len(pairs), cameras=model.num_cameras(), points=model.num_points3D(),
+                         reprojection_error=round(model.compute_mean_reprojection_error(), 3),
+                         origins={**before.origins, **{name: str(photo) for photo, name in zip(photos, names)}},
+                         notes=notes, seconds=seconds, pycolmap=sfm.VERSION, added=added,
+                         not_registered=not_registered)
+        with _timed(seconds, "check"):
+            _check_loads(work, len(registered))
+        write_json_atomic(work / REPORT, asdict(report))
+        _replace(capture, work)
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         raise

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Callable, Iterator, Sequence, TypeVar
 
 import pycolmap
+from PIL import Image
 
 Progress = Callable[[float], None]
 T = TypeVar("T")
@@ -86,21 +87,55 @@ def match_features(database: Path, *, sequential: bool, seed: int, progress: Pro
                      else pycolmap.ExhaustivePairGenerator(pycolmap.ExhaustivePairingOptions(), db))
         pairs = generator.all_pairs()
         names = {image.image_id: image.name for image in db.read_all_images()}
+    return match_pairs(database, [(names[a], names[b]) for a, b in pairs], seed=seed, progress=progress)
+
+
+def match_pairs(database: Path, pairs: Sequence[tuple[str, str]], *, seed: int, progress: Progress) -> int:
+    """Match and geometrically verify the image pairs given by name; returns their number."""
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = seed
     pair_list = database.with_name("pairs.txt")
     for part in _slices(pairs, progress):
-        pair_list.write_text("".join(f"{names[a]} {names[b]}\n" for a, b in part))
+        pair_list.write_text("".join(f"{a} {b}\n" for a, b in part))
         pycolmap.match_image_pairs(database, pairing_options=pycolmap.ImportedPairingOptions(
             match_list_path=str(pair_list)), verification_options=verification)
     pair_list.unlink(missing_ok=True)
     return len(pairs)
 
 
-def map_images(database: Path, images: Path, out: Path, *, seed: int, progress: Progress) -> pycolmap.Reconstruction:
-    """Incremental mapping; the model that registers the most photos, written to `out`."""
+def add_features(database: Path, images: Path, names: list[str], *, camera_model: str, progress: Progress) -> None:
+    """SIFT features of the photos `names`, added to an existing `database`: a photo of the size
+    of one of its cameras shares that camera (its intrinsics are refined together), any other
+    gets its own."""
+    with pycolmap.Database.open(database) as db:
+        cameras = {(camera.width, camera.height): camera.camera_id for camera in db.read_all_cameras()}
+    by_camera: dict[int | None, list[str]] = {}
+    for name in names:
+        with Image.open(images / name) as image:
+            by_camera.setdefault(cameras.get(image.size), []).append(name)
+    for camera_id, group in by_camera.items():
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        mode = pycolmap.CameraMode.PER_IMAGE
+        if camera_id is not None:
+            reader.existing_camera_id = camera_id
+            mode = pycolmap.CameraMode.SINGLE
+        pycolmap.import_images(database, images, camera_mode=mode, image_names=group, options=reader)
+        for part in _slices(group, progress):
+            pycolmap.extract_features(database, images, image_names=list(part), camera_mode=mode,
+                                      reader_options=reader)
+
+
+def map_images(database: Path, images: Path, out: Path, *, seed: int, progress: Progress,
+               existing: Path | None = None) -> pycolmap.Reconstruction:
+    """Incremental mapping; the model that registers the most photos, written to `out`. With
+    `existing` (a reconstruction of some of the database's images) it is extended: the images it
+    holds keep their poses (`fix_existing_frames`), so the capture's frame does not move, and the
+    others are registered into it."""
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
+    if existing is not None:
+        options.fix_existing_frames = True
     options.mapper.init_min_num_inliers = INIT_MIN_INLIERS
     options.mapper.abs_pose_min_num_inliers = ABS_POSE_MIN_INLIERS
     with pycolmap.Database.open(database) as db:
@@ -114,7 +149,8 @@ def map_images(database: Path, images: Path, out: Path, *, seed: int, progress: 
 
     scratch = out.parent / "models"
     scratch.mkdir(parents=True)
-    models = pycolmap.incremental_mapping(database, images, scratch, options, next_image_callback=next_image)
+    models = pycolmap.incremental_mapping(database, images, scratch, options, input_path=existing or "",
+                                          next_image_callback=next_image)
     shutil.rmtree(scratch)
     out.mkdir(parents=True)
     if not models:

@@ -47,7 +47,7 @@ from ..eval import ssim
 from ..io import write_json_atomic
 from ..renderers.composite import COMPOSITORS, DEFAULT_COMPOSITOR
 from ..renderers.provenance import record_training
-from ..renderers.splats import SH_C0, SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
+from ..renderers.splats import SH_C0, SIDECAR_FORMAT, GaussianModel, read_sidecar, sidecar_path, write_ply
 from ..renderers.splats.renderer import RenderOutput, SplatRenderer
 from ..scene import Camera, footprint, scene_bounds, visual_hull
 from ..scene.rotations import quaternion_to_rotation
@@ -372,18 +372,25 @@ GROWING_BAR = ("{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix
 
 
 def warm_start(path: str | Path, recipe: Recipe, background: Sequence[float]) -> GaussianModel:
-    """The splats of the model at `path` to continue training from: of `recipe`'s family, trained
-    over `background` (splats fitted over another colour would carry it in their edges), else an
-    InputError naming `init`."""
-    from ..renderers import load_model
+    """The splats of the model at `path` to continue training from: of `recipe`'s family, and,
+    when its sidecar says what it was trained over, over `background` (splats fitted over another
+    colour carry it in their edges); else an InputError naming `init`. A bare PLY records no
+    background: the run's applies."""
+    from ..renderers import load_model_bytes
 
-    renderer = load_model(path)
+    path = Path(path)
+    try:
+        content = path.read_bytes()
+    except OSError as exc:
+        raise InputError("init", f"cannot read {path}: {exc.strerror or exc}") from None
+    renderer = load_model_bytes(content, path.name)
     if renderer.kind != recipe.kind or not isinstance(renderer, SplatRenderer):
-        raise InputError("init", f"{Path(path).name} is a {renderer.kind} model: a {recipe.kind} run continues "
+        raise InputError("init", f"{path.name} is a {renderer.kind} model: a {recipe.kind} run continues "
                          f"from a {recipe.kind} model")
-    theirs = [round(float(v), 4) for v in renderer.background]
+    sidecar = read_sidecar(path) or {}
+    theirs = [round(float(v), 4) for v in sidecar.get("background", background)]
     if theirs != [round(float(v), 4) for v in background]:
-        raise InputError("init", f"{Path(path).name} was trained over the background {theirs}, this run trains over "
+        raise InputError("init", f"{path.name} was trained over the background {theirs}, this run trains over "
                          f"{[round(float(v), 4) for v in background]}: give the same background")
     return renderer.model
 
