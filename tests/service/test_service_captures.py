@@ -32,7 +32,7 @@ def error_of(response: httpx.Response) -> dict:
 def test_the_loop_round_after_round(svc_start, shots) -> None:
     server = svc_start(capture_max_size=shots.max_size)
     with PHDClient(server.url) as phd:
-        capture = phd.create_capture(shots.initial, test=shots.test, name="scene", min_registered=4)
+        capture = phd.create_capture(shots.initial, test=shots.test, name="scene", **shots.sfm)
         info = capture.info
         assert info.state == "ready" and info.name == "scene" and len(info.rounds) == 1
         first = info.rounds[0]
@@ -72,7 +72,7 @@ def test_the_loop_round_after_round(svc_start, shots) -> None:
 def test_a_photo_of_something_else_is_named_and_the_capture_is_unchanged(svc_start, shots) -> None:
     server = svc_start(capture_max_size=shots.max_size)
     with PHDClient(server.url) as phd:
-        capture = phd.create_capture(shots.initial, min_registered=4)
+        capture = phd.create_capture(shots.initial, **shots.sfm)
         before = capture.info
         with pytest.raises(JobFailedError) as failed:
             capture.add_photos([shots.other])
@@ -119,7 +119,7 @@ def test_work_in_the_wrong_order_is_a_conflict_and_keys_own_their_captures(svc_s
         with zipfile.ZipFile(archive, "w") as zipped:
             for photo in sorted(shots.initial.iterdir()):
                 zipped.write(photo, f"scene/{photo.name}")
-        capture = ann.create_capture(archive, min_registered=4)       # a zip of a folder of photos
+        capture = ann.create_capture(archive, **shots.sfm)       # a zip of a folder of photos
         assert capture.info.num_photos == shots.initial_count
         with pytest.raises(ConflictError) as early:
             capture.next_views(2)
@@ -141,7 +141,7 @@ def test_kill_9_mid_training_then_restart(tmp_path, shots) -> None:
     server = SvcProcess(data_dir, PHD_CAPTURE_MAX_SIZE=str(shots.max_size))
     try:
         with PHDClient(server.url) as phd:
-            capture = phd.create_capture(shots.initial, test=shots.test, min_registered=4)
+            capture = phd.create_capture(shots.initial, test=shots.test, **shots.sfm)
             job = capture.train(iterations=100_000, wait=False)
             deadline = time.monotonic() + 60
             while phd.get_job(job.id).progress <= 0.0:
