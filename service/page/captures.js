@@ -41,12 +41,12 @@ async function captureChosen() {
   $("capture-info").textContent = "";
   if (view3d()) view3d().showCapture($("view3d"), null);
   if (!id) return;
-  await showCapture((await apiJson("/v1/captures/" + id)).data, token);
+  await openCapture((await apiJson("/v1/captures/" + id)).data, token);
 }
 
 // A capture in the section: its facts and rounds; once ready, in the 3D view with its latest model.
 // Busy (structure-from-motion on new photos), its state is said and it is read again until ready.
-async function showCapture(info, token) {
+async function openCapture(info, token) {
   loop.shown = info;
   describeCapture(info);
   if (BUSY.includes(info.state)) {
@@ -143,15 +143,14 @@ function drawChart(svg, values, digits) {
 // The capture in the 3D view: its rounds' cameras first (the view's framing takes them in), then
 // its latest model chosen in section 1 as any model is; with none yet, the cameras alone.
 async function drawCapture(info, token) {
-  if (!view3d()) return;
-  if (!view3d().showCapture($("view3d"), info)) return;     // no WebGL: the view says why
+  if (view3d()) view3d().showCapture($("view3d"), info);
   if (info.model_id) {
     await loadModels(info.model_id);
-  } else {
-    $("model-select").value = "";
-    await modelChosen();
-    if (token === loop.token) await view3d().mount($("view3d"), { modelId: null, headers: authHeaders() });
+    return;
   }
+  $("model-select").value = "";
+  await modelChosen();
+  if (view3d() && token === loop.token) await view3d().mount($("view3d"), { modelId: null, headers: authHeaders() });
 }
 
 // Called by app.js when another model is chosen: the capture's rounds stay drawn over its own
@@ -176,7 +175,7 @@ async function trainCapture() {
   say("capture-message", `Trained round ${done.round}: test PSNR ${fmt(done.summary.test_psnr)} dB, ` +
     `sigma-max-bar ${fmt(done.summary.sigma_max_bar, 3)}, in ${done.summary.seconds.toFixed(1)} s.`);
   await loadCaptures();
-  await showCapture((await apiJson("/v1/captures/" + info.id)).data, token);
+  await openCapture((await apiJson("/v1/captures/" + info.id)).data, token);
 }
 
 // The next views of the capture, ranked over section 2's candidates with section 3's settings;
@@ -192,7 +191,7 @@ async function nextViews() {
   if (token !== loop.token) return;
   say("capture-message", `Capture next: ${plural(r.views.length, "view")} (candidates ` +
     r.views.map((v) => v.index).join(", ") + "), drawn in the 3D view.");
-  await showCapture((await apiJson("/v1/captures/" + info.id)).data, token);
+  await openCapture((await apiJson("/v1/captures/" + info.id)).data, token);
 }
 
 // Photos sent as a new capture, or added to the one shown as its next round (structure-from-motion
@@ -211,7 +210,7 @@ async function sendPhotos(add) {
   $("photos-file").value = "";
   await loadCaptures();
   $("capture-select").value = info.data.id;
-  await showCapture(info.data, ++loop.token);
+  await openCapture(info.data, ++loop.token);
 }
 
 // The section's buttons are off while one of its jobs runs.

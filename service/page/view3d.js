@@ -740,6 +740,7 @@ function showTargets(frames) {
 // view is built on them when no model was mounted yet: a capture has cameras before it has a model.
 function showCapture(element, capture) {
   if (view.noWebGL) return false;
+  if (!view.renderer && !capture) return true;          // nothing drawn yet, nothing to take away
   if (!view.renderer && !build(element)) return false;
   view.capture = capture && { rounds: capture.rounds };
   if (!view.touched) fit();
