@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from client import PHDClient
+from client import PHDClient, TrainResult
 from support.browser import chromium, have_browser
 from support.captures_loop import LoopPhotos, loop_photos
 
@@ -49,7 +49,9 @@ def test_the_captures_rounds_as_the_api_gives_them(tmp_path, svc_start) -> None:
     server = svc_start(capture_max_size=shots.max_size, api_key=KEY)
     with PHDClient(server.url, api_key=KEY) as phd:
         capture = phd.create_capture(shots.initial, test=shots.test, name="scene", **shots.sfm)
-        first = capture.train(iterations=ITERATIONS, downscale=DOWNSCALE, samples=SAMPLES).summary
+        result = capture.train(iterations=ITERATIONS, downscale=DOWNSCALE, samples=SAMPLES)
+        assert isinstance(result, TrainResult)        # waited for: the job's result, not the job
+        first = result.summary
 
         driver = chromium(tmp_path / "profile")
         try:
@@ -96,16 +98,17 @@ def test_the_captures_rounds_as_the_api_gives_them(tmp_path, svc_start) -> None:
     second = added.train
     assert second is not None and second.warm_from == first.model_id and info.model_id == second.model_id
     assert shown["model"] == second.model_id                      # the section put the new model in the view
-    for row, r in zip(shown["rows"], info.rounds):
-        assert row[:4] == [str(r.round), str(len(r.photos)), str(len(r.registered)),
-                           ", ".join(r.not_registered) or "-"]
-        assert float(row[5]) == pytest.approx(r.train.test_psnr, rel=1e-3)
-        assert float(row[6]) == pytest.approx(r.train.sigma_max_bar, rel=1e-2)
-        assert float(row[7]) == pytest.approx(r.train.r_drop, rel=1e-2)
+    trained = [first, second]
+    for row, r, t in zip(shown["rows"], info.rounds, trained):
+        assert r.train == t and row[:4] == [str(r.round), str(len(r.photos)), str(len(r.registered)),
+                                            ", ".join(r.not_registered) or "-"]
+        assert float(row[5]) == pytest.approx(t.test_psnr, rel=1e-3)
+        assert float(row[6]) == pytest.approx(t.sigma_max_bar, rel=1e-2)
+        assert float(row[7]) == pytest.approx(t.r_drop, rel=1e-2)
     assert shown["rows"][1][9].startswith("warm: ")
     assert [[float(v) for v in chart] for chart in shown["charts"]] == [
-        pytest.approx([r.train.test_psnr for r in info.rounds], rel=1e-3),
-        pytest.approx([r.train.sigma_max_bar for r in info.rounds], rel=1e-2)]
+        pytest.approx([t.test_psnr for t in trained], rel=1e-3),
+        pytest.approx([t.sigma_max_bar for t in trained], rel=1e-2)]
     # One frustum per captured camera per round, each round in its own colour, and a legend key each.
     rounds = shown["view"]["rounds"]
     assert [(r["round"], r["frusta"]) for r in rounds] == [(r.round, len(r.captured)) for r in info.rounds]
