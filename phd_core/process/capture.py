@@ -127,25 +127,41 @@ def run_capture(inputs: str | Path | Sequence[str | Path], out: str | Path, *, m
     out = Path(out)
     _check_out(out, paths, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
-    os.chmod(work, 0o755)
-
-    def stage_progress(stage: str) -> Progress:
-        return (lambda fraction: progress(stage, fraction)) if progress else (lambda fraction: None)
-
-    try:
+    with _building(out) as work:
         report = _reconstruct(paths, work, matcher=matcher, max_size=max_size, max_images=max_images, fps=fps,
                               camera_model=camera_model, min_registered=min_registered, seed=seed,
-                              progress=stage_progress)
+                              progress=_stage_progress(progress))
         report.out = str(out)
-        with _timed(report.seconds, "check"):
-            _check_loads(work, len(report.registered))
-        write_json_atomic(work / REPORT, asdict(report))
-        _replace(out, work)
+        _publish(work, out, report)
+    return report
+
+
+@contextmanager
+def _building(out: Path) -> Iterator[Path]:
+    """A folder beside `out` to build a capture in, removed when the build fails (nothing is
+    written at `out` until `_publish`)."""
+    work = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
+    os.chmod(work, 0o755)
+    try:
+        yield work
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         raise
-    return report
+
+
+def _publish(work: Path, out: Path, report: CaptureReport) -> None:
+    """The capture built in `work` checked to load, its report written, and put at `out`."""
+    with _timed(report.seconds, "check"):
+        _check_loads(work, len(report.registered))
+    write_json_atomic(work / REPORT, asdict(report))
+    _replace(out, work)
+
+
+def _stage_progress(progress: StageProgress | None) -> Callable[[str], Progress]:
+    """Each stage's progress callback: progress(stage, fraction), or nothing."""
+    if progress is None:
+        return lambda stage: (lambda fraction: None)
+    return lambda stage: (lambda fraction: progress(stage, fraction))
 
 
 def read_report(capture: Path) -> CaptureReport:
@@ -182,11 +198,9 @@ def add_photos(capture: str | Path, inputs: str | Path | Sequence[str | Path], *
     taken = [name for name in names if name in known]
     if taken:
         raise InputError("photos", f"the capture holds a photo named {taken[0]!r} already: rename the new one")
-    work = Path(tempfile.mkdtemp(dir=capture.parent, prefix=f".{capture.name}.partial-"))
-    os.chmod(work, 0o755)
-    stage = (lambda name: (lambda fraction: progress(name, fraction))) if progress else (lambda name: (lambda f: None))
+    stage = _stage_progress(progress)
     seconds: dict[str, float] = {}
-    try:
+    with _building(capture) as work:
         with _timed(seconds, "input"):
             for folder in ("input", "distorted"):
                 shutil.copytree(capture / folder, work / folder)
@@ -230,13 +244,7 @@ def add_photos(capture: str | Path, inputs: str | Path | Sequence[str | Path], *
                          origins={**before.origins, **{name: str(photo) for photo, name in zip(photos, names)}},
                          notes=notes, seconds=seconds, pycolmap=sfm.VERSION, added=added,
                          not_registered=not_registered)
-        with _timed(seconds, "check"):
-            _check_loads(work, len(registered))
-        write_json_atomic(work / REPORT, asdict(report))
-        _replace(capture, work)
-    except BaseException:
-        shutil.rmtree(work, ignore_errors=True)
-        raise
+        _publish(work, capture, report)
     return report
 
 
