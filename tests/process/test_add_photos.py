@@ -101,6 +101,24 @@ def test_the_new_cameras_sit_where_the_captures_own_colmap_puts_them(grown) -> N
     assert relative_residual(a[added], b[added]) < 0.1
 
 
+def test_photos_of_another_size_get_cameras_of_their_own(first, tmp_path) -> None:
+    """At 360 px the new photos cannot share the capture's 300 px camera: each gets its own,
+    whose focal length is estimated (from COLMAP's prior of 1.2 x 360 = 432 px to about the
+    capture's 188 px x 360 / 300), while the capture's camera stays as it was."""
+    capture = tmp_path / "cup"
+    shutil.copytree(first, capture)
+    report = add_photos(capture, [CUP / "images" / "34.jpg", CUP / "images" / "35.jpg"], max_size=360)
+    assert report.added == ["34.jpg", "35.jpg"] and report.cameras == 3
+    before, after = read_model(first / "distorted" / "sparse" / "0"), read_model(capture / "distorted" / "sparse" / "0")
+    (shared,) = before.cameras
+    assert after.cameras[shared] == before.cameras[shared]
+    new = [camera for camera_id, camera in after.cameras.items() if camera_id != shared]
+    expected = before.cameras[shared].params[0] * 360 / 300
+    assert all((camera.width, camera.height) == (360, 270) for camera in new)
+    assert all(abs(camera.params[0] / expected - 1) < 0.1 for camera in new), [camera.params for camera in new]
+    assert len(load_dataset(capture, "all", with_images=False).cameras) == len(FIRST) + 2
+
+
 def test_a_photo_of_something_else_alone_is_refused_and_nothing_changes(first, tmp_path) -> None:
     capture = tmp_path / "cup"
     shutil.copytree(first, capture)
