@@ -16,7 +16,7 @@ from phd_core.data import load_dataset
 from phd_core.data.colmap import read_model
 from phd_core.errors import InputError
 from phd_core.process import add_photos, run_capture
-from phd_core.process.capture import REPORT
+from phd_core.process.capture import REPORT, read_report
 from support.alignment import relative_residual
 from support.cli import run
 
@@ -141,6 +141,20 @@ def test_a_photo_of_something_else_alone_is_refused_and_nothing_changes(first, t
         add_photos(tmp_path, stranger)
     assert nowhere.value.field == "capture"
     assert tree_digest(capture) == before
+
+
+def test_a_report_written_before_photos_could_be_added_still_reads(first, tmp_path) -> None:
+    """phd_capture.json files from before `added` and `not_registered` existed load with both
+    empty; a damaged one is refused by field."""
+    written = json.loads((first / REPORT).read_text())
+    del written["added"], written["not_registered"]
+    (tmp_path / REPORT).write_text(json.dumps(written))
+    report = read_report(tmp_path)
+    assert report.added == [] and report.not_registered == [] and report.registered == written["registered"]
+    (tmp_path / REPORT).write_text(json.dumps({**written, "unknown": 1}))
+    with pytest.raises(InputError) as damaged:
+        read_report(tmp_path)
+    assert damaged.value.field == "capture" and "unknown" in damaged.value.reason
 
 
 def test_phd_capture_add_to(first, tmp_path, capsys) -> None:
