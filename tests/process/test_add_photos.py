@@ -1,6 +1,7 @@
 """Photos added to a capture (issue 49): registered into its reconstruction with the earlier
-frames fixed, so every earlier pose stays as it was; a photo of something else is named and,
-alone, changes nothing. Real photos: cup_colmap's, at 300 px."""
+frames and cameras fixed, so every earlier pose, intrinsic and undistorted image stays as it
+was; a photo of something else is named and, alone, changes nothing. Real photos: cup_colmap's,
+at 300 px."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import hashlib
 import json
 import shutil
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import pytest
@@ -25,7 +27,7 @@ OTHER = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "flas
 FIRST, MORE = range(18, 34), range(34, 41)        # consecutive photos (tests/cli/test_cli_capture_photos.py)
 
 
-def folder_of(root: Path, numbers: range | list[int], extra: list[Path] = ()) -> Path:
+def folder_of(root: Path, numbers: range | list[int], extra: Sequence[Path] = ()) -> Path:
     root.mkdir()
     for n in numbers:
         shutil.copy(CUP / "images" / f"{n}.jpg", root)
@@ -93,6 +95,7 @@ def test_the_new_cameras_sit_where_the_captures_own_colmap_puts_them(grown) -> N
     capture, _, _ = grown
     ours = load_dataset(capture, "all", with_images=False)
     theirs = load_dataset(CUP, "all", with_images=False)
+    assert ours.names is not None and theirs.names is not None          # COLMAP captures name their images
     centre = {name: camera.c2w[:3, 3].double().numpy() for name, camera in zip(theirs.names, theirs.cameras)}
     a = np.array([camera.c2w[:3, 3].double().numpy() for camera in ours.cameras])
     b = np.array([centre[name] for name in ours.names])
