@@ -23,10 +23,12 @@ should hear now rather than find in a trained model.
 Adding photos (`add_photos`, `phd capture NEW --add-to DIR`) extends a capture without
 recomputing it: the new photos' features are extracted into a copy of its database, matched
 with every photo of the capture (new x all pairs), and registered by the incremental mapper
-started from the capture's reconstruction with its frames fixed, so every earlier pose and the
-capture's frame stay as they were (a model trained on it stays in place). The registered photos
-are undistorted again (all of them: the shared camera's intrinsics do not move either, so the
-earlier images come out the same), and the copy replaces the capture. A photo that shares too
+started from the capture's reconstruction with its frames and cameras fixed, so every earlier
+pose, intrinsic and the capture's frame stay as they were (a model trained on it stays in
+place). A new photo of the capture's size shares its camera; another size gets a camera of its
+own, refined. The registered photos are undistorted again (all of them, which is simpler than
+merging two undistorted models and took 0.3 s for 23 photos at 300 px: the earlier ones come
+out byte for byte the same, tested), and the copy replaces the capture. A photo that shares too
 little with the capture (a photo of something else) does not register; when none does, nothing
 is written.
 
@@ -187,6 +189,7 @@ def add_photos(capture: str | Path, inputs: str | Path | Sequence[str | Path], *
     before = read_report(capture)
     paths = [Path(inputs)] if isinstance(inputs, (str, Path)) else [Path(p) for p in inputs]
     check_int(max_size, "max_size", minimum=64)
+    check_int(max_images, "max_images", minimum=2)
     photos, skipped = list_photos(paths)
     if not photos:
         raise InputError("photos", f"no photos to add ({', '.join(PHOTO_SUFFIXES)})")
