@@ -45,7 +45,7 @@ import torch
 from bench._harness import DATA, DOCS, RESULTS, command, fmt, machine, machine_text, write_doc, write_result
 from bench.bench_nbv import BOOTSTRAP, bootstrap_interval
 from bench.loop_scene import GeneratedScene, NearestFrame, Similarity, fit_similarity
-from client import PHDClient, RankResult, TrainResult
+from client import JobFailedError, PHDClient, RankResult, TrainResult
 from phd_core.data import load_dataset
 from phd_core.scene import Camera, camera_from_frame
 from phd_core.uq.strategies import DEFAULT_STRATEGY
@@ -97,7 +97,7 @@ def generated(seed: int, root: Path) -> Scene:
 
 def real(seed: int, root: Path) -> Scene:
     """cup_colmap's photos 18-41 (one continuous walk: photos farther apart than about three places
-    share too little at 300 px for structure-from-motion to register them): every 4th a test
+    share too little at 300-400 px for structure-from-motion to register them): every 4th a test
     photo, 4 of the others (spread, placed by the seed) the first to train on, the rest the
     candidates."""
     data = load_dataset(CUP, "all", with_images=False)
@@ -119,7 +119,7 @@ def real(seed: int, root: Path) -> Scene:
 
     return Scene(root / "first", [data.names[i] for i in test],
                  {data.names[i]: data.cameras[i].c2w.double().numpy() for i in test + first},
-                 [data.cameras[i].resized(300, 225) for i in rest if i not in first], take, {"min_registered": 4})
+                 [data.cameras[i].resized(400, 300) for i in rest if i not in first], take, {"min_registered": 4})
 
 
 def to_capture(similarity: Similarity, camera: Camera) -> dict:
@@ -149,7 +149,11 @@ def run_loop(phd: PHDClient, scene: Scene, root: Path, *, strategy: str, warm: b
             folder = root / f"round{number}"
             for frame in latest:
                 scene.take(similarity.c2w(np.array(frame["transform_matrix"])), folder)
-            capture.add_photos(folder)
+            try:
+                capture.add_photos(folder)
+            except JobFailedError as failed:         # none registered: the round trains on what it has
+                print(f"  round {number}: {failed}", flush=True)
+                capture.refresh()
         views = capture.info.num_photos - len(capture.info.test_photos)
         trained = capture.train(iterations=iterations_per_view * views, downscale=downscale, seed=seed,
                                 warm_start=warm, samples=samples)
@@ -164,7 +168,8 @@ def run_loop(phd: PHDClient, scene: Scene, root: Path, *, strategy: str, warm: b
         chosen += [left[v.index] for v in ranked.views]
         latest = [v.camera for v in ranked.views if v.camera is not None]
         entry = capture.info.rounds[-1]
-        out.append({"round": number, "views": views, "registered": len(entry.registered),
+        added = len(entry.registered) if entry.round == number else 0        # 0: none of the round's registered
+        out.append({"round": number, "views": views, "registered": added,
                     "not_registered": entry.not_registered, "psnr": summary.test_psnr,
                     "sigma_max_bar": summary.sigma_max_bar, "r_drop": summary.r_drop, "splats": summary.num_units,
                     "seconds": {"sfm": entry.sfm_seconds, "train": summary.seconds, "rank": round(rank_seconds, 2)}})
@@ -241,7 +246,7 @@ def main() -> None:
     if not args.report:
         record = {**machine(), "command": command()}
         with tempfile.TemporaryDirectory(prefix="phd-loop-") as tmp, BackgroundServer(Settings(
-                data_dir=Path(tmp) / "data", capture_max_size=300, max_image_size=300)) as server, \
+                data_dir=Path(tmp) / "data", capture_max_size=400, max_image_size=400)) as server, \
                 PHDClient(server.url, timeout=600) as phd:
             for seed in args.seeds:
                 for name in args.runs:
