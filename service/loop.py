@@ -93,7 +93,7 @@ def capture_info(record: CaptureRecord, job: str | None = None) -> CaptureInfo:
                        num_photos=len(report.get("registered", [])), test_photos=record.test_photos,
                        model_id=record.model_id, rounds=[CaptureRound(**r) for r in record.rounds],
                        report={k: v for k, v in report.items() if k not in ("registered", "origins")} or None,
-                       error=None if record.error is None else record.error, job=job)
+                       error=record.error, job=job)
 
 
 def _stages(progress: Progress) -> Callable[[str, float], None]:
@@ -119,7 +119,7 @@ def check_room(store: ModelStore, upload: PhotoUpload, settings: Settings) -> No
 
 
 def _frames(folder: Path, names: list[str]) -> list[dict[str, Any]]:
-    """The cameras of the photos `names` of a capture as transforms frames (capture order)."""
+    """The cameras of the photos `names` of a capture as transforms frames, by name."""
     data = load_dataset(folder, "all", with_images=False)
     assert data.names is not None             # a COLMAP capture names its images
     wanted = set(names)
@@ -323,6 +323,9 @@ def train_job(record: CaptureRecord, body: TrainRequest, captures: CaptureStore,
     if len(views) < 2:
         raise invalid("test", f"{len(views)} photos are left to train on once the test photos are held out")
     options = dict(body.options)
+    if family.train_options is None and options:
+        raise invalid("options", f"{family.name} takes no training options of its own (`phd train --help`), got "
+                      f"{', '.join(sorted(options))[:200]}")
     if family.train_options is not None:
         try:
             family.train_options(**options)
