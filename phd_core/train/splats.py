@@ -442,6 +442,14 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
     return renderer
 
 
+def opacity_reset_interval(config: TrainConfig, *, warm: bool) -> int:
+    """Steps between opacity resets (0: none). A warm start skips them: the reset clears the
+    floaters of a model's first steps, and on a trained model it throws the fit away."""
+    if warm or config.opacity_reset_every <= 0:
+        return 0
+    return int(config.opacity_reset_every * config.iterations)
+
+
 def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool = True,
         init: GaussianModel | None = None,
         on_step: StepCallback | None = None) -> tuple[GaussianModel, list[float]]:
@@ -473,7 +481,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
     budget = int(config.splats_per_pixel * largest)
     n_iter = config.iterations
     densify_from, densify_until = int(config.densify_from * n_iter), int(config.densify_until * n_iter)
-    reset_every = int(config.opacity_reset_every * n_iter) if config.opacity_reset_every > 0 and init is None else 0
+    reset_every = opacity_reset_interval(config, warm=init is not None)
     sh_up = max(1, int(config.sh_up_every * n_iter))
     grad_sum = torch.zeros(splats.count)
     grad_count = torch.zeros(splats.count)
