@@ -102,3 +102,17 @@ def test_phd_train_continues_from_init(first, tmp_path, capsys) -> None:
     assert main(["train", "--model", "2dgs", "--data", str(LEGO), "--views", "6", "--downscale", "8",
                  "--iterations", "5", "--init", str(first), "--out", str(tmp_path / "s.ply"), "--quiet"]) == 2
     assert "init" in capsys.readouterr().err
+
+
+def test_phd_train_on_all_frames_trains_on_exactly_the_views_given(tmp_path) -> None:
+    """--split all with indices (the service's capture less its held-out photos): frames 0 and 8
+    are test frames of cup_colmap's train/test split, so a run that ignored --split would train on
+    other photos (or refuse index 70 of the 67 training frames)."""
+    cup = LEGO.parent / "cup_colmap"
+    out = tmp_path / "all.ply"
+    assert main(["train", "--data", str(cup), "--split", "all", "--views", "0,8,70", "--downscale", "16",
+                 "--iterations", "2", "--out", str(out), "--quiet"]) == 0
+    sidecar = read_sidecar(out)
+    held_out = load_dataset(cup, "test", views=[0, 1], downscale=16, with_images=False).cameras
+    assert sidecar["split"] == "all" and sidecar["view_indices"] == [0, 8, 70]
+    assert sidecar["training_cameras"][:2] == [c.to_frame() for c in held_out]
