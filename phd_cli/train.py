@@ -57,7 +57,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--init", type=Path, default=None, metavar="MODEL",
                    help="continue from this model of the same family (a warm start: its splats, with "
                    "densification resumed and no opacity reset; e.g. the model of the capture before its latest "
-                   "photos came). Splat families only")
+                   "photos came). Short runs gain most: on cup_colmap, 8 then 12 views, +4.7 dB of test PSNR over "
+                   "a cold start of the same steps at 100 steps, +2.1 at 200, even at 600 (-0.2 and +1.0 dB by seed). "
+                   "Splat families only")
     p.add_argument("--out", required=True, type=Path, help="output file, named for its family (" + ", ".join(
         f"{family.extension} for {family.name}" for family in families) + "; a PLY gets a sidecar <stem>.json "
         "with its training cameras)")
