@@ -159,19 +159,23 @@ async function runJob(path, body, bar, onJob) {
   try {
     const first = await apiJson(path, { method: "POST", json: Object.assign({}, body, { async: true }) });
     if (first.status !== 202) return first.data;   // answered at once
-    const id = first.data.id;
-    if (onJob) onJob(id);
-    for (let polls = 0; ; polls++) {
-      const job = (await apiJson("/v1/jobs/" + id)).data;
-      bar.value = job.progress;
-      if (job.state === "succeeded") return job.result;
-      if (job.state === "failed") throw new ApiError(job.error.message, job.error.code, job.error.field);
-      if (job.state === "cancelled") throw new ApiError("Cancelled.");
-      // Short jobs answer fast; long ones are polled four times a second.
-      await new Promise((resolve) => setTimeout(resolve, Math.min(250, 40 + 20 * polls)));
-    }
+    if (onJob) onJob(first.data.id);
+    return await pollJob(first.data.id, bar);
   } finally {
     bar.hidden = true;
+  }
+}
+
+// Poll a job until it ends, its progress on the bar; its result, or its error as an ApiError.
+async function pollJob(id, bar) {
+  for (let polls = 0; ; polls++) {
+    const job = (await apiJson("/v1/jobs/" + id)).data;
+    bar.value = job.progress;
+    if (job.state === "succeeded") return job.result;
+    if (job.state === "failed") throw new ApiError(job.error.message, job.error.code, job.error.field);
+    if (job.state === "cancelled") throw new ApiError("Cancelled.");
+    // Short jobs answer fast; long ones are polled four times a second.
+    await new Promise((resolve) => setTimeout(resolve, Math.min(250, 40 + 20 * polls)));
   }
 }
 
@@ -332,7 +336,9 @@ async function modelChosen() {
   $("calibrate").disabled = Boolean(model) && !calibratable(model);   // the warning says why
   $("calibrate").title = $("calibrate").disabled ? "This model has no training cameras: see the warning above." : "";
   showCalibrateB();
-  if (!model) {
+  if (!model && state.models.length) {
+    $("model-info").textContent = "No model chosen.";
+  } else if (!model) {
     $("model-info").textContent = "No model yet: upload one below.";
     $("upload-details").open = true;
   } else {
@@ -356,6 +362,7 @@ async function modelChosen() {
     if (notes.length) $("model-info").textContent += ". Noted on reading it: " + notes.join(" ");
   }
   if (changed) {
+    modelOfCapture(model);                    // a capture's rounds stay in the 3D view only over its own models
     const scale = String(defaultDownscale(state.training));
     $("cal-downscale").value = scale;
     $("rank-downscale").value = scale;
@@ -987,7 +994,8 @@ function start() {
     localStorage.setItem("phd-api-key", state.key);
     say("model-message", "");
     state.modelId = null;                    // set up again: the 3D view takes the new key's headers
-    guarded("message", () => loadModels($("model-select").value).then(() => say("message", "key saved in this browser")));
+    guarded("message", () => loadModels($("model-select").value).then(loadCaptures)
+      .then(() => say("message", "key saved in this browser")));
   });
   $("refresh-models").addEventListener("click", () => guarded("model-message", () => loadModels($("model-select").value)));
   $("model-select").addEventListener("change", () => guarded("model-message", modelChosen));
@@ -1019,6 +1027,7 @@ function start() {
   $("rank-cancel").addEventListener("click", () => guarded("rank-message", cancelRank));
   $("poses-download").addEventListener("click", () => guarded("rank-message", downloadPoses));
   $("select-form").addEventListener("submit", (e) => guarded("select-message", () => select(e)));
+  startCaptures();
   readChoices();
   guarded("message", async () => {             // a missing key is said beside the key field, before any call
     const health = (await apiJson("/health")).data;
@@ -1027,6 +1036,7 @@ function start() {
       return;
     }
     await loadModels();
+    await loadCaptures();
   });
 }
 

@@ -14,13 +14,18 @@
 //   mount(element, {modelId, headers})   load and draw the model and its training cameras; resolves
 //                                        to false when it cannot draw (no WebGL: its status line
 //                                        says so, and the other calls do nothing) or another model
-//                                        was mounted meanwhile
+//                                        was mounted meanwhile. modelId null: no model (a capture
+//                                        not trained yet shows its cameras alone)
 //   showRanking(result, {candidates})    a rank result as the REST API returns it: candidates as
 //                                        frusta coloured by score with their rank; `candidates`
 //                                        (optional, all frames ranked) adds the unreturned, faint
 //   showTargets(frames)                  the rank request's target views (where the model will be
 //                                        looked at from), faint frusta in their own colour; [] for
 //                                        none. Kept when another model is mounted
+//   showCapture(element, capture)        a capture's rounds (GET /v1/captures/{id}) in place of the
+//                                        training cameras: each round's captured cameras in its colour
+//                                        of the rounds ramp, the last round's next poses; null for
+//                                        none. Kept when another model is mounted (the page drops it)
 //   onPick(callback(index))              a candidate frustum was clicked
 //   clear()                              no ranking: its frusta and detail panel go
 //   refresh()                            the model changed (calibrated): explained again for the mode shown
@@ -38,10 +43,14 @@ const BACKGROUND = 0x15181d;
 // The legend draws its swatches from the same table, so a swatch looks like the frusta it names.
 // Target views: orange, off the candidates' ramp and the cameras' greys, and faint: a capture's
 // whole path (tens of frusta) lies over the training cameras and the model and must not hide them.
+// A capture's rounds: round 0 at the ramp's first stop, the last round at its last (sky blue to
+// violet to pink, apart from the other kinds); the poses to capture next filled, in mint.
 const FRUSTA = {
   training: { rgb: [232, 236, 240], opacity: 0.75, fill: 0 },
   target: { rgb: [255, 140, 0], opacity: 0.35, fill: 0.1 },
   unreturned: { rgb: [138, 148, 160], opacity: 0.3, fill: 0 },
+  round: { ramp: "rounds", opacity: 0.9, fill: 0.12 },
+  next: { rgb: [60, 230, 160], opacity: 1, fill: 0.45 },
 };
 
 // Ramps: five stops each, low to high. Scores and fragility on the heat maps' ramp (viridis);
@@ -51,6 +60,7 @@ const RAMPS = {
   fragility: [[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]],
   coverage: [[214, 39, 40], [245, 133, 24], [240, 214, 60], [120, 198, 121], [26, 152, 160]],
   novelty: [[70, 74, 82], [105, 96, 120], [160, 90, 170], [215, 70, 200], [255, 60, 230]],
+  rounds: [[90, 170, 255], [120, 140, 255], [160, 120, 250], [215, 110, 215], [255, 105, 160]],
 };
 const MODES = {
   colour: { label: "colour", legend: null },
@@ -163,6 +173,9 @@ const view = {
   headers: {}, modelId: null, header: null, points: null, positions: null, up: [0, 0, 1],
   training: [], ranking: null, frusta: [], selected: null, pickCallbacks: [], targets: [], targetFrusta: [],
   targetsShown: true, // the legend's check box: the target views' frusta drawn
+  capture: null,      // the capture shown (showCapture): its rounds' frusta replace the training cameras'
+  roundFrusta: [],    // [{round, rgb, frusta}] and the next poses' frusta, as drawn
+  nextFrusta: [],
   mode: "colour", explained: null, explaining: null, radius: 1, centre: new THREE.Vector3(),
   sortPending: true, sortMs: null, touched: false, blobs: [],
   noWebGL: null,      // why the browser cannot draw the view, once it has failed to
@@ -328,14 +341,27 @@ function frustum(frame, colour, { fill = 0, opacity = 1, order = 1 } = {}) {   /
   return { group, wire, quad, centre, top: top.clone().applyMatrix4(cam.c2w), depth: d };
 }
 
-// A frustum drawn as FRUSTA says for its kind.
-const styled = (frame, style, order = 1) => frustum(frame, new THREE.Color(css(style.rgb)),
+// A frustum drawn as FRUSTA says for its kind; `rgb` for a kind coloured from a ramp (rounds).
+const styled = (frame, style, order = 1, rgb = style.rgb) => frustum(frame, new THREE.Color(css(rgb)),
   { fill: style.fill, opacity: style.opacity, order });
 
+// Round k of n on the rounds ramp: the first round at its start, the last at its end.
+const roundColour = (k, n) => rampColour(FRUSTA.round.ramp, n > 1 ? k / (n - 1) : 0);
+
+// The training cameras, or with a capture shown its rounds' cameras (the training cameras are
+// the capture's photos less its test photos: drawn once, in their round's colour) and next poses.
 function drawTraining() {
   if (view.trainingGroup) view.scene.remove(view.trainingGroup);
   view.trainingGroup = new THREE.Group();
-  for (const frame of view.training) view.trainingGroup.add(styled(frame, FRUSTA.training).group);
+  const rounds = view.capture ? view.capture.rounds : [];
+  view.roundFrusta = rounds.map((r, k) => {
+    const rgb = roundColour(k, rounds.length);
+    return { round: r.round, rgb, frusta: r.captured.map((frame) => styled(frame, FRUSTA.round, 1, rgb)) };
+  });
+  view.nextFrusta = (rounds.length && rounds[rounds.length - 1].next || []).map((frame) => styled(frame, FRUSTA.next, 2));
+  const frusta = view.capture ? view.roundFrusta.flatMap((r) => r.frusta).concat(view.nextFrusta) :
+    view.training.map((frame) => styled(frame, FRUSTA.training));
+  for (const f of frusta) view.trainingGroup.add(f.group);
   view.scene.add(view.trainingGroup);
 }
 
@@ -425,7 +451,7 @@ function drawNow() {
 function fit() {
   const up = new THREE.Vector3(...view.up).normalize();
   const frames = view.training.concat(view.ranking ? view.ranking.views.map((v) => v.camera) : [])
-    .concat(view.allCandidates || [], view.targets);
+    .concat(view.allCandidates || [], view.targets, captureFrames());
   const b = view.header ? view.header.bounds : { min: [-1, -1, -1], max: [1, 1, 1] };
   const centre = new THREE.Vector3(...b.min).add(new THREE.Vector3(...b.max)).multiplyScalar(0.5);
   const shown = [0, 1, 2, 3, 4, 5, 6, 7].map((k) => new THREE.Vector3(k & 1 ? b.max[0] : b.min[0],
@@ -553,8 +579,8 @@ const SVG = "http://www.w3.org/2000/svg";
 
 // A legend swatch: a small frustum (image rectangle, the edges to its centre, the up mark) on the
 // view's background, drawn in the wire colour, opacity and fill FRUSTA gives that kind.
-function glyph(kind) {
-  const style = FRUSTA[kind];
+function glyph(kind, rgb = FRUSTA[kind].rgb) {
+  const style = Object.assign({}, FRUSTA[kind], { rgb });
   const svg = document.createElementNS(SVG, "svg");
   const path = document.createElementNS(SVG, "path");
   for (const [k, v] of Object.entries({ class: `v3d-glyph ${kind}`, viewBox: "0 0 22 16", width: "22", height: "16" })) svg.setAttribute(k, v);
@@ -573,7 +599,15 @@ function drawLegend() {
     const bar = el("span", { class: "v3d-ramp score" });
     parts.push(el("span", { class: "v3d-key" }, el("span", { text: "candidate score: low " }), bar, el("span", { text: " high (capture first); #n = rank" })));
   }
-  parts.push(el("span", { class: "v3d-key" }, glyph("training"), el("span", { text: " training camera" })));
+  if (view.capture) {            // one key per round (its photos), and the poses to capture next
+    view.roundFrusta.forEach((r) => parts.push(el("span", { class: "v3d-key v3d-round", "data-round": r.round },
+      glyph("round", r.rgb), el("span", { text: ` round ${r.round} (${r.frusta.length})` }))));
+    if (view.nextFrusta.length) {
+      parts.push(el("span", { class: "v3d-key" }, glyph("next"), el("span", { text: ` capture next (${view.nextFrusta.length})` })));
+    }
+  } else {
+    parts.push(el("span", { class: "v3d-key" }, glyph("training"), el("span", { text: " training camera" })));
+  }
   if (view.targets.length) {     // a check box: the target views' frusta shown or hidden
     const box = el("input", { type: "checkbox", class: "v3d-targets-shown" });
     box.checked = view.targetsShown;
@@ -649,6 +683,13 @@ async function mount(element, { modelId, headers = {} }) {
   view.detail.hidden = true;
   view.frusta = [];
   if (view.candidateGroup) view.scene.remove(view.candidateGroup);
+  if (!modelId) {                                  // nothing to load: a capture's cameras alone
+    Object.assign(view, { header: null, training: [], up: meanUp(captureFrames()) });
+    say(view.capture ? "no model trained on this capture yet: its cameras are shown" : "");
+    fit();
+    drawFrusta();
+    return true;
+  }
   say("loading the model...");
   const [scene, cameras] = await Promise.all([
     request(`/v1/models/${modelId}/scene`).then((r) => r.arrayBuffer()).then(parseScene).catch((err) => err),
@@ -694,6 +735,28 @@ function showTargets(frames) {
   if (!view.touched) fit();
   drawFrusta();
 }
+
+// A capture's rounds in place of the training cameras (null: the training cameras again). The
+// view is built on them when no model was mounted yet: a capture has cameras before it has a model.
+function showCapture(element, capture) {
+  if (view.noWebGL) return false;
+  if (!view.renderer && !capture) return true;          // nothing drawn yet, nothing to take away
+  if (!view.renderer && !build(element)) return false;
+  view.capture = capture && { rounds: capture.rounds };
+  if (!view.touched) fit();
+  drawFrusta();
+  return true;
+}
+
+// Without a model the service has worked out no up (GET /cameras): the cameras' mean up axis (their
+// image's +y, OpenGL), +z when they cancel out.
+function meanUp(frames) {
+  const sum = new THREE.Vector3();
+  for (const frame of frames) sum.add(new THREE.Vector3().setFromMatrixColumn(frameCamera(frame).c2w, 1));
+  return sum.lengthSq() > 1e-12 ? sum.normalize().toArray() : [0, 0, 1];
+}
+
+const captureFrames = () => (view.capture ? view.capture.rounds.flatMap((r) => r.captured.concat(r.next || [])) : []);
 
 // The legend's check box: the target views' frusta shown or not (they stay in the legend either way).
 function showTargetFrusta(shown) {
@@ -745,6 +808,8 @@ function debug() {
     frusta: view.frusta.map((f) => ({ index: f.index, rank: f.rank, rgb: f.rgb, centre: f.centre.toArray() })),
     targets: view.targetFrusta.map((f) => ({ rgb: FRUSTA.target.rgb, fill: FRUSTA.target.fill, centre: f.centre.toArray() })),
     targetsShown: view.targetsShown, styles: FRUSTA,
+    rounds: view.roundFrusta.map((r) => ({ round: r.round, rgb: r.rgb, frusta: r.frusta.length })),
+    next: view.nextFrusta.length,
     centre: view.centre.toArray(), up: view.up.slice(), sortMs: view.sortMs,
   };
 }
@@ -752,5 +817,5 @@ function debug() {
 // The style sheet travels with the script (one tag in the page): a same-origin file, as the CSP asks.
 document.head.append(el("link", { rel: "stylesheet", href: new URL("view3d.css", import.meta.url).pathname }));
 // drawNow: draw at once (tests read the canvas after it); with resort, sort the points again first.
-window.phdView3d = { mount, showRanking, showTargets, clear, refresh, onPick, select, setMode, debug,
+window.phdView3d = { mount, showRanking, showTargets, showCapture, clear, refresh, onPick, select, setMode, debug,
   drawNow: (resort = false) => { view.sortPending = view.sortPending || resort; drawNow(); } };

@@ -41,7 +41,7 @@ def test_page_files_are_served_without_the_key_and_the_api_still_needs_it(svc_st
         page = http.get("/ui/")
         assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
         assert '<script src="app.js" defer></script>' in page.text
-        for name, kind in (("app.js", "text/javascript"), ("app.css", "text/css")):
+        for name, kind in (("app.js", "text/javascript"), ("captures.js", "text/javascript"), ("app.css", "text/css")):
             answer = http.get(f"/ui/{name}")
             assert answer.status_code == 200 and answer.headers["content-type"].startswith(kind)
         missing = http.get("/ui/settings.py")
@@ -125,8 +125,8 @@ def test_page_files_hold_no_inline_code():
     html = (PAGE_DIR / "index.html").read_text()
     assert "<style" not in html and " style=" not in html and "javascript:" not in html
     assert html.count("<script") == html.count('<script src="app.js"') + html.count(
-        '<script type="module" src="view3d.js"') == 2
-    for name in ("app.js", "view3d.js"):
+        '<script src="captures.js"') + html.count('<script type="module" src="view3d.js"') == 3
+    for name in ("app.js", "captures.js", "view3d.js"):
         script = (PAGE_DIR / name).read_text()
         assert "innerHTML" not in script and "eval(" not in script and '"style"' not in script
 
