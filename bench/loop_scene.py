@@ -9,8 +9,8 @@ asks for a view.
 - `NearestFrame`: a real capture answering with its own photo nearest the asked pose.
 
 A pose the loop asks for is in the capture's frame (structure-from-motion's, arbitrary up to a
-similarity); `to_world` maps it into the scene's frame with the similarity fitted between the
-registered photos' cameras and the poses they were taken at (Umeyama's).
+similarity); `Similarity.c2w` maps it into the scene's frame, with the similarity `fit_similarity`
+fits between the registered photos' camera centres and the poses they were taken at.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from phd_core.io import write_png
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.splats import SH_C0
 from phd_core.scene import Camera, look_at
+from tests.support.alignment import umeyama
 
 UP = (0.0, 0.0, 1.0)
 FOV_X = math.radians(60)
@@ -136,15 +137,9 @@ class Similarity:
 
 
 def fit_similarity(capture: np.ndarray, world: np.ndarray) -> Similarity:
-    """The similarity taking points `capture` [N, 3] to `world` [N, 3] (Umeyama 1991), least squares."""
-    mu_a, mu_b = capture.mean(0), world.mean(0)
-    a, b = capture - mu_a, world - mu_b
-    u, s, vt = np.linalg.svd(b.T @ a / len(a))
-    d = np.eye(3)
-    d[2, 2] = np.sign(np.linalg.det(u @ vt))
-    rotation = u @ d @ vt
-    scale = float(np.trace(np.diag(s) @ d) / (a ** 2).sum(1).mean())
-    return Similarity(scale, rotation, mu_b - scale * rotation @ mu_a)
+    """The least-squares similarity taking points `capture` [N, 3] to `world` [N, 3] (Umeyama's,
+    the tests' own float64 implementation)."""
+    return Similarity(*umeyama(capture, world))
 
 
 class NearestFrame:
