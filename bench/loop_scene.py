@@ -12,7 +12,7 @@ Which poses register (run_capture, SIMPLE_PINHOLE, min_registered=4, 200x150 px,
 measured 2026-11-28, 6-9 s each on 2 shared cores): a ring of 12, 30 degrees apart, registers all
 12 for 8 seeds (seed 1: 11, seed 7: 10); with 2 more at half steps, all 14 for seeds 2-4 of 0-4
 (seed 0: 12, seed 1: 11). Wider gaps do not: 4 on the ring plus 8 at 45-degree steps 15 degrees
-higher, or 8 seeded random poses at 15-45 degrees up, register 0-5 of 12 (at 240 or 320 px too),
+higher, or 8 seeded random poses 15-50 degrees up, register 0-5 of 12 (at 240 or 320 px too),
 so the loop's first photos are one ring of 12, 4 to train on and 8 held out between them.
 
 A pose the loop asks for is in the capture's frame (structure-from-motion's, arbitrary up to a
