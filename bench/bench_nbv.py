@@ -311,6 +311,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
         told_targets = views_told[told] if told else None
         if told_targets:
             test_evidence = dataclasses.replace(test_evidence, target_views=view_visibility(base, told_targets))
+        if strategy_name in nbv_experiments.USES_POINTS:
+            test_evidence = nbv_experiments.with_points(test_evidence, train_data.points)
         result["spearman"][name] = spearman(strategy.select(test_evidence, 0, seed).scores, base_rmse)
         started = time.perf_counter()
         chosen, renderer, curve, ratios = list(init), base, [base_psnr], [ratio]
@@ -334,6 +336,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
                     evidence = Evidence(candidates, captured, empty, empty)
                 if strategy.uses_fisher:
                     add_fisher(evidence, renderer, seed + round_)
+                if strategy_name in nbv_experiments.USES_POINTS:
+                    evidence = nbv_experiments.with_points(evidence, train_data.points)
                 picks = strategy.select(evidence, args.per_round, seed + round_).order[:args.per_round]
             seconds.append(time.perf_counter() - ranked_at)
             cost.append(seconds[-1] / len(candidates))

@@ -8,9 +8,16 @@ asks for a view.
   by the project's 3DGS renderer at the asked pose.
 - `NearestFrame`: a real capture answering with its own photo nearest the asked pose.
 
+Which poses register (run_capture, SIMPLE_PINHOLE, min_registered=4, 200x150 px, seeds 0-9;
+measured 2026-11-28, 6-9 s each on 2 shared cores): a ring of 12, 30 degrees apart, registers all
+12 for 8 seeds (seed 1: 11, seed 7: 10); with 2 more at half steps, all 14 for seeds 2-4 of 0-4
+(seed 0: 12, seed 1: 11). Wider gaps do not: 4 on the ring plus 8 at 45-degree steps 15 degrees
+higher, or 8 seeded random poses 15-50 degrees up, register 0-5 of 12 (at 240 or 320 px too),
+so the loop's first photos are one ring of 12, 4 to train on and 8 held out between them.
+
 A pose the loop asks for is in the capture's frame (structure-from-motion's, arbitrary up to a
-similarity); `to_world` maps it into the scene's frame with the similarity fitted between the
-registered photos' cameras and the poses they were taken at (Umeyama's).
+similarity); `Similarity.c2w` maps it into the scene's frame, with the similarity `fit_similarity`
+fits between the registered photos' camera centres and the poses they were taken at.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from phd_core.io import write_png
 from phd_core.renderers.gs3d import GaussianModel, GaussianRenderer
 from phd_core.renderers.splats import SH_C0
 from phd_core.scene import Camera, look_at
+from tests.support.alignment import umeyama
 
 UP = (0.0, 0.0, 1.0)
 FOV_X = math.radians(60)
@@ -136,15 +144,9 @@ class Similarity:
 
 
 def fit_similarity(capture: np.ndarray, world: np.ndarray) -> Similarity:
-    """The similarity taking points `capture` [N, 3] to `world` [N, 3] (Umeyama 1991), least squares."""
-    mu_a, mu_b = capture.mean(0), world.mean(0)
-    a, b = capture - mu_a, world - mu_b
-    u, s, vt = np.linalg.svd(b.T @ a / len(a))
-    d = np.eye(3)
-    d[2, 2] = np.sign(np.linalg.det(u @ vt))
-    rotation = u @ d @ vt
-    scale = float(np.trace(np.diag(s) @ d) / (a ** 2).sum(1).mean())
-    return Similarity(scale, rotation, mu_b - scale * rotation @ mu_a)
+    """The least-squares similarity taking points `capture` [N, 3] to `world` [N, 3] (Umeyama's,
+    the tests' own float64 implementation)."""
+    return Similarity(*umeyama(capture, world))
 
 
 class NearestFrame:

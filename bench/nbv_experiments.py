@@ -41,15 +41,24 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
 - visibility_sigma_fvs_far: the default with the distance factor whatever the targets, as it was
   before it followed the density of targets that are the capture's own path (`targets.walked`);
   runs stored as the default told the targets on such scenes before that change carry this name.
+- sfm_coverage (issue 47, "the SfM points' coverage"): the candidate that sees most of the capture's SfM points
+  (points3D) the captured views see least: each point a view sees counts 2 if no captured view sees it, 1 if one
+  does, 0 from two on (two views fix a point's depth); greedy, each pick's points counted as seen before the next
+  (ties to the candidate farther from the captured poses). A view sees a point in its frustum, in front of it, and
+  not hidden by the other points: occlusion by a z-buffer of the points themselves (`seen_points`), not the model's
+  render, so it needs nothing trained and works for a pose not yet photographed. The benchmark gives it the points
+  (`with_points`): the whole reconstruction's, as the 3DGS training starts from them.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
 from typing import Any, Callable
 
 import torch
 from torch import Tensor
 
+from phd_core.scene import Camera
 from phd_core.uq.strategies import STRATEGIES, Evidence, Selection, Strategy
 from phd_core.uq.strategies.base import by_score, centres, greedy
 from phd_core.uq.strategies.targets import TargetDensity, TargetGain
@@ -92,7 +101,8 @@ EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma
                "visibility_sigma_angle0.25", "visibility_sigma_fvs_angle0.25", "visibility_fvs", "tkmedian",
                "tlogmedian", "visibility_tkmedian", "visibility_tlogmedian", "visibility_sigma_fvs_support0.5",
                "visibility_sigma_fvs_support0.5_sqrt", "visibility_sigma_fvs_sqrt", "visibility_tlogstands",
-               "visibility_sigma_fvs_far")
+               "visibility_sigma_fvs_far", "sfm_coverage")
+USES_POINTS = ("sfm_coverage",)    # strategies the benchmark gives the capture's SfM points (`with_points`)
 
 
 def _coverage(**options: Any) -> Callable[[Evidence, int, int], Selection]:
@@ -143,7 +153,72 @@ def _target_density(coverage: bool, log: bool, stands: bool = False) -> Callable
     return select
 
 
+@dataclass
+class PointsEvidence(Evidence):
+    """Evidence with the capture's SfM points, which only the experiments here read."""
+
+    points: Tensor | None = None      # [P, 3] float64 the capture's SfM points (points3D)
+
+
+def with_points(evidence: Evidence, points: Tensor | None) -> PointsEvidence:
+    """`evidence` carrying `points`, for a strategy of USES_POINTS."""
+    return PointsEvidence(**{f.name: getattr(evidence, f.name) for f in fields(Evidence)},
+                          points=None if points is None else points.double())
+
+
+OCCLUSION_CELLS = 32        # the z-buffer's cells across a view's wider side
+OCCLUSION_SLACK = 0.1       # a point within 10 % of the nearest point's depth in its cell is seen
+SEEN_ENOUGH = 2             # views that see a point before it counts as covered
+
+
+def seen_points(camera: Camera, points: Tensor) -> Tensor:
+    """[P] bool: the points [P, 3] `camera` sees: in its image, in front of it, and not behind the nearest point of
+    their z-buffer cell (OCCLUSION_CELLS across the wider side) by more than OCCLUSION_SLACK of its depth."""
+    pixels, depth = camera.project(points)                                        # [P, 2], [P]
+    inside = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] < camera.width)
+              & (pixels[:, 1] >= 0) & (pixels[:, 1] < camera.height))
+    size = max(camera.width, camera.height) / OCCLUSION_CELLS                    # pixels per cell
+    columns = int(camera.width // size) + 1
+    cell = (pixels[:, 1] // size).long() * columns + (pixels[:, 0] // size).long()    # [P]
+    cell = torch.where(inside, cell, 0)
+    far = torch.full((columns * (int(camera.height // size) + 1),), torch.inf, dtype=depth.dtype)
+    nearest = far.scatter_reduce(0, cell[inside], depth[inside], "amin")          # [cells]
+    return inside & (depth <= nearest[cell] * (1 + OCCLUSION_SLACK))
+
+
+def _sfm_coverage(evidence: Evidence, k: int, seed: int) -> Selection:
+    points = evidence.points if isinstance(evidence, PointsEvidence) else None
+    if points is None or not len(points):
+        raise ValueError("sfm_coverage needs the capture's SfM points (bench.nbv_experiments.with_points)")
+    seen = torch.stack([seen_points(c, points) for c in evidence.candidates]).double()     # [C, P]
+    views = torch.zeros(len(points), dtype=torch.float64)                           # [P] captured views seeing it
+    for camera in evidence.captured:
+        views += seen_points(camera, points).double()
+    cand = centres(evidence.candidates)                                                    # [C, 3]
+    nearest = (torch.cdist(cand, centres(evidence.captured)).min(dim=1).values if evidence.captured
+               else torch.zeros(len(cand), dtype=torch.float64))                           # [C]
+
+    def ranked(values: Tensor, left: list[int]) -> list[int]:     # by value, then the farther from the captured
+        return sorted(left, key=lambda i: (-float(values[i]), -float(nearest[i]), i))
+    order: list[int] = []
+    scores = [0.0] * len(cand)
+    for _ in range(min(k, len(cand))):
+        values = seen @ (SEEN_ENOUGH - views).clamp_min(0)                                 # [C] points still needed
+        best = ranked(values, [i for i in range(len(cand)) if i not in order])[0]
+        order.append(best)
+        scores[best] = float(values[best])
+        views += seen[best]
+        nearest = torch.minimum(nearest, (cand - cand[best]).norm(dim=1))
+    values = seen @ (SEEN_ENOUGH - views).clamp_min(0)
+    rest = ranked(values, [i for i in range(len(cand)) if i not in order])
+    for i in rest:
+        scores[i] = float(values[i])
+    return Selection(order + rest, scores)
+
+
 for _strategy in (
+        Strategy("sfm_coverage", "the candidate seeing most SfM points that fewer than two captured views see "
+                 "(frustum, in front, occlusion by the points' z-buffer), greedy", _sfm_coverage, uses_dropout=False),
         Strategy("kmedian", "greedy k-median over the candidate poses", _k_median_strategy(_uniform, 1),
                  uses_dropout=False),
         Strategy("kmedian_sigma", "greedy k-median weighted by sigma_mean",

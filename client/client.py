@@ -485,7 +485,9 @@ class PHDClient:
             given = sorted(p for p in given[0].iterdir() if p.is_file() and not p.name.startswith("."))
         from phd_core.process.photos import is_video
 
-        part = "video" if video and len(given) == 1 and is_video(given[0]) else "photos"
+        single = given[0] if len(given) == 1 else None
+        part = ("archive" if single is not None and single.suffix.lower() == ".zip" else
+                "video" if video and single is not None and is_video(single) else "photos")
         try:
             handles = [open(p, "rb") for p in given]
         except OSError as exc:

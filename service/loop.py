@@ -93,7 +93,7 @@ def capture_info(record: CaptureRecord, job: str | None = None) -> CaptureInfo:
                        num_photos=len(report.get("registered", [])), test_photos=record.test_photos,
                        model_id=record.model_id, rounds=[CaptureRound(**r) for r in record.rounds],
                        report={k: v for k, v in report.items() if k not in ("registered", "origins")} or None,
-                       error=None if record.error is None else record.error, job=job)
+                       error=record.error, job=job)
 
 
 def _stages(progress: Progress) -> Callable[[str, float], None]:
@@ -119,7 +119,7 @@ def check_room(store: ModelStore, upload: PhotoUpload, settings: Settings) -> No
 
 
 def _frames(folder: Path, names: list[str]) -> list[dict[str, Any]]:
-    """The cameras of the photos `names` of a capture as transforms frames (capture order)."""
+    """The cameras of the photos `names` of a capture as transforms frames, by name."""
     data = load_dataset(folder, "all", with_images=False)
     assert data.names is not None             # a COLMAP capture names its images
     wanted = set(names)
@@ -127,7 +127,7 @@ def _frames(folder: Path, names: list[str]) -> list[dict[str, Any]]:
 
 
 def _round(number: int, report: CaptureReport, sent: list[str], folder: Path) -> dict[str, Any]:
-    registered = [name for name in sent if name in set(report.registered)]
+    registered = sorted(name for name in sent if name in set(report.registered))     # the order of `captured`
     return CaptureRound(round=number, photos=sent, registered=registered,
                         not_registered=[name for name in sent if name not in set(report.registered)],
                         sfm_seconds=round(sum(report.seconds.values()), 2),
@@ -253,9 +253,10 @@ def train_in(folder: Path, spec: TrainSpec, init: Path | None, out: Path,
                                 init=init, on_step=on_step, **spec.options)
 
 
-def train_shipped(chunk: list[TrainSpec], files: bytes, init: bytes | None) -> bytes:
+def train_shipped(chunk: list[TrainSpec], files: bytes, init: bytes | None) -> tuple[bytes, bytes | None]:
     """Executor task: the capture's images and cameras (a zip's bytes) unpacked into a temporary
-    folder, trained there; the model file's bytes back."""
+    folder, trained there; the model file's bytes back, and its sidecar's (training cameras,
+    background) when the family writes one."""
     with tempfile.TemporaryDirectory(prefix="phd-train-") as tmp:
         root = Path(tmp)
         with zipfile.ZipFile(io.BytesIO(files)) as zipped:
@@ -266,7 +267,8 @@ def train_shipped(chunk: list[TrainSpec], files: bytes, init: bytes | None) -> b
             start.write_bytes(init)
         out = root / f"model{FAMILIES[chunk[0].family].extension}"
         train_in(root / "capture", chunk[0], start, out, None)
-        return out.read_bytes()
+        sidecar = out.with_suffix(".json")
+        return out.read_bytes(), sidecar.read_bytes() if sidecar.is_file() else None
 
 
 def capture_files(folder: Path) -> bytes:
@@ -321,6 +323,9 @@ def train_job(record: CaptureRecord, body: TrainRequest, captures: CaptureStore,
     if len(views) < 2:
         raise invalid("test", f"{len(views)} photos are left to train on once the test photos are held out")
     options = dict(body.options)
+    if family.train_options is None and options:
+        raise invalid("options", f"{family.name} takes no training options of its own (`phd train --help`), got "
+                      f"{', '.join(sorted(options))[:200]}")
     if family.train_options is not None:
         try:
             family.train_options(**options)
@@ -352,7 +357,10 @@ def train_job(record: CaptureRecord, body: TrainRequest, captures: CaptureStore,
                 else:
                     shipped = executor.share(capture_files(folder))
                     init_bytes = None if init is None else store.path(init).read_bytes()
-                    out.write_bytes(executor.map(partial(train_shipped, init=init_bytes), [[spec]], shipped)[0])
+                    trained, sidecar = executor.map(partial(train_shipped, init=init_bytes), [[spec]], shipped)[0]
+                    out.write_bytes(trained)
+                    if sidecar is not None:
+                        out.with_suffix(".json").write_bytes(sidecar)
             seconds = time.perf_counter() - started
             model = ingest(trained_upload(out, record, len(record.rounds) - 1), body.model)
         finally:

@@ -442,7 +442,8 @@ class TrainSummary(_Response):
 class CaptureRound(_Response):
     round: int = Field(description="0: the photos the capture was created with; then one per addition.")
     photos: list[str] = Field(description="The photos sent this round, as named in the capture.")
-    registered: list[str] = Field(description="Of them, those structure-from-motion registered.")
+    registered: list[str] = Field(description="Of them, those structure-from-motion registered, by name (the "
+                                  "order of `captured`).")
     not_registered: list[str] = Field(default_factory=list)
     sfm_seconds: float | None = None
     captured: list[dict[str, Any]] = Field(default_factory=list, description="The registered photos' cameras "

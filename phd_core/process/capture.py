@@ -23,10 +23,12 @@ should hear now rather than find in a trained model.
 Adding photos (`add_photos`, `phd capture NEW --add-to DIR`) extends a capture without
 recomputing it: the new photos' features are extracted into a copy of its database, matched
 with every photo of the capture (new x all pairs), and registered by the incremental mapper
-started from the capture's reconstruction with its frames fixed, so every earlier pose and the
-capture's frame stay as they were (a model trained on it stays in place). The registered photos
-are undistorted again (all of them: the shared camera's intrinsics do not move either, so the
-earlier images come out the same), and the copy replaces the capture. A photo that shares too
+started from the capture's reconstruction with its frames and cameras fixed, so every earlier
+pose, intrinsic and the capture's frame stay as they were (a model trained on it stays in
+place). A new photo of the capture's size shares its camera; another size gets a camera of its
+own, refined. The registered photos are undistorted again (all of them, which is simpler than
+merging two undistorted models and took 0.3 s for 23 photos at 300 px: the earlier ones come
+out byte for byte the same, tested), and the copy replaces the capture. A photo that shares too
 little with the capture (a photo of something else) does not register; when none does, nothing
 is written.
 
@@ -127,25 +129,41 @@ def run_capture(inputs: str | Path | Sequence[str | Path], out: str | Path, *, m
     out = Path(out)
     _check_out(out, paths, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
-    os.chmod(work, 0o755)
-
-    def stage_progress(stage: str) -> Progress:
-        return (lambda fraction: progress(stage, fraction)) if progress else (lambda fraction: None)
-
-    try:
+    with _building(out) as work:
         report = _reconstruct(paths, work, matcher=matcher, max_size=max_size, max_images=max_images, fps=fps,
                               camera_model=camera_model, min_registered=min_registered, seed=seed,
-                              progress=stage_progress)
+                              progress=_stage_progress(progress))
         report.out = str(out)
-        with _timed(report.seconds, "check"):
-            _check_loads(work, len(report.registered))
-        write_json_atomic(work / REPORT, asdict(report))
-        _replace(out, work)
+        _publish(work, out, report)
+    return report
+
+
+@contextmanager
+def _building(out: Path) -> Iterator[Path]:
+    """A folder beside `out` to build a capture in, removed when the build fails (nothing is
+    written at `out` until `_publish`)."""
+    work = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
+    os.chmod(work, 0o755)
+    try:
+        yield work
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         raise
-    return report
+
+
+def _publish(work: Path, out: Path, report: CaptureReport) -> None:
+    """The capture built in `work` checked to load, its report written, and put at `out`."""
+    with _timed(report.seconds, "check"):
+        _check_loads(work, len(report.registered))
+    write_json_atomic(work / REPORT, asdict(report))
+    _replace(out, work)
+
+
+def _stage_progress(progress: StageProgress | None) -> Callable[[str], Progress]:
+    """Each stage's progress callback: progress(stage, fraction), or nothing."""
+    if progress is None:
+        return lambda stage: (lambda fraction: None)
+    return lambda stage: (lambda fraction: progress(stage, fraction))
 
 
 def read_report(capture: Path) -> CaptureReport:
@@ -171,6 +189,7 @@ def add_photos(capture: str | Path, inputs: str | Path | Sequence[str | Path], *
     before = read_report(capture)
     paths = [Path(inputs)] if isinstance(inputs, (str, Path)) else [Path(p) for p in inputs]
     check_int(max_size, "max_size", minimum=64)
+    check_int(max_images, "max_images", minimum=2)
     photos, skipped = list_photos(paths)
     if not photos:
         raise InputError("photos", f"no photos to add ({', '.join(PHOTO_SUFFIXES)})")
@@ -182,11 +201,9 @@ def add_photos(capture: str | Path, inputs: str | Path | Sequence[str | Path], *
     taken = [name for name in names if name in known]
     if taken:
         raise InputError("photos", f"the capture holds a photo named {taken[0]!r} already: rename the new one")
-    work = Path(tempfile.mkdtemp(dir=capture.parent, prefix=f".{capture.name}.partial-"))
-    os.chmod(work, 0o755)
-    stage = (lambda name: (lambda fraction: progress(name, fraction))) if progress else (lambda name: (lambda f: None))
+    stage = _stage_progress(progress)
     seconds: dict[str, float] = {}
-    try:
+    with _building(capture) as work:
         with _timed(seconds, "input"):
             for folder in ("input", "distorted"):
                 shutil.copytree(capture / folder, work / folder)
@@ -230,13 +247,7 @@ def add_photos(capture: str | Path, inputs: str | Path | Sequence[str | Path], *
                          origins={**before.origins, **{name: str(photo) for photo, name in zip(photos, names)}},
                          notes=notes, seconds=seconds, pycolmap=sfm.VERSION, added=added,
                          not_registered=not_registered)
-        with _timed(seconds, "check"):
-            _check_loads(work, len(registered))
-        write_json_atomic(work / REPORT, asdict(report))
-        _replace(capture, work)
-    except BaseException:
-        shutil.rmtree(work, ignore_errors=True)
-        raise
+        _publish(work, capture, report)
     return report
 
 

@@ -76,8 +76,9 @@ def train_surfels(data: str | Path, *, views: int | Sequence[int] = 16, downscal
                   iterations: int | None = None, seed: int = 0, out: str | Path, progress: bool = True,
                   depth_distortion: float = SurfelOptions.depth_distortion,
                   normal_consistency: float = SurfelOptions.normal_consistency, **overrides: Any) -> SurfelRenderer:
-    """Train 2DGS on the `train` split of a capture; writes `out` in the 2DGS reference PLY
-    layout plus the sidecar `<stem>.json` (`phd_core.train.splats.train_splats`)."""
+    """Train 2DGS on a split of a capture (`split`, default train); writes `out` in the 2DGS
+    reference PLY layout plus the sidecar `<stem>.json` (`phd_core.train.splats.train_splats`,
+    whose keywords `split`, `init`, `on_step` and TrainConfig fields `overrides` are)."""
     renderer = train_splats(data, recipe(depth_distortion, normal_consistency), views=views, downscale=downscale,
                             iterations=iterations, seed=seed, out=out, progress=progress, **overrides)
     return cast(SurfelRenderer, renderer)               # what the 2DGS recipe builds

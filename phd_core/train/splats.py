@@ -34,216 +34,24 @@ from __future__ import annotations
 import hashlib
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Callable, Sequence, cast
+from typing import Any, Sequence, cast
 
 import torch
 from tqdm import tqdm
 
 from ..data import Dataset, load_dataset, locate
-from ..errors import InputError, check_color, check_float, check_int
+from ..errors import InputError
 from ..eval import ssim
 from ..io import write_json_atomic
-from ..renderers.composite import COMPOSITORS, DEFAULT_COMPOSITOR
 from ..renderers.provenance import record_training
-from ..renderers.splats import SH_C0, SIDECAR_FORMAT, GaussianModel, read_sidecar, sidecar_path, write_ply
-from ..renderers.splats.renderer import RenderOutput, SplatRenderer
-from ..scene import Camera, footprint, scene_bounds, visual_hull
+from ..renderers.splats import SIDECAR_FORMAT, GaussianModel, sidecar_path, write_ply
+from ..renderers.splats.renderer import SplatRenderer
+from ..scene import scene_bounds
 from ..scene.rotations import quaternion_to_rotation
-
-StepCallback = Callable[[int, int], None]     # (step just done, steps in the run)
-
-
-@dataclass
-class TrainConfig:
-    """The splat loop's settings, checked when built (`validate`)."""
-
-    iterations: int = 2000
-    sh_degree: int = 3
-    ssim_weight: float = 0.2
-    lr_means: float = 1.6e-4          # times the scene extent, decays to 1% over the run
-    lr_sh_dc: float = 2.5e-3
-    lr_sh_rest: float = 2.5e-3 / 20
-    lr_opacity: float = 0.05
-    lr_scales: float = 5e-3
-    lr_quats: float = 1e-3
-    init_points: int = 6000
-    background_splats: int = 0        # a far shell of this many splats for captures without alpha masks
-    shell_radius: float = 3.0         # times the largest camera distance from the scene centre
-    splats_per_pixel: float = 4.0     # budget: this many splats per pixel of one view (the largest)
-    densify_from: float = 0.05        # fractions of the run
-    densify_until: float = 0.6
-    densify_every: int = 100
-    grad_threshold: float = 2e-4      # mean screen-space gradient (NDC units, as the reference)
-    dense_fraction: float = 0.01      # splats larger than this times the extent are split
-    opacity_reset_every: float = 0.3  # fraction of the run; 0 disables
-    min_opacity: float = 0.005
-    sh_up_every: float = 0.1          # raise the active SH degree every this fraction of the run
-    seed: int = 0
-    tile: int = 4
-    compositor: str = DEFAULT_COMPOSITOR   # stage 4 and its gradient: "fused" (compiled) or "reference" (torch)
-    background: str | Sequence[float] | None = None   # behind the splats: a name or [r, g, b]; None: the data's
-                                      # (alpha masks: white) or the training images' mean (a real capture)
-
-    def __post_init__(self) -> None:
-        self.validate()
-
-    def validate(self) -> "TrainConfig":
-        """Raise `InputError` naming the first field out of range; return self."""
-        for name, lo, hi in (("iterations", 1, None), ("sh_degree", 0, 3), ("init_points", 1, None),
-                             ("background_splats", 0, None), ("densify_every", 1, None), ("seed", None, None),
-                             ("tile", 1, None)):
-            check_int(getattr(self, name), name, lo, hi)
-        for name, low, high in (("ssim_weight", 0.0, 1.0), ("lr_means", 0.0, None), ("lr_sh_dc", 0.0, None),
-                             ("lr_sh_rest", 0.0, None), ("lr_opacity", 0.0, None), ("lr_scales", 0.0, None),
-                             ("lr_quats", 0.0, None), ("shell_radius", 0.0, None), ("splats_per_pixel", 0.0, None),
-                             ("densify_from", 0.0, 1.0), ("densify_until", 0.0, 1.0), ("grad_threshold", 0.0, None),
-                             ("dense_fraction", 0.0, None), ("opacity_reset_every", 0.0, 1.0),
-                             ("min_opacity", 0.0, 1.0), ("sh_up_every", 0.0, None)):
-            check_float(getattr(self, name), name, low, high)
-        COMPOSITORS.lookup(self.compositor, "compositor")
-        if self.background is not None:
-            self.background = list(check_color(self.background, "background"))
-        return self
-
-    @property
-    def background_rgb(self) -> Sequence[float] | None:
-        """`background` as `validate` leaves it: a checked [r, g, b] (a name resolved), or None."""
-        return cast("Sequence[float] | None", self.background)
-
-
-@dataclass(frozen=True)
-class Recipe:
-    """What differs between the splat families this loop trains."""
-
-    kind: str                                     # the renderer's kind, and the progress label
-    model_type: type[GaussianModel]               # GaussianModel, or a subclass with other scale_axes
-    renderer_type: type[SplatRenderer]
-    render: Callable[..., RenderOutput]           # (model, camera, background, tile=) -> output
-    # (output, camera, fraction of the run done, scene extent) -> loss added to the photometric one
-    regulariser: Callable[[RenderOutput, Camera, float, float], torch.Tensor] | None = None
-    random_rotations: bool = False                # initial orientations: random, or all identity
-
-
-# ----------------------------------------------------------------------------- scene
-
-def carve_points(data: Dataset, centre: torch.Tensor, extent: float, count: int,
-                 gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Initial points [P, 3] and colours [P, 3].
-
-    With alpha masks: a grid over the bounds, keeping points that every view which sees
-    them sees as foreground (alpha > 0.5): the visual hull (`phd_core.scene.visual_hull`).
-    Colours are the mean of the pixels the points project to. Without masks: uniform in
-    the bounds, grey.
-    """
-    if data.alphas is None:
-        pts = centre + (torch.rand(count, 3, generator=gen, dtype=torch.float64) * 2 - 1) * extent
-        return pts.float(), torch.full((count, 3), 0.5)
-    res = 64
-    axis = torch.linspace(-extent, extent, res, dtype=torch.float64)
-    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + centre
-    inside = visual_hull(grid, data.cameras, data.alphas, threshold=0.5)
-    colour_sum, seen = pixels_behind(data, grid)
-    hull = inside.nonzero().squeeze(1)
-    if len(hull) == 0:
-        raise InputError("data", "the training alpha masks leave no foreground: nothing to fit")
-    pick = hull[torch.randint(len(hull), (count,), generator=gen)]
-    voxel = 2 * extent / (res - 1)
-    jitter = (torch.rand(count, 3, generator=gen, dtype=torch.float64) - 0.5) * voxel
-    colours = colour_sum[pick] / seen[pick].clamp_min(1)[:, None]
-    return (grid[pick] + jitter).float(), colours.float()
-
-
-def pixels_behind(data: Dataset, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The summed colour [P, 3] of the training pixels points [P, 3] project to, and in how
-    many views [P] they do (float64; no occlusion test)."""
-    colour_sum = torch.zeros(len(points), 3, dtype=torch.float64)
-    seen = torch.zeros(len(points), dtype=torch.float64)
-    assert data.images is not None  # the trainers refuse a dataset loaded without them
-    for cam, image in zip(data.cameras, data.images):
-        pixel = footprint(cam, points)
-        colour_sum += torch.where(pixel.inside[:, None], image[pixel.v0, pixel.u0].double(), 0.0)
-        seen += pixel.inside.double()
-    return colour_sum, seen
-
-
-def initial_model(points: torch.Tensor, colours: torch.Tensor, sh_degree: int, extent: float,
-                  gen: torch.Generator, recipe: Recipe, spacing: torch.Tensor | None = None) -> GaussianModel:
-    """Small isotropic splats at `points` with 10% opacity and DC colour from `colours`; their
-    size is half of `spacing` [P] (default the mean distance between points in the bounds)."""
-    n, axes = len(points), recipe.model_type.scale_axes
-    if spacing is None:      # the mean distance between n points spread over the bounds
-        log_scales = torch.full((n, axes), math.log(extent * 2 / max(1.0, n ** (1 / 3)) * 0.5))
-    else:
-        log_scales = (spacing.double() * 0.5).clamp_min(1e-7).log().float()[:, None].expand(n, axes).contiguous()
-    sh = torch.zeros(n, (sh_degree + 1) ** 2, 3)
-    sh[:, 0] = (colours - 0.5) / SH_C0
-    if recipe.random_rotations:
-        quats = torch.randn(n, 4, generator=gen)
-    else:
-        quats = torch.zeros(n, 4)
-        quats[:, 0] = 1.0
-    return recipe.model_type(
-        means=points.clone(),
-        log_scales=log_scales,
-        quats=quats,
-        opacity_logits=torch.full((n,), math.log(0.1 / 0.9)),
-        sh=sh,
-    )
-
-
-def neighbour_spacing(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
-    """[P] mean distance of each point to its k nearest other points (chunked: no P x P matrix)."""
-    out = torch.empty(len(points), dtype=points.dtype)
-    k = min(k, len(points) - 1)
-    if k < 1:
-        return torch.ones(len(points), dtype=points.dtype)
-    for start in range(0, len(points), chunk):
-        d = torch.cdist(points[start:start + chunk], points)                     # [c, P]
-        out[start:start + chunk] = d.topk(k + 1, largest=False).values[:, 1:].mean(1)
-    return out
-
-
-def background_shell(data: Dataset, centre: torch.Tensor, radius: float, count: int
-                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Points [B, 3], colours [B, 3] and spacing [B] on a sphere of `radius` around `centre`:
-    the directions some training view sees, coloured by the mean pixel behind them."""
-    total = 4 * count
-    i = torch.arange(total, dtype=torch.float64) + 0.5
-    z = 1 - 2 * i / total
-    azimuth = math.pi * (3 - math.sqrt(5)) * i
-    ring = (1 - z * z).sqrt()
-    sphere = centre + radius * torch.stack([ring * azimuth.cos(), ring * azimuth.sin(), z], dim=1)   # [4B, 3]
-    colour_sum, seen = pixels_behind(data, sphere)
-    visible = (seen > 0).nonzero().squeeze(1)[:count]
-    spacing = torch.full((len(visible),), radius * math.sqrt(4 * math.pi / total) * 2, dtype=torch.float64)
-    return sphere[visible], (colour_sum[visible] / seen[visible, None]), spacing
-
-
-def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: TrainConfig,
-               gen: torch.Generator, recipe: Recipe) -> GaussianModel:
-    """The first splats: from the alpha masks' hull, else the SfM points, else uniform (module docstring)."""
-    if data.alphas is not None or data.points is None or len(data.points) == 0:
-        points, colours = carve_points(data, centre, extent, config.init_points, gen)
-        spacing = None
-    else:
-        assert data.point_colors is not None  # the readers that give points give their colours
-        points, colours = data.points.to(torch.float64), data.point_colors.to(torch.float64)
-        if not colours.any():           # a model published without colours (all black): the pixels behind
-            colour_sum, seen = pixels_behind(data, points)
-            colours = torch.where(seen[:, None] > 0, colour_sum / seen.clamp_min(1)[:, None], 0.5)
-        spacing = neighbour_spacing(points)
-    if data.alphas is None and config.background_splats > 0:
-        eyes = torch.stack([c.center for c in data.cameras])
-        radius = config.shell_radius * float((eyes - centre).norm(dim=1).max())
-        if spacing is None:
-            spacing = torch.full((len(points),), extent * 2 / max(1.0, len(points) ** (1 / 3)), dtype=torch.float64)
-        shell, shell_colours, shell_spacing = background_shell(data, centre, radius, config.background_splats)
-        points = torch.cat([points.double(), shell])
-        colours = torch.cat([colours.double(), shell_colours])
-        spacing = torch.cat([spacing.double(), shell_spacing])
-    return initial_model(points.float(), colours.float(), config.sh_degree, extent, gen, recipe, spacing)
+from .config import Recipe, StepCallback, TrainConfig
+from .seeding import seed_model, warm_start, with_sh_degree
 
 
 def training_background(data: Dataset, given: Sequence[float] | None = None) -> tuple[float, float, float]:
@@ -266,17 +74,6 @@ def training_extent(data: Dataset, extent: float) -> float:
         return extent
     eyes = torch.stack([c.center for c in data.cameras])
     return max(extent, 1.1 * float((eyes - eyes.mean(0)).norm(dim=1).max()))
-
-
-def with_sh_degree(model: GaussianModel, degree: int, recipe: Recipe) -> GaussianModel:
-    """`model` as `recipe`'s model type with `degree` SH bands: higher bands cut, missing ones zero."""
-    if not isinstance(model, recipe.model_type):
-        raise InputError("init", f"the initial model is not a {recipe.kind} model")
-    coefficients = (degree + 1) ** 2
-    sh = model.sh[:, :coefficients]
-    if sh.shape[1] < coefficients:
-        sh = torch.cat([sh, sh.new_zeros(len(sh), coefficients - sh.shape[1], 3)], dim=1)
-    return recipe.model_type(model.means, model.log_scales, model.quats, model.opacity_logits, sh.contiguous())
 
 
 # ----------------------------------------------------------------------------- optimiser
@@ -371,30 +168,6 @@ GROWING_BAR = ("{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix
                "stop growing]")
 
 
-def warm_start(path: str | Path, recipe: Recipe, background: Sequence[float]) -> GaussianModel:
-    """The splats of the model at `path` to continue training from: of `recipe`'s family, and,
-    when its sidecar says what it was trained over, over `background` (splats fitted over another
-    colour carry it in their edges); else an InputError naming `init`. A bare PLY records no
-    background: the run's applies."""
-    from ..renderers import load_model_bytes
-
-    path = Path(path)
-    try:
-        content = path.read_bytes()
-    except OSError as exc:
-        raise InputError("init", f"cannot read {path}: {exc.strerror or exc}") from None
-    renderer = load_model_bytes(content, path.name)
-    if renderer.kind != recipe.kind or not isinstance(renderer, SplatRenderer):
-        raise InputError("init", f"{path.name} is a {renderer.kind} model: a {recipe.kind} run continues "
-                         f"from a {recipe.kind} model")
-    sidecar = read_sidecar(path) or {}
-    theirs = [round(float(v), 4) for v in sidecar.get("background", background)]
-    if theirs != [round(float(v), 4) for v in background]:
-        raise InputError("init", f"{path.name} was trained over the background {theirs}, this run trains over "
-                         f"{[round(float(v), 4) for v in background]}: give the same background")
-    return renderer.model
-
-
 def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int] = 16, downscale: float = 2,
                  iterations: int | None = None, seed: int = 0, out: str | Path, progress: bool = True,
                  split: str = "train", init: str | Path | None = None, on_step: StepCallback | None = None,
@@ -442,6 +215,16 @@ def train_splats(data: str | Path, recipe: Recipe, *, views: int | Sequence[int]
     return renderer
 
 
+def opacity_reset_interval(config: TrainConfig, *, warm: bool) -> int:
+    """Steps between opacity resets (0: none). A warm start skips them: the reset clears the
+    floaters of a model's first steps, and on a trained model it throws the fit away. Measured
+    (8 -> 12 views, docs/gaussians.md "Warm start"): with the resets a warm start lost 2.4 dB of
+    test PSNR on cup_colmap and 1.3 dB on donut_200 after 100 steps, 0.3 and 0.2 dB after 200."""
+    if warm or config.opacity_reset_every <= 0:
+        return 0
+    return int(config.opacity_reset_every * config.iterations)
+
+
 def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool = True,
         init: GaussianModel | None = None,
         on_step: StepCallback | None = None) -> tuple[GaussianModel, list[float]]:
@@ -450,10 +233,11 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
     `init` (a warm start): the splats to start from instead of the seeded ones, e.g. the last
     round's model of an active capture after new photos came. Densification runs on the run's
     schedule (the new views show new high-gradient regions) within the splat budget; the SH
-    bands the init has are active from the start; the opacity reset is skipped, because it
-    exists to clear the floaters of a model's first steps and on a trained model only throws
-    its fit away. `on_step(step, total)` is called after every step (progress; raising from it
-    stops the run).
+    bands the init has are active from the start; the opacity reset is skipped
+    (`opacity_reset_interval`); the position rate keeps its schedule: a tenth of it (a shorter
+    warm-up for splats already in place) lost 0.05-0.15 dB of test PSNR in each of the four
+    measured cases (bench/bench_warm_start.py, docs/gaussians.md "Warm start"). `on_step(step, total)` is
+    called after every step (progress; raising from it stops the run).
 
     Seeded: bit-identical for a seed on one torch thread; with several threads, parallel
     sums may round differently in the last bits.
@@ -473,7 +257,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
     budget = int(config.splats_per_pixel * largest)
     n_iter = config.iterations
     densify_from, densify_until = int(config.densify_from * n_iter), int(config.densify_until * n_iter)
-    reset_every = int(config.opacity_reset_every * n_iter) if config.opacity_reset_every > 0 and init is None else 0
+    reset_every = opacity_reset_interval(config, warm=init is not None)
     sh_up = max(1, int(config.sh_up_every * n_iter))
     grad_sum = torch.zeros(splats.count)
     grad_count = torch.zeros(splats.count)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import shutil
-from typing import Any
+from typing import Any, Callable
 
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
@@ -55,10 +55,16 @@ def _remove(folder: Any) -> None:
         extra.unlink(missing_ok=True)
 
 
-async def _start(svc: ServiceState, who: Principal, kind: str, work: Work, record_id: str) -> JSONResponse:
-    """Queue a capture's structure-from-motion; 202 with the capture and the job's id."""
+async def _start(svc: ServiceState, who: Principal, kind: str, work: Work, record_id: str,
+                 undo: Callable[[], Any]) -> JSONResponse:
+    """Queue a capture's structure-from-motion; 202 with the capture and the job's id. When it
+    cannot be queued (429), `undo` takes back what the request did."""
     job_id = svc.jobs.new_id()
-    await svc.run(job_id, kind, work, 0.0, True, who)
+    try:
+        await svc.run(job_id, kind, work, 0.0, True, who)
+    except ServiceError:
+        await asyncio.to_thread(undo)
+        raise
     record = svc.captures.get(record_id)
     if record is None:
         raise not_found("capture", record_id)
@@ -82,12 +88,12 @@ async def create_capture(request: Request, svc: Service, who: Caller) -> JSONRes
         await asyncio.to_thread(_remove, upload.folder)
         raise
     work = reconstruct_job(record, upload, svc.captures, svc.settings, svc.ledger, test)
-    try:
-        return await _start(svc, who, "capture", work, record.id)
-    except ServiceError:
-        await asyncio.to_thread(svc.captures.delete, record.id)
-        await asyncio.to_thread(_remove, upload.folder)
-        raise
+
+    def undo() -> None:
+        svc.captures.delete(record.id)
+        _remove(upload.folder)
+
+    return await _start(svc, who, "capture", work, record.id, undo)
 
 
 @router.post("/captures/{capture_id}/photos", status_code=202, response_model=CaptureInfo,
@@ -109,12 +115,12 @@ async def add_capture_photos(capture_id: str, request: Request, svc: Service, wh
         await asyncio.to_thread(_remove, upload.folder)
         raise
     work = add_photos_job(record, upload, svc.captures, svc.settings, svc.ledger, test)
-    try:
-        return await _start(svc, who, "add_photos", work, record.id)
-    except ServiceError:
-        await asyncio.to_thread(svc.captures.update, record.id, state="ready")
-        await asyncio.to_thread(_remove, upload.folder)
-        raise
+
+    def undo() -> None:
+        svc.captures.update(record.id, state="ready")
+        _remove(upload.folder)
+
+    return await _start(svc, who, "add_photos", work, record.id, undo)
 
 
 @router.get("/captures", response_model=CaptureList)

@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from bench._harness import capture_path, pin_determinism, train
-from phd_core.uq.strategies import STRATEGIES
+from phd_core.scene import look_at
+from phd_core.uq.strategies import STRATEGIES, Evidence
 
 
 @pytest.fixture
@@ -21,7 +22,10 @@ def bench_nbv():
     (bench/nbv_experiments.py), which the tests after this one must not find registered (the CLI
     offers every registered strategy)."""
     shipped = dict(STRATEGIES)
-    yield importlib.import_module("bench.bench_nbv")
+    module = importlib.import_module("bench.bench_nbv")
+    if not set(module.nbv_experiments.EXPERIMENTS) <= set(STRATEGIES):     # imported before, its entries cleared
+        importlib.reload(module.nbv_experiments)
+    yield module
     STRATEGIES.clear()
     STRATEGIES.update(shipped)
 
@@ -51,3 +55,33 @@ def test_the_same_views_and_seed_train_the_same_model_bit_for_bit(pinned, bench_
     for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
         assert torch.equal(getattr(first, name), getattr(again, name)), name
     assert not torch.equal(first.means, other.means)          # the seed does reach the model
+
+
+def test_a_view_sees_the_sfm_points_in_its_frame_in_front_of_it_and_not_hidden_by_nearer_ones(bench_nbv) -> None:
+    camera = look_at((0, -5, 0), (0, 0, 0), width=40, height=30, fov_x=1.0)
+    points = torch.tensor([[0, 0, 0],       # at the centre, 5 ahead
+                           [0, 3, 0],       # behind it on the same ray: hidden
+                           [0, -6, 0],      # behind the camera
+                           [50, 0, 0],      # outside the frame
+                           [0, 0.2, 0]],    # behind it by 4 % of its depth: within the slack, seen
+                          dtype=torch.float64)
+    seen = bench_nbv.nbv_experiments.seen_points(camera, points)
+    assert seen.tolist() == [True, False, False, False, True]
+
+
+def test_sfm_coverage_picks_the_views_that_see_points_seen_by_fewer_than_two(bench_nbv) -> None:
+    experiments = bench_nbv.nbv_experiments
+    grid = torch.tensor([[x, 0.0, z] for x in (-1.0, -0.5, 0.0, 0.5, 1.0) for z in (-0.5, 0.5)],
+                        dtype=torch.float64)                                          # [10, 3] a wall at y = 0
+    points = torch.cat([grid, grid[:8] + torch.tensor([100.0, 0, 0], dtype=torch.float64)])  # 10 here, 8 at x = 100
+
+    def view(x: float):
+        return look_at((x, -5, 0), (x, 0, 0), width=40, height=30, fov_x=1.0)
+    candidates = [view(0), view(0), view(100)]      # two see the 10 points, one the 8
+    empty = torch.zeros(3, dtype=torch.float64)
+    evidence = experiments.with_points(Evidence(candidates, [], empty, empty), points)
+    chosen = STRATEGIES["sfm_coverage"].select(evidence, 3, 0)
+    # 10 points unseen count 2 each (20), then the twin adds only a second view of each (10) against 8 x 2 = 16
+    assert chosen.order == [0, 2, 1] and chosen.scores == [20.0, 10.0, 16.0]
+    with pytest.raises(ValueError, match="SfM points"):
+        STRATEGIES["sfm_coverage"].select(Evidence(candidates, [], empty, empty), 1, 0)

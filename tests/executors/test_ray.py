@@ -198,3 +198,27 @@ def test_the_service_runs_its_jobs_on_ray(cluster, model, svc_start, monkeypatch
         with pytest.raises(NotFoundError):
             phd.rank(info.id, candidates, dropout_ratio=0.2)
         assert phd.health().status == "ok"
+
+
+def test_a_capture_trains_on_ray(cluster, svc_start, tmp_path, monkeypatch) -> None:
+    """The capture loop's training runs as a Ray task that gets the capture's images and cameras as
+    bytes (no shared file system) and returns the model file; the model is stored and measured."""
+    from support.captures_loop import loop_photos
+
+    maps = []
+    real_map = RayExecutor.map
+
+    def counted(self, fn, chunks, *shared, done=None):
+        maps.append(getattr(fn, "func", fn).__name__)
+        return real_map(self, fn, chunks, *shared, done=done)
+
+    monkeypatch.setattr(RayExecutor, "map", counted)
+    shots = loop_photos(tmp_path)
+    server = svc_start(executor="ray", executor_address="auto", capture_max_size=shots.max_size)
+    with PHDClient(server.url) as phd:
+        capture = phd.create_capture(shots.initial, test=shots.test, **shots.sfm)
+        summary = capture.train(iterations=20, samples=3).summary
+        assert summary.test_psnr is not None and summary.r_drop is not None, summary
+        assert maps[0] == "train_shipped" and {"dropout_errors", "measure_views"} <= set(maps), maps
+        model = phd.get_model(summary.model_id)
+        assert model.details["capture_id"] == capture.id and model.num_training_cameras == summary.train_views

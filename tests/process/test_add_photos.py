@@ -1,6 +1,7 @@
 """Photos added to a capture (issue 49): registered into its reconstruction with the earlier
-frames fixed, so every earlier pose stays as it was; a photo of something else is named and,
-alone, changes nothing. Real photos: cup_colmap's, at 300 px."""
+frames and cameras fixed, so every earlier pose, intrinsic and undistorted image stays as it
+was; a photo of something else is named and, alone, changes nothing. Real photos: cup_colmap's,
+at 300 px."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import hashlib
 import json
 import shutil
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import pytest
@@ -16,7 +18,7 @@ from phd_core.data import load_dataset
 from phd_core.data.colmap import read_model
 from phd_core.errors import InputError
 from phd_core.process import add_photos, run_capture
-from phd_core.process.capture import REPORT
+from phd_core.process.capture import REPORT, read_report
 from support.alignment import relative_residual
 from support.cli import run
 
@@ -25,7 +27,7 @@ OTHER = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "flas
 FIRST, MORE = range(18, 34), range(34, 41)        # consecutive photos (tests/cli/test_cli_capture_photos.py)
 
 
-def folder_of(root: Path, numbers: range | list[int], extra: list[Path] = ()) -> Path:
+def folder_of(root: Path, numbers: range | list[int], extra: Sequence[Path] = ()) -> Path:
     root.mkdir()
     for n in numbers:
         shutil.copy(CUP / "images" / f"{n}.jpg", root)
@@ -73,6 +75,12 @@ def test_added_photos_register_and_the_earlier_poses_do_not_move(grown, first) -
     for name, (qvec, tvec) in poses(after).items():
         if name in old:
             assert np.allclose(qvec, old[name][0], atol=1e-9) and np.allclose(tvec, old[name][1], atol=1e-9), name
+    # The cameras keep their intrinsics (bundle adjustment moved the focal length by 0.4 % before
+    # they were held constant), so every earlier photo comes out of undistortion byte for byte.
+    for model in ("sparse/0", "distorted/sparse/0"):
+        cameras_before, cameras_after = read_model(first / model).cameras, read_model(capture / model).cameras
+        assert cameras_after == cameras_before, model
+    assert all((capture / "images" / name).read_bytes() == (first / "images" / name).read_bytes() for name in old)
     assert sorted(p.name for p in (capture / "images").iterdir()) == report.registered == sorted(
         [*old, *report.added])
     data = load_dataset(capture, "all")
@@ -87,12 +95,31 @@ def test_the_new_cameras_sit_where_the_captures_own_colmap_puts_them(grown) -> N
     capture, _, _ = grown
     ours = load_dataset(capture, "all", with_images=False)
     theirs = load_dataset(CUP, "all", with_images=False)
+    assert ours.names is not None and theirs.names is not None          # COLMAP captures name their images
     centre = {name: camera.c2w[:3, 3].double().numpy() for name, camera in zip(theirs.names, theirs.cameras)}
     a = np.array([camera.c2w[:3, 3].double().numpy() for camera in ours.cameras])
     b = np.array([centre[name] for name in ours.names])
     assert relative_residual(a, b) < 0.1
     added = [i for i, name in enumerate(ours.names) if int(name.split(".")[0]) in MORE]
     assert relative_residual(a[added], b[added]) < 0.1
+
+
+def test_photos_of_another_size_get_cameras_of_their_own(first, tmp_path) -> None:
+    """At 360 px the new photos cannot share the capture's 300 px camera: each gets its own,
+    whose focal length is estimated (from COLMAP's prior of 1.2 x 360 = 432 px to about the
+    capture's 188 px x 360 / 300), while the capture's camera stays as it was."""
+    capture = tmp_path / "cup"
+    shutil.copytree(first, capture)
+    report = add_photos(capture, [CUP / "images" / "34.jpg", CUP / "images" / "35.jpg"], max_size=360)
+    assert report.added == ["34.jpg", "35.jpg"] and report.cameras == 3
+    before, after = read_model(first / "distorted" / "sparse" / "0"), read_model(capture / "distorted" / "sparse" / "0")
+    (shared,) = before.cameras
+    assert after.cameras[shared] == before.cameras[shared]
+    new = [camera for camera_id, camera in after.cameras.items() if camera_id != shared]
+    expected = before.cameras[shared].params[0] * 360 / 300
+    assert all((camera.width, camera.height) == (360, 270) for camera in new)
+    assert all(abs(camera.params[0] / expected - 1) < 0.1 for camera in new), [camera.params for camera in new]
+    assert len(load_dataset(capture, "all", with_images=False).cameras) == len(FIRST) + 2
 
 
 def test_a_photo_of_something_else_alone_is_refused_and_nothing_changes(first, tmp_path) -> None:
@@ -117,6 +144,20 @@ def test_a_photo_of_something_else_alone_is_refused_and_nothing_changes(first, t
         add_photos(tmp_path, stranger)
     assert nowhere.value.field == "capture"
     assert tree_digest(capture) == before
+
+
+def test_a_report_written_before_photos_could_be_added_still_reads(first, tmp_path) -> None:
+    """phd_capture.json files from before `added` and `not_registered` existed load with both
+    empty; a damaged one is refused by field."""
+    written = json.loads((first / REPORT).read_text())
+    del written["added"], written["not_registered"]
+    (tmp_path / REPORT).write_text(json.dumps(written))
+    report = read_report(tmp_path)
+    assert report.added == [] and report.not_registered == [] and report.registered == written["registered"]
+    (tmp_path / REPORT).write_text(json.dumps({**written, "unknown": 1}))
+    with pytest.raises(InputError) as damaged:
+        read_report(tmp_path)
+    assert damaged.value.field == "capture" and "unknown" in damaged.value.reason
 
 
 def test_phd_capture_add_to(first, tmp_path, capsys) -> None:

@@ -130,6 +130,10 @@ def test_work_in_the_wrong_order_is_a_conflict_and_keys_own_their_captures(svc_s
         with pytest.raises(InvalidInputError) as wrong:
             capture.train("nosuchfamily")
         assert wrong.value.field == "model"
+        for family, options in (("3dgs", {"foo": 1}), ("2dgs", {"depth_distortion": -1.0})):
+            with pytest.raises(InvalidInputError) as bad:           # refused before a job, never a 500 in one
+                capture.train(family, options=options)
+            assert bad.value.field == "options"
         ann.delete_capture(capture.id)
         with pytest.raises(NotFoundError):
             ann.get_capture(capture.id)

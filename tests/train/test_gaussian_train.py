@@ -19,7 +19,8 @@ from phd_core.renderers.gs3d import rasterize, read_ply, read_sidecar
 from phd_core.renderers.provenance import measure_fit
 from phd_core.scene import scene_bounds
 from phd_core.train.gs3d import GAUSSIANS, TrainConfig, fit, train_gaussians
-from phd_core.train.splats import Splats, carve_points, densify, initial_model
+from phd_core.train.seeding import carve_points, initial_model
+from phd_core.train.splats import Splats, densify
 from support.fixtures import LEGO
 
 
@@ -179,7 +180,8 @@ CUP = LEGO.parent / "cup_colmap"
 
 def test_a_real_capture_starts_from_its_sfm_points_and_a_background_shell() -> None:
     from phd_core.data import load_dataset
-    from phd_core.train.splats import seed_model, training_background, training_extent
+    from phd_core.train.seeding import seed_model
+    from phd_core.train.splats import training_background, training_extent
 
     data = load_dataset(CUP, "train", downscale=20, views=4)
     assert data.alphas is None and data.points is not None
@@ -223,7 +225,7 @@ def test_sfm_points_without_colours_take_the_pixels_behind_them() -> None:
     brightness from the pixels follows COLMAP's (correlation 0.65 measured, where black points
     give none; the pixels are at 1/20 of the size COLMAP sampled, and no occlusion test is made)."""
     from phd_core.data import load_dataset
-    from phd_core.train.splats import seed_model
+    from phd_core.train.seeding import seed_model
 
     data = load_dataset(CUP, "train", downscale=20, views=8)
     centre, extent = scene_bounds(data.cameras)

@@ -16,7 +16,8 @@ from phd_core.renderers.gs2d import SurfelModel, rasterize_surfels, read_surfel_
 from phd_core.renderers.gs3d import read_sidecar
 from phd_core.scene import look_at
 from phd_core.train import gs2d
-from phd_core.train.splats import Splats, TrainConfig, densify, fit, initial_model
+from phd_core.train.seeding import initial_model
+from phd_core.train.splats import Splats, TrainConfig, densify, fit
 from support.fixtures import LEGO
 
 

@@ -31,14 +31,15 @@ def first(tmp_path_factory):
 
 def test_a_step_with_nothing_to_learn_gives_back_the_initial_splats(first) -> None:
     """With every learning rate 0 the run's output is its init to the bit: it started from those
-    splats (a cold start would give the seeded ones)."""
+    splats (a cold start would give the seeded ones) and skipped the opacity reset (10 steps: a
+    cold run's schedule resets the opacities at step 3)."""
     data = load_blender(LEGO, "train", downscale=8, views=[0, 10, 20, 30, 40, 50])
     init = load_model(first).model
-    model, _ = gs3d.splats.fit(data, TrainConfig(iterations=3, **STILL), gs3d.GAUSSIANS, progress=False, init=init)
+    model, _ = gs3d.splats.fit(data, TrainConfig(iterations=10, **STILL), gs3d.GAUSSIANS, progress=False, init=init)
     assert model.num_splats == init.num_splats
     for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
         assert torch.equal(getattr(model, name), getattr(init, name)), name
-    cold, _ = gs3d.splats.fit(data, TrainConfig(iterations=3, **STILL), gs3d.GAUSSIANS, progress=False)
+    cold, _ = gs3d.splats.fit(data, TrainConfig(iterations=10, **STILL), gs3d.GAUSSIANS, progress=False)
     assert cold.num_splats != init.num_splats or not torch.equal(cold.means, init.means)
 
 
@@ -102,3 +103,17 @@ def test_phd_train_continues_from_init(first, tmp_path, capsys) -> None:
     assert main(["train", "--model", "2dgs", "--data", str(LEGO), "--views", "6", "--downscale", "8",
                  "--iterations", "5", "--init", str(first), "--out", str(tmp_path / "s.ply"), "--quiet"]) == 2
     assert "init" in capsys.readouterr().err
+
+
+def test_phd_train_on_all_frames_trains_on_exactly_the_views_given(tmp_path) -> None:
+    """--split all with indices (the service's capture less its held-out photos): frames 0 and 8
+    are test frames of cup_colmap's train/test split, so a run that ignored --split would train on
+    other photos (or refuse index 70 of the 67 training frames)."""
+    cup = LEGO.parent / "cup_colmap"
+    out = tmp_path / "all.ply"
+    assert main(["train", "--data", str(cup), "--split", "all", "--views", "0,8,70", "--downscale", "16",
+                 "--iterations", "2", "--out", str(out), "--quiet"]) == 0
+    sidecar = read_sidecar(out)
+    held_out = load_dataset(cup, "test", views=[0, 1], downscale=16, with_images=False).cameras
+    assert sidecar["split"] == "all" and sidecar["view_indices"] == [0, 8, 70]
+    assert sidecar["training_cameras"][:2] == [c.to_frame() for c in held_out]
