@@ -137,7 +137,8 @@ def _round(number: int, report: CaptureReport, sent: list[str], folder: Path) ->
 def _test_names(report: CaptureReport, asked: list[str], sent: list[str]) -> list[str]:
     """The capture's names of the photos the request held out (asked by the names it sent them under)."""
     by_origin = {Path(origin).name: name for name, origin in report.origins.items()}
-    return [by_origin.get(name, name) for name in asked if by_origin.get(name, name) in set(sent)]
+    named = [by_origin.get(name, name) for name in asked]
+    return [name for name in named if name in set(sent)]
 
 
 def users_terms(exc: BaseException, upload: PhotoUpload) -> BaseException:
