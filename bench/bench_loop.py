@@ -259,7 +259,8 @@ def main() -> None:
                         per_round=args.per_round, iterations_per_view=args.iterations_per_view,
                         downscale=args.downscale, samples=args.samples)
                     write_result(path, {"record": record, "results": results})
-    write_doc(DOC, markdown(args.family, results, record), f"loop_{args.family}")
+    if args.results == RESULTS / "loop":            # a trial's results elsewhere stay out of the doc
+        write_doc(DOC, markdown(args.family, results, record), f"loop_{args.family}")
 
 
 if __name__ == "__main__":
