@@ -22,7 +22,7 @@ import uuid
 from collections import OrderedDict, deque
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 from .errors import ServiceError, from_exception
 from .jobstore import FINAL_STATES, INTERRUPTED
@@ -31,8 +31,16 @@ from .store import utc_now
 
 log = logging.getLogger("phd.service")
 
-# A job's work: gets a progress callback (fraction done), returns (result, artefacts by name).
-Work = Callable[[Callable[[float], None]], tuple[Any, dict[str, bytes]]]
+
+class JobProgress(Protocol):
+    """What a job's work reports through: the fraction done and, where the work can tell, its
+    seconds left (an estimate and a bound, `phd_core.train.clock`; None: not known)."""
+
+    def __call__(self, fraction: float, eta: tuple[float, float] | None = None) -> None: ...
+
+
+# A job's work: gets a progress callback, returns (result, artefacts by name).
+Work = Callable[[JobProgress], tuple[Any, dict[str, bytes]]]
 
 
 class QueueFull(Exception):
@@ -52,6 +60,7 @@ class JobRecord:
     owner: str | None = None                 # the API key name that submitted it (None: no keys)
     state: str = "queued"
     progress: float = 0.0
+    eta: tuple[float, float] | None = None   # seconds left: estimate, bound (the work's last word)
     created_at: str = field(default_factory=utc_now)
     started_at: str | None = None
     finished_at: str | None = None
@@ -64,7 +73,9 @@ class JobRecord:
     done: Future = field(default_factory=Future)   # resolves to the result when final
 
     def to_schema(self) -> Job:
+        left, most = (None, None) if self.eta is None or self.state != "running" else (round(t, 1) for t in self.eta)
         return Job(id=self.id, kind=self.kind, state=self.state, progress=self.progress,
+                   eta_seconds=left, eta_max_seconds=most,
                    created_at=self.created_at, started_at=self.started_at, finished_at=self.finished_at,
                    estimated_pixels=self.estimated_pixels, result=self.result,
                    error=None if self.error is None else self.error.detail(),
@@ -163,10 +174,11 @@ class JobManager:
             self._run(job)
 
     def _run(self, job: JobRecord) -> None:
-        def progress(fraction: float) -> None:
+        def progress(fraction: float, eta: tuple[float, float] | None = None) -> None:
             if job.cancel_requested.is_set():
                 raise JobCancelled()
             job.progress = max(job.progress, min(1.0, float(fraction)))
+            job.eta = eta
 
         try:
             result, artifacts = job.work(progress)

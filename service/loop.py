@@ -45,12 +45,13 @@ from phd_core.process import capture as sfm
 from phd_core.process.capture import STAGES, CaptureReport
 from phd_core.renderers import FAMILIES, Renderer
 from phd_core.scene import Camera
+from phd_core.train.config import StepCallback
 from phd_core.uq import Progress
 
 from .budget import MemoryLedger, OverBudget
 from .captures import CaptureRecord, CaptureStore
 from .errors import ServiceError, from_exception, insufficient_storage, invalid, not_found
-from .jobs import Work
+from .jobs import JobProgress, Work
 from .photos import PhotoUpload
 from .plans import Bounded, Renders, span
 from .requests import render_size, stored_cameras
@@ -247,7 +248,7 @@ class TrainSpec:
 
 
 def train_in(folder: Path, spec: TrainSpec, init: Path | None, out: Path,
-             on_step: Callable[[int, int], None] | None) -> None:
+             on_step: StepCallback | None) -> None:
     """Train `spec` on the capture in `folder`, writing the model to `out` (its sidecar beside)."""
     FAMILIES[spec.family].train(folder, split="all", views=spec.views, downscale=spec.downscale,
                                 iterations=spec.iterations, seed=spec.seed, out=out, progress=False,
@@ -347,14 +348,14 @@ def train_job(record: CaptureRecord, body: TrainRequest, captures: CaptureStore,
     samples = body.samples or uq.DEFAULT_CALIBRATION_SAMPLES
     estimate = float(sum(c.width * c.height for c in size) * samples * 10)
 
-    def work(progress: Progress) -> tuple[TrainResult, dict[str, bytes]]:
+    def work(progress: JobProgress) -> tuple[TrainResult, dict[str, bytes]]:
         out = store.new_temp_path().with_suffix(family.extension)
         try:
             started = time.perf_counter()
             with ledger.reserve(reserve):
                 if isinstance(executor, LocalExecutor):
                     train_in(folder, spec, None if init is None else store.path(init), out,
-                             lambda step, total: progress(0.8 * (step + 1) / total))
+                             lambda at: progress(0.8 * at.step / at.total, (at.seconds_left, at.seconds_left_max)))
                 else:
                     shipped = executor.share(capture_files(folder))
                     init_bytes = None if init is None else store.path(init).read_bytes()
@@ -454,7 +455,7 @@ def next_job(record: CaptureRecord, body: NextRequest, captures: CaptureStore, s
         fields["targets"] = body.targets
     work, estimate = rank_job(model, RankRequest(**fields), settings, job_url, ledger, executor, store)
 
-    def ranked(progress: Progress) -> tuple[RankResult, dict[str, bytes]]:
+    def ranked(progress: JobProgress) -> tuple[RankResult, dict[str, bytes]]:
         result, artifacts = work(progress)
         current = captures.get(record.id)
         if current is not None and current.rounds:

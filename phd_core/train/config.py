@@ -13,8 +13,9 @@ from ..renderers.composite import COMPOSITORS, DEFAULT_COMPOSITOR
 from ..renderers.splats import GaussianModel
 from ..renderers.splats.renderer import RenderOutput, SplatRenderer
 from ..scene import Camera
+from .clock import TrainStep
 
-StepCallback = Callable[[int, int], None]     # (step just done, steps in the run)
+StepCallback = Callable[[TrainStep], None]     # after every step: steps done, in the run, time left
 
 
 @dataclass

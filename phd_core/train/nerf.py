@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -36,6 +36,8 @@ from ..renderers.nerf import NeRFConfig, NeRFRenderer, RadianceField, band_weigh
 from ..renderers.nerf.family import NeRFOptions
 from ..renderers.provenance import record_training
 from ..scene import Camera, frustum_bounds, visual_hull
+from .clock import TrainClock
+from .config import StepCallback
 
 # 100x100 images, 16 views, 2 shared CPU cores: about 0.1 s per iteration, 4 minutes (docs/nerf.md).
 DEFAULT_ITERATIONS = 2000
@@ -80,7 +82,7 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
                encoding: str = NeRFOptions.encoding, freenerf: bool = NeRFOptions.freenerf,
                iterations: int | None = None, seed: int = 0, out: str | Path | None, progress: bool = True,
                split: str = "train", init: str | Path | None = None,
-               on_step: Callable[[int, int], None] | None = None, **overrides: Any) -> NeRFRenderer:
+               on_step: StepCallback | None = None, **overrides: Any) -> NeRFRenderer:
     """Train a NeRF on a split of `data` (`views` within it) and write it to `out` (None: don't write),
     with what identifies the capture and the fit reached on it when `data` is a path
     (`phd_core.renderers.provenance`; a Dataset in memory names no capture).
@@ -90,7 +92,7 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
     `freenerf` switches on both FreeNeRF parts; the overrides `freenerf_frequency` /
     `freenerf_occlusion` switch them one by one. Other overrides are `NeRFConfig` fields
     (depth, width, samples, bounds, ...) or `TrainSettings` fields (batch_rays, lr, ...).
-    iterations=None: DEFAULT_ITERATIONS. `on_step(step, total)` after every step (raising from it
+    iterations=None: DEFAULT_ITERATIONS. `on_step(TrainStep)` after every step (raising from it
     stops the run). A warm start (`init`) is for the splat families: refused here, since a NeRF's
     occupancy grid and bounds are fitted to the views it started with.
     """
@@ -144,7 +146,7 @@ def train_nerf(data: str | Path | Dataset, *, views: int | Sequence[int] = 16, d
 
 def fit(model: RadianceField, dataset: Dataset, settings: TrainSettings, *, iterations: int, seed: int,
         hull: torch.Tensor | None, progress: bool,
-        on_step: Callable[[int, int], None] | None = None) -> list[float]:
+        on_step: StepCallback | None = None) -> list[float]:
     """The optimisation loop; returns the loss of every iteration."""
     config = model.config
     generator = torch.Generator().manual_seed(seed)
@@ -165,6 +167,7 @@ def fit(model: RadianceField, dataset: Dataset, settings: TrainSettings, *, iter
     losses = []
     model.train()
     bar = tqdm(range(iterations), desc=f"nerf {config.encoding}", disable=not progress, unit="it")
+    clock = TrainClock(iterations)
     for step in bar:
         progress_share = step / iterations
         for group in optimizer.param_groups:
@@ -200,7 +203,7 @@ def fit(model: RadianceField, dataset: Dataset, settings: TrainSettings, *, iter
         if step % 50 == 0:
             bar.set_postfix(loss=f"{losses[-1]:.4f}", occupied=f"{model.grid.fraction:.3f}", samples=out.samples)
         if on_step is not None:
-            on_step(step, iterations)
+            on_step(clock.tick(step + 1))            # the model's size is fixed: the recent pace holds
     model.eval()
     return losses
 

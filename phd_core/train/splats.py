@@ -50,6 +50,7 @@ from ..renderers.splats import SIDECAR_FORMAT, GaussianModel, sidecar_path, writ
 from ..renderers.splats.renderer import SplatRenderer
 from ..scene import scene_bounds
 from ..scene.rotations import quaternion_to_rotation
+from .clock import TrainClock
 from .config import Recipe, StepCallback, TrainConfig
 from .seeding import seed_model, warm_start, with_sh_degree
 
@@ -236,8 +237,8 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
     bands the init has are active from the start; the opacity reset is skipped
     (`opacity_reset_interval`); the position rate keeps its schedule: a tenth of it (a shorter
     warm-up for splats already in place) lost 0.05-0.15 dB of test PSNR in each of the four
-    measured cases (bench/bench_warm_start.py, docs/gaussians.md "Warm start"). `on_step(step, total)` is
-    called after every step (progress; raising from it stops the run).
+    measured cases (bench/bench_warm_start.py, docs/gaussians.md "Warm start"). `on_step(TrainStep)` is
+    called after every step (progress and time left, `phd_core.train.clock`; raising from it stops the run).
 
     Seeded: bit-identical for a seed on one torch thread; with several threads, parallel
     sums may round differently in the last bits.
@@ -264,6 +265,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
     history: list[float] = []
     order = torch.randperm(len(dataset.cameras), generator=gen)
     bar = tqdm(range(n_iter), disable=not progress, desc=recipe.kind, unit="it", bar_format=GROWING_BAR)
+    clock = TrainClock(n_iter)
     for step in bar:
         if step == densify_until:
             bar.bar_format = None           # the splat count holds from here: tqdm's time left is fair
@@ -303,8 +305,8 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
         if step % 100 == 0 or step == n_iter - 1:
             history.append(round(loss.item(), 5))
             bar.set_postfix(loss=f"{loss.item():.4f}", splats=splats.count)
-        if on_step is not None:
-            on_step(step, n_iter)
+        if on_step is not None:          # the budget bounds the time left while densification may still grow it
+            on_step(clock.tick(step + 1, size=splats.count, budget=budget if step + 1 < densify_until else None))
     final = splats.model()
     keep = torch.sigmoid(final.opacity_logits.detach()) >= config.min_opacity
     detached = recipe.model_type(*(t.detach().clone() for t in (final.means, final.log_scales, final.quats,

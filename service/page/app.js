@@ -166,16 +166,34 @@ async function runJob(path, body, bar, onJob) {
   }
 }
 
-// Poll a job until it ends, its progress on the bar; its result, or its error as an ApiError.
+// A job's time left as the service estimates it (training), "" when it gives none.
+function timeLeft(job) {
+  if (job.eta_seconds == null) return "";
+  const text = "about " + Math.ceil(job.eta_seconds) + " s left";
+  return job.eta_max_seconds > 1.1 * job.eta_seconds + 1 ? text + " (at most " + Math.ceil(job.eta_max_seconds) + " s)" : text;
+}
+
+// Poll a job until it ends, its progress on the bar (and its time left in the element "<bar's id>-eta"
+// when the page has one); its result, or its error as an ApiError.
 async function pollJob(id, bar) {
-  for (let polls = 0; ; polls++) {
-    const job = (await apiJson("/v1/jobs/" + id)).data;
-    bar.value = job.progress;
-    if (job.state === "succeeded") return job.result;
-    if (job.state === "failed") throw new ApiError(job.error.message, job.error.code, job.error.field);
-    if (job.state === "cancelled") throw new ApiError("Cancelled.");
-    // Short jobs answer fast; long ones are polled four times a second.
-    await new Promise((resolve) => setTimeout(resolve, Math.min(250, 40 + 20 * polls)));
+  const eta = document.getElementById(bar.id + "-eta");
+  try {
+    for (let polls = 0; ; polls++) {
+      const job = (await apiJson("/v1/jobs/" + id)).data;
+      bar.value = job.progress;
+      bar.title = timeLeft(job);
+      if (eta) {
+        eta.textContent = bar.title;
+        eta.hidden = !bar.title;
+      }
+      if (job.state === "succeeded") return job.result;
+      if (job.state === "failed") throw new ApiError(job.error.message, job.error.code, job.error.field);
+      if (job.state === "cancelled") throw new ApiError("Cancelled.");
+      // Short jobs answer fast; long ones are polled four times a second.
+      await new Promise((resolve) => setTimeout(resolve, Math.min(250, 40 + 20 * polls)));
+    }
+  } finally {
+    if (eta) eta.hidden = true;
   }
 }
 

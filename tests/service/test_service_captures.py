@@ -148,9 +148,12 @@ def test_kill_9_mid_training_then_restart(tmp_path, shots) -> None:
             capture = phd.create_capture(shots.initial, test=shots.test, **shots.sfm)
             job = capture.train(iterations=100_000, wait=False)
             deadline = time.monotonic() + 60
-            while phd.get_job(job.id).progress <= 0.0:
+            while (running := phd.get_job(job.id)).progress <= 0.0:
                 assert time.monotonic() < deadline, "training did not report progress"
                 time.sleep(0.1)
+            # 100,000 steps left at a pace of milliseconds or more: minutes, bounded above by the splat budget
+            assert running.eta_seconds is not None and running.eta_max_seconds is not None
+            assert 100 < running.eta_seconds <= running.eta_max_seconds
             server.kill()                                       # SIGKILL while it trains
     finally:
         server.kill()
@@ -159,6 +162,7 @@ def test_kill_9_mid_training_then_restart(tmp_path, shots) -> None:
         with PHDClient(restarted.url) as phd:
             interrupted = phd.get_job(job.id)
             assert interrupted.state == "failed" and interrupted.error.code == "interrupted"
+            assert interrupted.eta_seconds is None
             again = phd.get_capture(capture.id)
             assert again.info.state == "ready" and again.info.rounds == capture.info.rounds
             assert phd.list_models() == []                       # no half-trained model was stored

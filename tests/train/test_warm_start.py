@@ -15,6 +15,7 @@ from phd_core.errors import InputError
 from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import read_sidecar
 from phd_core.train import gs2d, gs3d, nerf
+from phd_core.train.clock import TrainStep
 from phd_core.train.splats import TrainConfig
 from support.fixtures import LEGO
 
@@ -45,10 +46,11 @@ def test_a_step_with_nothing_to_learn_gives_back_the_initial_splats(first) -> No
 
 def test_a_warm_run_writes_what_it_continued_from_and_learns(first, tmp_path) -> None:
     out = tmp_path / "warm.ply"
-    steps: list[tuple[int, int]] = []
+    steps: list[TrainStep] = []
     gs3d.train_gaussians(LEGO, views=[0, 10, 20, 30, 40, 50], downscale=8, iterations=20, out=out, progress=False,
-                         init=first, on_step=lambda step, total: steps.append((step, total)))
-    assert steps == [(step, 20) for step in range(20)]
+                         init=first, on_step=steps.append)
+    assert [(at.step, at.total) for at in steps] == [(step, 20) for step in range(1, 21)]
+    assert steps[-1].seconds_left == 0 and all(0 <= at.seconds_left <= at.seconds_left_max for at in steps)
     sidecar = read_sidecar(out)
     assert sidecar["init"]["file"] == "first.ply" and sidecar["init"]["num_splats"] == load_model(first).num_units
     assert len(sidecar["training_cameras"]) == 6
@@ -62,15 +64,15 @@ def test_raising_from_the_step_callback_stops_the_run(tmp_path) -> None:
 
     seen = []
 
-    def stop_at_5(step: int, total: int) -> None:
-        seen.append(step)
-        if step == 5:
+    def stop_at_5(at: TrainStep) -> None:
+        seen.append(at.step)
+        if at.step == 5:
             raise Stop
 
     with pytest.raises(Stop):
         gs3d.train_gaussians(LEGO, views=4, downscale=8, iterations=50, out=tmp_path / "m.ply", progress=False,
                              on_step=stop_at_5)
-    assert seen == list(range(6)) and not (tmp_path / "m.ply").exists()
+    assert seen == list(range(1, 6)) and not (tmp_path / "m.ply").exists()
 
 
 def test_a_split_with_views_trains_on_exactly_those_cameras(tmp_path) -> None:
