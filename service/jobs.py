@@ -73,9 +73,10 @@ class JobRecord:
     done: Future = field(default_factory=Future)   # resolves to the result when final
 
     def to_schema(self) -> Job:
-        left, most = (None, None) if self.eta is None or self.state != "running" else (round(t, 1) for t in self.eta)
+        eta = self.eta if self.state == "running" else None          # a final job has nothing left
         return Job(id=self.id, kind=self.kind, state=self.state, progress=self.progress,
-                   eta_seconds=left, eta_max_seconds=most,
+                   eta_seconds=None if eta is None else round(eta[0], 1),
+                   eta_max_seconds=None if eta is None else round(eta[1], 1),
                    created_at=self.created_at, started_at=self.started_at, finished_at=self.finished_at,
                    estimated_pixels=self.estimated_pixels, result=self.result,
                    error=None if self.error is None else self.error.detail(),
