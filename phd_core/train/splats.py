@@ -265,7 +265,8 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
     history: list[float] = []
     order = torch.randperm(len(dataset.cameras), generator=gen)
     bar = tqdm(range(n_iter), disable=not progress, desc=recipe.kind, unit="it", bar_format=GROWING_BAR)
-    clock = TrainClock(n_iter)
+    clock = TrainClock(n_iter, budget=budget, grows_at=[s for s in range(max(1, densify_from), densify_until)
+                                                        if s % config.densify_every == 0])
     for step in bar:
         if step == densify_until:
             bar.bar_format = None           # the splat count holds from here: tqdm's time left is fair
@@ -305,8 +306,8 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
         if step % 100 == 0 or step == n_iter - 1:
             history.append(round(loss.item(), 5))
             bar.set_postfix(loss=f"{loss.item():.4f}", splats=splats.count)
-        if on_step is not None:          # the budget bounds the time left while densification may still grow it
-            on_step(clock.tick(step + 1, size=splats.count, budget=budget if step + 1 < densify_until else None))
+        if on_step is not None:
+            on_step(clock.tick(step + 1, size=splats.count))
     final = splats.model()
     keep = torch.sigmoid(final.opacity_logits.detach()) >= config.min_opacity
     detached = recipe.model_type(*(t.detach().clone() for t in (final.means, final.log_scales, final.quats,
