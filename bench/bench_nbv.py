@@ -114,6 +114,7 @@ PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma",
 # Image width per scene where it is not --resolution (square): the real capture is 4:3, 80x60 px
 # at the default resolution (as its training benchmark, docs/formats.md).
 WIDTH_SCALE = {"cup_colmap": 1.6}
+INITIAL = 4                 # views the first model is trained on (one by the seed, then FVS)
 FOLD = "@"      # "cup_colmap@3": holdout fold 3 of a capture with one image list (scene_fold)
 TARGETS = "targets"         # the run-name suffix of a run told the target views
 TEST_VIEWS = "testviews"    # ... told the test views themselves: the target gain's ceiling, not a protocol
@@ -131,7 +132,9 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--iterations", type=int, default=600)
     p.add_argument("--iterations-per-view", type=int, default=None, help="a budget that grows with the views: "
                    "every training runs this many iterations per view it is trained on (instead of --iterations)")
-    p.add_argument("--initial", type=int, default=4)
+    p.add_argument("--initial", type=int, default=INITIAL, help="views the first model is trained on (other than "
+                   f"{INITIAL}: results, doc section and plots of their own, e.g. a capture that needs more views "
+                   "to be seen at all)")
     p.add_argument("--per-round", type=int, default=2)
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--test-views", type=int, default=40)
@@ -194,7 +197,8 @@ def tag(args: argparse.Namespace, results: bool = False) -> str:
     found by its scene's name)."""
     family = ("" if args.family is None else "_real" if args.family == "real"
               else "_heldout" if results or args.family == "held" else f"_{args.family}s")
-    return family + ("" if args.resolution == 50 else f"_{args.resolution}px")
+    return (family + ("" if args.initial == INITIAL else f"_from{args.initial}")
+            + ("" if args.resolution == 50 else f"_{args.resolution}px"))
 
 
 def protocol(args: argparse.Namespace) -> dict:
@@ -312,7 +316,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
         if told_targets:
             test_evidence = dataclasses.replace(test_evidence, target_views=view_visibility(base, told_targets))
         if strategy_name in nbv_experiments.USES_POINTS:
-            test_evidence = nbv_experiments.with_points(test_evidence, train_data.points)
+            test_evidence = nbv_experiments.with_points(
+                test_evidence, nbv_experiments.points_for(strategy_name, train_data.points, base.model.means))
         result["spearman"][name] = spearman(strategy.select(test_evidence, 0, seed).scores, base_rmse)
         started = time.perf_counter()
         chosen, renderer, curve, ratios = list(init), base, [base_psnr], [ratio]
@@ -337,7 +342,8 @@ def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
                 if strategy.uses_fisher:
                     add_fisher(evidence, renderer, seed + round_)
                 if strategy_name in nbv_experiments.USES_POINTS:
-                    evidence = nbv_experiments.with_points(evidence, train_data.points)
+                    evidence = nbv_experiments.with_points(
+                        evidence, nbv_experiments.points_for(strategy_name, train_data.points, renderer.model.means))
                 picks = strategy.select(evidence, args.per_round, seed + round_).order[:args.per_round]
             seconds.append(time.perf_counter() - ranked_at)
             cost.append(seconds[-1] / len(candidates))
@@ -709,8 +715,9 @@ def real_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> 
     names = sorted({n for t in tasks for n in t["runs"]}, key=lambda n: (n not in BASELINES, n))
     views = [args.initial + args.per_round * r for r in range(args.rounds + 1)]
     shared = all(len({r["psnr"][0] for r in t["runs"].values()}) == 1 for t in tasks)
+    scenes = "" if tuple(args.scenes) == REAL_CAPTURES else f" --scenes {' '.join(args.scenes)}"
     lines = [f"Command: `PHD_CACHE_DIR=<a directory> OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 nice -n 10 .venv/bin/python "
-             f"-m bench.bench_nbv --family real --jobs 2 --resolution {args.resolution} --iterations-per-view "
+             f"-m bench.bench_nbv --family real{scenes} --jobs 2 --resolution {args.resolution} --iterations-per-view "
              f"{args.iterations_per_view} --initial {args.initial} --per-round {args.per_round} --rounds {args.rounds} "
              f"--seeds {' '.join(map(str, args.seeds))} --strategies {' '.join(names)}` "
              f"({platform.machine()}, {os.cpu_count()} cores shared with other work, one thread per task; load "

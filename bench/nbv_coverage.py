@@ -8,7 +8,9 @@ points it sees that at least one and at least two captured views see, averaged o
 stored runs and seeds. Beside it, the stored test PSNR per round and what an image of one flat colour (the
 mean of the candidate photos) scores on the test views: the floor a model must rise above. Then, for a
 capture given with --grow, the same coverage for farthest-view sampling at more views: how many views that
-capture needs to be seen as the others are at 10.
+capture needs to be seen as the others are at 10. Last, how many of the SfM points the captured photos could
+have triangulated (the point's track holds two of them): what a capture of only those photos would know of
+the points, against the whole reconstruction's points that `sfm_coverage` is given.
 
     PHD_CACHE_DIR=<a directory> OMP_NUM_THREADS=1 nice -n 19 .venv/bin/python -m bench.nbv_coverage
 """
@@ -20,11 +22,13 @@ import json
 import statistics
 from pathlib import Path
 
+import pycolmap
 import torch
 
 from bench import nbv_experiments
 from bench._harness import REAL_CAPTURES, RESULTS, capture_path, write_doc, write_result
 from bench.bench_nbv import DOC, initial_views, load_split
+from phd_core.data.colmap import find_model
 from phd_core.eval import psnr
 
 STORED = RESULTS / "nbv_real"
@@ -37,6 +41,23 @@ def coverage(seen_captured: torch.Tensor, seen_test: torch.Tensor) -> tuple[floa
     views = seen_captured.double().sum(0)                                           # [P]
     return (statistics.fmean(float((views[m] >= 1).double().mean()) for m in seen_test),
             statistics.fmean(float((views[m] >= 2).double().mean()) for m in seen_test))
+
+
+def photo_tracks(capture: Path, names: list[str]) -> list[set[int]]:
+    """[P] for each SfM point of `capture`, the photos of its track, as indices into `names` (others dropped)."""
+    model = find_model(capture)
+    assert model is not None
+    reconstruction = pycolmap.Reconstruction(str(model))
+    index = {image_id: names.index(image.name) for image_id, image in reconstruction.images.items()
+             if image.name in names}
+    return [{index[e.image_id] for e in point.track.elements if e.image_id in index}
+            for point in reconstruction.points3D.values()]
+
+
+def triangulated(tracks: list[set[int]], chosen: list[int]) -> float:
+    """The share of the points whose track holds at least two of the photos `chosen`."""
+    taken = set(chosen)
+    return sum(len(track & taken) >= 2 for track in tracks) / len(tracks)
 
 
 def measure(scene: str, grow: list[int]) -> dict:
@@ -55,11 +76,14 @@ def measure(scene: str, grow: list[int]) -> dict:
     covered = [[coverage(seen[run["chosen"][:n]], seen_test) for run in runs] for n in counts]
     mean_colour = torch.stack([im[..., :3].reshape(-1, 3).mean(0) for im in train.images]).mean(0)   # [3]
     flat = statistics.fmean(psnr(mean_colour.expand_as(im[..., :3]).clone(), im[..., :3]) for im in test.images)
+    assert train.names is not None
+    tracks = photo_tracks(capture_path(scene), list(train.names))
     grown = {n: [coverage(seen[initial_views(train.cameras, n, t["seed"])], seen_test) for t in tasks]
              for n in grow if n < len(train.cameras)}
     return {"scene": scene, "points": len(points), "candidates": len(train.cameras), "test_views": len(test.cameras),
             "seen_per_view": float(seen.double().mean()), "flat_psnr": flat, "views": counts, "runs": len(runs),
             "coverage": [[statistics.fmean(c[i] for c in at) for i in (0, 1)] for at in covered],
+            "triangulated": [statistics.fmean(triangulated(tracks, run["chosen"][:n]) for run in runs) for n in counts],
             "psnr": {n: [statistics.fmean(t["runs"][n]["psnr"][r] for t in tasks) for r in range(rounds + 1)]
                      for n in SHOWN},
             "fvs_coverage": {n: [statistics.fmean(c[i] for c in at) for i in (0, 1)] for n, at in grown.items()}}
@@ -88,6 +112,12 @@ def markdown(results: list[dict], command: str) -> str:
                       "|---|" + "---|" * len(r["fvs_coverage"]),
                       "| covered | " + " | ".join(f"{100 * a:.0f} % / {100 * b:.0f} %"
                                                   for a, b in r["fvs_coverage"].values()) + " |"]
+    lines += ["", "The SfM points the captured photos could have triangulated (a track holding two of them), of the "
+              "whole reconstruction's, over the same runs: what a capture of only those photos would know of its "
+              "points",
+              "",
+              "| capture | " + " | ".join(f"{n} views" for n in counts) + " |", "|---|" + "---|" * len(counts)]
+    lines += [f"| {r['scene']} | " + " | ".join(f"{100 * t:.1f} %" for t in r["triangulated"]) + " |" for r in results]
     return "\n".join(lines)
 
 

@@ -48,6 +48,8 @@ this module (bench_nbv.py does) makes them selectable by name in that process on
   not hidden by the other points: occlusion by a z-buffer of the points themselves (`seen_points`), not the model's
   render, so it needs nothing trained and works for a pose not yet photographed. The benchmark gives it the points
   (`with_points`): the whole reconstruction's, as the 3DGS training starts from them.
+- splat_coverage: sfm_coverage's rule on the trained model's splat centres instead of the SfM points (`points_for`),
+  what a ranking of any uploaded splat model could use: no SfM points needed.
 """
 
 from __future__ import annotations
@@ -101,8 +103,8 @@ EXPERIMENTS = ("kmedian", "kmedian_sigma", "kmedian_sq", "fvs_prefilter", "sigma
                "visibility_sigma_angle0.25", "visibility_sigma_fvs_angle0.25", "visibility_fvs", "tkmedian",
                "tlogmedian", "visibility_tkmedian", "visibility_tlogmedian", "visibility_sigma_fvs_support0.5",
                "visibility_sigma_fvs_support0.5_sqrt", "visibility_sigma_fvs_sqrt", "visibility_tlogstands",
-               "visibility_sigma_fvs_far", "sfm_coverage")
-USES_POINTS = ("sfm_coverage",)    # strategies the benchmark gives the capture's SfM points (`with_points`)
+               "visibility_sigma_fvs_far", "sfm_coverage", "splat_coverage")
+USES_POINTS = ("sfm_coverage", "splat_coverage")    # strategies the benchmark gives points (`points_for`)
 
 
 def _coverage(**options: Any) -> Callable[[Evidence, int, int], Selection]:
@@ -160,6 +162,12 @@ class PointsEvidence(Evidence):
     points: Tensor | None = None      # [P, 3] float64 the capture's SfM points (points3D)
 
 
+def points_for(strategy: str, sfm_points: Tensor | None, model_means: Tensor) -> Tensor | None:
+    """The points `strategy` (of USES_POINTS) is given: the capture's SfM points [P, 3], or for splat_coverage the
+    model's splat centres [G, 3]."""
+    return model_means.detach() if strategy == "splat_coverage" else sfm_points
+
+
 def with_points(evidence: Evidence, points: Tensor | None) -> PointsEvidence:
     """`evidence` carrying `points`, for a strategy of USES_POINTS."""
     return PointsEvidence(**{f.name: getattr(evidence, f.name) for f in fields(Evidence)},
@@ -189,7 +197,7 @@ def seen_points(camera: Camera, points: Tensor) -> Tensor:
 def _sfm_coverage(evidence: Evidence, k: int, seed: int) -> Selection:
     points = evidence.points if isinstance(evidence, PointsEvidence) else None
     if points is None or not len(points):
-        raise ValueError("sfm_coverage needs the capture's SfM points (bench.nbv_experiments.with_points)")
+        raise ValueError("sfm_coverage needs points (bench.nbv_experiments.with_points)")
     seen = torch.stack([seen_points(c, points) for c in evidence.candidates]).double()     # [C, P]
     views = torch.zeros(len(points), dtype=torch.float64)                           # [P] captured views seeing it
     for camera in evidence.captured:
@@ -219,6 +227,7 @@ def _sfm_coverage(evidence: Evidence, k: int, seed: int) -> Selection:
 for _strategy in (
         Strategy("sfm_coverage", "the candidate seeing most SfM points that fewer than two captured views see "
                  "(frustum, in front, occlusion by the points' z-buffer), greedy", _sfm_coverage, uses_dropout=False),
+        Strategy("splat_coverage", "sfm_coverage on the model's splat centres", _sfm_coverage, uses_dropout=False),
         Strategy("kmedian", "greedy k-median over the candidate poses", _k_median_strategy(_uniform, 1),
                  uses_dropout=False),
         Strategy("kmedian_sigma", "greedy k-median weighted by sigma_mean",
