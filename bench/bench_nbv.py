@@ -114,7 +114,6 @@ PLOTTED = ["random", "fvs", "fvs_sigma_floor", "visibility", "visibility_sigma",
 # Image width per scene where it is not --resolution (square): the real capture is 4:3, 80x60 px
 # at the default resolution (as its training benchmark, docs/formats.md).
 WIDTH_SCALE = {"cup_colmap": 1.6}
-INITIAL = 4                 # views the first model is trained on (one by the seed, then FVS)
 FOLD = "@"      # "cup_colmap@3": holdout fold 3 of a capture with one image list (scene_fold)
 TARGETS = "targets"         # the run-name suffix of a run told the target views
 TEST_VIEWS = "testviews"    # ... told the test views themselves: the target gain's ceiling, not a protocol
@@ -132,9 +131,11 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--iterations", type=int, default=600)
     p.add_argument("--iterations-per-view", type=int, default=None, help="a budget that grows with the views: "
                    "every training runs this many iterations per view it is trained on (instead of --iterations)")
-    p.add_argument("--initial", type=int, default=INITIAL, help="views the first model is trained on (other than "
-                   f"{INITIAL}: results, doc section and plots of their own, e.g. a capture that needs more views "
-                   "to be seen at all)")
+    p.add_argument("--initial", type=int, default=4, help="views the first model is trained on (at least: --cover)")
+    p.add_argument("--cover", type=float, default=None, help="the real family: start from more views than --initial "
+                   "where those do not yet see this share of what the test views see (their SfM points: "
+                   "`covering_views`), so that a capture seen a wall at a time (a room from inside) starts where "
+                   "views added can still be told apart")
     p.add_argument("--per-round", type=int, default=2)
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--test-views", type=int, default=40)
@@ -197,8 +198,7 @@ def tag(args: argparse.Namespace, results: bool = False) -> str:
     found by its scene's name)."""
     family = ("" if args.family is None else "_real" if args.family == "real"
               else "_heldout" if results or args.family == "held" else f"_{args.family}s")
-    return (family + ("" if args.initial == INITIAL else f"_from{args.initial}")
-            + ("" if args.resolution == 50 else f"_{args.resolution}px"))
+    return family + ("" if args.resolution == 50 else f"_{args.resolution}px")
 
 
 def protocol(args: argparse.Namespace) -> dict:
@@ -206,7 +206,8 @@ def protocol(args: argparse.Namespace) -> dict:
     of a fixed one stay valid)."""
     kept = ("resolution", "iterations", "initial", "per_round", "rounds", "test_views", "samples")
     return {k: getattr(args, k) for k in kept} | (
-        {"iterations_per_view": args.iterations_per_view} if args.iterations_per_view else {})
+        {"iterations_per_view": args.iterations_per_view} if args.iterations_per_view else {}) | (
+        {"cover": args.cover} if args.cover is not None else {})
 
 
 def budget(args: argparse.Namespace, views: int) -> int:
@@ -231,6 +232,26 @@ def initial_views(cameras: list, count: int, seed: int) -> list[int]:
     evidence = Evidence([cameras[i] for i in pool], [cameras[start]], empty, empty)
     order = STRATEGIES["fvs"].select(evidence, count - 1, seed).order
     return [start] + [pool[i] for i in order[:count - 1]]
+
+
+def covering_views(train_data: Dataset, test: Dataset, count: int, cover: float | None, seed: int) -> list[int]:
+    """`initial_views`, at least `count` and more until the views see `cover` of what the test views see: for each
+    test view the share of the SfM points it sees (`nbv_experiments.seen_points`) that one of the views sees,
+    averaged over the test views. Farthest-view sampling's order does not depend on how many it picks, so the
+    views grow one at a time along it."""
+    if cover is None:
+        return initial_views(train_data.cameras, count, seed)
+    if train_data.points is None:
+        raise ValueError("--cover needs captures with SfM points (COLMAP)")
+    points = train_data.points.double()
+    order = initial_views(train_data.cameras, len(train_data.cameras), seed)
+    seen = torch.stack([nbv_experiments.seen_points(train_data.cameras[i], points) for i in order])   # [V, P]
+    shown = [nbv_experiments.seen_points(camera, points) for camera in test.cameras]                   # T x [P]
+    for views in range(count, len(order) + 1):
+        covered = seen[:views].any(0)                                                                   # [P]
+        if statistics.fmean(float(covered[m].double().mean()) for m in shown if m.any()) >= cover:
+            return order[:views]
+    return order
 
 
 def scene_fold(scene: str) -> tuple[str, int | None]:
@@ -278,13 +299,13 @@ def calibrated_ratio(renderer: GaussianRenderer, captured: list, signal: str = D
 def run_task(scene: str, seed: int, args: argparse.Namespace) -> str:
     pin_determinism()
     path = args.results / f"{scene}-{seed}.json"
-    stored = json.loads(path.read_text()) if path.exists() else {}
-    if stored.get("protocol") != protocol(args):
-        stored = {}
     train_data = load_split(args, scene, "train")
     tests = len(load_split(args, scene, "test", with_images=False).cameras)
     test = load_split(args, scene, "test", views=min(args.test_views, tests))
-    init = initial_views(train_data.cameras, args.initial, seed)
+    init = covering_views(train_data, test, args.initial, args.cover, seed)
+    stored = json.loads(path.read_text()) if path.exists() else {}
+    if stored.get("protocol") != protocol(args) or stored.get("initial") != init:
+        stored = {}
     result = stored or {"scene": scene, "seed": seed, "protocol": protocol(args), "initial": init, "runs": {},
                         "spearman": {}}
     todo = [s for s in args.strategies
@@ -714,18 +735,24 @@ def real_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> 
     tasks = [t for scene_tasks in by_scene.values() for t in scene_tasks]
     names = sorted({n for t in tasks for n in t["runs"]}, key=lambda n: (n not in BASELINES, n))
     views = [args.initial + args.per_round * r for r in range(args.rounds + 1)]
+    cover = "" if args.cover is None else f" --cover {args.cover}"
+    start = (f"{args.initial} initial views (one by the seed, then FVS)" if args.cover is None else
+             f"at least {args.initial} initial views (one by the seed, then FVS), more until they see {args.cover:.0%} "
+             "of what the test views see (their SfM points; bench_nbv.covering_views): the table's `views` column")
     shared = all(len({r["psnr"][0] for r in t["runs"].values()}) == 1 for t in tasks)
     scenes = "" if tuple(args.scenes) == REAL_CAPTURES else f" --scenes {' '.join(args.scenes)}"
     lines = [f"Command: `PHD_CACHE_DIR=<a directory> OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 nice -n 10 .venv/bin/python "
              f"-m bench.bench_nbv --family real{scenes} --jobs 2 --resolution {args.resolution} --iterations-per-view "
-             f"{args.iterations_per_view} --initial {args.initial} --per-round {args.per_round} --rounds {args.rounds} "
+             f"{args.iterations_per_view} --initial {args.initial}{cover} --per-round {args.per_round} "
+             f"--rounds {args.rounds} "
              f"--seeds {' '.join(map(str, args.seeds))} --strategies {' '.join(names)}` "
              f"({platform.machine()}, {os.cpu_count()} cores shared with other work, one thread per task; load "
              f"average when this was written: {' '.join(map(str, load_average()))}). Protocol: the captures "
              "read by phd_core.data.load_dataset (distorted ones undistorted by pycolmap), every 8th frame a test "
              f"view, the rest candidates and the `+targets` runs' targets; the widest view {args.resolution} px "
-             f"wide, every view at its own aspect; {args.initial} initial views (one by the seed, then FVS), "
-             f"{args.per_round} views per round, {args.rounds} rounds ({' -> '.join(map(str, views))} views); "
+             f"wide, every view at its own aspect; {start}, "
+             f"{args.per_round} views per round, {args.rounds} rounds ({' -> '.join(map(str, views))} views "
+             f"from {args.initial}); "
              f"training {args.iterations_per_view} iterations per view "
              f"({' -> '.join(str(budget(args, v)) for v in views)}), from scratch every round, deterministic "
              "(bench._harness.pin_determinism); N = "
@@ -752,10 +779,9 @@ def real_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> 
                 continue
             lines.append(f"| {label(name)} | {baseline} | {final['pairs']} | {final['wins']} of {final['pairs']} | "
                          f"{interval_text(final)} | {interval_text(rounds)} |")
-    lines += ["", "Every task's final PSNR, and the rounds' PSNR where a curve did not rise every round "
-              f"({' -> '.join(map(str, views))} views):", "",
-              "| capture | seed | candidates | test views | round 0 | " + " | ".join(names) + " |",
-              "|---|---|---|---|---|" + "---|" * len(names)]
+    lines += ["", "Every task's final PSNR, and the rounds' PSNR where a curve did not rise every round:", "",
+              "| capture | seed | candidates | test views | views | round 0 | " + " | ".join(names) + " |",
+              "|---|---|---|---|---|---|" + "---|" * len(names)]
     sizes = {scene: [len(load_split(args, scene, split, with_images=False).cameras) for split in ("train", "test")]
              for scene in by_scene}
     for t in tasks:
@@ -766,8 +792,9 @@ def real_markdown(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> 
             cells.append("" if curve is None else f"{curve[-1]:.2f}" if rose
                          else f"{curve[-1]:.2f} (not rising: {' / '.join(f'{p:.2f}' for p in curve)})")
         first = next(iter(t["runs"].values()))["psnr"][0]
-        lines.append(f"| {t['scene']} | {t['seed']} | {sizes[t['scene']][0]} | {sizes[t['scene']][1]} | {first:.2f} | "
-                     + " | ".join(cells) + " |")
+        counts = " -> ".join(str(len(t["initial"]) + args.per_round * r) for r in range(args.rounds + 1))
+        lines.append(f"| {t['scene']} | {t['seed']} | {sizes[t['scene']][0]} | {sizes[t['scene']][1]} | {counts} | "
+                     f"{first:.2f} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -786,8 +813,9 @@ def plots(by_scene: dict[str, list[dict]], args: argparse.Namespace) -> None:
         series = {}
         for name in names:
             row = summary(tasks, name)
-            if row:
-                views = [args.initial + args.per_round * r for r in range(len(row["curve"]))]
+            if row:     # views: the mean over the tasks where --cover starts them from more than --initial
+                first = statistics.fmean(len(t["initial"]) for t in tasks if name in t["runs"])
+                views = [first + args.per_round * r for r in range(len(row["curve"]))]
                 series[name] = list(zip(views, row["curve"]))
         svg_plot(args.doc.parent / f"nbv_{scene}{tag(args)}.svg", series, "captured views", "test PSNR (dB)",
                  log_x=False)

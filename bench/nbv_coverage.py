@@ -31,7 +31,7 @@ from bench.bench_nbv import DOC, initial_views, load_split
 from phd_core.data.colmap import find_model
 from phd_core.eval import psnr
 
-STORED = RESULTS / "nbv_real"
+STORED = RESULTS / "nbv_real_4views"    # the real family's runs from 4 views for every capture, before --cover
 SHOWN = ("random", "fvs", "visibility_sigma_fvs")     # the runs whose chosen views are measured
 
 

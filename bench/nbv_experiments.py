@@ -197,7 +197,8 @@ def seen_points(camera: Camera, points: Tensor) -> Tensor:
 def _sfm_coverage(evidence: Evidence, k: int, seed: int) -> Selection:
     points = evidence.points if isinstance(evidence, PointsEvidence) else None
     if points is None or not len(points):
-        raise ValueError("sfm_coverage needs points (bench.nbv_experiments.with_points)")
+        raise ValueError("sfm_coverage needs the capture's SfM points, splat_coverage the model's splat centres "
+                         "(bench.nbv_experiments.with_points)")
     seen = torch.stack([seen_points(c, points) for c in evidence.candidates]).double()     # [C, P]
     views = torch.zeros(len(points), dtype=torch.float64)                           # [P] captured views seeing it
     for camera in evidence.captured:
