@@ -1,6 +1,7 @@
 """Where a splat run starts: the first splats of a cold start (`seed_model`: carved from the
 alpha masks, the SfM points, or uniform; `phd_core.train.splats`' docstring says when each), or
-the splats of a model to continue from (`warm_start`, the capture loop's next round)."""
+the splats of a model to continue from (`warm_start`, the capture loop's next round), with the
+SfM points only the new photos see added (`with_new_points`)."""
 
 from __future__ import annotations
 
@@ -118,12 +119,8 @@ def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: Train
         points, colours = carve_points(data, centre, extent, config.init_points, gen)
         spacing = None
     else:
-        assert data.point_colors is not None  # the readers that give points give their colours
-        points, colours = data.points.to(torch.float64), data.point_colors.to(torch.float64)
-        if not colours.any():           # a model published without colours (all black): the pixels behind
-            colour_sum, seen = pixels_behind(data, points)
-            colours = torch.where(seen[:, None] > 0, colour_sum / seen.clamp_min(1)[:, None], 0.5)
-        spacing = neighbour_spacing(points)
+        points = data.points.to(torch.float64)
+        colours, spacing = point_colours(data, points), neighbour_spacing(points)
     if data.alphas is None and config.background_splats > 0:
         eyes = torch.stack([c.center for c in data.cameras])
         radius = config.shell_radius * float((eyes - centre).norm(dim=1).max())
@@ -134,6 +131,50 @@ def seed_model(data: Dataset, centre: torch.Tensor, extent: float, config: Train
         colours = torch.cat([colours.double(), shell_colours])
         spacing = torch.cat([spacing.double(), shell_spacing])
     return initial_model(points.float(), colours.float(), config.sh_degree, extent, gen, recipe, spacing)
+
+
+def point_colours(data: Dataset, points: torch.Tensor) -> torch.Tensor:
+    """[P, 3] float64 colours of the SfM points `points` [P, 3] of `data`: theirs, or where the model was
+    published without colours (all black) the mean of the training pixels they project to."""
+    assert data.point_colors is not None  # the readers that give points give their colours
+    colours = data.point_colors.to(torch.float64)
+    if not colours.any():
+        colour_sum, seen = pixels_behind(data, points)
+        colours = torch.where(seen[:, None] > 0, colour_sum / seen.clamp_min(1)[:, None], 0.5)
+    return colours
+
+
+NEW_POINT_REACH = 2.0    # an SfM point farther than this many of its neighbour spacings from every splat is new
+
+
+def nearest_distance(points: torch.Tensor, means: torch.Tensor, cells: int = 1 << 22) -> torch.Tensor:
+    """[P] float64 distance from each of `points` [P, 3] to the nearest of `means` [G, 3] (chunked so that
+    no block holds more than `cells` distances: millions of splats fit)."""
+    out = torch.empty(len(points), dtype=torch.float64)
+    chunk = max(1, cells // max(1, len(means)))
+    means = means.double()
+    for start in range(0, len(points), chunk):
+        out[start:start + chunk] = torch.cdist(points[start:start + chunk], means).min(1).values
+    return out
+
+
+def with_new_points(model: GaussianModel, data: Dataset, extent: float, gen: torch.Generator,
+                    recipe: Recipe) -> GaussianModel:
+    """A warm start's splats plus a seeded splat (as `seed_model` seeds) at each SfM point of `data` that no
+    splat of `model` comes near (NEW_POINT_REACH of its neighbour spacing): what only the photos added since
+    the model was trained see, which densification would have to grow into from afar. Data without
+    SfM points, or with alpha masks (whose cold start carves, not seeds from points): `model` as it is."""
+    if data.alphas is not None or data.points is None or len(data.points) == 0 or model.num_splats == 0:
+        return model
+    points = data.points.to(torch.float64)
+    spacing = neighbour_spacing(points)                                               # [P]
+    new = nearest_distance(points, model.means) > NEW_POINT_REACH * spacing           # [P]
+    if not new.any():
+        return model
+    added = initial_model(points[new].float(), point_colours(data, points)[new].float(), model.sh_degree, extent,
+                          gen, recipe, spacing[new])
+    return recipe.model_type(*(torch.cat([getattr(model, k), getattr(added, k)]).contiguous()
+                               for k in ("means", "log_scales", "quats", "opacity_logits", "sh")))
 
 
 def with_sh_degree(model: GaussianModel, degree: int, recipe: Recipe) -> GaussianModel:

@@ -52,7 +52,7 @@ from ..scene import scene_bounds
 from ..scene.rotations import quaternion_to_rotation
 from .clock import TrainClock
 from .config import Recipe, StepCallback, TrainConfig
-from .seeding import seed_model, warm_start, with_sh_degree
+from .seeding import seed_model, warm_start, with_new_points, with_sh_degree
 
 
 def training_background(data: Dataset, given: Sequence[float] | None = None) -> tuple[float, float, float]:
@@ -232,8 +232,10 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
     """The optimisation loop; returns the trained model and the loss every 100 steps.
 
     `init` (a warm start): the splats to start from instead of the seeded ones, e.g. the last
-    round's model of an active capture after new photos came. Densification runs on the run's
-    schedule (the new views show new high-gradient regions) within the splat budget; the SH
+    round's model of an active capture after new photos came, plus a seeded splat at each SfM
+    point none of its splats comes near (`with_new_points`: what only the new photos see).
+    Densification runs on the run's schedule (the new views show new high-gradient regions)
+    within the splat budget; the SH
     bands the init has are active from the start; the opacity reset is skipped
     (`opacity_reset_interval`); the position rate keeps its schedule: a tenth of it (a shorter
     warm-up for splats already in place) lost 0.05-0.15 dB of test PSNR in each of the four
@@ -249,7 +251,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
     torch.manual_seed(config.seed)
     centre, extent = scene_bounds(dataset.cameras)
     model = seed_model(dataset, centre, extent, config, gen, recipe) if init is None else \
-        with_sh_degree(init, config.sh_degree, recipe)
+        with_new_points(with_sh_degree(init, config.sh_degree, recipe), dataset, extent, gen, recipe)
     start_degree = 0 if init is None else min(init.sh_degree, config.sh_degree)
     extent = training_extent(dataset, extent)
     splats = Splats(model, config, extent)

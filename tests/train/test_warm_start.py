@@ -1,21 +1,24 @@
-"""Warm starts (issue 49): a splat run continues from a model of its family, reports every step,
-stops when its callback raises, trains on an explicit split and views, and refuses an init of
-another family or background by name."""
+"""Warm starts (issue 49): a splat run continues from a model of its family, adds splats where only
+new photos' SfM points are, reports every step, stops when its callback raises, trains on an explicit
+split and views, and refuses an init of another family or background by name."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
 import torch
 
 from phd_cli import main
-from phd_core.data import load_blender, load_dataset
+from phd_core.data import Dataset, load_blender, load_dataset
 from phd_core.errors import InputError
 from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import read_sidecar
+from phd_core.renderers.splats import SH_C0
 from phd_core.train import gs2d, gs3d, nerf
 from phd_core.train.clock import TrainStep
+from phd_core.train.seeding import initial_model, nearest_distance, neighbour_spacing, with_new_points
 from phd_core.train.splats import TrainConfig
 from support.fixtures import LEGO
 
@@ -119,3 +122,34 @@ def test_phd_train_on_all_frames_trains_on_exactly_the_views_given(tmp_path) -> 
     held_out = load_dataset(cup, "test", views=[0, 1], downscale=16, with_images=False).cameras
     assert sidecar["split"] == "all" and sidecar["view_indices"] == [0, 8, 70]
     assert sidecar["training_cameras"][:2] == [c.to_frame() for c in held_out]
+
+
+def test_a_warm_start_adds_a_splat_at_each_sfm_point_no_splat_comes_near() -> None:
+    """The capture loop's next round: the photos added see parts the last model has no splat near.
+    Their SfM points are seeded as a cold start seeds them; the points the model already covers add
+    nothing, and the model's own splats are kept to the bit."""
+    gen = torch.Generator().manual_seed(0)
+    here = torch.rand(200, 3, generator=gen, dtype=torch.float64)                    # what the model covers
+    there = torch.rand(30, 3, generator=gen, dtype=torch.float64) + torch.tensor([5.0, 0, 0], dtype=torch.float64)
+    init = initial_model(here.float(), torch.full((200, 3), 0.5), 1, 1.0, gen, gs3d.GAUSSIANS)
+    points = torch.cat([here + 0.001, there])                                        # [230, 3]
+    colours = torch.rand(230, 3, generator=gen)
+    data = Dataset(cameras=[], images=None, alphas=None, indices=[], root=LEGO, split="train",
+                   background=(0.0, 0.0, 0.0), near=None, far=None, points=points, point_colors=colours)
+    model = with_new_points(init, data, 1.0, gen, gs3d.GAUSSIANS)
+    assert model.num_splats == 230
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        assert torch.equal(getattr(model, name)[:200], getattr(init, name)), name
+    assert torch.equal(model.means[200:], there.float())
+    assert torch.allclose(model.sh[200:, 0] * SH_C0 + 0.5, colours[200:], atol=1e-6)
+    assert torch.allclose(model.log_scales[200:, 0], (neighbour_spacing(points)[200:] / 2).log().float())
+    assert torch.equal(with_new_points(init, dataclasses.replace(data, points=here + 0.001), 1.0, gen,
+                                       gs3d.GAUSSIANS).means, init.means)            # nothing new: nothing added
+
+
+def test_the_nearest_splat_is_found_in_chunks_as_in_one_block() -> None:
+    gen = torch.Generator().manual_seed(1)
+    points, means = torch.randn(300, 3, generator=gen, dtype=torch.float64), torch.randn(70, 3, generator=gen)
+    brute = torch.tensor([min(float((p - m.double()).norm()) for m in means) for p in points], dtype=torch.float64)
+    assert torch.allclose(nearest_distance(points, means, cells=100), brute, rtol=0, atol=1e-12)   # 1 row a chunk
+    assert torch.allclose(nearest_distance(points, means), brute, rtol=0, atol=1e-12)
