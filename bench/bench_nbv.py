@@ -119,6 +119,7 @@ TARGETS = "targets"         # the run-name suffix of a run told the target views
 TEST_VIEWS = "testviews"    # ... told the test views themselves: the target gain's ceiling, not a protocol
 TARGETED = f"{DEFAULT_STRATEGY}+{TARGETS}"
 FAMILY = RESULTS / "nbv_scenes"   # bench/nbv_scenes.py's output: the held-out families
+REAL_COVER = 0.8     # the share of what the test views see that a real capture's first views see (`covering_views`)
 FAMILIES = ("held", "walk", "room", "real")   # nbv_scenes.py's kinds of scene, and real captures (REAL_CAPTURES)
 
 
@@ -132,10 +133,10 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--iterations-per-view", type=int, default=None, help="a budget that grows with the views: "
                    "every training runs this many iterations per view it is trained on (instead of --iterations)")
     p.add_argument("--initial", type=int, default=4, help="views the first model is trained on (at least: --cover)")
-    p.add_argument("--cover", type=float, default=None, help="the real family: start from more views than --initial "
-                   "where those do not yet see this share of what the test views see (their SfM points: "
-                   "`covering_views`), so that a capture seen a wall at a time (a room from inside) starts where "
-                   "views added can still be told apart")
+    p.add_argument("--cover", type=float, default=None, help="the real family (default there: "
+                   f"{REAL_COVER}): start from more views than --initial where those do not yet see this share of "
+                   "what the test views see (their SfM points: `covering_views`), so that a capture seen a wall at "
+                   "a time (a room from inside) starts where views added can still be told apart")
     p.add_argument("--per-round", type=int, default=2)
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--test-views", type=int, default=40)
@@ -163,6 +164,7 @@ def parse_args() -> argparse.Namespace:
     args = p.parse_args()
     args.captures = {}      # scene name -> capture folder, where it is not under --data
     if args.family == "real":
+        args.cover = REAL_COVER if args.cover is None else args.cover
         given = REAL_CAPTURES if args.scenes == p.get_default("scenes") else args.scenes
         args.captures = {Path(s).name: Path(s) if Path(s).is_dir() else capture_path(s) for s in given}
         args.scenes = list(args.captures)
