@@ -239,8 +239,8 @@ def initial_views(cameras: list, count: int, seed: int) -> list[int]:
 def covering_views(train_data: Dataset, test: Dataset, count: int, cover: float | None, seed: int) -> list[int]:
     """`initial_views`, at least `count` and more until the views see `cover` of what the test views see: for each
     test view the share of the SfM points it sees (`nbv_experiments.seen_points`) that one of the views sees,
-    averaged over the test views that see any. Farthest-view sampling's order does not depend on how many it picks, so the
-    views grow one at a time along it."""
+    averaged over the test views that see any. Farthest-view sampling's order does not depend on how many it
+    picks, so the views grow one at a time along it."""
     if cover is None:
         return initial_views(train_data.cameras, count, seed)
     if train_data.points is None:
