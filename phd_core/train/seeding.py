@@ -13,6 +13,7 @@ import torch
 
 from ..data import Dataset
 from ..errors import InputError
+from ..renderers.outputs.base import nearest_distances
 from ..renderers.splats import SH_C0, GaussianModel, read_sidecar
 from ..renderers.splats.renderer import SplatRenderer
 from ..scene import footprint, visual_hull
@@ -147,17 +148,6 @@ def point_colours(data: Dataset, points: torch.Tensor) -> torch.Tensor:
 NEW_POINT_REACH = 2.0    # an SfM point farther than this many of its neighbour spacings from every splat is new
 
 
-def nearest_distance(points: torch.Tensor, means: torch.Tensor, cells: int = 1 << 22) -> torch.Tensor:
-    """[P] float64 distance from each of `points` [P, 3] to the nearest of `means` [G, 3] (chunked so that
-    no block holds more than `cells` distances: millions of splats fit)."""
-    out = torch.empty(len(points), dtype=torch.float64)
-    chunk = max(1, cells // max(1, len(means)))
-    means = means.double()
-    for start in range(0, len(points), chunk):
-        out[start:start + chunk] = torch.cdist(points[start:start + chunk], means).min(1).values
-    return out
-
-
 def with_new_points(model: GaussianModel, data: Dataset, extent: float, gen: torch.Generator,
                     recipe: Recipe) -> GaussianModel:
     """A warm start's splats plus a seeded splat (as `seed_model` seeds) at each SfM point of `data` that no
@@ -168,7 +158,7 @@ def with_new_points(model: GaussianModel, data: Dataset, extent: float, gen: tor
         return model
     points = data.points.to(torch.float64)
     spacing = neighbour_spacing(points)                                               # [P]
-    new = nearest_distance(points, model.means) > NEW_POINT_REACH * spacing           # [P]
+    new = nearest_distances(points, model.means.detach()) > NEW_POINT_REACH * spacing  # [P]
     if not new.any():
         return model
     added = initial_model(points[new].float(), point_colours(data, points)[new].float(), model.sh_degree, extent,

@@ -15,10 +15,12 @@ from phd_core.data import Dataset, load_blender, load_dataset
 from phd_core.errors import InputError
 from phd_core.renderers import load_model
 from phd_core.renderers.gs3d import read_sidecar
+from phd_core.renderers.outputs import base as outputs_base
+from phd_core.renderers.outputs.base import nearest_distances
 from phd_core.renderers.splats import SH_C0
 from phd_core.train import gs2d, gs3d, nerf
 from phd_core.train.clock import TrainStep
-from phd_core.train.seeding import initial_model, nearest_distance, neighbour_spacing, with_new_points
+from phd_core.train.seeding import initial_model, neighbour_spacing, with_new_points
 from phd_core.train.splats import TrainConfig
 from support.fixtures import LEGO
 
@@ -147,9 +149,12 @@ def test_a_warm_start_adds_a_splat_at_each_sfm_point_no_splat_comes_near() -> No
                                        gs3d.GAUSSIANS).means, init.means)            # nothing new: nothing added
 
 
-def test_the_nearest_splat_is_found_in_chunks_as_in_one_block() -> None:
+def test_the_nearest_splat_is_found_in_chunks_as_in_one_block(monkeypatch) -> None:
+    """`with_new_points` measures each SfM point's distance to the splats with the project's chunked
+    `nearest_distances` (millions of splats fit): against brute force, one point a chunk and all at once."""
     gen = torch.Generator().manual_seed(1)
     points, means = torch.randn(300, 3, generator=gen, dtype=torch.float64), torch.randn(70, 3, generator=gen)
     brute = torch.tensor([min(float((p - m.double()).norm()) for m in means) for p in points], dtype=torch.float64)
-    assert torch.allclose(nearest_distance(points, means, cells=100), brute, rtol=0, atol=1e-12)   # 1 row a chunk
-    assert torch.allclose(nearest_distance(points, means), brute, rtol=0, atol=1e-12)
+    assert torch.allclose(nearest_distances(points, means), brute, rtol=0, atol=1e-12)
+    monkeypatch.setattr(outputs_base, "DISTANCE_CHUNK", 100)                        # 1 row a chunk
+    assert torch.allclose(nearest_distances(points, means), brute, rtol=0, atol=1e-12)
