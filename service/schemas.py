@@ -523,9 +523,10 @@ class Job(_Response):
     progress: float = Field(description="Fraction done in [0, 1].")
     eta_seconds: float | None = Field(None, description="Seconds left of the work the job is doing now, at its "
                                       "recent pace (training jobs while they train); null when not known.")
-    eta_max_seconds: float | None = Field(None, description="A bound on eta_seconds' work: its steps left as if "
-                                          "the model already had its splat budget (equal to eta_seconds once the "
-                                          "model cannot grow).")
+    eta_max_seconds: float | None = Field(None, description="A bound on eta_seconds' work: each step left priced at "
+                                          "the largest size the model can have by then (at most doubling at each "
+                                          "densification, within its splat budget); equal to eta_seconds once the "
+                                          "model cannot grow.")
     created_at: str
     started_at: str | None = None
     finished_at: str | None = None

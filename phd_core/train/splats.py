@@ -235,8 +235,7 @@ def fit(dataset: Dataset, config: TrainConfig, recipe: Recipe, *, progress: bool
     round's model of an active capture after new photos came, plus a seeded splat at each SfM
     point none of its splats comes near (`with_new_points`: what only the new photos see).
     Densification runs on the run's schedule (the new views show new high-gradient regions)
-    within the splat budget; the SH
-    bands the init has are active from the start; the opacity reset is skipped
+    within the splat budget; the SH bands the init has are active from the start; the opacity reset is skipped
     (`opacity_reset_interval`); the position rate keeps its schedule: a tenth of it (a shorter
     warm-up for splats already in place) lost 0.05-0.15 dB of test PSNR in each of the four
     measured cases (bench/bench_warm_start.py, docs/gaussians.md "Warm start"). `on_step(TrainStep)` is
