@@ -151,7 +151,7 @@ def test_kill_9_mid_training_then_restart(tmp_path, shots) -> None:
             while (running := phd.get_job(job.id)).progress <= 0.0:
                 assert time.monotonic() < deadline, "training did not report progress"
                 time.sleep(0.1)
-            # 100,000 steps left at a pace of milliseconds or more: minutes, bounded above by the splat budget
+            # 100,000 steps left at a pace of milliseconds or more: minutes, and at most the bound
             assert running.eta_seconds is not None and running.eta_max_seconds is not None
             assert 100 < running.eta_seconds <= running.eta_max_seconds
             server.kill()                                       # SIGKILL while it trains
